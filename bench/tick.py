@@ -1,0 +1,98 @@
+"""One tick of the paper scenario, split into tracking / guidance / planning; and a large case.
+
+    python bench/tick.py [--ticks 30] [--large-ticks 10]
+
+Prints a table and, last, one JSON line of figures (milliseconds, medians over ticks after the
+first, which includes OSQP setup and the exploratory face search).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from onboard.config import load_scenario  # noqa: E402
+from onboard.core.bearings import bearing, wrap  # noqa: E402
+from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
+from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
+from onboard.core.obstacles import Obstacles  # noqa: E402
+
+
+def run(setup: MonitorSetup, ticks: int, seed: int) -> dict[str, np.ndarray]:
+    """Closed loop on the core alone: truth follows each target's own plan (no socket, no sim)."""
+    rng = np.random.default_rng(seed)
+    state = initial_state(setup, rng)
+    truth = setup.initial_means.copy()
+    uav = np.array([150.0, 200.0, setup.grid.altitude_m])
+    ws = GuidanceWorkspace()
+    out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
+    for _ in range(ticks):
+        bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
+                         for j in range(setup.n_targets))
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
+        for k in out:
+            out[k].append(res.timings_s[k] * 1e3)
+        truth = np.array([p.means[0] for p in res.plans])
+        if res.next_position is not None:
+            uav = res.next_position
+    return {k: np.array(v[1:]) for k, v in out.items()}
+
+
+def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:
+    """20 targets and 20 obstacles in the same 1 km area."""
+    boxes = []
+    while len(boxes) < 20:
+        c = rng.uniform(100, 900, 2)
+        boxes.append(SimpleNamespace(center_m=(c[0], c[1], 15.0), size_m=(40.0, 40.0, 30.0),
+                                     yaw_rad=float(rng.uniform(0, np.pi))))
+    obstacles = Obstacles.from_boxes(boxes)
+    inflated = obstacles.inflate(base.guidance.obstacle_margin_m + 5)
+    means, goals = [], []
+    while len(means) < 20:
+        p = np.r_[rng.uniform(50, 950, 2), 0.0]
+        if not inflated.contains(p).any():
+            means.append(np.r_[p, 0, 0, 0])
+    while len(goals) < 20:
+        g = np.r_[rng.uniform(50, 950, 2), 0.0]
+        if not inflated.contains(g).any():
+            goals.append(g)
+    return replace(base, obstacles=obstacles, uav_obstacles=obstacles.inflate(10.0),
+                   initial_means=np.array(means), goals=np.array(goals))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ticks", type=int, default=30)
+    ap.add_argument("--large-ticks", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    sc = load_scenario("paper")
+    base = MonitorSetup.from_scenario(sc)
+    paper = run(base, args.ticks, args.seed)
+    large = run(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
+    print(f"paper scenario: 4 targets, {len(base.obstacles)} obstacles, T={base.guidance.horizon}, "
+          f"{base.n_particles} particles/target, {args.ticks} ticks")
+    for k, v in paper.items():
+        print(f"  {k:9s} median {np.median(v):8.1f} ms   p95 {np.percentile(v, 95):8.1f} ms")
+    print(f"large case: 20 targets, 20 obstacles, {args.large_ticks} ticks")
+    for k, v in large.items():
+        print(f"  {k:9s} median {np.median(v):8.1f} ms")
+    print(json.dumps({
+        "tick_ms_median": round(float(np.median(paper["tick"])), 2),
+        "tick_ms_p95": round(float(np.percentile(paper["tick"], 95)), 2),
+        "tracking_ms_median": round(float(np.median(paper["tracking"])), 2),
+        "guidance_ms_median": round(float(np.median(paper["guidance"])), 2),
+        "planning_ms_median": round(float(np.median(paper["planning"])), 2),
+        "large_tick_ms_median": round(float(np.median(large["tick"])), 2),
+    }))
+
+
+if __name__ == "__main__":
+    main()

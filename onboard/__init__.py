@@ -1,0 +1,1 @@
+"""Passive Monitor: the flight software (functional core in ``onboard.core``, shell around it)."""

@@ -1,0 +1,441 @@
+"""Scenario configuration: YAML in, typed, validated, immutable objects out.
+
+Every error names the key path and the reason, e.g. ``obstacles[2].size_m: must be > 0``.
+Degrees exist only in the file; the objects hold radians (``sigma_rad``, ``yaw_rad``).
+Only ``yaml.safe_load`` is used: nothing in a config file is ever executed.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+BUILTIN_SCENARIOS = ("paper",)
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing or invalid; the message starts with its key path."""
+
+
+# --------------------------------------------------------------------------- typed objects
+
+
+@dataclass(frozen=True)
+class Area:
+    min_m: tuple[float, float, float]
+    max_m: tuple[float, float, float]
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """True where each point (..., 3) lies inside the closed box."""
+        p = np.asarray(points, dtype=float)
+        return np.all((p >= np.asarray(self.min_m)) & (p <= np.asarray(self.max_m)), axis=-1)
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    dt_s: float
+    friction: float
+    mass_kg: float
+    process_noise_diag: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Target:
+    name: str
+    position_m: tuple[float, float, float]
+    velocity_mps: tuple[float, float, float]
+    goal: str
+
+    @property
+    def mean(self) -> np.ndarray:
+        return np.array(self.position_m + self.velocity_mps, dtype=float)
+
+
+@dataclass(frozen=True)
+class Box:
+    """A cuboid given by centre, extents (before yaw) and yaw about +z (radians, CCW from +x)."""
+
+    name: str
+    center_m: tuple[float, float, float]
+    size_m: tuple[float, float, float]
+    yaw_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class Guidance:
+    horizon: int
+    u_max_n: float
+    speed_max_mps: float
+    speed_polygon_sides: int
+    terminal_weight: float
+    stage_weight: float
+    smooth_weight: float
+    obstacle_margin_m: float
+    max_qp_solves: int
+
+
+@dataclass(frozen=True)
+class Sensor:
+    sigma_rad: float
+    p_detect: float
+    clutter_rate: float
+
+
+@dataclass(frozen=True)
+class Uav:
+    start_m: tuple[float, float, float]
+    altitude_m: float
+    step_m: float
+    n_radial: int
+    n_heading: int
+    obstacle_margin_m: float
+
+
+@dataclass(frozen=True)
+class Tracking:
+    particles: int
+    resample_ess_fraction: float
+
+
+@dataclass(frozen=True)
+class Planning:
+    objective: str
+
+
+@dataclass(frozen=True)
+class Mission:
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Origin:
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    origin: Origin
+    area: Area
+    dynamics: Dynamics
+    initial_cov_diag: tuple[float, ...]
+    targets: tuple[Target, ...]
+    goals: tuple[Box, ...]
+    obstacles: tuple[Box, ...]
+    guidance: Guidance
+    sensor: Sensor
+    uav: Uav
+    tracking: Tracking
+    planning: Planning
+    mission: Mission
+    source: str = field(default="<memory>", compare=False)
+
+    def goal_of(self, target: Target) -> Box:
+        return next(g for g in self.goals if g.name == target.goal)
+
+    @property
+    def initial_cov(self) -> np.ndarray:
+        return np.diag(self.initial_cov_diag)
+
+
+# --------------------------------------------------------------------------- reading helpers
+
+
+class _Node:
+    """A value in the YAML tree together with its key path, for error messages."""
+
+    def __init__(self, value: Any, path: str):
+        self.value = value
+        self.path = path
+
+    def fail(self, reason: str) -> ConfigError:
+        return ConfigError(f"{self.path or '<root>'}: {reason}")
+
+    def _child_path(self, key: str | int) -> str:
+        if isinstance(key, int):
+            return f"{self.path}[{key}]"
+        return f"{self.path}.{key}" if self.path else key
+
+    def mapping(self, keys: set[str]) -> "_Node":
+        if not isinstance(self.value, dict):
+            raise self.fail(f"must be a mapping, got {_kind(self.value)}")
+        unknown = sorted(str(k) for k in self.value if k not in keys)
+        if unknown:
+            raise self.fail(f"unknown key {unknown[0]!r} (expected one of: {', '.join(sorted(keys))})")
+        return self
+
+    def get(self, key: str, default: Any = ...) -> "_Node":
+        if key not in self.value:
+            if default is ...:
+                raise ConfigError(f"{self._child_path(key)}: missing")
+            return _Node(default, self._child_path(key))
+        return _Node(self.value[key], self._child_path(key))
+
+    def items(self, min_len: int = 0) -> list["_Node"]:
+        if not isinstance(self.value, list):
+            raise self.fail(f"must be a list, got {_kind(self.value)}")
+        if len(self.value) < min_len:
+            raise self.fail(f"must have at least {min_len} item(s)")
+        return [_Node(v, self._child_path(i)) for i, v in enumerate(self.value)]
+
+    def number(self, check: Callable[[float], bool] | None = None, why: str = "") -> float:
+        v = self.value
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.fail(f"must be a number, got {_kind(v)}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise self.fail("must be finite")
+        if check is not None and not check(v):
+            raise self.fail(why)
+        return v
+
+    def integer(self, lo: int, hi: int) -> int:
+        v = self.value
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(f"must be an integer, got {_kind(v)}")
+        if not lo <= v <= hi:
+            raise self.fail(f"must be in [{lo}, {hi}], got {v}")
+        return v
+
+    def vector(self, n: int, check: Callable[[float], bool] | None = None, why: str = "") -> tuple[float, ...]:
+        items = self.items()
+        if len(items) != n:
+            raise self.fail(f"must have {n} numbers, got {len(items)}")
+        return tuple(item.number(check, why) for item in items)
+
+    def text(self) -> str:
+        if not isinstance(self.value, str) or not self.value:
+            raise self.fail(f"must be a non-empty string, got {_kind(self.value)}")
+        return self.value
+
+    def choice(self, options: tuple[str, ...]) -> str:
+        v = self.text()
+        if v not in options:
+            raise self.fail(f"must be one of {', '.join(options)}, got {v!r}")
+        return v
+
+
+def _kind(v: Any) -> str:
+    return "nothing" if v is None else type(v).__name__
+
+
+def _positive(v: float) -> bool:
+    return v > 0
+
+
+def _nonneg(v: float) -> bool:
+    return v >= 0
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def _box(n: _Node, flat_ok: bool) -> Box:
+    n.mapping({"name", "center_m", "size_m", "yaw_deg"})
+    size_check = _nonneg if flat_ok else _positive
+    size = n.get("size_m").vector(3, size_check, "must be >= 0" if flat_ok else "must be > 0")
+    yaw = n.get("yaw_deg", 0.0).number(lambda v: -360 <= v <= 360, "must be in [-360, 360] degrees")
+    return Box(
+        name=n.get("name").text(),
+        center_m=n.get("center_m").vector(3),
+        size_m=size,
+        yaw_rad=math.radians(yaw),
+    )
+
+
+def _parse(root: _Node, source: str) -> Scenario:
+    root.mapping({
+        "name", "origin", "area", "dynamics", "initial_cov_diag", "targets", "goals", "obstacles",
+        "guidance", "sensor", "uav", "tracking", "planning", "mission",
+    })
+
+    o = root.get("origin").mapping({"lat_deg", "lon_deg", "alt_m"})
+    origin = Origin(
+        lat_deg=o.get("lat_deg").number(lambda v: -90 <= v <= 90, "must be in [-90, 90]"),
+        lon_deg=o.get("lon_deg").number(lambda v: -180 <= v <= 180, "must be in [-180, 180]"),
+        alt_m=o.get("alt_m").number(lambda v: -500 <= v <= 9000, "must be in [-500, 9000] m"),
+    )
+
+    a = root.get("area").mapping({"min_m", "max_m"})
+    lo, hi = a.get("min_m").vector(3), a.get("max_m").vector(3)
+    if not all(h > l for l, h in zip(lo, hi)):
+        raise a.get("max_m").fail("must be greater than area.min_m in every axis")
+    area = Area(lo, hi)
+
+    d = root.get("dynamics").mapping({"dt_s", "friction", "mass_kg", "process_noise_diag"})
+    dynamics = Dynamics(
+        dt_s=d.get("dt_s").number(_positive, "must be > 0"),
+        friction=d.get("friction").number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        mass_kg=d.get("mass_kg").number(_positive, "must be > 0"),
+        process_noise_diag=d.get("process_noise_diag").vector(6, _nonneg, "must be >= 0"),
+    )
+    initial_cov_diag = root.get("initial_cov_diag").vector(6, _nonneg, "must be >= 0")
+
+    goals = tuple(_box(g, flat_ok=True) for g in root.get("goals").items(min_len=1))
+    _unique_names(root.get("goals"), goals)
+    obstacles = tuple(_box(ob, flat_ok=False) for ob in root.get("obstacles", []).items())
+    _unique_names(root.get("obstacles", []), obstacles)
+
+    targets = []
+    for t in root.get("targets").items(min_len=1):
+        t.mapping({"name", "position_m", "velocity_mps", "goal"})
+        goal = t.get("goal").text()
+        if goal not in {g.name for g in goals}:
+            raise t.get("goal").fail(f"no goal named {goal!r} in goals")
+        targets.append(Target(
+            name=t.get("name").text(),
+            position_m=t.get("position_m").vector(3),
+            velocity_mps=t.get("velocity_mps", [0.0, 0.0, 0.0]).vector(3),
+            goal=goal,
+        ))
+    _unique_names(root.get("targets"), targets)
+
+    g = root.get("guidance").mapping({
+        "horizon", "u_max_n", "speed_max_mps", "speed_polygon_sides", "terminal_weight",
+        "stage_weight", "smooth_weight", "obstacle_margin_m", "max_qp_solves",
+    })
+    guidance = Guidance(
+        horizon=g.get("horizon").integer(2, 500),
+        u_max_n=g.get("u_max_n").number(_positive, "must be > 0"),
+        speed_max_mps=g.get("speed_max_mps").number(_positive, "must be > 0"),
+        speed_polygon_sides=g.get("speed_polygon_sides", 16).integer(4, 64),
+        terminal_weight=g.get("terminal_weight").number(_nonneg, "must be >= 0"),
+        stage_weight=g.get("stage_weight").number(_nonneg, "must be >= 0"),
+        smooth_weight=g.get("smooth_weight").number(_nonneg, "must be >= 0"),
+        obstacle_margin_m=g.get("obstacle_margin_m").number(_nonneg, "must be >= 0"),
+        max_qp_solves=g.get("max_qp_solves", 12).integer(1, 1000),
+    )
+    if guidance.terminal_weight == 0 and guidance.stage_weight == 0:
+        raise g.get("stage_weight").fail("stage_weight and terminal_weight cannot both be 0")
+
+    s = root.get("sensor").mapping({"sigma_deg", "p_detect", "clutter_rate"})
+    sensor = Sensor(
+        sigma_rad=math.radians(s.get("sigma_deg").number(lambda v: 0 < v <= 90, "must be in (0, 90] degrees")),
+        p_detect=s.get("p_detect").number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        clutter_rate=s.get("clutter_rate").number(lambda v: 0 <= v <= 1000, "must be in [0, 1000]"),
+    )
+
+    u = root.get("uav").mapping({"start_m", "altitude_m", "step_m", "n_radial", "n_heading", "obstacle_margin_m"})
+    uav = Uav(
+        start_m=u.get("start_m").vector(3),
+        altitude_m=u.get("altitude_m").number(_positive, "must be > 0"),
+        step_m=u.get("step_m").number(_positive, "must be > 0"),
+        n_radial=u.get("n_radial").integer(0, 100),
+        n_heading=u.get("n_heading").integer(1, 360),
+        obstacle_margin_m=u.get("obstacle_margin_m", 10.0).number(_nonneg, "must be >= 0"),
+    )
+
+    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction"})
+    tracking = Tracking(
+        particles=tr.get("particles").integer(10, 1_000_000),
+        resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
+            lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+    )
+    planning = Planning(
+        objective=root.get("planning").mapping({"objective"}).get("objective", "trace").choice(
+            ("trace", "position_trace")),
+    )
+    mission = Mission(
+        duration_s=root.get("mission").mapping({"duration_s"}).get("duration_s").number(
+            _positive, "must be > 0"),
+    )
+
+    scenario = Scenario(
+        name=root.get("name").text(), origin=origin, area=area, dynamics=dynamics,
+        initial_cov_diag=initial_cov_diag, targets=tuple(targets), goals=goals,
+        obstacles=obstacles, guidance=guidance, sensor=sensor, uav=uav, tracking=tracking,
+        planning=planning, mission=mission, source=source,
+    )
+    _check_geometry(root, scenario)
+    return scenario
+
+
+def _unique_names(node: _Node, things) -> None:
+    seen: set[str] = set()
+    for i, thing in enumerate(things):
+        if thing.name in seen:
+            raise ConfigError(f"{node.path}[{i}].name: duplicate name {thing.name!r}")
+        seen.add(thing.name)
+
+
+def _check_geometry(root: _Node, sc: Scenario) -> None:
+    """Cross-field checks: things inside the area, not inside obstacles."""
+    # imported here: the core imports nothing from this module, keep it that way
+    from onboard.core.obstacles import Obstacles
+
+    obstacles = Obstacles.from_boxes(sc.obstacles)
+    ground_obstacles = obstacles.inflate(sc.guidance.obstacle_margin_m)
+
+    def inside_area(path: str, p) -> None:
+        if not sc.area.contains(np.asarray(p)):
+            shown = tuple(float(v) for v in p)
+            raise ConfigError(f"{path}: {shown} is outside the area {sc.area.min_m}..{sc.area.max_m}")
+
+    for i, t in enumerate(sc.targets):
+        inside_area(f"targets[{i}].position_m", t.position_m)
+        hit = ground_obstacles.containing(np.asarray(t.position_m))
+        if hit is not None:
+            raise ConfigError(f"targets[{i}].position_m: inside obstacle {sc.obstacles[hit].name!r} "
+                              f"(inflated by guidance.obstacle_margin_m)")
+    for i, g in enumerate(sc.goals):
+        inside_area(f"goals[{i}].center_m", g.center_m)
+        hit = ground_obstacles.containing(np.asarray(g.center_m))
+        if hit is not None:
+            raise ConfigError(f"goals[{i}].center_m: inside obstacle {sc.obstacles[hit].name!r} "
+                              f"(inflated by guidance.obstacle_margin_m)")
+    start = np.array(sc.uav.start_m)
+    inside_area("uav.start_m", start)
+    if not sc.area.min_m[2] <= sc.uav.altitude_m <= sc.area.max_m[2]:
+        raise ConfigError(f"uav.altitude_m: {sc.uav.altitude_m} is outside the area's altitude range")
+    hit = obstacles.inflate(sc.uav.obstacle_margin_m).containing(
+        np.array([start[0], start[1], sc.uav.altitude_m]))
+    if hit is not None:
+        raise ConfigError(f"uav.start_m: at altitude uav.altitude_m it is inside obstacle "
+                          f"{sc.obstacles[hit].name!r} (inflated by uav.obstacle_margin_m)")
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def parse_scenario(data: Any, source: str = "<memory>") -> Scenario:
+    """Validate an already-parsed YAML tree (a dict) into a Scenario."""
+    return _parse(_Node(data, ""), source)
+
+
+def load_scenario(path_or_name: str | Path = "paper") -> Scenario:
+    """Load a scenario from a YAML file, or a built-in one by name (``paper``)."""
+    text, source = _read(path_or_name)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{source}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    try:
+        return parse_scenario(data, source)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _read(path_or_name: str | Path) -> tuple[str, str]:
+    if isinstance(path_or_name, str) and path_or_name in BUILTIN_SCENARIOS:
+        res = resources.files("onboard") / "data" / f"{path_or_name}.yaml"
+        return res.read_text(encoding="utf-8"), f"<builtin {path_or_name}>"
+    path = Path(path_or_name)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(raw) > 1_000_000:
+        raise ConfigError(f"{path}: larger than 1 MB; not a scenario file")
+    try:
+        return raw.decode("utf-8"), str(path)
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None

@@ -1,0 +1,60 @@
+"""Target motion model: eq:target_dynamics, eq:PhiGamma and eq:state_prediction.
+
+State x = [px, py, pz, vx, vy, vz] (m, m/s); control u = [ux, uy, uz] (N).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class MotionModel:
+    """x_t = A x_(t-1) + B u_(t-1) + nu,  nu ~ N(0, Q)."""
+
+    A: np.ndarray  # (6, 6)
+    B: np.ndarray  # (6, 3), N -> state increment
+    Q: np.ndarray  # (6, 6), m^2 and (m/s)^2
+    dt_s: float
+    friction: float
+    mass_kg: float
+
+    @classmethod
+    def create(cls, dt_s: float, friction: float, mass_kg: float, process_noise_diag) -> "MotionModel":
+        eye, zero = np.eye(3), np.zeros((3, 3))
+        A = np.block([[eye, dt_s * eye], [zero, (1.0 - friction) * eye]])
+        B = np.vstack([zero, (dt_s / mass_kg) * eye])
+        Q = np.diag(np.asarray(process_noise_diag, dtype=float))
+        for m in (A, B, Q):
+            m.setflags(write=False)
+        return cls(A, B, Q, dt_s, friction, mass_kg)
+
+    @property
+    def Q_sqrt(self) -> np.ndarray:
+        """A square root of Q (diagonal here, so elementwise) for sampling."""
+        return np.sqrt(np.clip(np.diag(self.Q), 0.0, None))
+
+
+def predict_mean(model: MotionModel, mean: np.ndarray, controls: np.ndarray) -> np.ndarray:
+    """Predicted means mu_(t+tau+1|t), tau = 0..T-1, for controls (T, 3): returns (T, 6)."""
+    controls = np.asarray(controls, dtype=float)
+    out = np.empty((len(controls), 6))
+    x = np.asarray(mean, dtype=float)
+    for k, u in enumerate(controls):
+        x = model.A @ x + model.B @ u
+        out[k] = x
+    return out
+
+
+def predict_cov(model: MotionModel, cov: np.ndarray, steps: int) -> np.ndarray:
+    """Predicted covariances Sigma_(t+tau+1|t), tau = 0..steps-1: returns (steps, 6, 6).
+
+    They do not depend on the controls, so the guidance can compute them once per tick.
+    """
+    out = np.empty((steps, 6, 6))
+    P = np.asarray(cov, dtype=float)
+    for k in range(steps):
+        P = model.A @ P @ model.A.T + model.Q
+        out[k] = P
+    return out

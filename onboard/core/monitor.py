@@ -1,0 +1,142 @@
+"""One tick of the monitor: scans in; estimates, target plans and the next UAV position out.
+
+Order within a tick t (the beliefs held between ticks are the predictions for the next scan):
+  1. update each target's predicted belief bel(x_t) with the scans taken at time t;
+  2. posterior mean and covariance; resample when the effective sample size is low;
+  3. guidance (P1) from each posterior mean, warm-started by the previous plan;
+  4. predict each belief to t+1 with the plan's first control u_(t|t) and noise Q;
+  5. choose s_(t+1) around ``plan_from`` by pseudo-updating those predictions.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from onboard.core import tracking
+from onboard.core.dynamics import MotionModel
+from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.obstacles import Obstacles
+from onboard.core.planning import CandidateGrid, PlanningResult, choose_next_position
+
+
+@dataclass(frozen=True, eq=False)
+class MonitorSetup:
+    """Everything static about a mission, built once from a scenario."""
+
+    model: MotionModel
+    sensor: tracking.SensorModel
+    guidance: GuidanceParams
+    obstacles: Obstacles  # as built; the guidance inflates by its own margin
+    uav_obstacles: Obstacles  # inflated by the UAV's clearance margin
+    goals: np.ndarray  # (M, 3) goal centroid per target
+    initial_means: np.ndarray  # (M, 6)
+    initial_cov: np.ndarray  # (6, 6)
+    grid: CandidateGrid
+    area_min: np.ndarray
+    area_max: np.ndarray
+    n_particles: int
+    resample_fraction: float
+    objective: str
+
+    @classmethod
+    def from_scenario(cls, sc, **overrides) -> "MonitorSetup":
+        obstacles = Obstacles.from_boxes(sc.obstacles)
+        d = sc.dynamics
+        fields = dict(
+            model=MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag),
+            sensor=tracking.SensorModel.from_config(sc.sensor),
+            guidance=GuidanceParams.from_config(sc.guidance),
+            obstacles=obstacles,
+            uav_obstacles=obstacles.inflate(sc.uav.obstacle_margin_m),
+            goals=np.array([sc.goal_of(t).center_m for t in sc.targets], dtype=float),
+            initial_means=np.array([t.mean for t in sc.targets]),
+            initial_cov=sc.initial_cov,
+            grid=CandidateGrid.from_config(sc.uav),
+            area_min=np.array(sc.area.min_m), area_max=np.array(sc.area.max_m),
+            n_particles=sc.tracking.particles,
+            resample_fraction=sc.tracking.resample_ess_fraction,
+            objective=sc.planning.objective,
+        )
+        fields.update(overrides)
+        return cls(**fields)
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.goals)
+
+
+@dataclass(frozen=True, eq=False)
+class MonitorState:
+    beliefs: tuple[tracking.ParticleSet, ...]  # predicted beliefs for the next scan time
+    plans: tuple[Plan | None, ...]
+    step: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """Bearings (rad, per target channel) taken from one sensor position (ENU, m)."""
+
+    sensor_position: np.ndarray
+    bearings: tuple[np.ndarray, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class TickResult:
+    means: np.ndarray  # (M, 6) posterior means at this tick
+    covs: np.ndarray  # (M, 6, 6)
+    plans: tuple[Plan, ...]
+    planning: PlanningResult | None
+    degenerate: np.ndarray  # (M,) bool: the update left no finite weight; the prior was kept
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def next_position(self) -> np.ndarray | None:
+        return None if self.planning is None else self.planning.position
+
+
+def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
+    beliefs = tuple(tracking.initialise(m, setup.initial_cov, setup.n_particles, rng)
+                    for m in setup.initial_means)
+    return MonitorState(beliefs, (None,) * setup.n_targets, 0)
+
+
+def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: np.random.Generator,
+         plan_from: np.ndarray | None = None, workspace: GuidanceWorkspace | None = None,
+         timer: Callable[[], float] = time.perf_counter) -> tuple[MonitorState, TickResult]:
+    """Run one tick. ``plan_from`` (ENU, m): where the candidate set is centred (where the UAV
+    is or will be at the next tick); None skips the UAV planning (e.g. fixed sensors)."""
+    t0 = timer()
+    M = setup.n_targets
+    posts, degenerate = [], np.zeros(M, dtype=bool)
+    means, covs = np.zeros((M, 6)), np.zeros((M, 6, 6))
+    for j in range(M):
+        j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j]) for s in scans]
+        upd = tracking.update(state.beliefs[j], j_scans, setup.sensor)
+        degenerate[j] = upd.degenerate
+        means[j], covs[j] = tracking.estimate(upd.particles)
+        posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng))
+    t1 = timer()
+
+    plans = tuple(
+        plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
+                      previous=state.plans[j], workspace=workspace, key=j, timer=timer)
+        for j in range(M))
+    t2 = timer()
+
+    beliefs = tuple(tracking.predict(posts[j], setup.model, plans[j].next_control, rng) for j in range(M))
+    t3 = timer()
+
+    planning = None
+    if plan_from is not None:
+        particles = np.stack([b.particles for b in beliefs])
+        log_w = np.stack([b.log_weights for b in beliefs])
+        planning = choose_next_position(particles, log_w, np.asarray(plan_from, float), setup.grid,
+                                        setup.sensor.sigma_rad, setup.area_min, setup.area_max,
+                                        setup.uav_obstacles, setup.objective)
+    t4 = timer()
+    timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
+    return (MonitorState(beliefs, plans, state.step + 1),
+            TickResult(means, covs, plans, planning, degenerate, timings))

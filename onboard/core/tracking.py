@@ -1,0 +1,139 @@
+"""Per-target particle filter with the clutter-aware set likelihood (eq:bayes_filter, eq:rfs_like).
+
+Weights are kept as normalised log-weights so that no underflow turns into NaN.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import logsumexp
+
+from onboard.core.bearings import bearing, wrap
+from onboard.core.dynamics import MotionModel
+
+LOG_2PI = np.log(2.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Direction finder: bearing noise sigma (rad), detection probability, clutter.
+
+    Clutter: Poisson(clutter_rate) false bearings per scan, uniform on (-pi, pi] (density 1/2pi).
+    """
+
+    sigma_rad: float
+    p_detect: float
+    clutter_rate: float
+
+    @classmethod
+    def from_config(cls, s) -> "SensorModel":
+        return cls(s.sigma_rad, s.p_detect, s.clutter_rate)
+
+    @property
+    def clutter_density(self) -> float:
+        return 1.0 / (2.0 * np.pi)
+
+
+@dataclass(frozen=True, eq=False)
+class ParticleSet:
+    particles: np.ndarray  # (N, 6)
+    log_weights: np.ndarray  # (N,), logsumexp == 0
+
+    def __len__(self) -> int:
+        return len(self.log_weights)
+
+    @property
+    def weights(self) -> np.ndarray:
+        return np.exp(self.log_weights)
+
+
+def initialise(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> ParticleSet:
+    """n particles drawn from N(mean, cov), equal weights."""
+    particles = rng.multivariate_normal(np.asarray(mean, float), np.asarray(cov, float), size=n,
+                                        method="cholesky")
+    return ParticleSet(particles, np.full(n, -np.log(n)))
+
+
+def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.random.Generator) -> ParticleSet:
+    """eq:prediction: x' = A x + B u + nu, nu ~ N(0, Q), per particle."""
+    noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
+    particles = ps.particles @ model.A.T + model.B @ np.asarray(control, float) + noise
+    return ParticleSet(particles, ps.log_weights)
+
+
+def log_likelihood(positions: np.ndarray, sensor_xy: np.ndarray, bearings: np.ndarray,
+                   model: SensorModel) -> np.ndarray:
+    """log g(Phi | x, s) of eq:rfs_like for particle positions (N, >=2), up to a constant.
+
+    With uniform clutter density kappa, eq:rfs_like factorises as
+        g = e^-Lambda (Lambda kappa)^(n-1) [ (1 - p_D) Lambda kappa + p_D sum_i c(phi_i) ],
+    and the prefactor does not depend on the target state, so it cancels in normalisation.
+    With no bearing at all the likelihood is constant: the posterior equals the prior.
+    """
+    b = np.asarray(bearings, dtype=float).reshape(-1)
+    n_pos = len(positions)
+    if b.size == 0:
+        return np.zeros(n_pos)
+    predicted = bearing(positions, sensor_xy)  # (N,)
+    resid = wrap(b[None, :] - predicted[:, None])  # (N, n)
+    log_c = -0.5 * (resid / model.sigma_rad) ** 2 - np.log(model.sigma_rad) - 0.5 * LOG_2PI
+    with np.errstate(divide="ignore"):
+        log_detect = np.log(model.p_detect) + logsumexp(log_c, axis=1)
+        log_miss = np.log((1.0 - model.p_detect) * model.clutter_rate * model.clutter_density)
+    return np.logaddexp(log_detect, log_miss)
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    particles: ParticleSet
+    degenerate: bool  # every weight underflowed or was not finite: the prior was kept
+
+
+def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
+    """eq:update with one or more scans [(sensor_xy, bearings), ...], their likelihoods multiplied.
+
+    If the update leaves no finite weight (a set impossible under the model, e.g. p_D = 1 with
+    the target far from every bearing), the prior weights are kept and ``degenerate`` is set.
+    """
+    logw = ps.log_weights.copy()
+    for sensor_xy, bearings in scans:
+        logw = logw + log_likelihood(ps.particles[:, :2], sensor_xy, bearings, model)
+    total = logsumexp(logw) if np.isfinite(logw).any() else -np.inf
+    if not np.isfinite(total):
+        return UpdateResult(ps, True)
+    logw = logw - total
+    logw[~np.isfinite(logw)] = -np.inf
+    return UpdateResult(ParticleSet(ps.particles, logw), False)
+
+
+def effective_sample_size(ps: ParticleSet) -> float:
+    return float(np.exp(-logsumexp(2.0 * ps.log_weights)))
+
+
+def systematic_indices(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Systematic resampling (as filterpy.monte_carlo.systematic_resample, which draws from
+    numpy's global RNG; the core takes every random number from an explicit Generator)."""
+    n = len(weights)
+    positions = (rng.random() + np.arange(n)) / n
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    return np.searchsorted(cumulative, positions, side="right")
+
+
+def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.random.Generator) -> ParticleSet:
+    """Resample systematically when the effective sample size falls below threshold * N."""
+    n = len(ps)
+    if effective_sample_size(ps) >= threshold_fraction * n:
+        return ps
+    idx = systematic_indices(ps.weights, rng)
+    return ParticleSet(ps.particles[idx], np.full(n, -np.log(n)))
+
+
+def estimate(ps: ParticleSet) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mean (6,) and covariance (6, 6)."""
+    w = ps.weights
+    mean = w @ ps.particles
+    d = ps.particles - mean
+    cov = (d * w[:, None]).T @ d
+    return mean, 0.5 * (cov + cov.T)

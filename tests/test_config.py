@@ -1,0 +1,57 @@
+import copy
+
+import pytest
+import yaml
+
+from onboard.config import ConfigError, load_scenario, parse_scenario
+
+
+@pytest.fixture
+def raw():
+    with open("config/paper.yaml", encoding="utf-8") as f:
+        return yaml.safe_load(f)
+
+
+def test_paper_scenario_is_the_papers_setup(paper):
+    assert [t.position_m[:2] for t in paper.targets] == [(281, 925), (238, 706), (901, 925), (885, 676)]
+    assert paper.dynamics.process_noise_diag == (30, 30, 1e-10, 3, 3, 1e-10)
+    assert paper.guidance.horizon == 50 and paper.uav.n_heading == 15 and paper.uav.n_radial == 4
+    assert paper.sensor.sigma_rad == pytest.approx(0.017453292519943295)
+    assert paper.uav.start_m == (150, 200, 40)
+
+
+def test_builtin_and_file_agree(paper):
+    assert load_scenario("config/paper.yaml") == paper
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["obstacles"][2].update(size_m=[240, 0, 50]), "obstacles[2].size_m[1]: must be > 0"),
+    (lambda d: d["sensor"].update(p_detect=1.5), "sensor.p_detect: must be in [0, 1]"),
+    (lambda d: d["guidance"].update(horizon="fifty"), "guidance.horizon: must be an integer"),
+    (lambda d: d["uav"].update(start_m=[150, 2000, 40]), "uav.start_m: (150.0, 2000.0, 40.0) is outside"),
+    (lambda d: d["goals"][0].update(center_m=[580, 330, 0]), "goals[0].center_m: inside obstacle 'O3'"),
+    (lambda d: d["targets"][1].update(goal="H"), "targets[1].goal: no goal named 'H'"),
+    (lambda d: d["tracking"].update(particle=3), "tracking: unknown key 'particle'"),
+    (lambda d: d.pop("dynamics"), "dynamics: missing"),
+    (lambda d: d["dynamics"].update(process_noise_diag=[1, 2, 3]), "dynamics.process_noise_diag: must have 6"),
+    (lambda d: d["sensor"].update(sigma_deg=float("nan")), "sensor.sigma_deg: must be finite"),
+])
+def test_invalid_field_is_named(raw, edit, message):
+    data = copy.deepcopy(raw)
+    edit(data)
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(data)
+    assert message in str(err.value)
+
+
+def test_bad_files(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML at line"):
+        load_scenario(bad)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_scenario(tmp_path / "missing.yaml")
+    obj = tmp_path / "obj.yaml"
+    obj.write_text("!!python/object/apply:os.system ['echo pwned']\n")
+    with pytest.raises(ConfigError):  # safe loader: nothing is executed
+        load_scenario(obj)

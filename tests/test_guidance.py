@@ -1,0 +1,102 @@
+from types import SimpleNamespace as Box
+
+import numpy as np
+import pytest
+
+from onboard.core.guidance import GuidanceParams, plan_guidance
+from onboard.core.obstacles import Obstacles
+
+PARAMS = GuidanceParams(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16)
+
+
+def random_layout(rng):
+    boxes = [Box(center_m=(rng.uniform(100, 400), rng.uniform(150, 350), 15.0),
+                 size_m=(rng.uniform(20, 90), rng.uniform(20, 90), 30.0), yaw_rad=float(rng.uniform(0, np.pi)))
+             for _ in range(rng.integers(1, 4))]
+    obs = Obstacles.from_boxes(boxes)
+    inflated = obs.inflate(PARAMS.obstacle_margin_m + 2.0)
+    while True:
+        start = np.r_[rng.uniform(0, 500), rng.uniform(0, 80), 0.0]
+        vel = np.r_[rng.normal(0, 4, 2), 0.0]
+        p1 = start + vel
+        if not inflated.contains(np.vstack([start, p1])).any():
+            break
+    goal = np.array([rng.uniform(100, 400), rng.uniform(420, 500), 0.0])
+    return obs, np.r_[start, vel], goal
+
+
+def check_plan(plan, obs, mean0, params):
+    pts = np.vstack([mean0[:3], plan.means[:, :3]])
+    inflated = obs.inflate(params.obstacle_margin_m - 0.01)
+    assert not inflated.contains(pts[1:]).any()
+    assert not inflated.segments_cross(pts[1:-1], pts[2:]).any()  # p_0 -> p_1 is not controllable
+    assert np.all(np.abs(plan.controls[:, :2]) <= params.u_max_n + 1e-6)
+    assert np.all(plan.controls[:, 2] == 0)
+    speed = np.linalg.norm(plan.means[:, 3:5], axis=1)
+    assert np.all(speed <= params.speed_max_mps + 1e-3)
+
+
+def test_plans_on_random_layouts_are_safe_and_within_bounds():
+    rng = np.random.default_rng(7)
+    statuses = []
+    for _ in range(200):
+        obs, mean0, goal = random_layout(rng)
+        plan = plan_guidance(_model(), PARAMS, obs, mean0, goal)
+        statuses.append(plan.status)
+        if plan.feasible:
+            check_plan(plan, obs, mean0, PARAMS)
+    assert statuses.count("fallback_coast") <= 4, statuses  # at most 2 % without a plan
+
+
+def _model():
+    from onboard.core.dynamics import MotionModel
+    return MotionModel.create(1.0, 0.2, 1300.0, [30, 30, 1e-10, 3, 3, 1e-10])
+
+
+def test_receding_horizon_target_arrives_at_goal(paper, model):
+    """Replanned every second along its own plan, each paper target reaches the goal region."""
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    for target in paper.targets:
+        goal = np.array(paper.goal_of(target).center_m)
+        x, plan, fallbacks = target.mean, None, 0
+        for _ in range(110):
+            plan = plan_guidance(model, params, obs, x, goal, previous=plan)
+            fallbacks += not plan.feasible
+            x = plan.means[0]
+            assert not obs.contains(x[:3]).any()
+        assert np.linalg.norm(x[:2] - goal[:2]) < 10.0, target.name
+        assert fallbacks <= 5, (target.name, fallbacks)
+
+
+def test_plan_reports_cost_time_and_warm_start(paper, model):
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    t = paper.targets[3]
+    goal = np.array(paper.goal_of(t).center_m)
+    first = plan_guidance(model, params, obs, t.mean, goal)
+    second = plan_guidance(model, params, obs, first.means[0], goal, previous=first)
+    assert first.status == "optimal" and np.isfinite(first.cost) and first.solve_time_s > 0
+    assert second.qp_solves <= first.qp_solves  # the shifted assignment is reused
+    assert second.cost < first.cost
+
+
+@pytest.mark.slow
+def test_cost_matches_exact_miqp_on_small_instances():
+    from bench.miqp_reference import solve_p1_exact
+    rng = np.random.default_rng(3)
+    params = GuidanceParams(horizon=10, obstacle_margin_m=5.0, max_qp_solves=30)
+    compared = 0
+    for _ in range(8):
+        obs, mean0, goal = random_layout(rng)
+        goal = mean0[:3] + np.r_[rng.uniform(-40, 40), rng.uniform(100, 160), 0]
+        ours = plan_guidance(_model(), params, obs, mean0, goal)
+        ref = solve_p1_exact(_model(), params, obs, mean0, goal, time_limit_s=30)
+        if not np.isfinite(ref["cost"]):
+            continue
+        assert ours.feasible, "infeasible where the exact solver found a solution"
+        check_plan(ours, obs, mean0, params)
+        assert ours.cost <= ref["cost"] * 1.01 + 1e-6
+        assert ours.cost >= ref["cost"] * (1 - 1e-4)  # not better than exact: same problem
+        compared += 1
+    assert compared >= 6
