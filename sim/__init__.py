@@ -1,0 +1,1 @@
+"""Simulation side of pmon: truth world, sensor feed, mock autopilot, evaluation."""

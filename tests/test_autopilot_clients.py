@@ -1,0 +1,226 @@
+"""Real MAVLink clients against the mock autopilot: MAVProxy and MAVSDK (native, asyncio).
+
+MAVProxy runs as a separate process, connected to the mock started as a process with
+`python -m sim.autopilot`; a pymavlink client on the mock's UDP port flies the vehicle
+while MAVProxy reports mode, arming and position on its stdout. MAVSDK connects the way
+a ground station would (udpin) and flies arm -> takeoff -> goto_location itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import queue
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from sim.autopilot import MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+pytestmark = pytest.mark.sitl
+
+REPO = Path(__file__).resolve().parents[1]
+HOME = (-35.363261, 149.165230, 584.0)
+M_PER_DEG_LAT = 111_132.0  # close enough at -35 deg for a 20 m test offset
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class LineReader:
+    """Collects a subprocess's stdout lines on a thread; wait_for() matches a regex."""
+
+    def __init__(self, proc: subprocess.Popen):
+        self.proc = proc
+        self.lines: list[str] = []
+        self._q: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        for line in self.proc.stdout:
+            self._q.put(line.rstrip("\n"))
+
+    def wait_for(self, pattern: str, timeout: float, since: int = 0, check=None) -> re.Match:
+        """First line from index `since` matching pattern (and check(match), if given)."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while True:
+            for line in self.lines[since:]:
+                if (m := rx.search(line)) and (check is None or check(m)):
+                    return m
+            since = len(self.lines)
+            remaining = deadline - time.monotonic()
+            exited = self.proc.poll() is not None and self._q.empty()
+            if remaining <= 0 or exited:
+                tail = "\n".join(self.lines[-30:])
+                raise AssertionError(f"no line matching {pattern!r}; last lines:\n{tail}")
+            try:
+                self.lines.append(self._q.get(timeout=min(remaining, 0.2)))
+            except queue.Empty:
+                pass
+
+
+def stop_process(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+
+
+@pytest.mark.timeout(60)
+def test_mavproxy_reports_mode_arming_and_position(tmp_path):
+    tcp_port = free_port(socket.SOCK_STREAM)
+    cmd_port = free_port(socket.SOCK_DGRAM)
+    env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
+    mock = subprocess.Popen(
+        [sys.executable, "-m", "sim.autopilot", "--tcp", f"127.0.0.1:{tcp_port}",
+         "--udp", f"127.0.0.1:{cmd_port}", "--speedup", "5",
+         "--home=" + ",".join(str(v) for v in HOME)],  # '=': the value starts with '-'
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    mavproxy = None
+    commander = None
+    try:
+        mock_out = LineReader(mock)
+        mock_out.wait_for(r"mock autopilot up: .*tcpin:127\.0\.0\.1:%d" % tcp_port, 10)
+
+        mavproxy = subprocess.Popen(
+            [sys.executable, "-m", "MAVProxy.mavproxy", f"--master=tcp:127.0.0.1:{tcp_port}",
+             "--non-interactive", "--no-state",
+             "--cmd=repeat add 1 status GLOBAL_POSITION_INT"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            text=True, env=env, cwd=tmp_path)
+        out = LineReader(mavproxy)
+        out.wait_for(r"Detected vehicle 1:1", 20)
+        out.wait_for(r"Mode STABILIZE", 10)
+        out.wait_for(r"Received \d+ parameters", 20)  # MAVProxy fetched the whole list
+        out.wait_for(r"GLOBAL_POSITION_INT .*relative_alt : 0\b", 10)
+
+        # A second client (like a GCS on udp 14550) flies; MAVProxy only watches.
+        commander = mavutil.mavlink_connection(f"udpin:127.0.0.1:{cmd_port}",
+                                               source_system=254, dialect="ardupilotmega")
+        commander.wait_heartbeat(timeout=10)
+
+        def command(cmd, *params):
+            p = list(params) + [0.0] * (7 - len(params))
+            commander.mav.command_long_send(1, 1, cmd, 0, *p)
+            ack = commander.recv_match(type="COMMAND_ACK", blocking=True, timeout=5,
+                                       condition=f"COMMAND_ACK.command=={cmd}")
+            assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
+
+        mark = len(out.lines)
+        command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                Mode.GUIDED)
+        command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10)
+        out.wait_for(r"Mode GUIDED", 10, since=mark)
+        out.wait_for(r"\bARMED\b", 10, since=mark)
+        m = out.wait_for(r"GLOBAL_POSITION_INT .*relative_alt : (9\d{3}|10\d{3})\b", 15,
+                         since=mark)
+        assert m is not None
+
+        north = 20.0
+        lat = int((HOME[0] + north / M_PER_DEG_LAT) * 1e7)
+        commander.mav.set_position_target_global_int_send(
+            0, 1, 1, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b110111111000, lat,
+            int(HOME[1] * 1e7), 10.0, 0, 0, 0, 0, 0, 0, 0, 0)
+        out.wait_for(r"GLOBAL_POSITION_INT .*lat : (-?\d+),", 20, since=mark,
+                     check=lambda m: abs(int(m.group(1)) - lat) < 100)  # within ~1 m
+
+        command(mavlink.MAV_CMD_NAV_LAND)
+        out.wait_for(r"Mode LAND", 10, since=mark)
+    finally:
+        if commander is not None:
+            commander.close()
+        if mavproxy is not None:
+            stop_process(mavproxy)
+        stop_process(mock)
+    assert mock.returncode == 0
+    mock_out.wait_for(r"mock autopilot stopped: .*'rx'", 5)
+
+
+async def _mavsdk_flight(port: int, ap: MockAutopilot) -> dict:
+    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+    from mavsdk.asyncio.plugins.action import ActionAsync
+    from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync
+
+    async def first(gen, pred, timeout):
+        async def scan():
+            async for value in gen:
+                if pred(value):
+                    return value
+        return await asyncio.wait_for(scan(), timeout)
+
+    seen = {}
+    config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(config) as sdk:
+        await sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        drone = await sdk.first_autopilot(timeout_s=10.0)
+        assert drone is not None, "MAVSDK found no autopilot"
+        tel = TelemetryAsync(drone)
+        action = ActionAsync(drone)
+
+        pos = await first(tel.subscribe_position(), lambda p: not math.isnan(p.latitude_deg), 10)
+        seen["start"] = pos
+        seen["armed0"] = await first(tel.subscribe_armed(), lambda a: True, 5)
+        seen["mode0"] = await first(tel.subscribe_flight_mode(), lambda m: True, 5)
+        seen["health"] = await first(tel.subscribe_health(), lambda h: h.is_armable, 10)
+
+        await action.set_takeoff_altitude(10.0)
+        await action.arm()
+        seen["armed"] = await first(tel.subscribe_armed(), lambda a: a, 5)
+        await action.takeoff()  # MAVSDK switches ArduPilot to GUIDED itself
+        seen["mode"] = await first(tel.subscribe_flight_mode(),
+                                   lambda m: m == FlightMode.OFFBOARD, 5)
+        seen["in_air"] = await first(tel.subscribe_landed_state(),
+                                     lambda s: s == LandedState.IN_AIR, 15)
+        seen["climbed"] = await first(tel.subscribe_position(),
+                                      lambda p: p.relative_altitude_m > 9.5, 15)
+
+        target_lat = pos.latitude_deg + 20.0 / M_PER_DEG_LAT
+        await action.goto_location(target_lat, pos.longitude_deg, pos.absolute_altitude_m + 12.0,
+                                   0.0)
+        seen["arrived"] = await first(
+            tel.subscribe_position(),
+            lambda p: abs(p.latitude_deg - target_lat) * M_PER_DEG_LAT < 1.0
+            and abs(p.relative_altitude_m - 12.0) < 0.5, 20)
+        seen["state"] = ap.state()
+    return seen
+
+
+@pytest.mark.timeout(60)
+def test_mavsdk_connects_arms_takes_off_and_goes_to_a_location():
+    from mavsdk.asyncio.plugins.telemetry import FlightMode
+
+    port = free_port(socket.SOCK_DGRAM)
+    with MockAutopilot(home=HOME, endpoints=[f"udpout:127.0.0.1:{port}"], speedup=5.0,
+                       seed=5) as ap:
+        seen = asyncio.run(_mavsdk_flight(port, ap))
+        counters = ap.counters()
+
+    start = seen["start"]
+    assert start.latitude_deg == pytest.approx(HOME[0], abs=1e-6)
+    assert start.absolute_altitude_m == pytest.approx(HOME[2], abs=0.2)
+    assert seen["armed0"] is False
+    assert seen["mode0"] == FlightMode.STABILIZED  # ArduCopter STABILIZE
+    assert seen["armed"] is True and seen["mode"] == FlightMode.OFFBOARD  # GUIDED
+    final = seen["state"]
+    assert final.mode == Mode.GUIDED and final.armed
+    assert final.pos_ned[0] == pytest.approx(20.0, abs=1.0)
+    assert final.alt_rel == pytest.approx(12.0, abs=0.5)
+    assert counters.get("ack_accepted", 0) >= 4  # set mode, arm, takeoff, reposition
+    assert counters.get("handler_errors", 0) == 0 and counters.get("loop_errors", 0) == 0
