@@ -836,8 +836,13 @@ class MockAutopilot:
             loopback hosts only; port 0 picks a free port (see `endpoints`).
         speedup: autopilot seconds per wall second.
         physics_hz: model step rate on the autopilot clock.
-        rates_hz: per-message default stream rates (autopilot Hz), merged with
-            DEFAULT_RATES_HZ; a rate of 0 disables a stream.
+        rates_hz: per-message default stream rates (autopilot Hz) by message name, merged
+            with DEFAULT_RATES_HZ; 0 disables a stream. Streamable: HEARTBEAT, SYS_STATUS,
+            GPS_RAW_INT, EXTENDED_SYS_STATE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED,
+            ATTITUDE, VFR_HUD, SYSTEM_TIME, BATTERY_STATUS, EKF_STATUS_REPORT,
+            HOME_POSITION, GPS_GLOBAL_ORIGIN, AUTOPILOT_VERSION, POSITION_TARGET_LOCAL_NED,
+            POSITION_TARGET_GLOBAL_INT. Clients change them per link with
+            SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM.
         params: parameter overrides, ArduPilot units (e.g. {"WPNAV_SPEED": 500}).
         seed: seed of the position-noise generator; pos_noise: m/sqrt(s), 0 disables.
         unix_time0: UNIX time (s) at boot for SYSTEM_TIME; default: wall clock at start.
@@ -901,6 +906,9 @@ class MockAutopilot:
             "POSITION_TARGET_LOCAL_NED": self._position_target_local_ned,
             "POSITION_TARGET_GLOBAL_INT": self._position_target_global_int,
         }
+        unknown = set(rates) - set(self._msg_builders)
+        if unknown:
+            raise ValueError(f"cannot stream {sorted(unknown)}")
 
     # ----- lifecycle
     def start(self) -> "MockAutopilot":

@@ -241,6 +241,11 @@ def test_command_ack_results_match_arducopter(ap, gcs):
     assert ap.wait_until(lambda s: s.alt_rel > 9.7, 3.0)
     assert gcs.command(m.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 20) == F  # already flying
     assert gcs.command(m.MAV_CMD_COMPONENT_ARM_DISARM, 0) == F  # flying: disarm refused
+    assert gcs.command(m.MAV_CMD_DO_CHANGE_SPEED, 1, 0) == D  # speed must be positive
+    assert gcs.command(m.MAV_CMD_DO_CHANGE_SPEED, 1, 6) == A
+    assert gcs.command(m.MAV_CMD_CONDITION_YAW, 400) == F  # angle out of 0..360
+    assert gcs.command(m.MAV_CMD_CONDITION_YAW, 90) == A
+    assert ap.wait_until(lambda s: abs(s.yaw - math.pi / 2) < 0.02, 2.0)
 
     # DO_REPOSITION (COMMAND_INT) with change-mode flag from LOITER: goes GUIDED and flies
     assert gcs.set_mode(Mode.LOITER) == A

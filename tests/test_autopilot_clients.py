@@ -84,6 +84,7 @@ def stop_process(proc: subprocess.Popen) -> None:
 
 @pytest.mark.timeout(60)
 def test_mavproxy_reports_mode_arming_and_position(tmp_path):
+    pytest.importorskip("MAVProxy", reason="MAVProxy is a test-only dependency")
     tcp_port = free_port(socket.SOCK_STREAM)
     cmd_port = free_port(socket.SOCK_DGRAM)
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
