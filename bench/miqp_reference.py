@@ -13,9 +13,39 @@ import time
 
 import numpy as np
 
+from types import SimpleNamespace
+
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import KN, GuidanceParams
 from onboard.core.obstacles import N_LATERAL, Obstacles
+
+
+def random_instance(rng: np.random.Generator, margin_m: float, blocked: bool = False):
+    """A random P1 instance: 1-3 rotated cuboids, a start near y = 0 and a goal.
+
+    Returns (obstacles, mean0 (6,), goal (3,)); the start, its p_1 and the goal are clear of the
+    obstacles inflated by ``margin_m`` + 2 m. Default: the goal near y = 460, the cuboids anywhere
+    between. ``blocked``: the goal 120-180 m ahead and the cuboids on the straight line to it
+    (short horizons that must go around: instances an exact solver finishes).
+    """
+    while True:
+        start = np.r_[rng.uniform(0, 500), rng.uniform(0, 80), 0.0]
+        vel = np.r_[rng.normal(0, 4, 2), 0.0]
+        if blocked:
+            goal = start + np.r_[rng.uniform(-40, 40), rng.uniform(120, 180), 0.0]
+            t = rng.uniform(0.3, 0.7, 3)[:, None]
+            centres = start[:2] + t * (goal - start)[:2] + rng.uniform(-30, 30, (3, 2))
+            sizes = rng.uniform(20, 60, (3, 2))
+        else:
+            goal = np.array([rng.uniform(100, 400), rng.uniform(420, 500), 0.0])
+            centres = np.column_stack([rng.uniform(100, 400, 3), rng.uniform(150, 350, 3)])
+            sizes = rng.uniform(20, 90, (3, 2))
+        n = rng.integers(1, 4)
+        boxes = [SimpleNamespace(center_m=(c[0], c[1], 15.0), size_m=(w[0], w[1], 30.0),
+                                 yaw_rad=float(rng.uniform(0, np.pi))) for c, w in zip(centres[:n], sizes[:n])]
+        obs = Obstacles.from_boxes(boxes)
+        if not obs.inflate(margin_m + 2.0).contains(np.vstack([start, start + vel, goal])).any():
+            return obs, np.r_[start, vel], goal
 
 
 def solve_p1_exact(model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,

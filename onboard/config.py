@@ -310,7 +310,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         stage_weight=g.get("stage_weight").number(_nonneg, "must be >= 0"),
         smooth_weight=g.get("smooth_weight").number(_nonneg, "must be >= 0"),
         obstacle_margin_m=g.get("obstacle_margin_m").number(_nonneg, "must be >= 0"),
-        max_qp_solves=g.get("max_qp_solves", 12).integer(1, 1000),
+        max_qp_solves=g.get("max_qp_solves", 40).integer(1, 1000),
     )
     if guidance.terminal_weight == 0 and guidance.stage_weight == 0:
         raise g.get("stage_weight").fail("stage_weight and terminal_weight cannot both be 0")

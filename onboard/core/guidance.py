@@ -36,9 +36,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import daqp
 import numpy as np
 import osqp
 import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.csgraph import shortest_path
 
 from onboard.core.dynamics import MotionModel, predict_mean
@@ -47,6 +49,8 @@ from onboard.core.obstacles import N_LATERAL, Obstacles
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 _FEAS_TOL_M = 1e-3  # accept a QP solution whose obstacle rows are violated by less than this
 _NO_FACE = -1
+_STALL_FRACTION = 1e-3
+_SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved  # a warm plan whose cost fell less than this since the last tick is stalled
 
 
 @dataclass(frozen=True)
@@ -59,7 +63,7 @@ class GuidanceParams:
     stage_weight: float = 1.0  # per m^2
     smooth_weight: float = 1000.0  # per kN^2
     obstacle_margin_m: float = 5.0
-    max_qp_solves: int = 12
+    max_qp_solves: int = 40
 
     @classmethod
     def from_config(cls, g) -> "GuidanceParams":
@@ -84,6 +88,7 @@ class Plan:
     controls: np.ndarray  # (T, 3) N, u_(t+tau|t)
     means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
+    active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
 
     @property
     def feasible(self) -> bool:
@@ -97,19 +102,51 @@ class Plan:
 # --------------------------------------------------------------------------- the convex QP
 
 
+@dataclass(frozen=True, eq=False)
+class _Active:
+    """Rows active at a QP solution: the constant rows (box, speed) and obstacle rows (K, T-1, 2)."""
+
+    fixed: np.ndarray
+    obstacles: np.ndarray
+
+    def shifted(self, T: int) -> "_Active":
+        """The same rows one horizon step later: the next tick's warm start."""
+        def shift(a):
+            return np.concatenate([a[1:], a[-1:]])
+        box, speed = self.fixed[:2 * T].reshape(T, 2), self.fixed[2 * T:].reshape(T, -1)
+        obs = np.concatenate([self.obstacles[:, 1:], self.obstacles[:, -1:]], axis=1)
+        return _Active(np.concatenate([shift(box).ravel(), shift(speed).ravel()]), obs)
+
+
+@dataclass(frozen=True, eq=False)
+class _Solution:
+    pts: np.ndarray  # (T+1, 2) p_1..p_(T+1), m
+    duals: np.ndarray  # (K, T-1, 2) obstacle rows
+    violation: float  # m, largest obstacle-row violation (soft solves)
+    active: _Active
+
+
 @dataclass(eq=False)
 class _QP:
-    """One OSQP instance for a fixed horizon and obstacle count; obstacle rows are updated in place.
+    """The convex QP of one face assignment, for a fixed horizon and obstacle count.
 
     Flat-output form: position is a flat output of the target model, so the decision variables
     are the positions y = [p_2 .. p_(T+1)] alone (p_1 = p_0 + dt v_0 is fixed). Velocities
     v_tau = (p_(tau+1) - p_tau) / dt and controls u_tau = m (v_(tau+1) - (1 - eps) v_tau) / dt are
-    banded linear maps of y, so the QP has no equality constraints and a banded KKT matrix.
-    (The textbook sparse form with states, inputs and dynamics equalities took OSQP thousands
-    of iterations per solve here; this form converges in tens to hundreds.) Positions are
-    relative to the goal, in units of L, which keeps the numbers near unity for ADMM.
-    Optional slack: ``soft`` adds sigma >= 0 per obstacle row with a quadratic penalty, always
-    feasible; its solution only guides the face re-pick, the hard QP gives the answer.
+    banded linear maps of y, so the QP has no equality constraints. Positions are relative to
+    the goal, in units of L, which keeps the numbers near unity.
+
+    Solver: DAQP, a dual active-set method made for small dense MPC problems, on a lazily grown
+    working set of rows (start from the rows the unconstrained optimum violates, add the rows the
+    last solution violates, repeat). At termination the solution satisfies every row and is
+    optimal for a relaxation, so it is the optimum of the full QP; in practice 1-3 rounds of a
+    few dozen rows each, out of about 1300. OSQP solves the same full QP when DAQP reports a
+    numerical failure (never seen in the tests; counted in ``n_osqp``). docs/GUIDANCE.md has the
+    measurements behind this choice (OSQP alone needed 300-4000 ADMM iterations per solve).
+
+    ``soft=True`` makes every obstacle row soft (DAQP's soft constraints: a violation costs
+    1/rho_soft per unit squared): always feasible, its solution only guides the face re-pick,
+    the hard QP gives the answer.
     """
 
     T: int
@@ -118,119 +155,35 @@ class _QP:
     decay: float  # 1 - friction
     gain: float  # m/s of velocity change per kN over one step
     params: GuidanceParams
-    soft: bool = False
-    solver: osqp.OSQP = field(init=False)
     n_solves: int = field(init=False, default=0)
+    n_osqp: int = field(init=False, default=0)
 
     L = 100.0  # m
-    SLACK_WEIGHT = 1e3  # per L^2
+    TOL = 1e-7  # row tolerance in units of L (1e-5 m)
+    MAX_ROUNDS = 30
 
     def __post_init__(self):
-        T, K, p, L = self.T, self.K, self.params, self.L
-        ny = 2 * T
-        n_obs = 2 * K * (T - 1)
-        n = ny + (n_obs if self.soft else 0)
-        self.n, self.ny, self.n_obs = n, ny, n_obs
-        # affine maps of the positions: P_all (T+2 points) = Sel y + fixed(p_0, p_1)
-        # velocity v_tau, tau = 1..T:  (p_(tau+1) - p_tau) / dt
-        # control  w_tau, tau = 0..T-1: (v_(tau+1) - decay v_tau) / gain, v_0 given
-        # represented per axis with matrices over the T unknown points p_2..p_(T+1)
-        Vm = np.zeros((T, T))  # v_tau (tau=1..T) = Vm @ y_axis + Vc
-        for tau in range(1, T + 1):
-            Vm[tau - 1, tau - 1] = 1.0 / self.dt  # p_(tau+1) is y index tau-1
-            if tau >= 2:
-                Vm[tau - 1, tau - 2] = -1.0 / self.dt
-        self.Vm = Vm
-        Wm = np.zeros((T, T))  # w_tau (tau=0..T-1) from v_(tau+1) and v_tau (tau>=1)
-        Wm[0] = Vm[0] / self.gain
-        for tau in range(1, T):
-            Wm[tau] = (Vm[tau] - self.decay * Vm[tau - 1]) / self.gain
-        self.Wm = Wm
-        Dm = np.diff(np.eye(T), axis=0)  # (T-1, T): w_tau - w_(tau-1)
-        DW = Dm @ Wm
-        self.DW = DW
+        T, p = self.T, self.params
+        self.ny = 2 * T
+        # velocity v_tau (tau=1..T) = Vm @ y_axis + Vc; control w_tau (tau=0..T-1) = Wm @ y_axis + Wc
+        Vm = (np.eye(T) - np.eye(T, k=-1)) / self.dt
+        Wm = np.vstack([Vm[:1], Vm[1:] - self.decay * Vm[:-1]]) / self.gain
+        self.DW = np.diff(Wm, axis=0)  # (T-1, T): w_tau - w_(tau-1)
         qw = np.full(T, p.stage_weight)
         qw[-1] = p.terminal_weight
         self.goal_weights = qw  # on p_1..p_T
-        # cost / L^2 per axis: sum q_tau |p_tau|^2 (tau = 2..T) + r |DW y + dwc|^2, since the
-        # controls in kN are w = L (Wm y + Wc) with y in units of L
-        self.r_scaled = p.smooth_weight  # the cost divided by L^2 keeps r as it is
-        Pax = 2.0 * (np.diag(np.concatenate([qw[1:], [0.0]])) + self.r_scaled * DW.T @ DW)
-        blocks = [sp.kron(sp.csc_matrix(Pax), sp.eye(2))]  # interleaved (x, y) per point
-        if self.soft:
-            blocks.append(sp.eye(n_obs) * 2.0 * self.SLACK_WEIGHT)
-        self.P = sp.triu(sp.block_diag(blocks), format="csc")
-
-        rows, cols, vals = [], [], []
-
-        def put_dense(r0, M):
-            """Rows r0.. of kron(M, I2): each axis separately."""
-            nz = np.nonzero(M)
-            for i, j in zip(*nz):
-                for ax in range(2):
-                    rows.append(r0 + 2 * i + ax)
-                    cols.append(2 * j + ax)
-                    vals.append(M[i, j])
-
-        r = 0
-        put_dense(r, Wm)  # control box (kN), per axis
-        self.box_rows = slice(r, r + 2 * T)
-        r += 2 * T
-        # speed polygon: c_k . v_tau <= bound_tau
+        # cost / L^2 per axis: sum q_tau |p_tau|^2 (tau = 2..T) + r |DW y + dwc|^2; controls in
+        # kN are w = L (Wm y + Wc) with y in units of L, so dividing by L^2 leaves r as it is
+        Hax = 2.0 * (np.diag(np.concatenate([qw[1:], [0.0]])) + p.smooth_weight * self.DW.T @ self.DW)
+        I2 = np.eye(2)
+        self.H = np.kron(Hax, I2)  # variables interleaved (x, y) per point
+        self.H_chol = cho_factor(self.H)
         ang = 2 * np.pi * np.arange(p.speed_polygon_sides) / p.speed_polygon_sides
         self.speed_normals = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-        self.speed_row0 = r
-        for tau in range(T):
-            for c in self.speed_normals:
-                for j in np.flatnonzero(Vm[tau]):
-                    for ax in range(2):
-                        rows.append(r)
-                        cols.append(2 * j + ax)
-                        vals.append(Vm[tau, j] * c[ax])
-                r += 1
-        # obstacles: obstacle k, segment s = 1..T-1: a_f . p_s >= b_f (s >= 2), a_f . p_(s+1) >= b_f
-        self.obs_row0 = r
-        obs_entries = []
-        for k in range(K):
-            for s in range(1, T):
-                for tau in (s, s + 1):
-                    j = max(tau - 2, 0)  # p_1 is not a variable: its row gets zero coefficients
-                    for ax in range(2):
-                        obs_entries.append(len(vals))
-                        rows.append(r)
-                        cols.append(2 * j + ax)
-                        vals.append(1.0)
-                    if self.soft:
-                        rows.append(r)
-                        cols.append(ny + r - self.obs_row0)
-                        vals.append(1.0)
-                    r += 1
-        if self.soft:
-            self.slack_rows = slice(r, r + n_obs)
-            for i in range(n_obs):
-                rows.append(r)
-                cols.append(ny + i)
-                vals.append(1.0)
-                r += 1
-        self.m = r
-
-        nnz = len(vals)
-        ids = sp.coo_matrix((np.arange(1, nnz + 1, dtype=float), (rows, cols)), shape=(r, n)).tocsc()
-        order = ids.data.astype(int) - 1  # csc position -> original entry
-        where = np.empty(nnz, dtype=int)
-        where[order] = np.arange(nnz)
-        A = ids.copy()
-        A.data = np.asarray(vals, dtype=float)[order]
-        self.A = A
-        self.obs_idx = where[np.asarray(obs_entries, dtype=int)]
-        self.l = np.full(r, -np.inf)
-        self.u = np.full(r, np.inf)
-        if self.soft:
-            self.l[self.slack_rows] = 0.0
-        self.solver = osqp.OSQP()
-        self.solver.setup(self.P, np.zeros(n), self.A, self.l, self.u, verbose=False,
-                          eps_abs=1e-5, eps_rel=1e-5, polishing=True, max_iter=4000,
-                          warm_starting=True)
+        # constant rows: control box (2T, per axis) then the speed polygon (sides x T)
+        speed = np.einsum("tj,kd->tkjd", Vm, self.speed_normals).reshape(T * len(ang), 2 * T)
+        self.A_fixed = np.vstack([np.kron(Wm, I2), speed])
+        self.n_box = 2 * T
 
     def _fixed_terms(self, x0: np.ndarray, goal: np.ndarray):
         """Constant parts of velocity and control maps, scaled, per axis: (Vc (T,2), Wc (T,2))."""
@@ -241,63 +194,104 @@ class _QP:
         Vc[0] = -p1 / self.dt
         Wc = np.zeros((self.T, 2))
         Wc[0] = (Vc[0] - self.decay * v0) / self.gain
-        for tau in range(1, self.T):
-            Wc[tau] = (Vc[tau] - self.decay * Vc[tau - 1]) / self.gain
+        Wc[1:] = (Vc[1:] - self.decay * Vc[:-1]) / self.gain
         return p1, Vc, Wc
 
-    def solve(self, x0: np.ndarray, goal: np.ndarray, speed_bound: np.ndarray,
-              coef: np.ndarray, rhs: np.ndarray):
-        """x0 = (px, py, vx, vy); coef (K, T-1, 2, 2), rhs (K, T-1, 2) with -inf for rows off.
-
-        Returns (positions (T+1, 2) p_1..p_(T+1) in m, duals (K, T-1, 2), violation_m) or None.
-        """
+    def _rows(self, x0, goal, speed_bound, coef, rhs):
+        """Every row of the QP: A (R, 2T), lower, upper (R,) and which obstacle row each is."""
         T, L = self.T, self.L
         p1, Vc, Wc = self._fixed_terms(x0, goal)
-        dwc = np.diff(Wc, axis=0)  # (T-1, 2)
-        q = np.zeros(self.n)
-        q[:self.ny] = (2.0 * self.r_scaled * self.DW.T @ dwc).reshape(-1)
-        l, u = self.l.copy(), self.u.copy()
-        box = self.params.u_max_n * (1.0 - 1e-3) / KN / L  # inside by 0.1 %: ADMM's tolerance
-        l[self.box_rows] = (-box - Wc).reshape(-1)
-        u[self.box_rows] = (box - Wc).reshape(-1)
+        box = self.params.u_max_n / KN / L
         cv = np.einsum("kd,td->tk", self.speed_normals, Vc)
-        u[self.speed_row0:self.obs_row0] = (speed_bound[:, None] / L - cv).reshape(-1)
-        # obstacle rows in scaled, goal-relative units; the p_1 row is off (coef zero)
-        lo = (rhs - np.einsum("ksed,d->kse", coef, goal)) / L
-        l[self.obs_row0:self.obs_row0 + self.n_obs] = lo.reshape(-1)
-        kw = dict(q=q, l=l, u=u)
-        if self.n_obs:
-            kw.update(Ax=coef.reshape(-1), Ax_idx=self.obs_idx)
-        self.solver.update(**kw)
+        lo = [(-box - Wc).reshape(-1), np.full(cv.size, -np.inf)]
+        hi = [(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1)]
+        # obstacle rows: coef . p_tau >= rhs for segment s (1..T-1) and end tau = s, s+1; p_1 fixed
+        k_i, s_i, e_i = np.nonzero(np.isfinite(rhs))
+        tau = s_i + 1 + e_i  # point index of that end (segment s_i + 1 in 1-based terms)
+        A_obs = np.zeros((len(k_i), self.ny))
+        j = tau - 2
+        A_obs[np.arange(len(k_i)), 2 * j] = coef[k_i, s_i, e_i, 0]
+        A_obs[np.arange(len(k_i)), 2 * j + 1] = coef[k_i, s_i, e_i, 1]
+        lo.append((rhs[k_i, s_i, e_i] - coef[k_i, s_i, e_i] @ goal) / L)
+        hi.append(np.full(len(k_i), np.inf))
+        A = np.vstack([self.A_fixed, A_obs])
+        return p1, Wc, A, np.concatenate(lo), np.concatenate(hi), (k_i, s_i, e_i)
+
+    def solve(self, x0: np.ndarray, goal: np.ndarray, speed_bound: np.ndarray, coef: np.ndarray,
+              rhs: np.ndarray, soft: bool = False, hint: "_Active | None" = None) -> "_Solution | None":
+        """x0 = (px, py, vx, vy); coef (K, T-1, 2, 2), rhs (K, T-1, 2) with -inf for rows off.
+
+        ``hint``: rows active in a related solve (the previous assignment, or last tick's plan
+        shifted), the first working set. None when the QP is infeasible (hard) or unsolved.
+        """
+        T, L = self.T, self.L
         self.n_solves += 1
-        res = self.solver.solve(raise_error=False)
+        p1, Wc, A, lo, hi, obs_index = self._rows(x0, goal, speed_bound, coef, rhs)
+        n_fixed = len(self.A_fixed)
+        f = (2.0 * self.params.smooth_weight * self.DW.T @ np.diff(Wc, axis=0)).reshape(-1)
+        work = np.zeros(len(A), dtype=bool)
+        if hint is not None:
+            work[:n_fixed] = hint.fixed
+            work[n_fixed:] = hint.obstacles[obs_index]
+        y = cho_solve(self.H_chol, -f) if not work.any() else None
+        lam = np.zeros(len(A))
+        for _ in range(self.MAX_ROUNDS):
+            if y is not None:
+                r = A @ y
+                new = ((r < lo - self.TOL) | (r > hi + self.TOL)) & ~work
+                if not new.any():
+                    break
+                work |= new
+            idx = np.flatnonzero(work)
+            sense = np.where(idx >= n_fixed, 8, 0).astype(np.int32) if soft else None
+            y_new, _, flag, info = daqp.solve(self.H, f, A[idx], np.where(np.isfinite(hi[idx]), hi[idx], 1e30),
+                                              np.where(np.isfinite(lo[idx]), lo[idx], -1e30), sense)
+            if flag == -1 and not soft:
+                return None  # infeasible: a relaxation already is
+            if flag not in (1, 2):
+                y, lam = self._osqp(f, A, lo, hi)
+                if y is None:
+                    return None
+                break
+            y = np.asarray(y_new)
+            lam[:] = 0.0
+            lam[idx] = info["lam"]
+        pts = np.vstack([p1, y.reshape(T, 2)]) * L + goal
+        gap = lo[n_fixed:] - A[n_fixed:] @ y
+        violation = L * float(np.max(gap, initial=0.0))
+        duals = np.zeros((self.K, T - 1, 2))
+        duals[obs_index] = lam[n_fixed:]
+        active = lam != 0.0
+        obstacles = np.zeros((self.K, T - 1, 2), dtype=bool)
+        obstacles[obs_index] = active[n_fixed:]
+        return _Solution(pts, duals, violation, _Active(active[:n_fixed], obstacles))
+
+    def _osqp(self, f, A, lo, hi):
+        """The same full QP on OSQP; (y, duals) or (None, None)."""
+        self.n_osqp += 1
+        solver = osqp.OSQP()
+        solver.setup(sp.triu(sp.csc_matrix(self.H), format="csc"), f, sp.csc_matrix(A), lo, hi,
+                     verbose=False, eps_abs=1e-6, eps_rel=1e-6, polishing=True, max_iter=20000)
+        res = solver.solve(raise_error=False)
         if res.info.status_val not in (1, 2) or res.x is None or not np.all(np.isfinite(res.x)):
-            return None
-        y = res.x[:self.ny].reshape(T, 2)
-        ax = (self.A[self.obs_row0:self.obs_row0 + self.n_obs] @ np.concatenate(
-            [res.x[:self.ny], np.zeros(self.n - self.ny)]))
-        lo = lo.reshape(-1)
-        finite = np.isfinite(lo)
-        violation = L * float(np.max(lo[finite] - ax[finite], initial=0.0))
-        pts = np.vstack([p1, y]) * L + goal
-        duals = res.y[self.obs_row0:self.obs_row0 + self.n_obs].reshape(self.K, T - 1, 2)
-        return pts, duals, violation
+            return None, None
+        return res.x, res.y
 
 
 class GuidanceWorkspace:
-    """Caches OSQP instances between ticks (one per target, shape and hard/soft form).
+    """Caches the QP matrices between ticks, per shape and model.
 
-    Purely a performance cache: results do not depend on it beyond solver tolerances.
+    Purely a performance cache: results do not depend on it.
     """
 
     def __init__(self):
         self._qps: dict[tuple, _QP] = {}
 
-    def qp(self, key, T: int, K: int, model: MotionModel, params: GuidanceParams, soft: bool) -> _QP:
-        full = (key, T, K, model.dt_s, model.friction, model.mass_kg, params, soft)
+    def qp(self, T: int, K: int, model: MotionModel, params: GuidanceParams) -> _QP:
+        full = (T, K, model.dt_s, model.friction, model.mass_kg, params)
         if full not in self._qps:
             gain = model.dt_s / model.mass_kg * KN
-            self._qps[full] = _QP(T, K, model.dt_s, 1.0 - model.friction, gain, params, soft)
+            self._qps[full] = _QP(T, K, model.dt_s, 1.0 - model.friction, gain, params)
         return self._qps[full]
 
 
@@ -356,6 +350,23 @@ class _Geometry:
                 adj = np.array([(f + 1) % N_LATERAL, (f - 1) % N_LATERAL])
                 faces[s, k] = adj[np.argmax(c[s + 1, k, adj])]
         return faces
+
+    def same_optimum(self, faces: np.ndarray, new: np.ndarray, pts: np.ndarray, duals: np.ndarray) -> bool:
+        """True when a solution of ``faces`` is provably optimal for ``new`` as well: every
+        changed segment's old rows were inactive (zero duals) and the path satisfies its new
+        face at both ends. The re-pick's change can then only move slack rows: no solve needed.
+        """
+        changed = faces != new  # (T-1, K)
+        if not changed.any():
+            return True
+        s_idx, k_idx = np.nonzero(changed)
+        if np.any(np.abs(duals[k_idx, s_idx]) > 0.0):
+            return False
+        f = new[s_idx, k_idx]
+        on = f >= 0
+        a, b = self.normals[k_idx[on], f[on]], self.offsets[k_idx[on], f[on]]
+        ends = np.stack([pts[s_idx[on] + 1], pts[s_idx[on] + 2]], axis=1)  # segment s = s_idx + 1
+        return bool(np.all(np.einsum("cd,ced->ce", a, ends) - b[:, None] >= -_FEAS_TOL_M))
 
     def violation(self, faces: np.ndarray, pts: np.ndarray) -> float:
         """Largest violation (m) of an assignment's rows by the path p_0..p_T."""
@@ -500,21 +511,20 @@ def _controls_kn(x0: np.ndarray, pts: np.ndarray, dt: float, decay: float, gain:
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
-                  workspace: GuidanceWorkspace | None = None, key=None,
+                  workspace: GuidanceWorkspace | None = None,
                   timer: Callable[[], float] = time.perf_counter) -> Plan:
     """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
 
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
-    fallback when no feasible plan is found. ``workspace``/``key`` cache the OSQP instances.
+    fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
     """
     t_start = timer()
     T, K = params.horizon, len(obstacles)
     mean0 = np.asarray(mean0, dtype=float)
     goal2 = np.asarray(goal, dtype=float)[:2]
     ws = workspace or GuidanceWorkspace()
-    hard = ws.qp(key, T, K, model, params, soft=False)
-    soft = ws.qp(key, T, K, model, params, soft=True) if K else None
-    decay, gain = 1.0 - model.friction, hard.gain
+    qp = ws.qp(T, K, model, params)
+    decay, gain = 1.0 - model.friction, qp.gain
     solves = 0
 
     x0 = mean0[[0, 1, 3, 4]]
@@ -531,18 +541,24 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     def cost(pts):
         w = _controls_kn(x0, pts, model.dt_s, decay, gain)
         d2 = np.sum((pts[:T] - goal2) ** 2, axis=1)
-        return float(hard.goal_weights @ d2 + params.smooth_weight * np.sum(np.diff(w, axis=0) ** 2))
+        return float(qp.goal_weights @ d2 + params.smooth_weight * np.sum(np.diff(w, axis=0) ** 2))
 
-    best = {"cost": np.inf, "pts": None, "faces": None, "duals": None}
+    best = {"cost": np.inf, "pts": None, "faces": None, "duals": None, "active": None}
     tried: set[bytes] = set()
+    # first working set of the QP: last tick's active rows shifted, then each solve's own
+    hint = [previous.active.shifted(T) if previous is not None and previous.active is not None
+            and previous.faces.shape == (T - 1, K) else None]
 
     def budget_left():
         return solves < params.max_qp_solves
 
-    def solve(qp, faces):
+    def solve(faces, soft=False):
         nonlocal solves
         solves += 1
-        return qp.solve(x0, goal2, speed_bound, *geo.rows(faces))
+        out = qp.solve(x0, goal2, speed_bound, *geo.rows(faces), soft=soft, hint=hint[0])
+        if out is not None:
+            hint[0] = out.active
+        return out
 
     def evaluate(faces):
         """Hard solve of an assignment; keep the best. Returns the result or None.
@@ -551,10 +567,10 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         again: what is kept is exactly what the dynamics do, within every bound.
         """
         tried.add(faces.tobytes())
-        out = solve(hard, faces)
-        if out is None or out[2] > _FEAS_TOL_M:
+        out = solve(faces)
+        if out is None or out.violation > _FEAS_TOL_M:
             return None
-        w = np.clip(_controls_kn(x0, out[0], model.dt_s, decay, gain), -params.u_max_n / KN, params.u_max_n / KN)
+        w = np.clip(_controls_kn(x0, out.pts, model.dt_s, decay, gain), -params.u_max_n / KN, params.u_max_n / KN)
         pts = _integrate(x0, w, model.dt_s, decay, gain)
         if geo.violation(faces, path(pts)) > _FEAS_TOL_M:
             return None
@@ -563,7 +579,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
             return None
         c = cost(pts)
         if c < best["cost"] - 1e-9 * max(1.0, abs(c)):
-            best.update(cost=c, pts=pts, faces=faces, duals=out[1])
+            best.update(cost=c, pts=pts, faces=faces, duals=out.duals, active=out.active)
         return out
 
     def refine(faces):
@@ -574,14 +590,16 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         """
         while budget_left():
             out = evaluate(faces)
-            if out is None:
-                if soft is None or not budget_left():
+            feasible = out is not None
+            if not feasible:
+                if K == 0 or not budget_left():
                     return
-                out = solve(soft, faces)
+                out = solve(faces, soft=True)
                 if out is None:
                     return
-            nxt = geo.repick(path(out[0]))
-            if nxt.tobytes() in tried:
+            pts = path(out.pts)
+            nxt = geo.repick(pts)
+            if nxt.tobytes() in tried or (feasible and geo.same_optimum(faces, nxt, pts, out.duals)):
                 return
             faces = nxt
 
@@ -595,16 +613,24 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         prev_path = np.vstack([x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
         refine(geo.sanitise(shifted, prev_path))
         warm = best["pts"] is not None
-    # 2. without one: the shortest path around the obstacles, timed at a cruise speed; the
-    #    obstacle-free optimum, and copies of it pushed around blocking obstacles on either side
-    if K and best["pts"] is None and budget_left():
+    # 2. the shortest path around the obstacles, timed at a cruise speed. Also when warm if the
+    #    plan is stalled against an obstacle: an obstacle row is active and the cost has not
+    #    fallen since the last tick (a shifted assignment can hold a target pressed against a
+    #    face: a local optimum). With no obstacle row active the plan solves a relaxation of
+    #    every assignment, so it is globally optimal.
+    #    Then the obstacle-free optimum, and copies of it pushed around the blocking obstacles
+    #    on either side (the shortest path can be the costlier side given the initial velocity).
+    pressed = best["duals"] is not None and bool(np.any(best["duals"] != 0.0))
+    stalled = warm and pressed and best["cost"] >= previous.cost * (1.0 - _STALL_FRACTION)
+    explore = not warm or stalled
+    if K and budget_left() and explore:
         guide = geo.guide_path(x0[:2] + model.dt_s * x0[2:], goal2)
         if guide is not None:
             refine(geo.repick(_timed(guide, x0[:2], 0.8 * params.speed_max_mps * model.dt_s, T)))
-    if K and best["pts"] is None and budget_left():
-        free = solve(hard, empty)
+    if K and budget_left() and (not warm or stalled):
+        free = solve(empty)
         if free is not None:
-            ref = path(free[0])
+            ref = path(free.pts)
             variants = [ref]
             blocking = geo.blocking(ref)[:3]
             for sides in itertools.product((1.0, -1.0), repeat=len(blocking)):
@@ -617,24 +643,34 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
                 if faces.tobytes() not in tried and budget_left():
                     refine(faces)
 
-    # 3. local search: move face changes that carry an active constraint one step either way.
-    #    Only when exploring: in the rolling horizon the shifted assignment has had it already,
-    #    and each OSQP solve costs milliseconds of the 1 s tick.
-    improved = best["pts"] is not None and not warm
+    # 3. local search on the best assignment: move each face change one to three steps either way
+    #    (the switch between two faces happens where the path rounds a corner; its best step is
+    #    what the re-pick by clearance guesses least well); repeat while it improves. Only when
+    #    exploring: a warm plan's switches were searched when it was found.
+    improved = best["pts"] is not None and explore
     while improved and budget_left() and K:
         cost_before = best["cost"]
         faces0 = best["faces"]
-        active = np.abs(best["duals"]).max(axis=-1).T > 1e-7  # (T-1, K)
         change = (faces0[1:] != faces0[:-1]) & (faces0[1:] >= 0) & (faces0[:-1] >= 0)
         for s, k in zip(*np.nonzero(change)):
             s += 1  # the face changes between segments s-1 and s
-            if not (active[s - 1, k] or active[s, k]):
-                continue
-            for src, dst in ((s - 1, s), (s, s - 1)):
+            before, after = faces0[s - 1, k], faces0[s, k]
+            for d in _SWITCH_MOVES:
                 f = faces0.copy()
-                f[dst, k] = f[src, k]
+                seg = np.arange(s, s + d) if d > 0 else np.arange(s + d, s)
+                if seg.min() < 0 or seg.max() >= len(f) or np.any(f[seg, k] != (after if d > 0 else before)):
+                    continue  # runs past the horizon or into another switch
+                f[seg, k] = before if d > 0 else after
                 if _opposite(f[1:, k], f[:-1, k]).any() or f.tobytes() in tried or not budget_left():
                     continue
+                evaluate(f)
+        # every switch moved together: rounding an obstacle earlier or later as a whole
+        for d in _SWITCH_MOVES:
+            f = _shift_switches(faces0, d)
+            if f is None:
+                continue
+            f = geo.sanitise(f, path(best["pts"]))
+            if f.tobytes() not in tried and budget_left():
                 evaluate(f)
         improved = best["cost"] < cost_before - 1e-9 * max(1.0, abs(cost_before))
 
@@ -644,7 +680,26 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     controls[:, :2] = _controls_kn(x0, best["pts"], model.dt_s, decay, gain) * KN
     status = "optimal" if budget_left() else "budget"
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
-                predict_mean(model, mean0, controls), best["faces"])
+                predict_mean(model, mean0, controls), best["faces"], best["active"])
+
+
+def _shift_switches(faces: np.ndarray, d: int) -> np.ndarray | None:
+    """The assignment with every face switch d steps later (earlier for d < 0); None if a
+    switch would leave the horizon."""
+    out = faces.copy()
+    n = len(faces)
+    for k in range(faces.shape[1]):
+        col = faces[:, k]
+        sw = np.flatnonzero((col[1:] != col[:-1]) & (col[1:] >= 0) & (col[:-1] >= 0)) + 1
+        if sw.size == 0:
+            continue
+        if sw.min() + d < 1 or sw.max() + d > n - 1:
+            return None
+        new = np.empty_like(col)
+        idx = np.arange(n) - d  # segment i takes the face segment i - d had
+        new[:] = col[np.clip(idx, 0, n - 1)]
+        out[:, k] = np.where(col >= 0, new, col)
+    return out
 
 
 def _fallback(model, params, mean0, previous, K, elapsed, solves) -> Plan:

@@ -122,7 +122,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
 
     plans = tuple(
         plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
-                      previous=state.plans[j], workspace=workspace, key=j, timer=timer)
+                      previous=state.plans[j], workspace=workspace, timer=timer)
         for j in range(M))
     t2 = timer()
 

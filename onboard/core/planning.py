@@ -69,14 +69,15 @@ def pseudo_posterior_traces(particles: np.ndarray, log_weights: np.ndarray, cand
     s = np.asarray(candidates, float)[:, None, None, :2]  # (C, 1, 1, 2)
     z = bearing(mu[None, :, :], s[:, :, 0, :])  # (C, M) ideal bearings
     pred = bearing(particles[None, :, :, :2], s)  # (C, M, N)
-    log_lik = -0.5 * (wrap(z[:, :, None] - pred) / sigma_rad) ** 2
-    log_post = log_lik + log_weights[None]
-    log_post -= logsumexp(log_post, axis=2, keepdims=True)
-    wp = np.exp(log_post)  # (C, M, N)
+    log_post = -0.5 * (wrap(z[:, :, None] - pred) / sigma_rad) ** 2 + log_weights[None]
+    log_post -= log_post.max(axis=2, keepdims=True)
+    wp = np.exp(log_post)
+    wp /= wp.sum(axis=2, keepdims=True)  # (C, M, N); the max term is 1, so the sum is >= 1
     x = particles[:, :, dims]  # (M, N, D)
-    m1 = np.einsum("cmn,mnd->cmd", wp, x)
-    m2 = np.einsum("cmn,mnd->cmd", wp, x * x)
-    return np.sum(m2 - m1 * m1, axis=2)
+    wm = wp.transpose(1, 0, 2)  # (M, C, N): one matrix product per target
+    m1 = np.matmul(wm, x)
+    m2 = np.matmul(wm, x * x)
+    return np.sum(m2 - m1 * m1, axis=2).T
 
 
 @dataclass(frozen=True, eq=False)
