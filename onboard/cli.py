@@ -2,6 +2,7 @@
 
     pmon check-config [FILE]     validate a scenario (default: the built-in paper scenario)
     pmon simulate [--ticks N]    fly the monitor's core in closed loop on a scenario, no sockets
+    pmon eval [--trials N] ...   Monte Carlo evaluation against baselines (docs/RESULTS.md)
 """
 from __future__ import annotations
 
@@ -25,36 +26,32 @@ def _simulate(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from onboard.core.bearings import bearing, wrap
     from onboard.core.guidance import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    from sim.sensors import DirectionFinder, df_scan
+    from sim.truth import TruthWorld
 
     sc = load_scenario(args.scenario)
     setup = MonitorSetup.from_scenario(sc)
     rng = np.random.default_rng(args.seed)
     truth_rng = np.random.default_rng(args.seed + 1)
     state = initial_state(setup, rng)
-    truth = np.array([truth_rng.multivariate_normal(m, setup.initial_cov) for m in setup.initial_means])
+    world = TruthWorld.from_scenario(sc, truth_rng)
+    truth = world.states
+    df = DirectionFinder.from_config(sc.sensor)
     uav = np.array([sc.uav.start_m[0], sc.uav.start_m[1], sc.uav.altitude_m])
     ws = GuidanceWorkspace()
     console = Console()
     errors = []
     for k in range(args.ticks):
-        # direction finder: target bearing with p_D and noise, plus Poisson clutter, per channel
-        bearings = []
-        for j in range(setup.n_targets):
-            b = list(truth_rng.uniform(-np.pi, np.pi, truth_rng.poisson(setup.sensor.clutter_rate)))
-            if truth_rng.random() < setup.sensor.p_detect:
-                b.append(float(wrap(bearing(truth[j], uav) + truth_rng.normal(0, setup.sensor.sigma_rad))))
-            bearings.append(np.array(b))
-        state, res = tick(setup, state, [Scan(uav, tuple(bearings))], rng, plan_from=uav, workspace=ws)
+        bearings = df_scan(truth, uav, df, truth_rng)
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
         err = np.linalg.norm(res.means[:, :2] - truth[:, :2], axis=1)
         errors.append(err)
         console.print(f"t={k:3d}s  uav=({uav[0]:6.1f}, {uav[1]:6.1f})  error per target [m]: "
                       + " ".join(f"{e:6.1f}" for e in err)
                       + f"   tick {res.timings_s['tick'] * 1e3:6.1f} ms")
-        # truth: each target follows its own guidance from its true state, with process noise Q
-        truth = np.array([p.means[0] for p in res.plans]) + truth_rng.standard_normal(truth.shape) * setup.model.Q_sqrt
+        truth = world.step()  # each target follows its own guidance from its true state, noise Q
         if res.next_position is not None:
             uav = res.next_position
     errors = np.array(errors)
@@ -67,7 +64,38 @@ def _simulate(args) -> int:
     return 0
 
 
+def _eval(args) -> int:
+    import json
+    import re
+    import shlex
+    import time
+
+    from sim import evaluation as ev
+
+    sc = load_scenario(args.scenario)
+    if args.scheduler is not None and not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+|[\w.\-\[\]:]+:\d+",
+                                                       args.scheduler):
+        args._parser.error(f"--scheduler: {args.scheduler!r} is not an address like tcp://127.0.0.1:8786")
+    if args.workers is not None and args.workers < 1:
+        args._parser.error(f"--workers must be >= 1, got {args.workers}")
+    try:
+        cfg = ev.make_config(sc, args.trials, args.seed, [m for m in args.methods.split(",") if m],
+                             duration_s=args.duration, particles=args.particles)
+    except ValueError as exc:
+        args._parser.error(str(exc))
+    t0 = time.perf_counter()
+    trials = ev.run_trials(cfg, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet)
+    summary = ev.summarise(cfg, trials, wall_s=time.perf_counter() - t0)
+    command = "pmon " + " ".join(shlex.quote(a) for a in args._argv)
+    head = ev.write_outputs(summary, trials, args.out, command, figures=not args.no_figures)
+    print(json.dumps(head), flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    if (sys.argv[1:] if argv is None else argv)[:1] == ["gcs"]:  # own parser: options before the command
+        from groundstation.cli import main as gcs_main
+        return gcs_main(list(sys.argv[2:] if argv is None else argv[1:]))
     ap = argparse.ArgumentParser(prog="pmon", description="Passive Monitor")
     sub = ap.add_subparsers(dest="command", required=True)
     c = sub.add_parser("check-config", help="validate a scenario file")
@@ -78,7 +106,39 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--ticks", type=int, default=30, help="seconds of mission (default 30)")
     s.add_argument("--seed", type=int, default=1)
     s.set_defaults(func=_simulate)
+    e = sub.add_parser("eval", help="Monte Carlo evaluation: methods vs baselines, CSV, table, figures, JSON line")
+    e.add_argument("scenario", nargs="?", default="paper")
+    e.add_argument("--trials", type=int, default=100, help="Monte Carlo trials (default 100)")
+    e.add_argument("--seed", type=int, default=2024, help="master seed (default 2024)")
+    e.add_argument("--methods", default="greedy_l1,greedy_l8,fixed3,hover,orbit,random",
+                   help="comma-separated method names (default: the paper's six; also lookahead, "
+                        "lookahead_vehicle, greedy_vehicle: docs/PLANNING.md)")
+    e.add_argument("--out", default="eval_out", help="output directory (default eval_out)")
+    e.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
+    e.add_argument("--particles", type=int, default=None, help="particles per target (default: the scenario's)")
+    e.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    e.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
+    e.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    e.add_argument("--quiet", action="store_true", help="no progress bar")
+    e.set_defaults(func=_eval, _parser=e)
+    from onboard.app import run as _run_mod
+    r = sub.add_parser("run", help="the onboard app: MAVLink to the autopilot, DF datagrams in")
+    _run_mod.add_arguments(r)
+    r.set_defaults(func=_run_mod.run)
+    f = sub.add_parser("feed", help="simulated DF feed (live truth world, or replay a file)",
+                       add_help=False)
+    f.add_argument("rest", nargs=argparse.REMAINDER)
+    f.set_defaults(func=lambda a: __import__("sim.feed", fromlist=["main"]).main(a.rest))
+    d = sub.add_parser("demo", help="mock autopilot + feed + app on loopback, paper scenario")
+    from onboard import demo as _demo_mod
+    _demo_mod.add_arguments(d)
+    d.set_defaults(func=_demo_mod.run)
+    g = sub.add_parser("gcs", help="ground station: status, watch, commands, parameters over MAVLink "
+                       "(pmon gcs --help)", add_help=False)
+    g.add_argument("rest", nargs=argparse.REMAINDER)
+    g.set_defaults(func=lambda a: __import__("groundstation.cli", fromlist=["main"]).main(a.rest))
     args = ap.parse_args(argv)
+    args._argv = list(sys.argv[1:] if argv is None else argv)
     if getattr(args, "ticks", 1) < 1:
         ap.error("--ticks must be >= 1")
     try:

@@ -77,6 +77,7 @@ class Guidance:
     smooth_weight: float
     obstacle_margin_m: float
     max_qp_solves: int
+    max_solve_time_s: float | None = None  # per target and tick; None: no limit (deterministic)
 
 
 @dataclass(frozen=True)
@@ -100,11 +101,17 @@ class Uav:
 class Tracking:
     particles: int
     resample_ess_fraction: float
+    control_mix: float = 0.1  # fraction of particles predicted with a random control (docs/TRACKING.md)
 
 
 @dataclass(frozen=True)
 class Planning:
     objective: str
+    planner: str = "greedy"  # greedy (the paper's one-step rule) | lookahead
+    lookahead_steps: int = 10  # ticks scored by the lookahead planner
+    motion: str = "jump"  # jump (the paper: anywhere on the polar grid each tick) | vehicle
+    speed_max_mps: float = 10.0  # vehicle motion: ArduCopter WPNAV_SPEED default
+    accel_max_mps2: float = 2.5  # vehicle motion: ArduCopter WPNAV_ACCEL default
 
 
 @dataclass(frozen=True)
@@ -299,7 +306,7 @@ def _parse(root: _Node, source: str) -> Scenario:
 
     g = root.get("guidance").mapping({
         "horizon", "u_max_n", "speed_max_mps", "speed_polygon_sides", "terminal_weight",
-        "stage_weight", "smooth_weight", "obstacle_margin_m", "max_qp_solves",
+        "stage_weight", "smooth_weight", "obstacle_margin_m", "max_qp_solves", "max_solve_time_s",
     })
     guidance = Guidance(
         horizon=g.get("horizon").integer(2, 500),
@@ -310,7 +317,9 @@ def _parse(root: _Node, source: str) -> Scenario:
         stage_weight=g.get("stage_weight").number(_nonneg, "must be >= 0"),
         smooth_weight=g.get("smooth_weight").number(_nonneg, "must be >= 0"),
         obstacle_margin_m=g.get("obstacle_margin_m").number(_nonneg, "must be >= 0"),
-        max_qp_solves=g.get("max_qp_solves", 40).integer(1, 1000),
+        max_qp_solves=g.get("max_qp_solves", 80).integer(1, 1000),
+        max_solve_time_s=(None if g.get("max_solve_time_s", None).value is None
+                          else g.get("max_solve_time_s").number(_positive, "must be > 0")),
     )
     if guidance.terminal_weight == 0 and guidance.stage_weight == 0:
         raise g.get("stage_weight").fail("stage_weight and terminal_weight cannot both be 0")
@@ -332,16 +341,26 @@ def _parse(root: _Node, source: str) -> Scenario:
         obstacle_margin_m=u.get("obstacle_margin_m", 10.0).number(_nonneg, "must be >= 0"),
     )
 
-    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction"})
+    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
             lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
     )
+    pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
+                                       "speed_max_mps", "accel_max_mps2"})
     planning = Planning(
-        objective=root.get("planning").mapping({"objective"}).get("objective", "trace").choice(
-            ("trace", "position_trace")),
+        objective=pl.get("objective", "trace").choice(("trace", "position_trace")),
+        planner=pl.get("planner", "greedy").choice(("greedy", "lookahead")),
+        lookahead_steps=pl.get("lookahead_steps", 10).integer(1, 200),
+        motion=pl.get("motion", "jump").choice(("jump", "vehicle")),
+        speed_max_mps=pl.get("speed_max_mps", 10.0).number(_positive, "must be > 0"),
+        accel_max_mps2=pl.get("accel_max_mps2", 2.5).number(_positive, "must be > 0"),
     )
+    if planning.planner == "lookahead" and planning.lookahead_steps > guidance.horizon:
+        raise ConfigError("planning.lookahead_steps: must be <= guidance.horizon "
+                          f"({guidance.horizon}): the lookahead follows the guidance plans")
     mission = Mission(
         duration_s=root.get("mission").mapping({"duration_s"}).get("duration_s").number(
             _positive, "must be > 0"),

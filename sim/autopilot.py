@@ -566,6 +566,8 @@ class _Link:
         self.active = False  # has received a valid packet (ArduPilot's active channel)
         self.closed = False
         self.tx_errors = 0
+        self.muted_until = -math.inf  # fault injection: sim time until which the link is dead
+        self.muted = False
 
     def fileno(self) -> int:
         raise NotImplementedError
@@ -623,7 +625,7 @@ class _UdpLink(_Link):
         return b"".join(chunks)
 
     def write(self, data: bytes) -> None:
-        if self.peer is None or self.closed:
+        if self.peer is None or self.closed or self.muted:
             return
         try:
             self.sock.sendto(data, self.peer)
@@ -660,7 +662,7 @@ class _TcpLink(_Link):
         return data
 
     def write(self, data: bytes) -> None:
-        if self.closed:
+        if self.closed or self.muted:
             return
         if len(self.pending) + len(data) > self.MAX_PENDING:
             self.dropped += 1  # like ArduPilot with no txspace: drop, never block
@@ -846,6 +848,13 @@ class MockAutopilot:
         params: parameter overrides, ArduPilot units (e.g. {"WPNAV_SPEED": 500}).
         seed: seed of the position-noise generator; pos_noise: m/sqrt(s), 0 disables.
         unix_time0: UNIX time (s) at boot for SYSTEM_TIME; default: wall clock at start.
+        signing_key: 32-byte MAVLink 2 signing key (onboard/app/signing.py): every link signs
+            what it sends and drops unsigned or wrongly signed packets (counted
+            ``signing_rejected``), like ArduPilot with a key set.
+        max_lag_s: autopilot seconds the model may fall behind the wall clock before the
+            clock slips (counted ``clock_slips``) instead of catching up. ArduPilot SITL runs
+            slower than --speedup when the machine cannot keep up; set this small (e.g. 0.1)
+            to behave the same on a loaded machine.
     """
 
     def __init__(
@@ -861,12 +870,17 @@ class MockAutopilot:
         unix_time0: Optional[float] = None,
         sysid: int = 1,
         compid: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
+        signing_key: Optional[bytes] = None,
+        max_lag_s: float = 10.0,
     ):
         if not speedup > 0 or not physics_hz > 0:
             raise ValueError("speedup and physics_hz must be positive")
         self.sysid = sysid
         self.compid = compid
         self.speedup = float(speedup)
+        self.max_lag_s = float(max_lag_s)
+        self.signing_key = signing_key
+        self._link_ids = 0
         self.dt = 1.0 / physics_hz
         self._endpoints = [e if isinstance(e, Endpoint) else Endpoint.parse(e) for e in endpoints]
         for ep in self._endpoints:
@@ -1020,7 +1034,7 @@ class MockAutopilot:
                 self._listeners.append(lst)
                 self._bound.append(Endpoint("tcpin", ep.host, lst.local[1]))
             else:
-                link = _UdpLink(ep, self.sysid, self.compid, self._default_intervals)
+                link = self._secure(_UdpLink(ep, self.sysid, self.compid, self._default_intervals))
                 self._links.append(link)
                 port = link.local[1] if ep.kind == "udpin" else ep.port
                 self._bound.append(Endpoint(ep.kind, ep.host, port))
@@ -1054,6 +1068,12 @@ class MockAutopilot:
             if steps == 500:  # far behind (debugger, overload): skip instead of spiralling
                 self._count("clock_skips")
                 self._wall0 = time.monotonic() - self.copter.t / self.speedup
+            elif sim_now - self.copter.t > self.max_lag_s:  # SITL-like: run slower, never jump
+                self._count("clock_slips")
+                self._wall0 = time.monotonic() - self.copter.t / self.speedup
+            now_t = self.copter.t
+            for link in self._links:
+                link.muted = now_t < link.muted_until
             self._flush_events()
             self._send_streams()
             for link in self._links:
@@ -1083,19 +1103,54 @@ class MockAutopilot:
             return
         sock, addr = got
         name = f"tcpin:{lst.local[0]}:{lst.local[1]}<-{addr[0]}:{addr[1]}"
-        self._links.append(_TcpLink(sock, name, self.sysid, self.compid,
-                                    self._default_intervals))
+        self._links.append(self._secure(_TcpLink(sock, name, self.sysid, self.compid,
+                                                 self._default_intervals)))
         self._count("links_opened")
+
+    def _secure(self, link: _Link) -> _Link:
+        if self.signing_key is not None:
+            from onboard.app.signing import configure
+            self._link_ids += 1
+            configure(link.parser, self.signing_key, self._link_ids, sign_outgoing=False)
+            configure(link.out, self.signing_key, self._link_ids)
+        return link
+
+    # ----- fault injection (tests)
+    def _links_of(self, compid: int) -> list[_Link]:
+        return [link for s, c, link in self._routes if c == compid]
+
+    def cut_link(self, compid: int, seconds: float) -> int:
+        """The link(s) a component is reached on go dead both ways for ``seconds`` of
+        autopilot time (a radio out of range): nothing is read or written, the TCP connection
+        stays up. Returns the number of links cut."""
+        with self._lock:
+            links = self._links_of(compid)
+            for link in links:
+                link.muted_until = self.copter.t + seconds
+                link.muted = True
+            return len(links)
+
+    def drop_link(self, compid: int) -> int:
+        """Close the link(s) of a component (a TCP client must reconnect)."""
+        with self._lock:
+            links = self._links_of(compid)
+            for link in links:
+                link.close()
+            return len(links)
 
     def _read_link(self, link: _Link) -> None:
         data = link.receive()
-        if not data:
+        if not data or link.muted:
             return
+        rejected = link.parser.signing.reject_count
         try:
             msgs = link.parser.parse_buffer(data) or []
         except Exception:  # pymavlink raises on some malformed frames even when robust
             self._count("bad_data")
             return
+        finally:
+            if link.parser.signing.reject_count != rejected:
+                self._count("signing_rejected", link.parser.signing.reject_count - rejected)
         for msg in msgs:
             try:
                 self._on_message(link, msg)
@@ -1774,13 +1829,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="parameter override in ArduPilot units; repeatable")
+    ap.add_argument("--signing-key", metavar="FILE",
+                    help="MAVLink 2 signing key file (64 hex chars, mode 0600): sign everything, "
+                    "drop unsigned or wrongly signed packets")
+    ap.add_argument("--max-lag", type=float, default=10.0, metavar="S",
+                    help="autopilot s the model may fall behind before the clock slips "
+                    "(small: run slower than --speedup on a loaded machine, like SITL)")
     args = ap.parse_args(argv)
     endpoints = ([f"udpout:{e}" for e in args.udp] + [f"udpin:{e}" for e in args.udpin]
                  + [f"tcpin:{e}" for e in args.tcp]) or ["tcpin:127.0.0.1:5760"]
     try:
         overrides = {k: float(v) for k, v in (p.split("=", 1) for p in args.param)}
+        key = None
+        if args.signing_key:
+            from onboard.app.signing import load_key
+            key = load_key(args.signing_key)
         mock = MockAutopilot(home=args.home, endpoints=endpoints, speedup=args.speedup,
-                             params=overrides, seed=args.seed)
+                             params=overrides, seed=args.seed, signing_key=key,
+                             max_lag_s=args.max_lag)
         mock.start()
     except (ValueError, KeyError, OSError) as exc:
         print(f"sim.autopilot: {exc}", file=sys.stderr)

@@ -41,3 +41,86 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
     assert abs(move[0]) > 3 * abs(move[1])
     along = np.abs(res.candidates[:, 0]) < 1e-6  # moves along the line of sight, and staying
     assert res.scores[res.index] < 0.8 * res.scores[along].min()
+
+
+# --------------------------------------------------------------------------- beyond the paper
+
+from onboard.core.dynamics import MotionModel  # noqa: E402
+from onboard.core.planning import UavMotion, choose_lookahead, motion_sequences  # noqa: E402
+
+MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10])
+VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5)
+AREA = ((-2e3, -2e3, 0.0), (2e3, 2e3, 1e3))
+
+
+def _still_targets(rng, centres, n=2000, pos_sd=(15.0, 60.0), H=30):
+    """Beliefs around targets standing still at ``centres`` (M, 2), and their (constant) plans."""
+    M = len(centres)
+    particles = np.zeros((M, n, 6))
+    particles[:, :, 0] = np.asarray(centres)[:, :1] + rng.normal(0, pos_sd[0], (M, n))
+    particles[:, :, 1] = np.asarray(centres)[:, 1:] + rng.normal(0, pos_sd[1], (M, n))
+    particles[:, :, 3:5] = rng.normal(0, 1.0, (M, n, 2))
+    logw = np.full((M, n), -math.log(n))
+    plans = np.zeros((M, H, 6))
+    plans[:, :, :2] = np.asarray(centres)[:, None, :]
+    return particles, logw, plans
+
+
+def test_vehicle_reachable_set_respects_speed_and_acceleration():
+    for v0 in (np.zeros(2), np.array([9.5, 2.0]), np.array([-3.0, 0.0])):
+        paths, vel = motion_sequences(np.array([0.0, 0.0]), v0, GRID, VEHICLE, 8, 1.0)
+        dv = np.diff(np.concatenate([np.broadcast_to(v0, (len(vel), 1, 2)), vel], axis=1), axis=1)
+        assert np.linalg.norm(dv, axis=2).max() <= 2.5 + 1e-9
+        assert np.linalg.norm(vel, axis=2).max() <= 10.0 + 1e-9
+        # positions integrate the velocities (trapezoid): no teleporting
+        p = np.concatenate([np.zeros((len(vel), 1, 2)), paths[:, :, :2]], axis=1)
+        v = np.concatenate([np.broadcast_to(v0, (len(vel), 1, 2)), vel], axis=1)
+        np.testing.assert_allclose(np.diff(p, axis=1), 0.5 * (v[:, 1:] + v[:, :-1]), atol=1e-9)
+
+
+def test_both_planners_move_a_vehicle_within_its_limits(rng):
+    particles, logw, plans = _still_targets(rng, [[0.0, 500.0]])
+    v0 = np.array([6.0, -4.0])
+    for res in (choose_next_position(particles, logw, np.array([0.0, 0.0]), GRID, math.radians(1.0), *AREA,
+                                     Obstacles.empty(), "position_trace", VEHICLE, v0, 1.0),
+                choose_lookahead(particles, logw, plans, np.array([0.0, 0.0]), v0, GRID, VEHICLE, MODEL,
+                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty())):
+        v1 = res.velocities[res.index]
+        assert np.linalg.norm(v1 - v0) <= 2.5 + 1e-9 and np.linalg.norm(v1) <= 10.0 + 1e-9
+        # the move is the one the velocities imply (constant acceleration over the tick)
+        np.testing.assert_allclose(res.position[:2], 0.5 * (v0 + v1), atol=1e-6)
+
+
+def test_lookahead_approaches_distant_targets_where_greedy_only_crosses(rng):
+    """Two targets 600 m north, range-uncertain: the one-step rule moves across the line of sight;
+    the lookahead heads for them (the information of a bearing grows as 1/r^2)."""
+    centres = [[-60.0, 600.0], [60.0, 600.0]]
+    particles, logw, plans = _still_targets(rng, centres)
+    here = np.array([0.0, 0.0])
+    greedy = choose_next_position(particles, logw, here, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
+                                  "position_trace")
+    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, UavMotion("jump"), MODEL,
+                            math.radians(1.0), 0.95, *AREA, Obstacles.empty())
+    assert look.position[1] > 10.0  # toward the targets
+    assert look.position[1] > greedy.position[1] + 5.0
+    # and the route it scores keeps approaching, then turns (diversifies the geometry)
+    path = look.paths[look.index, :, :2]
+    rng_m = np.linalg.norm(path - np.mean(centres, axis=0), axis=1)
+    assert rng_m.min() < 0.7 * 600.0
+    heading = np.arctan2(*np.diff(path, axis=0).T[::-1])
+    assert np.ptp(np.unwrap(heading)) > 1.0
+
+
+def test_lookahead_routes_around_a_wall_it_cannot_overfly(rng):
+    """A wall (taller than the UAV's altitude) between the UAV and the targets: the scored route
+    goes around it; no step of it crosses the (inflated) wall."""
+    wall = Obstacles.from_boxes([Box(center_m=(0.0, 150.0, 50.0), size_m=(120.0, 20.0, 100.0), yaw_rad=0.0)])
+    wall = wall.inflate(10.0)
+    particles, logw, plans = _still_targets(rng, [[0.0, 400.0]])
+    here = np.array([0.0, 0.0])
+    for motion in (UavMotion("jump"), VEHICLE):
+        res = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, motion, MODEL, math.radians(1.0),
+                               0.95, *AREA, wall)
+        path = np.concatenate([[[0.0, 0.0, 40.0]], res.paths[res.index]])
+        assert not wall.segments_cross(path[:-1], path[1:]).any()
+        assert path[:, 1].max() > 180.0  # it got past the wall within the horizon

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import daqp
@@ -49,8 +49,11 @@ from onboard.core.obstacles import N_LATERAL, Obstacles
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 _FEAS_TOL_M = 1e-3  # accept a QP solution whose obstacle rows are violated by less than this
 _NO_FACE = -1
-_STALL_FRACTION = 1e-3
-_SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved  # a warm plan whose cost fell less than this since the last tick is stalled
+_STALL_FRACTION = 1e-3  # a warm plan whose cost fell less than this since the last tick is stalled
+_SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved
+_GUIDE_SPEEDS = (0.8, 1.0, 0.6)  # fractions of v_max at which the shortest path is timed
+_LOCAL_SEARCH_STARTS = 3  # local search from this many of the cheapest assignments found
+_PAIR_MOVES = 4  # when no single move improves, pairs of this many cheapest ones are tried
 
 
 @dataclass(frozen=True)
@@ -63,12 +66,14 @@ class GuidanceParams:
     stage_weight: float = 1.0  # per m^2
     smooth_weight: float = 1000.0  # per kN^2
     obstacle_margin_m: float = 5.0
-    max_qp_solves: int = 40
+    max_qp_solves: int = 80
+    max_solve_time_s: float | None = None  # per plan; None: no limit (deterministic, for evaluation)
 
     @classmethod
     def from_config(cls, g) -> "GuidanceParams":
         return cls(g.horizon, g.u_max_n, g.speed_max_mps, g.speed_polygon_sides, g.terminal_weight,
-                   g.stage_weight, g.smooth_weight, g.obstacle_margin_m, g.max_qp_solves)
+                   g.stage_weight, g.smooth_weight, g.obstacle_margin_m, g.max_qp_solves,
+                   g.max_solve_time_s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,8 +81,8 @@ class Plan:
     """A guidance solution for one target.
 
     ``status``: ``optimal`` (assignment stable, local search done), ``budget`` (best found when
-    the QP budget ran out), ``fallback_previous`` (no feasible plan: the previous plan shifted by
-    one step) or ``fallback_coast`` (no feasible plan and none before: zero control, the target
+    the QP budget ran out), ``timeout`` (best found when ``max_solve_time_s`` ran out),
+    ``fallback_previous`` (no feasible plan: the previous plan shifted by one step) or ``fallback_coast`` (no feasible plan and none before: zero control, the target
     coasting under friction). ``cost`` is P1's objective (nan for fallbacks).
     """
 
@@ -89,6 +94,7 @@ class Plan:
     means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
+    feedback: np.ndarray | None = None  # (3, 6) du_0/dx, N per state unit: the closed-loop gain
 
     @property
     def feasible(self) -> bool:
@@ -97,6 +103,15 @@ class Plan:
     @property
     def next_control(self) -> np.ndarray:
         return self.controls[0]
+
+    def controls_for(self, states: np.ndarray, about: np.ndarray, u_max_n: float) -> np.ndarray:
+        """u_0 for states (N, 6) near the state ``about`` the plan was made from: u_0 + K dx with
+        the closed-loop gain, within the input box. (N, 3) N. Without a gain (a fallback plan),
+        u_0 for every state."""
+        if self.feedback is None:
+            return np.broadcast_to(self.next_control, (len(states), 3))
+        u = self.next_control + (np.asarray(states, float) - about) @ self.feedback.T
+        return np.clip(u, -u_max_n, u_max_n)
 
 
 # --------------------------------------------------------------------------- the convex QP
@@ -124,6 +139,8 @@ class _Solution:
     duals: np.ndarray  # (K, T-1, 2) obstacle rows
     violation: float  # m, largest obstacle-row violation (soft solves)
     active: _Active
+    y: np.ndarray  # the QP's solution (scaled units)
+    lam: np.ndarray  # multipliers of every row of the QP (< 0: lower bound active, > 0: upper)
 
 
 @dataclass(eq=False)
@@ -228,7 +245,7 @@ class _QP:
         self.n_solves += 1
         p1, Wc, A, lo, hi, obs_index = self._rows(x0, goal, speed_bound, coef, rhs)
         n_fixed = len(self.A_fixed)
-        f = (2.0 * self.params.smooth_weight * self.DW.T @ np.diff(Wc, axis=0)).reshape(-1)
+        f = self._cost_vector(x0, goal)
         work = np.zeros(len(A), dtype=bool)
         if hint is not None:
             work[:n_fixed] = hint.fixed
@@ -264,14 +281,41 @@ class _QP:
         active = lam != 0.0
         obstacles = np.zeros((self.K, T - 1, 2), dtype=bool)
         obstacles[obs_index] = active[n_fixed:]
-        return _Solution(pts, duals, violation, _Active(active[:n_fixed], obstacles))
+        return _Solution(pts, duals, violation, _Active(active[:n_fixed], obstacles), y, lam)
+
+    def sensitivity(self, x0: np.ndarray, goal: np.ndarray, speed_bound: np.ndarray, coef: np.ndarray,
+                    rhs: np.ndarray, sol: _Solution) -> np.ndarray:
+        """d p_(2..T+1) / d x0 (T, 2, 4) in m per unit of x0 = (px, py, vx, vy), with the active
+        set of ``sol`` held fixed (the optimum is affine in x0 there): the KKT system
+        [H A_a^T; A_a 0] [dy; dlam] = [-df; db] solved for the four directions of x0.
+        The cost vector and every bound are affine in x0, so differences are exact."""
+        n = self.ny
+        _, _, A, lo, hi, _ = self._rows(x0, goal, speed_bound, coef, rhs)
+        act = np.flatnonzero(sol.lam != 0.0)
+        A_a = A[act]
+        K = np.block([[self.H, A_a.T], [A_a, np.zeros((len(act), len(act)))]])
+        f0 = self._cost_vector(x0, goal)
+        b0 = np.where(sol.lam[act] < 0, lo[act], hi[act])
+        rhs_cols = []
+        for i in range(4):
+            x1 = x0.copy()
+            x1[i] += 1.0
+            _, _, _, lo1, hi1, _ = self._rows(x1, goal, speed_bound, coef, rhs)
+            db = np.where(sol.lam[act] < 0, lo1[act], hi1[act]) - b0
+            rhs_cols.append(np.concatenate([-(self._cost_vector(x1, goal) - f0), db]))
+        d = np.linalg.lstsq(K, np.column_stack(rhs_cols), rcond=None)[0][:n]  # (2T, 4)
+        return d.reshape(self.T, 2, 4) * self.L
+
+    def _cost_vector(self, x0, goal):
+        _, _, Wc = self._fixed_terms(x0, goal)
+        return (2.0 * self.params.smooth_weight * self.DW.T @ np.diff(Wc, axis=0)).reshape(-1)
 
     def _osqp(self, f, A, lo, hi):
         """The same full QP on OSQP; (y, duals) or (None, None)."""
         self.n_osqp += 1
         solver = osqp.OSQP()
         solver.setup(sp.triu(sp.csc_matrix(self.H), format="csc"), f, sp.csc_matrix(A), lo, hi,
-                     verbose=False, eps_abs=1e-6, eps_rel=1e-6, polishing=True, max_iter=20000)
+                     verbose=False, eps_abs=1e-6, eps_rel=1e-6, polishing=False, max_iter=20000)
         res = solver.solve(raise_error=False)
         if res.info.status_val not in (1, 2) or res.x is None or not np.all(np.isfinite(res.x)):
             return None, None
@@ -288,7 +332,9 @@ class GuidanceWorkspace:
         self._qps: dict[tuple, _QP] = {}
 
     def qp(self, T: int, K: int, model: MotionModel, params: GuidanceParams) -> _QP:
-        full = (T, K, model.dt_s, model.friction, model.mass_kg, params)
+        # the search's limits do not change the QP: one cache entry whatever they are
+        full = (T, K, model.dt_s, model.friction, model.mass_kg,
+                replace(params, max_qp_solves=0, max_solve_time_s=None))
         if full not in self._qps:
             gain = model.dt_s / model.mass_kg * KN
             self._qps[full] = _QP(T, K, model.dt_s, 1.0 - model.friction, gain, params)
@@ -543,14 +589,20 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         d2 = np.sum((pts[:T] - goal2) ** 2, axis=1)
         return float(qp.goal_weights @ d2 + params.smooth_weight * np.sum(np.diff(w, axis=0) ** 2))
 
-    best = {"cost": np.inf, "pts": None, "faces": None, "duals": None, "active": None}
+    best = {"cost": np.inf, "pts": None, "faces": None, "duals": None, "active": None, "sol": None}
     tried: set[bytes] = set()
+    found: list[tuple[float, np.ndarray, np.ndarray]] = []  # every feasible (cost, faces, path)
     # first working set of the QP: last tick's active rows shifted, then each solve's own
     hint = [previous.active.shifted(T) if previous is not None and previous.active is not None
             and previous.faces.shape == (T - 1, K) else None]
 
+    deadline = None if params.max_solve_time_s is None else t_start + params.max_solve_time_s
+
+    def timed_out():
+        return deadline is not None and timer() >= deadline
+
     def budget_left():
-        return solves < params.max_qp_solves
+        return solves < params.max_qp_solves and not timed_out()
 
     def solve(faces, soft=False):
         nonlocal solves
@@ -578,8 +630,9 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         if np.any(speed > np.maximum(params.speed_max_mps, speed_bound) + 1e-3):
             return None
         c = cost(pts)
+        found.append((c, faces, pts))
         if c < best["cost"] - 1e-9 * max(1.0, abs(c)):
-            best.update(cost=c, pts=pts, faces=faces, duals=out.duals, active=out.active)
+            best.update(cost=c, pts=pts, faces=faces, duals=out.duals, active=out.active, sol=out)
         return out
 
     def refine(faces):
@@ -626,7 +679,10 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     if K and budget_left() and explore:
         guide = geo.guide_path(x0[:2] + model.dt_s * x0[2:], goal2)
         if guide is not None:
-            refine(geo.repick(_timed(guide, x0[:2], 0.8 * params.speed_max_mps * model.dt_s, T)))
+            for speed in _GUIDE_SPEEDS:
+                faces = geo.repick(_timed(guide, x0[:2], speed * params.speed_max_mps * model.dt_s, T))
+                if faces.tobytes() not in tried and budget_left():
+                    refine(faces)
     if K and budget_left() and (not warm or stalled):
         free = solve(empty)
         if free is not None:
@@ -642,45 +698,93 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
                 faces = geo.repick(pts)
                 if faces.tobytes() not in tried and budget_left():
                     refine(faces)
+        # holding back: an obstacle not passed within the horizon keeps, for every segment, the
+        # face p_1 is outside of; alone, and for each obstacle in the best assignment so far
+        p1 = x0[:2] + model.dt_s * x0[2:]
+        hold = geo.sanitise(np.broadcast_to(geo.repick(np.tile(p1, (T + 1, 1)))[:1], (T - 1, K)).copy(),
+                            np.tile(p1, (T + 1, 1)))
+        holds = [hold]
+        if best["faces"] is not None:
+            for k in range(K):
+                f = best["faces"].copy()
+                f[:, k] = np.where(f[:, k] >= 0, hold[:, k], f[:, k])
+                holds.append(geo.sanitise(f, path(best["pts"])))
+        for faces in holds:
+            if faces.tobytes() not in tried and budget_left():
+                refine(faces)
 
-    # 3. local search on the best assignment: move each face change one to three steps either way
-    #    (the switch between two faces happens where the path rounds a corner; its best step is
-    #    what the re-pick by clearance guesses least well); repeat while it improves. Only when
-    #    exploring: a warm plan's switches were searched when it was found.
-    improved = best["pts"] is not None and explore
-    while improved and budget_left() and K:
-        cost_before = best["cost"]
-        faces0 = best["faces"]
+    # 3. local search: move each face switch one to three steps either way (the switch between
+    #    two faces happens where the path rounds a corner; its best step is what the re-pick by
+    #    clearance guesses least well), and all switches together; descend while it improves.
+    #    From the best few assignments found, not only the best: the cheapest homotopy class can
+    #    start out dearer before its switch times are right. Only when exploring: a warm plan's
+    #    switches were searched when it was found.
+    def neighbours(faces0, pts0):
         change = (faces0[1:] != faces0[:-1]) & (faces0[1:] >= 0) & (faces0[:-1] >= 0)
         for s, k in zip(*np.nonzero(change)):
             s += 1  # the face changes between segments s-1 and s
             before, after = faces0[s - 1, k], faces0[s, k]
             for d in _SWITCH_MOVES:
                 f = faces0.copy()
-                seg = np.arange(s, s + d) if d > 0 else np.arange(s + d, s)
-                if seg.min() < 0 or seg.max() >= len(f) or np.any(f[seg, k] != (after if d > 0 else before)):
-                    continue  # runs past the horizon or into another switch
+                # past either end of the horizon the switch disappears
+                seg = np.arange(s, min(s + d, len(f))) if d > 0 else np.arange(max(s + d, 0), s)
+                if np.any(f[seg, k] != (after if d > 0 else before)):
+                    continue  # runs into another switch
                 f[seg, k] = before if d > 0 else after
-                if _opposite(f[1:, k], f[:-1, k]).any() or f.tobytes() in tried or not budget_left():
-                    continue
-                evaluate(f)
-        # every switch moved together: rounding an obstacle earlier or later as a whole
+                if not _opposite(f[1:, k], f[:-1, k]).any():
+                    yield f
         for d in _SWITCH_MOVES:
             f = _shift_switches(faces0, d)
-            if f is None:
-                continue
-            f = geo.sanitise(f, path(best["pts"]))
-            if f.tobytes() not in tried and budget_left():
-                evaluate(f)
-        improved = best["cost"] < cost_before - 1e-9 * max(1.0, abs(cost_before))
+            if f is not None:
+                yield geo.sanitise(f, path(pts0))
+
+    def descend(c, faces, pts):
+        while budget_left():
+            n_found = len(found)
+            for f in neighbours(faces, pts):
+                if f.tobytes() not in tried and budget_left():
+                    evaluate(f)
+            better = [x for x in found[n_found:] if x[0] < c - 1e-9 * max(1.0, abs(c))]
+            if not better:
+                # switch times interact (rounding one corner later can pay only if the next
+                # switch goes too): combine pairs of the cheapest feasible single moves
+                near = sorted(found[n_found:], key=lambda x: x[0])[:_PAIR_MOVES]
+                for (_, f1, _), (_, f2, _) in itertools.combinations(near, 2):
+                    d1, d2 = f1 != faces, f2 != faces
+                    if np.any(d1 & d2):
+                        continue
+                    f = np.where(d1, f1, np.where(d2, f2, faces))
+                    if f.tobytes() not in tried and budget_left():
+                        evaluate(f)
+                better = [x for x in found[n_found:] if x[0] < c - 1e-9 * max(1.0, abs(c))]
+                if not better:
+                    return
+            c, faces, pts = min(better, key=lambda x: x[0])
+
+    if explore and K:
+        starts, seen = [], set()
+        for c, faces, pts in sorted(found, key=lambda x: x[0]):
+            if faces.tobytes() not in seen:
+                seen.add(faces.tobytes())
+                starts.append((c, faces, pts))
+        for c, faces, pts in starts[:_LOCAL_SEARCH_STARTS]:
+            descend(c, faces, pts)
 
     if best["pts"] is None:
         return _fallback(model, params, mean0, previous, K, timer() - t_start, solves)
     controls = np.zeros((T, 3))
     controls[:, :2] = _controls_kn(x0, best["pts"], model.dt_s, decay, gain) * KN
-    status = "optimal" if budget_left() else "budget"
+    status = "optimal" if budget_left() else ("timeout" if timed_out() else "budget")
+    # the closed-loop gain du_0/dx of this plan: the optimum is affine in the state while its
+    # active set holds, so a nearby state (another particle) would be steered by u_0 + K dx
+    dP = qp.sensitivity(x0, goal2, speed_bound, *geo.rows(best["faces"]), best["sol"])
+    dp1 = np.hstack([np.eye(2), model.dt_s * np.eye(2)])
+    dv0 = np.hstack([np.zeros((2, 2)), np.eye(2)])
+    dw0 = ((dP[0] - dp1) / model.dt_s - decay * dv0) / gain  # kN per unit of (px, py, vx, vy)
+    feedback = np.zeros((3, 6))
+    feedback[:2, [0, 1, 3, 4]] = dw0 * KN
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
-                predict_mean(model, mean0, controls), best["faces"], best["active"])
+                predict_mean(model, mean0, controls), best["faces"], best["active"], feedback)
 
 
 def _shift_switches(faces: np.ndarray, d: int) -> np.ndarray | None:

@@ -19,7 +19,9 @@ from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import CandidateGrid, PlanningResult, choose_next_position
+from onboard.core.information import information_reduction_factor
+from onboard.core.planning import (CandidateGrid, PlanningResult, UavMotion, choose_lookahead,
+                                   choose_next_position)
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +42,10 @@ class MonitorSetup:
     n_particles: int
     resample_fraction: float
     objective: str
+    control_mix: float = 0.0  # fraction of particles predicted with a random control
+    planner: str = "greedy"  # greedy | lookahead
+    lookahead_steps: int = 10
+    motion: UavMotion = UavMotion()
 
     @classmethod
     def from_scenario(cls, sc, **overrides) -> "MonitorSetup":
@@ -58,7 +64,11 @@ class MonitorSetup:
             area_min=np.array(sc.area.min_m), area_max=np.array(sc.area.max_m),
             n_particles=sc.tracking.particles,
             resample_fraction=sc.tracking.resample_ess_fraction,
+            control_mix=sc.tracking.control_mix,
             objective=sc.planning.objective,
+            planner=sc.planning.planner,
+            lookahead_steps=sc.planning.lookahead_steps,
+            motion=UavMotion.from_config(sc.planning),
         )
         fields.update(overrides)
         return cls(**fields)
@@ -97,6 +107,19 @@ class TickResult:
         return None if self.planning is None else self.planning.position
 
 
+def _particle_controls(u: np.ndarray, n: int, setup: MonitorSetup, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) controls: the plan's u for most particles; for a fraction ``control_mix`` a control
+    uniform in the input box (u_z = 0), i.e. the prior says a target follows the predicted plan
+    only with probability 1 - control_mix (it may take the other way around an obstacle)."""
+    out = np.broadcast_to(np.asarray(u, float), (n, 3)).copy()
+    if setup.control_mix > 0.0:
+        other = rng.random(n) < setup.control_mix
+        u_max = setup.guidance.u_max_n
+        out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
+        out[other, 2] = 0.0
+    return out
+
+
 def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
     beliefs = tuple(tracking.initialise(m, setup.initial_cov, setup.n_particles, rng)
                     for m in setup.initial_means)
@@ -105,9 +128,11 @@ def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState
 
 def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: np.random.Generator,
          plan_from: np.ndarray | None = None, workspace: GuidanceWorkspace | None = None,
-         timer: Callable[[], float] = time.perf_counter) -> tuple[MonitorState, TickResult]:
+         timer: Callable[[], float] = time.perf_counter,
+         uav_velocity: np.ndarray | None = None) -> tuple[MonitorState, TickResult]:
     """Run one tick. ``plan_from`` (ENU, m): where the candidate set is centred (where the UAV
-    is or will be at the next tick); None skips the UAV planning (e.g. fixed sensors)."""
+    is or will be at the next tick); None skips the UAV planning (e.g. fixed sensors).
+    ``uav_velocity`` (ENU, m/s, planar): the UAV's velocity there, for the vehicle motion."""
     t0 = timer()
     M = setup.n_targets
     posts, degenerate = [], np.zeros(M, dtype=bool)
@@ -126,16 +151,34 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
         for j in range(M))
     t2 = timer()
 
-    beliefs = tuple(tracking.predict(posts[j], setup.model, plans[j].next_control, rng) for j in range(M))
+    # one control for every particle (eq:prediction). A true target steers from its own state,
+    # which pulls deviations back, so this cloud is somewhat wider than the truth's spread
+    # (position NEES about 1.3-1.5, not 2). Steering each particle by the plan's closed-loop
+    # gain (Plan.controls_for) was tried and is worse: where constraints are active the gain
+    # is dead-beat, the cloud collapses along that direction and the filter loses the target
+    # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
+    beliefs = tuple(tracking.predict(posts[j], setup.model,
+                                     _particle_controls(plans[j].next_control, len(posts[j]), setup, rng), rng)
+                    for j in range(M))
     t3 = timer()
 
     planning = None
     if plan_from is not None:
         particles = np.stack([b.particles for b in beliefs])
         log_w = np.stack([b.log_weights for b in beliefs])
-        planning = choose_next_position(particles, log_w, np.asarray(plan_from, float), setup.grid,
-                                        setup.sensor.sigma_rad, setup.area_min, setup.area_max,
-                                        setup.uav_obstacles, setup.objective)
+        here = np.asarray(plan_from, float)
+        vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
+        if setup.planner == "lookahead":
+            paths = np.stack([p.means[:setup.lookahead_steps] for p in plans])
+            q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate,
+                                             setup.sensor.sigma_rad)
+            planning = choose_lookahead(particles, log_w, paths, here, vel, setup.grid, setup.motion,
+                                        setup.model, setup.sensor.sigma_rad, q, setup.area_min,
+                                        setup.area_max, setup.uav_obstacles, setup.objective)
+        else:
+            planning = choose_next_position(particles, log_w, here, setup.grid, setup.sensor.sigma_rad,
+                                            setup.area_min, setup.area_max, setup.uav_obstacles,
+                                            setup.objective, setup.motion, vel, setup.model.dt_s)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
     return (MonitorState(beliefs, plans, state.step + 1),

@@ -9,6 +9,8 @@ import numpy as np
 from scipy.special import logsumexp
 
 from onboard.core.bearings import bearing, wrap
+from onboard.core.dynamics import MotionModel
+from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
 from onboard.core.obstacles import Obstacles
 
 OBJECTIVES = ("trace", "position_trace")
@@ -82,11 +84,13 @@ def pseudo_posterior_traces(particles: np.ndarray, log_weights: np.ndarray, cand
 
 @dataclass(frozen=True, eq=False)
 class PlanningResult:
-    candidates: np.ndarray  # (C, 3)
+    candidates: np.ndarray  # (C, 3) next positions
     admissible: np.ndarray  # (C,) bool
-    traces: np.ndarray  # (C, M): tr(Sigma~_j) per candidate and target
+    traces: np.ndarray  # (C, M): tr(Sigma~_j) per candidate and target (lookahead: summed over steps)
     scores: np.ndarray  # (C,): sum over targets; inf where not admissible
     index: int | None  # chosen candidate, None when no candidate is admissible
+    paths: np.ndarray | None = None  # (C, H, 3) lookahead: each candidate's scored path
+    velocities: np.ndarray | None = None  # (C, 2) vehicle motion: velocity at the next position
 
     @property
     def position(self) -> np.ndarray | None:
@@ -95,12 +99,381 @@ class PlanningResult:
 
 def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center: np.ndarray,
                          grid: CandidateGrid, sigma_rad: float, area_min, area_max,
-                         uav_obstacles: Obstacles, objective: str = "trace") -> PlanningResult:
-    """eq:optimization over the admissible part of S_(t+1) around ``center``."""
-    cand = candidate_positions(center, grid)
+                         uav_obstacles: Obstacles, objective: str = "trace",
+                         motion: "UavMotion | None" = None, velocity: np.ndarray | None = None,
+                         dt: float = 1.0) -> PlanningResult:
+    """eq:optimization over the admissible next positions around ``center``: the paper's
+    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick."""
+    motion = motion or UavMotion()
+    velocity = np.zeros(2) if velocity is None else velocity
+    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt)
+    cand = paths[:, 0]
     start = np.array([center[0], center[1], grid.altitude_m])
     ok = admissible(cand, start, area_min, area_max, uav_obstacles)
     traces = pseudo_posterior_traces(particles, log_weights, cand, sigma_rad, objective)
     scores = np.where(ok, traces.sum(axis=1), np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
-    return PlanningResult(cand, ok, traces, scores, index)
+    return PlanningResult(cand, ok, traces, scores, index, None, vel[:, 0])
+
+
+# --------------------------------------------------------------------------- beyond the paper
+
+
+@dataclass(frozen=True)
+class UavMotion:
+    """How the UAV moves between ticks.
+
+    ``jump``: the paper's model, any point of the polar grid S_(t+1) is reached in one tick.
+    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator; the
+    defaults are ArduCopter's WPNAV_SPEED and WPNAV_ACCEL, which reproduce the measured 5.6 s
+    for a 20 m step from hover); the next positions are those reached in one tick under a
+    constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
+    """
+
+    kind: str = "jump"
+    speed_max_mps: float = 10.0
+    accel_max_mps2: float = 2.5
+
+    @classmethod
+    def from_config(cls, planning) -> "UavMotion":
+        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2)
+
+
+def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
+                     steps: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate UAV paths over ``steps`` ticks: (C, steps, 3) positions and (C, steps, 2) velocities.
+
+    Each candidate repeats one action: jump, the same grid displacement every tick (so the first
+    step is the paper's S_(t+1)), plus each displacement once and then staying; vehicle, one
+    constant acceleration, the speed saturating at the limit, plus braking to a stop.
+    """
+    p0 = np.asarray(position, float)[:2]
+    v0 = np.asarray(velocity, float)[:2]
+    k = np.arange(1, steps + 1)[None, :, None]
+    if motion.kind == "jump":
+        step = candidate_positions(np.zeros(2), grid)[:, :2]  # stay first
+        moving = step[1:]
+        once = moving if steps > 1 else moving[:0]  # with one step "once" is "keep going"
+        paths = np.concatenate([p0 + k * step[:, None, :],
+                                np.broadcast_to(p0 + once[:, None, :], (len(once), steps, 2))])
+        vel = np.concatenate([np.broadcast_to(step[:, None, :] / dt, (len(step), steps, 2)),
+                              np.zeros((len(once), steps, 2))])
+    else:
+        mags = motion.accel_max_mps2 * np.arange(1, grid.n_radial + 1) / max(grid.n_radial, 1)
+        ang = np.arange(1, grid.n_heading + 1) * 2.0 * np.pi / grid.n_heading
+        acc = np.vstack([[0.0, 0.0], np.column_stack([np.repeat(mags, len(ang)) * np.cos(np.tile(ang, len(mags))),
+                                                      np.repeat(mags, len(ang)) * np.sin(np.tile(ang, len(mags)))])])
+        speed0 = np.linalg.norm(v0)
+        brake = -v0 / speed0 * motion.accel_max_mps2 if speed0 > 1e-9 else np.zeros(2)
+        acc = np.vstack([acc, brake])
+        C = len(acc)
+        paths, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
+        p, v = np.broadcast_to(p0, (C, 2)).copy(), np.broadcast_to(v0, (C, 2)).copy()
+        is_brake = np.zeros(C, dtype=bool)
+        is_brake[-1] = speed0 > 1e-9
+        for i in range(steps):
+            a = np.where(is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True)
+                                              <= motion.accel_max_mps2 * dt), -v / dt, acc)
+            v_new = v + a * dt
+            sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+            v_new *= np.minimum(1.0, motion.speed_max_mps / np.maximum(sp, 1e-12))
+            p = p + 0.5 * (v + v_new) * dt
+            v = v_new
+            paths[:, i], vel[:, i] = p, v
+    alt = np.full(paths.shape[:2] + (1,), grid.altitude_m)
+    return np.concatenate([paths, alt], axis=2), vel
+
+
+def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
+                      uav_obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
+    """First step admissible (C,), and the paths held at their last admissible point (C, H, 3)."""
+    C, H, _ = paths.shape
+    prev = np.broadcast_to(np.asarray(start, float), (C, 3))
+    held = paths.copy()
+    ok_first = None
+    alive = np.ones(C, dtype=bool)
+    for i in range(H):
+        ok = admissible(held[:, i], prev, area_min, area_max, uav_obstacles) & alive
+        if ok_first is None:
+            ok_first = ok.copy()
+        alive = ok
+        held[~ok, i] = prev[~ok]
+        prev = held[:, i]
+    return ok_first, held
+
+
+@dataclass(frozen=True)
+class LookaheadParams:
+    """The route planner's knobs (docs/PLANNING.md argues each value).
+
+    ranges_m x n_headings: waypoints on a polar grid around the UAV; the targets' predicted
+    positions (and their centroid) half-way and at the end of the horizon are waypoints too.
+    Each route flies the shortest obstacle-free polyline to its waypoint at the motion's speed
+    limit, then circles (left or right) through it with radius loiter_radius_m: a route always
+    keeps moving, so the line of sight keeps turning. objective: ``position`` (sum over the
+    horizon and targets of tr P_pos) or ``trace`` (all four planar states).
+    """
+
+    ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
+    n_headings: int = 16
+    loiter_radius_m: float = 40.0
+    objective: str = "position"
+    corner_clearance_m: float = 3.0
+    spacing_m: float = 2.0  # arc-length resolution of the sampled routes
+    discount: float = 1.0  # weight discount**k on tick k of the horizon
+
+
+LOOKAHEAD_DEFAULT = LookaheadParams()
+
+
+def _blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lateral faces (K, 4, 2), offsets (K, 4) of the obstacles the UAV cannot overfly at its altitude."""
+    if not len(uav_obstacles):
+        return np.zeros((0, 4, 2)), np.zeros((0, 4))
+    n, b, lo, hi = uav_obstacles.lateral()
+    keep = (lo < altitude_m) & (hi > altitude_m)
+    return n[keep], b[keep]
+
+
+def _cross_2d(normals, offsets, a, b) -> np.ndarray:
+    """(S,) segment a[s] -> b[s] passes through a polygon's interior (Liang-Barsky)."""
+    if not len(offsets):
+        return np.zeros(len(a), dtype=bool)
+    d = b - a
+    num = offsets[None] - np.einsum("kfd,sd->skf", normals, a)
+    den = np.einsum("kfd,sd->skf", normals, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+    t_in = np.maximum(np.where(den < 0, t, -np.inf).max(axis=-1), 0.0)
+    t_out = np.minimum(np.where(den > 0, t, np.inf).min(axis=-1), 1.0)
+    parallel_out = np.any((den == 0) & (num <= 0), axis=-1)
+    return ((t_out - t_in > 1e-9) & ~parallel_out).any(axis=-1)
+
+
+def _inside_2d(normals, offsets, pts, extra: float = 0.0) -> np.ndarray:
+    if not len(offsets):
+        return np.zeros(len(pts), dtype=bool)
+    c = np.einsum("kfd,pd->pkf", normals, pts) - offsets[None] - extra
+    return np.all(c < 0, axis=-1).any(axis=-1)
+
+
+def _corners_2d(normals, offsets, extra: float) -> np.ndarray:
+    out = []
+    for k in range(len(offsets)):
+        for f in range(4):
+            g = (f + 1) % 4
+            out.append(np.linalg.solve(np.stack([normals[k, f], normals[k, g]]),
+                                       [offsets[k, f] + extra, offsets[k, g] + extra]))
+    return np.array(out).reshape(-1, 2)
+
+
+def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
+                    clearance: float) -> list[np.ndarray]:
+    """Shortest polyline start -> each waypoint around the blocking polygons (visibility graph
+    over their corners pushed out by ``clearance``); a waypoint no route reaches gets None."""
+    corners = _corners_2d(normals, offsets, clearance)
+    if len(corners):
+        corners = corners[~_inside_2d(normals, offsets, corners)]
+    nodes = np.vstack([start[None], corners, waypoints])
+    n, nc = len(nodes), 1 + len(corners)
+    i, j = np.triu_indices(n, 1)
+    keep = (i < nc) | (j < nc)  # waypoint-waypoint edges are never needed
+    i, j = i[keep], j[keep]
+    ok = ~_cross_2d(normals, offsets, nodes[i], nodes[j])
+    if not len(offsets):
+        return [np.vstack([start, w]) for w in waypoints]
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+    w = np.maximum(np.linalg.norm(nodes[i] - nodes[j], axis=1), 1e-9)
+    graph = coo_matrix((w[ok], (i[ok], j[ok])), shape=(n, n)).tocsr()
+    dist, pred = shortest_path(graph, directed=False, indices=0, return_predecessors=True)
+    out = []
+    for t in range(nc, n):
+        if not np.isfinite(dist[t]):
+            out.append(None)
+            continue
+        order, v = [t], t
+        while v != 0:
+            v = pred[v]
+            order.append(v)
+        out.append(nodes[order[::-1]])
+    return out
+
+
+def _sample_route(poly: np.ndarray, side: float, radius: float, length: float, ds: float) -> np.ndarray:
+    """Points every ds metres along poly, then along a circle of ``radius`` that starts at its
+    end, tangent to the last leg and turning to ``side`` (+1 left, -1 right), up to ``length``."""
+    seg = np.diff(poly, axis=0)
+    seg_len = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    total = cum[-1]
+    s = np.arange(0.0, length + ds, ds)
+    out = np.empty((len(s), 2))
+    on = s <= total
+    if total > 1e-9:
+        k = np.clip(np.searchsorted(cum, s[on], side="right") - 1, 0, len(seg) - 1)
+        frac = (s[on] - cum[k]) / np.maximum(seg_len[k], 1e-12)
+        out[on] = poly[k] + frac[:, None] * seg[k]
+        nz = seg[seg_len > 1e-9]
+        tangent = nz[-1] / np.linalg.norm(nz[-1])
+    else:
+        out[on] = poly[-1]
+        tangent = np.array([1.0, 0.0])
+    normal = side * np.array([-tangent[1], tangent[0]])
+    centre = poly[-1] + radius * normal
+    ang = (s[~on] - total) / radius  # arc angle travelled on the circle
+    r0 = -normal  # from the centre to the end point
+    r1 = side * np.array([-r0[1], r0[0]])  # the direction of travel rotated: tangent at the start
+    out[~on] = centre + radius * (np.cos(ang)[:, None] * r0 + np.sin(ang)[:, None] * r1)
+    return out
+
+
+def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
+         steps: int, dt: float, ds: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (C, steps, 2) and velocities (C, steps, 2) of the UAV following each sampled
+    route (C, S, 2). Jump: full-speed arc length N_r Delta_r per tick along the route. Vehicle:
+    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick."""
+    C, S, _ = routes.shape
+    idx = np.arange(C)
+    if motion.kind == "jump":
+        step = grid.n_radial * grid.step_m
+        k = np.minimum(np.round(np.arange(1, steps + 1) * step / ds).astype(int), S - 1)
+        pos = routes[:, k]
+        prev = np.concatenate([np.broadcast_to(p0, (C, 1, 2)), pos[:, :-1]], axis=1)
+        return pos, (pos - prev) / dt
+    vmax, amax = motion.speed_max_mps, motion.accel_max_mps2
+    p = np.broadcast_to(np.asarray(p0, float), (C, 2)).copy()
+    v = np.broadcast_to(np.asarray(v0, float), (C, 2)).copy()
+    prog = np.zeros(C)  # arc length along the route reached so far
+    pos, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
+    look = vmax * dt
+    for i in range(steps):
+        # progress: the route point nearest to p in a window ahead of the last progress
+        lo = np.round(prog / ds).astype(int)
+        win = np.minimum(lo[:, None] + np.arange(int(2 * look / ds) + 2)[None], S - 1)
+        d2 = np.sum((routes[idx[:, None], win] - p[:, None]) ** 2, axis=2)
+        near = win[idx, np.argmin(d2, axis=1)]
+        prog = near * ds
+        carrot = routes[idx, np.minimum(near + int(round(look / ds)), S - 1)]
+        to = carrot - p
+        dist = np.linalg.norm(to, axis=1, keepdims=True)
+        v_des = to / np.maximum(dist, 1e-9) * np.minimum(vmax, dist / dt)
+        dv = v_des - v
+        n = np.linalg.norm(dv, axis=1, keepdims=True)
+        dv *= np.minimum(1.0, amax * dt / np.maximum(n, 1e-12))
+        v_new = v + dv
+        sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+        v_new *= np.minimum(1.0, vmax / np.maximum(sp, 1e-12))
+        p = p + 0.5 * (v + v_new) * dt
+        v = v_new
+        pos[:, i], vel[:, i] = p, v
+    return pos, vel
+
+
+def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: LookaheadParams,
+                     area_min, area_max, normals, offsets, margin: float) -> np.ndarray:
+    p0 = np.asarray(position, float)[:2]
+    ang = np.arange(params.n_headings) * 2.0 * np.pi / params.n_headings
+    rr = np.repeat(np.asarray(params.ranges_m, float), len(ang))
+    aa = np.tile(ang, len(params.ranges_m))
+    polar = p0 + np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
+    H = target_paths.shape[1]
+    at = [target_paths[:, k, :2] for k in sorted({max(H // 2 - 1, 0), H - 1})]
+    targets = np.vstack(at + [a.mean(axis=0, keepdims=True) for a in at])
+    wp = np.vstack([p0[None], polar, targets])
+    lo = np.asarray(area_min, float)[:2] + margin
+    hi = np.asarray(area_max, float)[:2] - margin
+    wp = np.clip(wp, lo, hi)
+    return wp[~_inside_2d(normals, offsets, wp)]
+
+
+def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
+                     position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
+                     model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
+                     uav_obstacles: Obstacles, objective: str = "trace",
+                     params: LookaheadParams | None = None) -> PlanningResult:
+    """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
+
+    particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
+    rule); target_paths (M, H, 6): each target's guidance plan, mu_(t+1..t+H|t).
+
+    Routes (docs/PLANNING.md): to each waypoint (a polar grid around the UAV, the targets'
+    predicted positions and centroid), the shortest polyline around the obstacles the UAV
+    cannot overfly, flown at the speed limit, then a circle through the waypoint; the UAV's
+    positions along it come from the motion model (jump: N_r Delta_r per tick; vehicle: speed
+    and acceleration limits from the current velocity). Along each route the planar covariance
+    of every target, initialised from its particles, is propagated with (A, Q) and updated with
+    an ideal bearing from the route's position at each tick (EKF form, information scaled by the
+    reduction factor q). Score: sum over ticks and targets of tr P_pos (``params.objective``).
+    The first step of the best route is the next position (receding horizon): jump, the
+    admissible point of S_(t+1) nearest to it; vehicle, the route's own first step, which is in
+    the reachable set by construction. ``objective`` (the paper's trace setting) is ignored:
+    the route objective is ``params.objective``.
+    """
+    params = params or LOOKAHEAD_DEFAULT
+    H = target_paths.shape[1]
+    dt = model.dt_s
+    alt = grid.altitude_m
+    p0 = np.asarray(position, float)[:2]
+    v0 = np.zeros(2) if velocity is None else np.asarray(velocity, float)[:2]
+    if motion.kind == "jump":
+        v0 = np.zeros(2)
+    normals, offsets = _blocking_2d(uav_obstacles, alt)
+    wp = _route_waypoints(p0, target_paths, params, area_min, area_max, normals, offsets,
+                          params.corner_clearance_m)
+    clearance = params.corner_clearance_m
+    if motion.kind == "vehicle":  # it cuts corners: about half its turning radius v^2 / a
+        clearance += 0.5 * motion.speed_max_mps ** 2 / motion.accel_max_mps2
+    polys = route_polylines(p0, wp, normals, offsets, clearance)
+    speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
+    length = speed * dt * (H + 2)
+    routes = np.array([_sample_route(pl, side, params.loiter_radius_m, length, params.spacing_m)
+                       for pl in polys if pl is not None for side in (1.0, -1.0)])
+    if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
+        return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
+                                    area_max, uav_obstacles, "position_trace", motion, v0, dt)
+    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
+    C = len(pos)
+    start3 = np.r_[p0, alt]
+    if motion.kind == "jump":
+        # the first move snapped to the paper's S_(t+1): the admissible grid point nearest to it
+        grid_pts = candidate_positions(p0, grid)
+        grid_ok = admissible(grid_pts, start3, area_min, area_max, uav_obstacles)
+        d = np.linalg.norm(grid_pts[None, :, :2] - pos[:, :1, :], axis=2)
+        d[:, ~grid_ok] = np.inf
+        snap = np.argmin(d, axis=1)
+        ok = np.isfinite(d[np.arange(C), snap])
+        pos[:, 0] = grid_pts[snap, :2]
+        vel[:, 0] = (pos[:, 0] - p0) / dt
+    else:
+        first = np.column_stack([pos[:, 0], np.full(C, alt)])
+        ok = admissible(first, start3, area_min, area_max, uav_obstacles)
+        # and the vehicle can still stop: its braking path from there is clear too
+        sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
+        stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
+        ok &= admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max,
+                         uav_obstacles)
+
+    # a route that would leave the area or cross an obstacle later is scored as stopping there
+    paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
+    _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
+    pos = paths3[..., :2]
+
+    A, _, Q = planar_model(model)
+    w = np.exp(log_weights - logsumexp(log_weights, axis=1, keepdims=True))  # (M, N)
+    x = particles[:, :, PLANAR]
+    mean = np.einsum("mn,mnd->md", w, x)
+    dev = x - mean[:, None]
+    P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)  # (M, 4, 4) predicted covariance at t+1
+    dims = slice(0, 2) if params.objective == "position" else slice(0, 4)
+    M = len(P0)
+    P = np.broadcast_to(P0, (C, M, 4, 4)).copy()
+    total = np.zeros((C, M))
+    for i in range(H):
+        if i:
+            P = A @ P @ A.T + Q
+        P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
+        total += params.discount ** i * np.trace(P[..., dims, dims], axis1=-2, axis2=-1)
+    scores = np.where(ok, total.sum(axis=1), np.inf)
+    index = int(np.argmin(scores)) if ok.any() else None
+    return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])

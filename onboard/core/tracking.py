@@ -56,9 +56,10 @@ def initialise(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generat
 
 
 def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.random.Generator) -> ParticleSet:
-    """eq:prediction: x' = A x + B u + nu, nu ~ N(0, Q), per particle."""
+    """eq:prediction: x' = A x + B u + nu, nu ~ N(0, Q), per particle; control (3,) for all
+    particles or (N, 3), one per particle (N)."""
     noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
-    particles = ps.particles @ model.A.T + model.B @ np.asarray(control, float) + noise
+    particles = ps.particles @ model.A.T + np.asarray(control, float) @ model.B.T + noise
     return ParticleSet(particles, ps.log_weights)
 
 

@@ -1,0 +1,103 @@
+"""Tick time with each UAV planner on the paper scenario, on one core.
+
+    python bench/planner.py [--ticks 60] [--seed 1] [--figure bench/planner_tick.png]
+
+Closed loop on the core alone (as bench/tick.py): the targets follow their own plans, the DF
+bearings carry noise, the UAV goes where the planner says (and, for the vehicle motion, with
+the velocity it says). One BLAS thread (set before numpy loads), so the figures are one core's.
+Prints a table per planner x motion (medians and p95 over ticks after the first, which includes
+the guidance's exploratory face search), writes a figure of the tick-time distributions, and
+ends with one JSON line.
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from onboard.config import load_scenario  # noqa: E402
+from onboard.core.bearings import bearing, wrap  # noqa: E402
+from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
+from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
+from onboard.core.planning import UavMotion  # noqa: E402
+
+CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("lookahead", "vehicle"))
+
+
+def run(setup: MonitorSetup, ticks: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    state = initial_state(setup, rng)
+    truth = setup.initial_means.copy()
+    uav = np.array([150.0, 200.0, setup.grid.altitude_m])
+    vel = np.zeros(2)
+    ws = GuidanceWorkspace()
+    out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
+    for _ in range(ticks):
+        bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
+                         for j in range(setup.n_targets))
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws, uav_velocity=vel)
+        for k in out:
+            out[k].append(res.timings_s[k] * 1e3)
+        truth = np.array([p.means[0] for p in res.plans])
+        p = res.planning
+        if p is not None and p.index is not None:
+            uav = p.position
+            vel = p.velocities[p.index] if p.velocities is not None else np.zeros(2)
+    return {k: np.array(v[1:]) for k, v in out.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ticks", type=int, default=60)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")))
+    args = ap.parse_args()
+    sc = load_scenario("paper")
+    results = {}
+    for planner, motion in CASES:
+        setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion.from_config(sc.planning).__class__(
+            motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+        results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
+    print(f"paper scenario, {args.ticks} ticks, lookahead over {sc.planning.lookahead_steps} ticks, one BLAS thread")
+    print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")
+    for name, r in results.items():
+        print(f"{name:20s} {np.median(r['tick']):9.1f} {np.percentile(r['tick'], 95):9.1f} "
+              f"{np.median(r['planning']):13.1f} {np.percentile(r['planning'], 95):13.1f}")
+    if args.figure:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axs = plt.subplots(1, 2, figsize=(11, 4))
+        names = list(results)
+        for ax, key in zip(axs, ("tick", "planning")):
+            ax.boxplot([results[n][key] for n in names], showfliers=True)
+            ax.set_xticks(range(1, len(names) + 1), names, rotation=15)
+            ax.set_ylabel(f"{key} time [ms]")
+            ax.set_title(f"{key} per tick (paper scenario, one core)")
+            if key == "tick":
+                ax.axhline(250.0, color="tab:red", ls="--", lw=1, label="budget 250 ms")
+                ax.legend()
+            ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(args.figure, dpi=90)
+        plt.close(fig)
+    print(json.dumps({name: {"tick_ms_median": round(float(np.median(r["tick"])), 2),
+                             "tick_ms_p95": round(float(np.percentile(r["tick"], 95)), 2),
+                             "planning_ms_median": round(float(np.median(r["planning"])), 2)}
+                      for name, r in results.items()}))
+
+
+if __name__ == "__main__":
+    main()

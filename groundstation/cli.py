@@ -1,0 +1,216 @@
+"""``pmon gcs`` / ``pmon-gcs``: operate the mission from a terminal over MAVLink.
+
+Exit codes: 0 success; 1 refused, denied or failed (the reason is printed); 2 usage (bad
+arguments, bad value); 3 timeout or vehicle unreachable; 130 interrupted. Errors are one line
+on stderr; with --json, stdout also gets {"ok": false, "error": ..., "exit_code": ...}.
+See docs/OPERATING.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+DEFAULT_URL = "udpin:127.0.0.1:14550"  # where ArduPilot SITL's --out and MAVProxy's outputs go
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_TIMEOUT = 0, 1, 2, 3
+
+COMMANDS = """commands:
+  status                      vehicle mode, armed, position, battery, link; the app's state and health
+  watch [--count N] [--duration S] [--png FILE]   live table of every target
+  arm                         GUIDED, then arm
+  takeoff ALT [--wait]        take off to ALT m above home (--wait: until there, within --timeout)
+  start | pause | resume | stop | launch     the onboard app's monitoring
+  hold                        ArduCopter BRAKE: stop and hold position (the app sees a pilot override)
+  rtl | land                  return to launch / land here
+  params list | get NAME | set NAME VALUE     the onboard app's parameters (PMON_*)
+  record FILE [--duration S]  tlog of everything the link carries
+  plot LOG [--out PNG] [--truth FILE] [--scenario NAME]   flight from a tlog or the app's JSONL run log
+"""
+
+
+def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
+    d = (lambda v: argparse.SUPPRESS) if suppress else (lambda v: v)
+    p.add_argument("--connect", metavar="URL", default=d(None),
+                   help=f"MAVLink URL: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, serial device "
+                        f"(default: $PMON_GCS_CONNECT or {DEFAULT_URL})")
+    p.add_argument("--sysid", type=int, default=d(None), help="vehicle system id (default: the first autopilot heard)")
+    p.add_argument("--timeout", type=float, default=d(5.0), help="seconds to wait for an answer (default 5)")
+    p.add_argument("--json", action="store_true", default=d(False), help="machine-readable output")
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="pmon gcs", description="Ground station: operate the Passive Monitor "
+                                 "mission over MAVLink.", epilog=COMMANDS,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    _common(ap, suppress=False)
+    sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    def add(name, help_):
+        p = sub.add_parser(name, help=help_)
+        _common(p, suppress=True)
+        return p
+    add("status", "vehicle and onboard-app status")
+    w = add("watch", "live table of every target")
+    w.add_argument("--count", type=int, help="stop after N updates")
+    w.add_argument("--duration", type=float, help="stop after S seconds")
+    w.add_argument("--png", help="also draw a top-down PNG, rewritten each second")
+    add("arm", "GUIDED, then arm the motors")
+    t = add("takeoff", "take off to ALT m above home")
+    t.add_argument("alt", type=float, metavar="ALT")
+    t.add_argument("--wait", action="store_true", help="return when at ALT (bounded by --timeout)")
+    for name in ("start", "pause", "resume", "stop", "launch"):
+        add(name, f"onboard app: {name}")
+    add("hold", "ArduCopter BRAKE: stop and hold position")
+    add("rtl", "return to launch")
+    add("land", "land where it is")
+    pp = add("params", "the onboard app's parameters")
+    psub = pp.add_subparsers(dest="pcmd", required=True, metavar="list|get|set")
+    psub.add_parser("list")
+    g = psub.add_parser("get")
+    g.add_argument("name")
+    s = psub.add_parser("set")
+    s.add_argument("name")
+    s.add_argument("value")
+    r = add("record", "record a tlog")
+    r.add_argument("file")
+    r.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
+    pl = add("plot", "plot a flight from a tlog or the app's JSONL run log")
+    pl.add_argument("log")
+    pl.add_argument("--out", help="PNG to write (default: LOG with .png)")
+    pl.add_argument("--truth", help="the feed's truth JSONL (default: truth.jsonl next to LOG, if any)")
+    pl.add_argument("--scenario", help="draw this scenario's area and obstacles (e.g. paper)")
+    return ap
+
+
+class UsageError(Exception):
+    pass
+
+
+def run(args, console) -> tuple[str, dict]:
+    from groundstation import commands as C
+    from groundstation import protocol as P
+    from groundstation.link import GcsLink
+
+    if args.cmd == "plot":
+        from groundstation.plot import LogError, draw, load
+        try:
+            flight = load(args.log, args.truth)
+        except (LogError, OSError, ValueError) as exc:
+            raise _fail(f"plot: {exc}", EXIT_FAILED)
+        sc = None
+        if args.scenario:
+            from onboard.config import load_scenario
+            sc = load_scenario(args.scenario)
+        out = draw(flight, args.out or os.path.splitext(args.log)[0] + ".png", scenario=sc)
+        return (f"plot: {out} ({len(flight.uav)} UAV positions, {len(flight.tracks)} tracks"
+                f"{', with truth' if flight.truth else ''})",
+                {"png": str(out), "uav_points": len(flight.uav), "tracks": len(flight.tracks),
+                 "truth": bool(flight.truth)})
+    if args.cmd == "takeoff" and not (math.isfinite(args.alt) and 0 < args.alt <= 1000):
+        raise UsageError(f"takeoff: ALT must be in (0, 1000] m, got {args.alt:g}")
+    if args.cmd == "params" and args.pcmd == "set":
+        try:
+            args.value = float(args.value)
+        except ValueError:
+            raise UsageError(f"params set {args.name}: {args.value!r} is not a number")
+        if not math.isfinite(args.value):
+            raise UsageError(f"params set {args.name}: value must be a finite number")
+    if args.cmd == "watch" and ((args.count is not None and args.count < 1)
+                                or (args.duration is not None and args.duration <= 0)):
+        raise UsageError("watch: --count must be >= 1 and --duration > 0")
+    tlog = args.file if args.cmd == "record" else None
+    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog) as gl:
+        gl.connect()
+        cmd = args.cmd
+        if cmd == "status":
+            o = C.status(gl)
+        elif cmd == "watch":
+            from groundstation.watch import watch
+            o = watch(gl, args.count, args.duration, args.png, args.json, console)
+        elif cmd == "arm":
+            o = C.arm(gl)
+        elif cmd == "takeoff":
+            o = C.takeoff(gl, args.alt, args.wait)
+        elif cmd in P.ACTIONS:
+            o = C.app_action(gl, cmd)
+        elif cmd == "hold":
+            o = C.set_mode(gl, "hold", P.BRAKE)
+        elif cmd == "rtl":
+            from onboard.app.link import mavlink
+            o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
+        elif cmd == "land":
+            from onboard.app.link import mavlink
+            o = C.set_mode(gl, "land", P.LAND, mavlink.MAV_CMD_NAV_LAND)
+        elif cmd == "params":
+            o = {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),
+                 "set": lambda: C.params_set(gl, args.name, args.value)}[args.pcmd]()
+        elif cmd == "record":
+            o = _record(gl, args.duration, args.file)
+        else:  # pragma: no cover (argparse has checked)
+            raise UsageError(f"unknown command {cmd}")
+    return o.text, o.data
+
+
+def _record(gl, duration, path):
+    import time
+
+    from groundstation.commands import Outcome
+    t0 = time.monotonic()
+    try:
+        while duration is None or time.monotonic() - t0 < duration:
+            gl.pump(0.05)
+    except KeyboardInterrupt:
+        pass
+    dt = time.monotonic() - t0
+    return Outcome(f"record: {gl.received} messages in {dt:.1f} s to {path}",
+                   {"file": path, "messages": gl.received, "seconds": round(dt, 2)})
+
+
+def _fail(msg, code):
+    from groundstation.link import GcsError
+    return GcsError(msg, code)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from groundstation.link import GcsError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = parser().parse_args(argv)
+    except SystemExit as exc:  # argparse: usage errors are 2, --help is 0
+        return int(exc.code or 0)
+    args.connect = args.connect or os.environ.get("PMON_GCS_CONNECT") or DEFAULT_URL
+    if not args.timeout > 0:
+        return _error(args, UsageError(f"--timeout must be > 0, got {args.timeout:g}"), EXIT_USAGE)
+    if args.sysid is not None and not 1 <= args.sysid <= 255:
+        return _error(args, UsageError(f"--sysid must be in 1..255, got {args.sysid}"), EXIT_USAGE)
+    from rich.console import Console
+    console = Console(file=sys.stdout, highlight=False)
+    try:
+        text, data = run(args, console)
+    except UsageError as exc:
+        return _error(args, exc, EXIT_USAGE)
+    except GcsError as exc:
+        return _error(args, exc, exc.code)
+    except KeyboardInterrupt:
+        return _error(args, KeyboardInterrupt("interrupted"), 130)
+    if args.json:
+        if args.cmd != "watch":  # watch has printed one JSON line per update
+            print(json.dumps({"ok": True, **data, "command": args.cmd}, default=str), flush=True)
+    elif text:
+        print(text, flush=True)
+    return EXIT_OK
+
+
+def _error(args, exc, code: int) -> int:
+    msg = str(exc) or type(exc).__name__
+    print(f"pmon gcs: {msg}", file=sys.stderr, flush=True)
+    if getattr(args, "json", False):
+        print(json.dumps({"ok": False, "error": msg, "exit_code": code}), flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,217 @@
+"""What each CLI command does over a connected ``GcsLink``. Each returns an ``Outcome`` (data for
+--json, text for people) or raises ``GcsError`` with the one line that says why."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+from groundstation import protocol as P
+from groundstation.link import FAILED, TIMEOUT, Ack, GcsError, GcsLink, _same
+from onboard.app.link import mavlink
+
+STAT_WAIT_S = 2.5  # the app publishes PMON_STAT at 1 Hz: a status waits at most this for it
+
+
+@dataclass(frozen=True)
+class Outcome:
+    text: str
+    data: dict = field(default_factory=dict)
+
+
+def _fmt(x, spec=".1f", none="-"):
+    return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
+
+
+# ----------------------------------------------------------------------------- status
+def status(gl: GcsLink, with_params: bool = True) -> Outcome:
+    v = gl.v
+    gl.request(mavlink.MAVLINK_MSG_ID_SYS_STATUS, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+               mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE)
+    gl.wait_for(lambda: v.get("GLOBAL_POSITION_INT") is not None and v.get("SYS_STATUS") is not None,
+                min(gl.timeout, 1.0))
+    # every PMON_STAT on this connection is fresh: it was opened a moment ago
+    app_heard = gl.wait_for(lambda: v.n_stat > 0, min(gl.timeout, STAT_WAIT_S))
+    params = None
+    if app_heard and with_params:
+        try:
+            params = gl.params_list()
+        except GcsError:
+            params = None
+    hb_age = time.monotonic() - v.seen_at.get(("HEARTBEAT", v.autopilot_comp), -math.inf)
+    gp, ss, ext = v.get("GLOBAL_POSITION_INT"), v.get("SYS_STATUS"), v.get("EXTENDED_SYS_STATE")
+    landed = {mavlink.MAV_LANDED_STATE_ON_GROUND: "on ground", mavlink.MAV_LANDED_STATE_IN_AIR: "in air",
+              mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
+              mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")
+    radio = v.get("RADIO_STATUS", 68) or v.last.get(("RADIO_STATUS", 0))
+    vehicle = {
+        "sysid": v.sysid, "mode": v.mode_name, "armed": v.armed, "landed_state": landed,
+        "lat_deg": gp.lat * 1e-7 if gp else None, "lon_deg": gp.lon * 1e-7 if gp else None,
+        "alt_rel_m": gp.relative_alt * 1e-3 if gp else None, "alt_amsl_m": gp.alt * 1e-3 if gp else None,
+        "battery_v": ss.voltage_battery * 1e-3 if ss and ss.voltage_battery != 65535 else None,
+        "battery_pct": ss.battery_remaining if ss and ss.battery_remaining >= 0 else None,
+    }
+    link = {"url": gl.url, "heartbeat_age_s": round(hb_age, 2) if math.isfinite(hb_age) else None,
+            "packet_loss_pct": round(gl.link.conn.packet_loss(), 1), "received": gl.received,
+            "autopilot_drop_rate_pct": ss.drop_rate_comm / 100 if ss else None,
+            "rssi": radio.rssi if radio is not None else None}
+    st = v.app_status if app_heard else None
+    app = None
+    if st is not None:
+        app = {"state": v.app_state, "tick_rate_hz": round(st.tick_rate_hz, 2),
+               "last_tick_time_s": st.last_tick_time_s, "tick_ms": st.tick_ms,
+               "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
+               "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
+               "setpoints_refused": st.setpoints_refused,
+               "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
+               "next_enu_m": list(st.next_enu) if st.next_enu else None,
+               "params": params}
+    lines = [
+        f"vehicle {v.sysid}: {vehicle['mode']}, {'ARMED' if v.armed else 'disarmed'}, {landed}",
+        f"  position  {_fmt(vehicle['lat_deg'], '.6f')}, {_fmt(vehicle['lon_deg'], '.6f')}  "
+        f"alt {_fmt(vehicle['alt_rel_m'])} m above home",
+        f"  battery   {_fmt(vehicle['battery_v'], '.2f')} V  {_fmt(vehicle['battery_pct'], 'd')} %",
+        f"  link      {gl.url}: heartbeat {_fmt(link['heartbeat_age_s'], '.1f')} s ago, "
+        f"packet loss {link['packet_loss_pct']:.1f} %"
+        + (f", rssi {link['rssi']}" if link["rssi"] is not None else ""),
+    ]
+    if app is None:
+        lines.append("onboard app: not heard (no PMON_STAT within "
+                     f"{min(gl.timeout, STAT_WAIT_S):g} s)")
+    else:
+        e = st.uav_enu
+        lines += [
+            f"onboard app: {app['state']}, tick rate {st.tick_rate_hz:.2f} Hz, last tick "
+            f"t={_fmt(st.last_tick_time_s)} s ({_fmt(st.tick_ms, '.0f')} ms), {st.ticks} ticks "
+            f"({st.ticks_skipped} skipped, {st.ticks_late} late)",
+            f"  DF datagrams {st.datagrams_accepted} accepted, {st.datagrams_rejected} rejected; "
+            f"setpoints refused {st.setpoints_refused}",
+            f"  UAV ENU   {_enu(e)}   next {_enu(st.next_enu)}",
+        ]
+        if params:
+            lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
+    return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app})
+
+
+def _enu(p) -> str:
+    return "-" if p is None else f"({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) m"
+
+
+# ----------------------------------------------------------------------------- commands
+def _ack_outcome(what: str, ack: Ack, by: str, context: str = "") -> Outcome:
+    data = {"command": what, "result": ack.result, "attempts": ack.attempts,
+            "elapsed_s": round(ack.elapsed_s, 3)}
+    if ack.ok:
+        note = "" if ack.result == "ACCEPTED" else " (acknowledgement lost; effect observed)"
+        return Outcome(f"{what}: accepted by the {by}{note}", data)
+    if by == "onboard app" and ack.reason_code in P.REASONS:
+        why = P.REASONS[ack.reason_code]
+    else:
+        texts = [t.removeprefix("PMON: ") for t in ack.texts]
+        why = "; ".join(texts[-2:]) if texts else "no reason given"
+    later = " (try again later)" if ack.result == "TEMPORARILY_REJECTED" else ""
+    raise GcsError(f"{what} refused by the {by} ({ack.result}): {why}{later}{context}", FAILED)
+
+
+def _vehicle_context(gl: GcsLink) -> str:
+    v = gl.v
+    gp = v.get("GLOBAL_POSITION_INT")
+    alt = f", {gp.relative_alt / 1000:.1f} m above home" if gp else ""
+    return f" [vehicle: {v.mode_name}, {'armed' if v.armed else 'disarmed'}{alt}]"
+
+
+def app_action(gl: GcsLink, action: str) -> Outcome:
+    want = {"start": "monitoring", "resume": "monitoring", "pause": "paused", "stop": "idle"}.get(action)
+    done = (lambda: gl.v.app_state == want) if want else None
+    ack = gl.command(P.APP_COMPID, P.APP_COMMAND, P.ACTIONS[action], done=done, name=action)
+    out = _ack_outcome(action, ack, "onboard app")
+    if want and ack.ok:  # report the state the app is in now (its heartbeat follows the ACK)
+        gl.wait_for(lambda: gl.v.app_state == want, 1.0)
+    return Outcome(out.text + (f"; app {gl.v.app_state}" if gl.v.app_state else ""),
+                   {**out.data, "app_state": gl.v.app_state})
+
+
+def set_mode(gl: GcsLink, what: str, mode: int, cmd: int | None = None) -> Outcome:
+    """A flight mode by its command (RTL, LAND) or by DO_SET_MODE (BRAKE)."""
+    done = lambda: gl.v.mode == mode  # noqa: E731
+    if cmd is None:
+        ack = gl.command(None, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode,
+                         done=done, name=what)
+    else:
+        ack = gl.command(None, cmd, done=done, name=what)
+    out = _ack_outcome(what, ack, "autopilot", _vehicle_context(gl))
+    gl.request(mavlink.MAVLINK_MSG_ID_HEARTBEAT)  # the new mode now, not at the next 1 Hz beat
+    gl.wait_for(done, 1.0)
+    return Outcome(out.text + f"; mode {gl.v.mode_name}", {**out.data, "mode": gl.v.mode_name})
+
+
+def arm(gl: GcsLink) -> Outcome:
+    """GUIDED first (ArduCopter takes off by command only in a navigating mode, and the app
+    flies GUIDED), then arm."""
+    v = gl.v
+    steps = []
+    if v.mode != P.GUIDED and not v.armed:
+        steps.append(_ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
+                                                       mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
+                                                       done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
+                                  "autopilot", _vehicle_context(gl)))
+    ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
+    out = _ack_outcome("arm", ack, "autopilot", _vehicle_context(gl))
+    gl.request(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+    gl.wait_for(lambda: bool(v.armed), 1.0)
+    return Outcome(out.text + f"; {v.mode_name}, {'armed' if v.armed else 'not armed yet'}",
+                   {**out.data, "mode": v.mode_name, "armed": v.armed})
+
+
+def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
+    v = gl.v
+    climbing = (mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR)
+    ack = gl.command(None, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt,
+                     done=lambda: v.landed_state in climbing, name="takeoff")
+    out = _ack_outcome(f"takeoff to {alt:g} m", ack, "autopilot", _vehicle_context(gl))
+    data = {**out.data, "alt_m": alt}
+    if wait:
+        t0 = time.monotonic()
+        in_air = [0]  # consecutive IN_AIR reports
+
+        def count(mtype, msg):
+            if mtype == "EXTENDED_SYS_STATE" and msg.get_srcComponent() == v.autopilot_comp:
+                in_air[0] = in_air[0] + 1 if msg.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR else 0
+        gl.on_message(count)
+
+        def there():
+            # at altitude and the take-off reported complete twice: the onboard app (its own
+            # link, same 2 Hz report) then knows it is flying too, and a start is not refused
+            gp = v.get("GLOBAL_POSITION_INT")
+            return gp is not None and gp.relative_alt / 1000 >= alt - 1.0 and in_air[0] >= 2
+        if not gl.wait_for(there, gl.timeout):
+            raise GcsError(f"takeoff: not at {alt:g} m within {gl.timeout:g} s{_vehicle_context(gl)}", TIMEOUT)
+        data["climb_s"] = round(time.monotonic() - t0, 2)
+        return Outcome(out.text + f"; at {alt:g} m after {data['climb_s']:.1f} s", data)
+    return Outcome(out.text, data)
+
+
+# ----------------------------------------------------------------------------- parameters
+def params_list(gl: GcsLink) -> Outcome:
+    from onboard.app.params import BY_NAME  # names, ranges and meanings (a light module)
+    values = gl.params_list()
+    rows = []
+    for name, value in values.items():
+        spec = BY_NAME.get(name)
+        rng = f"[{spec.lo:g}, {spec.hi:g}]" if spec else ""
+        rows.append(f"{name:16s} {value:>10g}  {rng:16s} {spec.doc if spec else ''}")
+    return Outcome("\n".join(rows), {"params": values})
+
+
+def params_get(gl: GcsLink, name: str) -> Outcome:
+    value = gl.param_exchange(name.upper())
+    return Outcome(f"{name.upper()} = {value:g}", {"name": name.upper(), "value": value})
+
+
+def params_set(gl: GcsLink, name: str, value: float) -> Outcome:
+    if not math.isfinite(value):
+        raise GcsError(f"params set {name}: value must be a finite number", 2)
+    got = gl.param_exchange(name.upper(), value)
+    note = "" if _same(got, value) else f" (rounded from {value:g})"
+    return Outcome(f"{name.upper()} = {got:g}{note}; takes effect at the next tick",
+                   {"name": name.upper(), "value": got, "requested": value})

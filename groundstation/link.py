@@ -1,0 +1,377 @@
+"""The ground station's MAVLink connection: finding the vehicle, the latest telemetry, commands
+retried until acknowledged, and the app's parameters.
+
+One thread (the caller's): every wait pumps the socket. The connection itself is the onboard
+app's ``Link`` (same URLs, MAVLink 2, optional tlog of both directions), opened as sysid 255,
+component MISSIONPLANNER (190).
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import select
+import socket
+import struct
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable
+
+from groundstation import protocol as P
+from onboard.app.link import Link, mavlink
+
+RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)
+GRACE_S = 0.3  # after a refusal, how long to wait for the STATUSTEXT that says why
+
+
+class GcsError(Exception):
+    """A command failed; ``code`` is the process exit code (1 refused/failed, 3 timeout)."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+FAILED, TIMEOUT = 1, 3
+
+
+@dataclass(frozen=True)
+class Ack:
+    result: str  # ACCEPTED, DENIED, ... or "OBSERVED" (ACK lost, the effect was seen)
+    reason_code: int
+    attempts: int
+    elapsed_s: float
+    texts: tuple[str, ...]  # STATUSTEXTs of the target component while the command ran
+
+    @property
+    def ok(self) -> bool:
+        return self.result in ("ACCEPTED", "OBSERVED")
+
+
+class Vehicle:
+    """The latest of everything heard, by (message type, source component)."""
+
+    def __init__(self):
+        self.sysid: int | None = None
+        self.autopilot_comp: int | None = None
+        self.last: dict[tuple[str, int], object] = {}
+        self.seen_at: dict[tuple[str, int], float] = {}
+        self.targets: dict[int, P.TargetEstimate] = {}
+        self.texts: deque = deque(maxlen=200)  # (local time, compid, severity, text)
+        self.n_stat = 0
+
+    def get(self, mtype: str, comp: int | None = None):
+        return self.last.get((mtype, self.autopilot_comp if comp is None else comp))
+
+    @property
+    def armed(self) -> bool | None:
+        hb = self.get("HEARTBEAT")
+        return None if hb is None else bool(hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+    @property
+    def mode(self) -> int | None:
+        hb = self.get("HEARTBEAT")
+        return None if hb is None else hb.custom_mode
+
+    @property
+    def mode_name(self) -> str:
+        from pymavlink import mavutil
+        hb = self.get("HEARTBEAT")
+        return "unknown" if hb is None else mavutil.mode_string_v10(hb)
+
+    @property
+    def landed_state(self) -> int | None:
+        m = self.get("EXTENDED_SYS_STATE")
+        return None if m is None else m.landed_state
+
+    @property
+    def app_state(self) -> str | None:
+        st = self.app_status
+        hb = self.get("HEARTBEAT", P.APP_COMPID)
+        if hb is not None and self.seen_at.get(("HEARTBEAT", P.APP_COMPID), 0) >= \
+                self.seen_at.get(("PMON_STAT", P.APP_COMPID), 0):
+            return P.app_state_name(hb.custom_mode)
+        return None if st is None else st.state
+
+    @property
+    def app_status(self) -> P.AppStatus | None:
+        m = self.last.get(("PMON_STAT", P.APP_COMPID))
+        return None if m is None else P.AppStatus.from_msg(m)
+
+
+class GcsLink:
+    def __init__(self, url: str, timeout: float = 5.0, sysid: int | None = None,
+                 tlog_path: str | None = None):
+        self.url = url
+        self.timeout = timeout
+        self.want_sysid = sysid
+        try:
+            _probe_tcp(url, timeout)
+            with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints its retries
+                self.link = Link(url, tlog_path=tlog_path, source_system=P.GCS_SYSID,
+                                 source_component=P.GCS_COMPID)
+        except (OSError, ConnectionError) as exc:
+            raise GcsError(f"cannot open {url}: {exc.strerror or exc}", TIMEOUT) from exc
+        self.v = Vehicle()
+        self.received = 0
+        self._hb_local = -math.inf
+        self._listeners: list[Callable] = []
+        self.t0 = time.monotonic()
+
+    # ----------------------------------------------------------------- plumbing
+    def close(self) -> None:
+        self.link.close()
+
+    def __enter__(self) -> "GcsLink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def on_message(self, fn: Callable) -> None:
+        self._listeners.append(fn)
+
+    def send(self, msg) -> None:
+        self.link.send(msg)
+
+    def pump(self, wait_s: float = 0.0) -> None:
+        """Read whatever has arrived (waiting up to wait_s for the first bytes)."""
+        now = time.monotonic()
+        if now - self._hb_local >= 1.0:  # a GCS heartbeat: the autopilot then routes to us
+            self._hb_local = now
+            self.send(self.link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                     0, 0, mavlink.MAV_STATE_ACTIVE))
+        fd = self.link.fileno()
+        if wait_s > 0:
+            if fd is not None:
+                try:
+                    select.select([fd], [], [], wait_s)
+                except (OSError, ValueError):
+                    time.sleep(wait_s)
+            else:
+                time.sleep(min(wait_s, 0.01))
+        for _ in range(2000):
+            msg = self.link.recv()
+            if msg is None:
+                break
+            self._on(msg)
+
+    def _on(self, msg) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            return
+        self.received += 1
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        v = self.v
+        if v.sysid is None and mtype == "HEARTBEAT" and self.want_sysid in (None, src) and (
+                P.is_autopilot_heartbeat(msg) or comp == P.APP_COMPID):
+            v.sysid = src
+            if P.is_autopilot_heartbeat(msg):
+                v.autopilot_comp = comp
+        if v.sysid is None or src != v.sysid:
+            return
+        if v.autopilot_comp is None and P.is_autopilot_heartbeat(msg):
+            v.autopilot_comp = comp
+        now = time.monotonic()
+        if mtype == "DEBUG_FLOAT_ARRAY":
+            if msg.name == "PMON_TGT":
+                est = P.TargetEstimate.from_msg(msg)
+                v.targets[est.index] = est
+            elif msg.name == "PMON_STAT":
+                v.n_stat += 1
+            mtype = msg.name
+        elif mtype == "STATUSTEXT":
+            v.texts.append((now, comp, msg.severity, msg.text))
+        v.last[(mtype, comp)] = msg
+        v.seen_at[(mtype, comp)] = now
+        for fn in self._listeners:
+            fn(mtype, msg)
+
+    def wait_for(self, pred: Callable[[], bool], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while True:
+            self.pump()
+            if pred():
+                return True
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self.pump(min(left, 0.05))
+
+    # ----------------------------------------------------------------- the vehicle
+    def connect(self) -> "GcsLink":
+        """Wait for the vehicle (the first autopilot heard, or --sysid); exit 3 if none."""
+        asked = False
+
+        def found() -> bool:
+            nonlocal asked
+            if self.v.sysid is not None and self.v.autopilot_comp is not None:
+                return True
+            if not asked and self.received:  # udpin: we can only talk once we heard something
+                asked = True
+                # ask for a heartbeat now rather than wait up to a second for the next one
+                self._command_long(0, 0, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+            return False
+        self.pump()
+        if not self.wait_for(found, self.timeout):
+            if self.v.sysid is not None:  # only the app answered (a link to the companion alone)
+                return self
+            who = f"vehicle {self.want_sysid} not" if self.want_sysid else "no vehicle"
+            raise GcsError(f"{who} heard on {self.url} within {self.timeout:g} s "
+                           f"({'no MAVLink at all' if not self.received else 'other traffic only'})",
+                           TIMEOUT)
+        return self
+
+    def request(self, *msg_ids: int) -> None:
+        """MAV_CMD_REQUEST_MESSAGE to the autopilot (answered at once; ACKs are ignored)."""
+        for mid in msg_ids:
+            self._command_long(self.v.sysid, self.v.autopilot_comp or 1,
+                               mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mid)
+
+    def _command_long(self, sysid, comp, cmd, confirmation, *params) -> None:
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        self.send(self.link.mav.command_long_encode(sysid, comp, cmd, confirmation, *p))
+
+    def texts_since(self, t: float, comp: int) -> list[str]:
+        return [text for (at, c, _sev, text) in self.v.texts if at >= t and c == comp]
+
+    def command(self, comp: int | None, cmd: int, *params: float,
+                done: Callable[[], bool] | None = None, name: str = "command") -> Ack:
+        """COMMAND_LONG until its COMMAND_ACK, resent every RETRY_S with confirmation + 1.
+
+        ``done``: the command's effect as seen in telemetry. If the ACK of an earlier copy was
+        lost, a later copy may be refused (a second take-off while climbing): the effect being
+        there then means success, and the command was executed once.
+        """
+        v = self.v
+        comp = v.autopilot_comp if comp is None else comp
+        if v.sysid is None or comp is None:
+            raise GcsError(f"{name}: no autopilot heard on {self.url}", TIMEOUT)
+        t0 = time.monotonic()
+        deadline = t0 + self.timeout
+        ack = None
+        attempts = 0
+
+        def match(confirm_after: float):
+            m = v.last.get(("COMMAND_ACK", comp))
+            if m is None or v.seen_at[("COMMAND_ACK", comp)] < confirm_after or m.command != cmd:
+                return None
+            if getattr(m, "target_system", 0) not in (0, P.GCS_SYSID) or \
+                    getattr(m, "target_component", 0) not in (0, P.GCS_COMPID):
+                return None
+            return m
+
+        while time.monotonic() < deadline:
+            sent_at = time.monotonic()
+            self._command_long(v.sysid, comp, cmd, min(attempts, 255), *params)
+            attempts += 1
+            resend = min(deadline, sent_at + RETRY_S)
+            while time.monotonic() < resend:
+                self.pump(0.02)
+                ack = match(sent_at)
+                if ack is not None and ack.result == mavlink.MAV_RESULT_IN_PROGRESS:
+                    resend = deadline  # running: wait for the final answer, do not resend
+                    ack = None
+                    continue
+                if ack is not None:
+                    break
+            if ack is not None:
+                break
+            if done is not None and done():
+                return Ack("OBSERVED", 0, attempts, time.monotonic() - t0, tuple(self.texts_since(t0, comp)))
+        if ack is None:
+            raise GcsError(f"{name}: no answer from the {'onboard app' if comp == P.APP_COMPID else 'autopilot'}"
+                           f" within {self.timeout:g} s ({attempts} attempts)", TIMEOUT)
+        result = P.RESULTS.get(ack.result, str(ack.result))
+        reason = int(getattr(ack, "result_param2", 0) or 0)
+        if ack.result != mavlink.MAV_RESULT_ACCEPTED:
+            if attempts > 1 and done is not None and self.wait_for(done, 1.0):
+                return Ack("OBSERVED", 0, attempts, time.monotonic() - t0, tuple(self.texts_since(t0, comp)))
+            self.wait_for(lambda: bool(self.texts_since(t0, comp)), GRACE_S)
+        return Ack(result, reason, attempts, time.monotonic() - t0, tuple(self.texts_since(t0, comp)))
+
+    # ----------------------------------------------------------------- app parameters
+    def params_list(self) -> dict[str, float]:
+        """PARAM_REQUEST_LIST to the app; missing indices are asked for one by one."""
+        got: dict[int, tuple[str, float]] = {}
+        count = [None]
+
+        def listen(mtype, msg):
+            if mtype == "PARAM_VALUE" and msg.get_srcComponent() == P.APP_COMPID:
+                got[msg.param_index] = (msg.param_id, msg.param_value)
+                count[0] = msg.param_count
+        self.on_message(listen)
+        try:
+            deadline = time.monotonic() + self.timeout
+            self.send(self.link.mav.param_request_list_encode(self.v.sysid, P.APP_COMPID))
+            while time.monotonic() < deadline:
+                if self.wait_for(lambda: count[0] is not None and len(got) >= count[0],
+                                 min(RETRY_S, deadline - time.monotonic())):
+                    return {name: value for _, (name, value) in sorted(got.items())}
+                if count[0] is None:
+                    self.send(self.link.mav.param_request_list_encode(self.v.sysid, P.APP_COMPID))
+                else:
+                    for i in range(count[0]):
+                        if i not in got:
+                            self.send(self.link.mav.param_request_read_encode(
+                                self.v.sysid, P.APP_COMPID, b"", i))
+        finally:
+            self._listeners.remove(listen)
+        raise GcsError(f"params: the onboard app did not answer within {self.timeout:g} s "
+                       f"({len(got)} of {count[0] or '?'} parameters)", TIMEOUT)
+
+    def param_exchange(self, name: str, value: float | None = None) -> float:
+        """Read (value None) or set one app parameter; returns the value the app holds.
+        Unknown names and refused values come back as a STATUSTEXT: raised as GcsError."""
+        got: list[float] = []
+
+        def listen(mtype, msg):
+            if mtype == "PARAM_VALUE" and msg.get_srcComponent() == P.APP_COMPID and msg.param_id == name:
+                got.append(msg.param_value)
+        self.on_message(listen)
+        t0 = time.monotonic()
+        deadline = t0 + self.timeout
+        what = "get" if value is None else "set"
+        try:
+            while time.monotonic() < deadline:
+                if value is None:
+                    self.send(self.link.mav.param_request_read_encode(self.v.sysid, P.APP_COMPID,
+                                                                      name.encode(), -1))
+                else:
+                    self.send(self.link.mav.param_set_encode(self.v.sysid, P.APP_COMPID, name.encode(),
+                                                             value, mavlink.MAV_PARAM_TYPE_REAL32))
+                end = min(deadline, time.monotonic() + RETRY_S)
+                while time.monotonic() < end:
+                    self.pump(0.02)
+                    texts = [t for t in self.texts_since(t0, P.APP_COMPID) if name in t]
+                    if any("unknown parameter" in t for t in texts):
+                        raise GcsError(f"unknown parameter {name} (params list shows them)", FAILED)
+                    if got:
+                        if value is None or _same(got[-1], value):
+                            return got[-1]
+                        # refused (the value is unchanged) or rounded (integer parameter)
+                        self.wait_for(lambda: any(name in t for t in self.texts_since(t0, P.APP_COMPID)),
+                                      GRACE_S)
+                        texts = [t for t in self.texts_since(t0, P.APP_COMPID) if name in t]
+                        if texts:
+                            raise GcsError(f"params set {name} refused: {texts[-1].removeprefix('PMON: ')}",
+                                           FAILED)
+                        return got[-1]
+        finally:
+            self._listeners.remove(listen)
+        raise GcsError(f"params {what} {name}: no answer from the onboard app within {self.timeout:g} s",
+                       TIMEOUT)
+
+
+def _probe_tcp(url: str, timeout: float) -> None:
+    """A refused TCP port fails at once (pymavlink would retry, sleeping, printing)."""
+    kind, _, rest = url.partition(":")
+    host, _, port = rest.rpartition(":")
+    if kind == "tcp" and port.isdigit():
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+
+
+def _same(a: float, b: float) -> bool:
+    """Equal as float32 (the wire type)."""
+    return struct.pack("<f", a) == struct.pack("<f", b)

@@ -1,0 +1,1084 @@
+"""The onboard app: the imperative shell around ``onboard.core.monitor.tick``.
+
+Threads (all daemon; ``stop()`` joins them):
+  io      MAVLink in (heartbeats, telemetry, commands, parameters), DF datagrams in, and every
+          periodic job on the autopilot clock: heartbeat, setpoint re-send, tick scheduling,
+          launch sequence, link watchdog, PMON_STAT.
+  worker  one core tick at a time. A scan that becomes due while the worker is busy waits;
+          when it frees, only the newest due scan is ticked and older ones are counted as
+          skipped: an overrun is skipped, never queued.
+
+State (HEARTBEAT.custom_mode and PMON_STAT[0]): 0 idle, 1 monitoring, 2 paused, 3 pilot
+override, 4 fault. Only ``monitoring`` sends setpoints, and only while the autopilot is in the
+mode the app put it in (GUIDED); any other mode set by someone else -> pilot override, at once.
+
+Tracking runs whenever scans arrive (every state): the filters stay in step with the targets
+while the vehicle takes off or a pilot flies; planning and setpoints only in ``monitoring``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import select
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field, replace
+from enum import IntEnum
+from typing import Callable
+
+import numpy as np
+
+from onboard.app import datagram as dg
+from onboard.app.clock import AutopilotClock
+from onboard.app.link import COMP_ID, Link, mavlink
+from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
+from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
+from onboard.core import tracking
+from onboard.core.guidance import GuidanceWorkspace
+from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.core.planning import CandidateGrid
+from onboard.core.tracking import ParticleSet
+
+log = logging.getLogger("pmon.app")
+
+# MAVLink command sent to component 191; param1 = action
+MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010
+COAST_AFTER_S = 2.0  # autopilot s past a scan's wait without any DF datagram -> coast tick
+PLAN_RESERVE_S = 0.25  # autopilot s of a tick's budget kept for tracking, planning and sending
+POSITION_ONLY = 3576  # type_mask: ignore velocity, acceleration, yaw, yaw rate
+ARDUCOPTER_GUIDED = 4
+PX4_MAIN_MODE_OFFBOARD = 6
+
+
+class State(IntEnum):
+    IDLE = 0
+    MONITORING = 1
+    PAUSED = 2
+    PILOT_OVERRIDE = 3
+    FAULT = 4
+
+
+class Action(IntEnum):
+    START = 1
+    PAUSE = 2
+    RESUME = 3
+    STOP = 4
+    LAUNCH = 5  # GUIDED, arm, take off to h, then START
+
+
+class Reason(IntEnum):
+    """COMMAND_ACK.result_param2 when a command is refused (docs/MAVLINK.md)."""
+
+    NONE = 0
+    NOT_ARMED = 1
+    NOT_FLYING = 2
+    NO_SENSOR_DATA = 3
+    NO_POSITION = 4
+    NO_AUTOPILOT = 5
+    UNKNOWN_ACTION = 6
+    WRONG_STATE = 7
+    ALREADY_FLYING = 8
+    BUSY = 9
+
+
+REASON_TEXT = {
+    Reason.NOT_ARMED: "vehicle not armed",
+    Reason.NOT_FLYING: "vehicle not flying",
+    Reason.NO_SENSOR_DATA: "no DF data in the last 3 s",
+    Reason.NO_POSITION: "no valid position or local origin yet",
+    Reason.NO_AUTOPILOT: "no autopilot heartbeat",
+    Reason.UNKNOWN_ACTION: "unknown action",
+    Reason.WRONG_STATE: "not possible in this state",
+    Reason.ALREADY_FLYING: "already flying: use start",
+    Reason.BUSY: "launch in progress",
+}
+
+STATUS = {  # HEARTBEAT.system_status per app state
+    State.IDLE: mavlink.MAV_STATE_STANDBY,
+    State.MONITORING: mavlink.MAV_STATE_ACTIVE,
+    State.PAUSED: mavlink.MAV_STATE_STANDBY,
+    State.PILOT_OVERRIDE: mavlink.MAV_STATE_STANDBY,
+    State.FAULT: mavlink.MAV_STATE_CRITICAL,
+}
+
+TGT_FIELDS = ("x_east_m", "y_north_m", "z_up_m", "vx_mps", "vy_mps", "vz_mps", "sigma_x_m",
+              "sigma_y_m", "since_scan_s", "cov_xy_m2", "sigma_vx_mps", "sigma_vy_mps",
+              "degenerate", "tick_time_s")
+STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m", "next_n_m",
+               "next_u_m", "dgram_accepted", "dgram_rejected", "ticks", "ticks_skipped",
+               "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
+               "sum_trace", "ticks_late", "setpoints_refused")
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    mavlink_url: str
+    sensor_host: str = "127.0.0.1"
+    sensor_port: int = 14600  # 0: pick a free port (see OnboardApp.sensor_port)
+    baud: int = 57600
+    target_system: int | None = None  # None: the first autopilot heard
+    auto_launch: bool = False  # the demo's "by itself": GUIDED, arm, take off, start
+    seed: int = 0
+    runlog_path: str | None = None
+    tlog_path: str | None = None
+    link_timeout_s: float = 3.0  # local seconds without autopilot heartbeats -> link lost
+    # system ids whose commands and parameter writes are obeyed (reads are answered to anyone)
+    gcs_sysids: tuple[int, ...] = (255,)
+    signing_key_path: str | None = None  # MAVLink 2 signing key file (onboard/app/signing.py)
+    history: int = 5000  # tick records kept in memory (app.ticks); the run log keeps them all
+    watchdog_s: float = 3.0  # autopilot s a tick may run (or the io loop stall) before a report
+
+
+@dataclass
+class TickRecord:
+    """What the io thread hands the worker."""
+
+    t: float  # scan time (autopilot s)
+    scans: dict  # ch -> Datagram
+    skipped: int
+    started_local: float = 0.0
+    run_local: float | None = None  # when the worker began it (the watchdog reads this)
+    due_t: float | None = None  # autopilot time when it was handed to the worker
+    arrived_t: float | None = None  # autopilot time its newest datagram arrived
+
+
+@dataclass
+class Vehicle:
+    """What the app knows of the autopilot (from its heartbeats and telemetry)."""
+
+    sysid: int | None = None
+    compid: int | None = None
+    autopilot: int = mavlink.MAV_AUTOPILOT_INVALID
+    custom_mode: int | None = None
+    armed: bool = False
+    landed_state: int | None = None
+    relative_alt: float | None = None
+    ned_origin: tuple[float, float, float] | None = None  # autopilot local origin (deg, deg, m)
+    heartbeat_local: float = -math.inf
+    mode_seen_local: float = -math.inf
+
+    def is_guided(self) -> bool:
+        if self.custom_mode is None:
+            return False
+        if self.autopilot == mavlink.MAV_AUTOPILOT_PX4:
+            return (self.custom_mode >> 16) & 0xFF == PX4_MAIN_MODE_OFFBOARD
+        return self.custom_mode == ARDUCOPTER_GUIDED
+
+    def flying(self) -> bool:
+        if self.landed_state not in (None, mavlink.MAV_LANDED_STATE_UNDEFINED):
+            return self.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+        return self.relative_alt is not None and self.relative_alt > 2.0
+
+
+class OnboardApp:
+    def __init__(self, cfg: AppConfig, scenario, clock=None, link: Link | None = None,
+                 monotonic: Callable[[], float] = time.monotonic):
+        self.cfg = cfg
+        self.base_scenario = scenario
+        self.frame = Frame(scenario.origin.lat_deg, scenario.origin.lon_deg, scenario.origin.alt_m)
+        self.mono = monotonic
+        self.clock = clock if clock is not None else AutopilotClock(monotonic)
+        key = None
+        if cfg.signing_key_path is not None:
+            from onboard.app.signing import load_key
+            key = load_key(cfg.signing_key_path)  # KeyFileError: refuse to start
+        self.link = link or Link(cfg.mavlink_url, cfg.baud, cfg.tlog_path,
+                                 source_system=cfg.target_system or 1, signing_key=key)
+        self.params = ParamTable(defaults_from_scenario(scenario))
+        self.M = len(scenario.targets)
+        self.scans = dg.ScanBuffer(self.M)
+        self.poses = PoseHistory()
+        self.vehicle = Vehicle()
+        self.state = State.IDLE
+        self.lock = threading.RLock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind((cfg.sensor_host, cfg.sensor_port))
+        self._sock.setblocking(False)
+        self.sensor_port = self._sock.getsockname()[1]
+        self._runlog = open(cfg.runlog_path, "w", buffering=1) if cfg.runlog_path else None
+        self.rng = np.random.default_rng(cfg.seed)
+        # core state, touched by the worker only (and by stop() after the join)
+        self._setup_version = -1
+        self.setup: MonitorSetup | None = None
+        self.core_state = None
+        self.workspace = GuidanceWorkspace()
+        self._build_setup()
+        # tick bookkeeping
+        self._job: TickRecord | None = None
+        self._job_event = threading.Event()
+        self._worker_busy = False
+        self.last_tick_t: float | None = None
+        self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
+        self.setpoint: np.ndarray | None = None  # ENU, m, checked safe
+        self._next_sp_t = -math.inf
+        self._guided_deadline: float | None = None  # waiting for GUIDED after start/resume
+        self.counters: dict[str, int] = {}
+        # bounded: a long flight must not grow the app's memory (bench/soak.py checks RSS)
+        self.ticks: deque[dict] = deque(maxlen=cfg.history)  # per-tick summaries
+        self.latest: dict | None = None
+        self.sent_setpoints: deque[tuple[float, float, np.ndarray]] = deque(maxlen=10_000)  # (ap t, local t, enu)
+        self._hb_local = -math.inf
+        self._stat_local = -math.inf
+        self._msg_interval_local = -math.inf
+        self._launch: dict | None = None
+        self._said: set[str] = set()
+        self.events: deque[tuple[float | None, str]] = deque(maxlen=2000)
+        self._tick_times: list[float] = []
+        # failsafes
+        self._link_lost = False
+        self._silent = False  # DF silence episode (coasting) in progress
+        self._fallback = [False] * self.M  # target j's guidance is on a fallback plan
+        self._scan_t_used = [-math.inf] * self.M
+        self._last_good: list[tuple[np.ndarray, np.ndarray] | None] = [None] * self.M
+        self._io_beat = self.mono()
+        self._running: TickRecord | None = None
+        self._alarmed: set[str] = set()
+        self.watchdog: dict[str, int] = {}  # written by the watchdog thread only
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "OnboardApp":
+        for name, fn in (("pmon-io", self._io_loop), ("pmon-worker", self._worker_loop),
+                         ("pmon-watchdog", self._watchdog_loop)):
+            th = threading.Thread(target=fn, name=name, daemon=True)
+            th.start()
+            self._threads.append(th)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._job_event.set()
+        for th in self._threads:
+            th.join(timeout=10.0)
+        self._threads = []
+        self._sock.close()
+        self.link.close()
+        if self._runlog is not None:
+            self._runlog.close()
+            self._runlog = None
+
+    def __enter__(self) -> "OnboardApp":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def signing_counts(self) -> dict[str, int]:
+        """MAVLink signing counters of the autopilot link (all zero when signing is off)."""
+        from onboard.app.signing import counts
+        return counts(self.link.mav)
+
+    def _count(self, key: str, n: int = 1) -> None:
+        self.counters[key] = self.counters.get(key, 0) + n
+
+    # ------------------------------------------------------------------ core setup
+    def _build_setup(self) -> None:
+        """(Re)build the core setup from the parameters; called by the worker before a tick."""
+        if self._setup_version == self.params.version:
+            return
+        sc = self.params.apply(self.base_scenario)
+        old = self.setup
+        self.setup = MonitorSetup.from_scenario(sc)
+        self.scenario = sc
+        if self.core_state is None:
+            self.core_state = initial_state(self.setup, self.rng)
+        else:
+            n = self.setup.n_particles
+            beliefs = []
+            for b in self.core_state.beliefs:
+                if len(b) != n:  # resample the current belief to the new particle count
+                    idx = self.rng.choice(len(b), size=n, p=b.weights / b.weights.sum())
+                    b = ParticleSet(b.particles[idx], np.full(n, -np.log(n)))
+                beliefs.append(b)
+            plans = self.core_state.plans
+            if old is not None and old.guidance != self.setup.guidance:
+                plans = (None,) * self.M  # warm starts of another horizon do not fit
+                self.workspace = GuidanceWorkspace()
+            self.core_state = type(self.core_state)(tuple(beliefs), plans, self.core_state.step)
+        self._setup_version = self.params.version
+
+    def _grid_within_reach(self) -> CandidateGrid:
+        """The candidate grid without the rings the vehicle cannot fly in one tick."""
+        g = self.setup.grid
+        reach = self.params["PMON_REACH"]
+        n_r = min(g.n_radial, int(math.floor(reach / g.step_m + 1e-9)))
+        return CandidateGrid(g.step_m, n_r, g.n_heading, g.altitude_m)
+
+    # ------------------------------------------------------------------ messages out
+    def say(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO, once: str | None = None) -> None:
+        """STATUSTEXT 'PMON: ...' (and the event list/log). ``once``: a key said only once."""
+        if once is not None:
+            if once in self._said:
+                return
+            self._said.add(once)
+        full = f"PMON: {text}"
+        self.events.append((self.clock.now(), full))
+        log.info(full)
+        if self.vehicle.sysid is not None:
+            self.link.send(self.link.mav.statustext_encode(severity, full.encode()[:50]))
+
+    def _heartbeat(self) -> None:
+        self.link.send(self.link.mav.heartbeat_encode(
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, int(self.state), STATUS[self.state]))
+
+    def _debug_array(self, name: str, array_id: int, values, t: float | None) -> None:
+        data = [float(v) if np.isfinite(v) else float("nan") for v in values][:58]
+        data += [0.0] * (58 - len(data))
+        usec = int((t or 0.0) * 1e6)
+        self.link.send(self.link.mav.debug_float_array_encode(usec, name.encode(), array_id, data))
+
+    def _publish_stat(self) -> None:
+        tk = self.latest or {}
+        nxt = self.setpoint if self.setpoint is not None else (math.nan,) * 3
+        pose = self.poses.latest()
+        uav = pose.pos if pose is not None else (math.nan,) * 3
+        rate = 0.0
+        if len(self._tick_times) >= 2:
+            span = self._tick_times[-1] - self._tick_times[0]
+            rate = (len(self._tick_times) - 1) / span if span > 0 else 0.0
+        values = [
+            int(self.state), rate, tk.get("t", math.nan), tk.get("tick_ms", math.nan), *nxt,
+            self.scans.accepted, self.scans.rejected_total, self.counters.get("ticks", 0),
+            self.counters.get("ticks_skipped", 0), tk.get("latency_ms") if tk.get("latency_ms") is not None else math.nan,
+            self.vehicle.custom_mode if self.vehicle.custom_mode is not None else -1,
+            float(self.vehicle.armed), *uav, tk.get("sum_trace") if tk.get("sum_trace") is not None else math.nan,
+            self.counters.get("ticks_late", 0), self.counters.get("setpoints_refused", 0),
+        ]
+        self._debug_array("PMON_STAT", 0, values, self.clock.now())
+
+    def _command_long(self, command: int, *params: float, target_comp: int | None = None) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.link.send(self.link.mav.command_long_encode(
+            self.vehicle.sysid, self.vehicle.compid if target_comp is None else target_comp,
+            command, 0, *p))
+
+    def _request_telemetry(self) -> None:
+        """Ask for the rates the app needs on its own link (any ArduPilot / PX4 honours these)."""
+        for msg_id, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
+                           (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0),
+                           (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0),
+                           (mavlink.MAVLINK_MSG_ID_HEARTBEAT, 4.0)):
+            self._command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+        if self.vehicle.ned_origin is None:
+            self._command_long(mavlink.MAV_CMD_REQUEST_MESSAGE,
+                               mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+
+    # ------------------------------------------------------------------ io thread
+    def _io_loop(self) -> None:
+        while not self._stop.is_set():
+            self._io_beat = self.mono()
+            try:
+                self._io_once()
+            except Exception:  # the loop never dies of one bad message or a bug in a handler
+                self._count("io_errors")
+                log.exception("io loop error")
+                time.sleep(0.01)
+
+    def _io_once(self) -> None:
+        fds = [self._sock]
+        fd = self.link.fileno()
+        if fd is not None:
+            fds.append(fd)
+        try:
+            readable, _, _ = select.select(fds, [], [], 0.002)
+        except (OSError, ValueError):
+            readable = []
+        # MAVLink: drain (pymavlink buffers several messages per read)
+        for _ in range(500):
+            msg = self.link.recv()
+            if msg is None:
+                break
+            with self.lock:
+                self._on_mavlink(msg)
+        if self._sock in readable:
+            self._read_datagrams()
+        with self.lock:
+            self._periodic()
+
+    def _read_datagrams(self) -> None:
+        for _ in range(1000):
+            try:
+                data, _addr = self._sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            with self.lock:
+                try:
+                    self.scans.offer(data, self.clock.now())
+                except dg.DatagramError as err:
+                    if self.scans.rejected[err.reason] == 1:  # the first of each kind
+                        self.say(f"bad DF datagram: {err}"[:44], mavlink.MAV_SEVERITY_WARNING)
+
+    # ----- MAVLink in
+    def _on_mavlink(self, msg) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            self._count("mavlink_bad_data")
+            return
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if mtype == "HEARTBEAT":
+            self._on_heartbeat(msg, src_sys, src_comp)
+            return
+        if self.vehicle.sysid is None:
+            return
+        from_autopilot = (src_sys, src_comp) == (self.vehicle.sysid, self.vehicle.compid)
+        tb = getattr(msg, "time_boot_ms", None)
+        if from_autopilot and tb is not None:
+            self.clock.observe(tb)
+        if from_autopilot:
+            if mtype == "GLOBAL_POSITION_INT":
+                if valid_global_position_int(msg):
+                    self.poses.add(self.frame.pose_from_global_position_int(msg))
+                    self.vehicle.relative_alt = msg.relative_alt / 1000.0
+            elif mtype == "EXTENDED_SYS_STATE":
+                self.vehicle.landed_state = msg.landed_state
+            elif mtype == "GPS_GLOBAL_ORIGIN":
+                self.vehicle.ned_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            elif mtype == "COMMAND_ACK":
+                self._on_autopilot_ack(msg)
+            return
+        # messages for this component (from a ground station, routed or direct)
+        tsys = getattr(msg, "target_system", None)
+        tcomp = getattr(msg, "target_component", None)
+        if tsys is None or tsys not in (0, self.vehicle.sysid) or tcomp not in (0, COMP_ID):
+            return
+        if mtype in ("COMMAND_LONG", "COMMAND_INT", "PARAM_SET") and tcomp == COMP_ID \
+                and src_sys not in self.cfg.gcs_sysids:
+            # only configured ground stations command the app; no ACK: nothing to tell a stranger
+            self._count("rejected_sysid")
+            self.say(f"{mtype} from sysid {src_sys} ignored: not a configured GCS",
+                     mavlink.MAV_SEVERITY_WARNING, once=f"sysid{src_sys}")
+            return
+        if mtype == "COMMAND_LONG" and tcomp == COMP_ID:
+            if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == \
+                    mavlink.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY:
+                self._ack(msg, mavlink.MAV_RESULT_ACCEPTED)  # PMON_STAT at once (h4 request 3)
+                self._publish_stat()
+                return
+            self._on_command(msg)
+        elif mtype == "COMMAND_INT" and tcomp == COMP_ID:
+            self._ack(msg, mavlink.MAV_RESULT_UNSUPPORTED, Reason.UNKNOWN_ACTION)
+        elif mtype == "PARAM_REQUEST_LIST":
+            for i, name in enumerate(self.params.names()):
+                self._param_value(name, i)
+        elif mtype == "PARAM_REQUEST_READ":
+            self._on_param_read(msg)
+        elif mtype == "PARAM_SET" and tcomp == COMP_ID:
+            self._on_param_set(msg)
+
+    def _on_heartbeat(self, msg, src_sys: int, src_comp: int) -> None:
+        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
+                mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER):
+            return  # ground stations, companions, gimbals ... are not the autopilot
+        v = self.vehicle
+        if v.sysid is None:
+            if self.cfg.target_system not in (None, src_sys):
+                return
+            v.sysid, v.compid, v.autopilot = src_sys, src_comp, msg.autopilot
+            self.link.set_source_system(src_sys)  # the app is a component of this vehicle
+            self.say(f"autopilot {src_sys}/{src_comp} found")
+            self._request_telemetry()
+            self._msg_interval_local = self.mono()
+        elif (src_sys, src_comp) != (v.sysid, v.compid):
+            return
+        v.heartbeat_local = self.mono()
+        if self._link_lost:
+            self._link_lost = False
+            self._count("link_regained")
+            self._request_telemetry()  # a reconnected link starts with the default rates
+            self.say("autopilot link back" + (": send resume to fly" if self.state == State.FAULT else ""),
+                     mavlink.MAV_SEVERITY_WARNING)
+        v.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        changed = msg.custom_mode != v.custom_mode
+        v.custom_mode = msg.custom_mode
+        if changed:
+            v.mode_seen_local = self.mono()
+        self._check_mode()
+
+    def _check_mode(self) -> None:
+        """Stop commanding the moment the vehicle leaves the mode the app put it in."""
+        v = self.vehicle
+        if self.state == State.MONITORING:
+            if self._guided_deadline is not None:
+                if v.is_guided():
+                    self._guided_deadline = None
+                    self.say("GUIDED: monitoring")
+                return
+            if not v.is_guided() or not v.armed:
+                why = "disarmed" if not v.armed else f"mode {v.custom_mode}"
+                self._set_state(State.PILOT_OVERRIDE)
+                self.say(f"pilot override ({why}): setpoints stopped", mavlink.MAV_SEVERITY_WARNING)
+        if self._launch is not None and self._launch["phase"] in ("takeoff", "climb") \
+                and not v.is_guided():
+            self._launch = None
+            self.say("launch aborted: mode changed", mavlink.MAV_SEVERITY_WARNING)
+
+    def _on_autopilot_ack(self, msg) -> None:
+        if msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
+            self._count(f"autopilot_refused_{msg.command}")
+
+    # ----- state
+    def _set_state(self, new: State) -> None:
+        if new != State.MONITORING:
+            self.setpoint = None
+            self.generation += 1  # results of ticks already running are not sent
+            self._guided_deadline = None
+        self.state = new
+        self._heartbeat()
+
+    # ----- commands
+    def _on_command(self, msg) -> None:
+        if msg.command != MAV_CMD_PMON:
+            self._ack(msg, mavlink.MAV_RESULT_UNSUPPORTED, Reason.UNKNOWN_ACTION)
+            return
+        p1 = msg.param1
+        action = int(p1) if math.isfinite(p1) and p1 == int(p1) else -1
+        handler = {Action.START: self._cmd_start, Action.PAUSE: self._cmd_pause,
+                   Action.RESUME: self._cmd_resume, Action.STOP: self._cmd_stop,
+                   Action.LAUNCH: self._cmd_launch}.get(action)
+        if handler is None:
+            self._refuse(msg, mavlink.MAV_RESULT_DENIED, Reason.UNKNOWN_ACTION, f"action {p1:g}")
+            return
+        result, reason = handler()
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self._ack(msg, result, reason)
+        else:
+            self._refuse(msg, result, reason, Action(action).name.lower())
+
+    def _ack(self, msg, result: int, reason: Reason = Reason.NONE) -> None:
+        self.link.send(self.link.mav.command_ack_encode(
+            msg.command, result, 0, int(reason), msg.get_srcSystem(), msg.get_srcComponent()))
+
+    def _refuse(self, msg, result: int, reason: Reason, what: str) -> None:
+        self._ack(msg, result, reason)
+        self.say(f"{what} refused: {REASON_TEXT.get(reason, reason.name)}", mavlink.MAV_SEVERITY_WARNING)
+
+    def _preconditions(self) -> tuple[int, Reason]:
+        v = self.vehicle
+        now = self.clock.now()
+        if v.sysid is None or self.mono() - v.heartbeat_local > self.cfg.link_timeout_s:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT
+        if self.poses.latest() is None or v.ned_origin is None or now is None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_POSITION
+        if not v.armed:
+            return mavlink.MAV_RESULT_DENIED, Reason.NOT_ARMED
+        if not v.flying():
+            return mavlink.MAV_RESULT_DENIED, Reason.NOT_FLYING
+        last = max(self.scans.last_scan_t)
+        if not now - last <= 3.0:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_SENSOR_DATA
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def _enter_monitoring(self) -> None:
+        self._set_state(State.MONITORING)
+        self._next_sp_t = -math.inf
+        if self.vehicle.is_guided():
+            self._guided_deadline = None
+            self.say("monitoring started")
+        else:  # take the vehicle into GUIDED; not an override until it is there (or refuses)
+            self._guided_deadline = (self.clock.now() or 0.0) + 3.0
+            self._set_guided()
+            self.say("monitoring: switching to GUIDED")
+
+    def _set_guided(self) -> None:
+        if self.vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4:
+            self._command_long(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                               PX4_MAIN_MODE_OFFBOARD)
+        else:
+            self._command_long(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                               ARDUCOPTER_GUIDED)
+
+    def _cmd_start(self) -> tuple[int, Reason]:
+        if self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE  # already: do nothing twice
+        if self._launch is not None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.BUSY
+        result, reason = self._preconditions()
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self._enter_monitoring()
+        return result, reason
+
+    def _cmd_resume(self) -> tuple[int, Reason]:
+        if self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.state == State.IDLE:
+            return mavlink.MAV_RESULT_DENIED, Reason.WRONG_STATE
+        return self._cmd_start()
+
+    def _cmd_pause(self) -> tuple[int, Reason]:
+        if self.state == State.PAUSED:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.state != State.MONITORING:
+            return mavlink.MAV_RESULT_DENIED, Reason.WRONG_STATE
+        self._set_state(State.PAUSED)
+        self.say("paused: setpoints stopped, vehicle holds")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def _cmd_stop(self) -> tuple[int, Reason]:
+        if self._launch is not None:
+            self._launch = None
+            self.say("launch cancelled")
+        if self.state == State.IDLE:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        self._set_state(State.IDLE)
+        self.say("stopped")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def _cmd_launch(self) -> tuple[int, Reason]:
+        if self._launch is not None or self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        v = self.vehicle
+        if v.sysid is None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT
+        if self.poses.latest() is None or v.ned_origin is None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_POSITION
+        if v.armed and v.flying():
+            return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
+        self._launch = {"phase": "mode", "next": -math.inf, "tries": 0}
+        self.say("launch: GUIDED, arm, take off")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    # ----- parameters
+    def _param_value(self, name: str, index: int | None = None) -> None:
+        self.link.send(self.link.mav.param_value_encode(
+            name.encode(), self.params[name], mavlink.MAV_PARAM_TYPE_REAL32, len(self.params),
+            self.params.index(name) if index is None else index))
+
+    @staticmethod
+    def _param_name(raw) -> str:
+        if isinstance(raw, bytes):
+            raw = raw.decode("ascii", "replace")
+        return str(raw).split("\x00", 1)[0]
+
+    def _on_param_read(self, msg) -> None:
+        name = self._param_name(msg.param_id)
+        if msg.param_index >= 0:
+            if msg.param_index < len(self.params):
+                self._param_value(self.params.names()[msg.param_index], msg.param_index)
+            else:
+                self.say(f"no parameter index {msg.param_index}", mavlink.MAV_SEVERITY_WARNING)
+            return
+        if name in self.params:
+            self._param_value(name)
+        else:
+            self.say(f"unknown parameter {name[:16]}", mavlink.MAV_SEVERITY_WARNING)
+
+    def _on_param_set(self, msg) -> None:
+        name = self._param_name(msg.param_id)
+        if name not in self.params:
+            self.say(f"unknown parameter {name[:16]}", mavlink.MAV_SEVERITY_WARNING)
+            return  # nothing to answer with: no such value exists
+        refused = self.params.set(name, float(msg.param_value))
+        if refused:
+            self.say(refused, mavlink.MAV_SEVERITY_WARNING)
+        self._param_value(name)
+
+    # ----- periodic jobs (io thread, under the lock)
+    def _periodic(self) -> None:
+        local = self.mono()
+        now = self.clock.now()
+        v = self.vehicle
+        if v.sysid is not None and local - self._hb_local >= 1.0:
+            self._hb_local = local
+            self._heartbeat()
+            if local - self._stat_local >= 1.0:
+                self._publish_stat()
+                self._stat_local = local
+        if v.sysid is not None and v.ned_origin is None and local - self._msg_interval_local > 2.0:
+            self._msg_interval_local = local
+            self._request_telemetry()
+        # link loss (local time: no heartbeat for link_timeout_s): stop commanding at once, keep
+        # estimating (the clock free-runs, scans are still ticked); fly again only when told
+        if v.sysid is not None and not self._link_lost and local - v.heartbeat_local > self.cfg.link_timeout_s:
+            self._link_lost = True
+            self._count("link_losses")
+            if self.state in (State.MONITORING, State.PAUSED):
+                self._set_state(State.FAULT)
+            if self._launch is not None:
+                self._launch = None
+            self.say("autopilot link lost: setpoints stopped, estimating", mavlink.MAV_SEVERITY_CRITICAL)
+        if now is None:
+            return
+        if self.state == State.MONITORING and self._guided_deadline is not None \
+                and now > self._guided_deadline:
+            self._set_state(State.PAUSED)
+            self.say("GUIDED refused by the autopilot: paused", mavlink.MAV_SEVERITY_WARNING)
+        if self.cfg.auto_launch and self.state == State.IDLE and self._launch is None \
+                and not self._said_launch():
+            if self._cmd_launch()[0] == mavlink.MAV_RESULT_ACCEPTED and self._launch is not None:
+                self._said.add("auto_launch")
+        self._launch_step(now)
+        self._schedule_tick(now)
+        self._stream_setpoint(now)
+
+    def _said_launch(self) -> bool:
+        return "auto_launch" in self._said
+
+    def _stream_setpoint(self, now: float) -> None:
+        if self.state != State.MONITORING or self._guided_deadline is not None or self.setpoint is None \
+                or self._link_lost:
+            return
+        if not self.vehicle.is_guided():
+            return
+        if now >= self._next_sp_t:
+            self._send_setpoint(self.setpoint, now)
+
+    def _send_setpoint(self, enu: np.ndarray, now: float) -> bool:
+        v = self.vehicle
+        if v.ned_origin is None:
+            return False
+        ned = self.frame.ned_from_enu(enu, v.ned_origin)
+        ok = self.link.send(self.link.mav.set_position_target_local_ned_encode(
+            int(now * 1000) & 0xFFFFFFFF, v.sysid, v.compid, mavlink.MAV_FRAME_LOCAL_NED,
+            POSITION_ONLY, float(ned[0]), float(ned[1]), float(ned[2]), 0, 0, 0, 0, 0, 0, 0, 0))
+        self._next_sp_t = now + 1.0 / self.params["PMON_SP_HZ"]
+        if ok:
+            self.sent_setpoints.append((now, self.mono(), np.array(enu, float)))
+            if len(self.sent_setpoints) > 100_000:
+                del self.sent_setpoints[:50_000]
+        return ok
+
+    def _launch_step(self, now: float) -> None:
+        L = self._launch
+        if L is None or now < L["next"]:
+            return
+        v = self.vehicle
+        h = self.params["PMON_ALT"]
+        if L["tries"] >= 10:
+            self.say(f"launch failed at {L['phase']}", mavlink.MAV_SEVERITY_ERROR)
+            self._launch = None
+            return
+        L["next"] = now + 1.0
+        L["tries"] += 1
+        phase = L["phase"]
+        if phase == "mode":
+            if v.is_guided():
+                L.update(phase="arm", tries=0, next=-math.inf)
+            else:
+                self._set_guided()
+        elif phase == "arm":
+            if v.armed:
+                L.update(phase="takeoff", tries=0, next=-math.inf)
+            else:
+                self._command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        elif phase == "takeoff":
+            pose = self.poses.latest()
+            if pose is not None and v.relative_alt is not None and pose.pos[2] > 1.0:
+                L.update(phase="climb", tries=0, next=-math.inf)
+            elif pose is not None and v.relative_alt is not None:
+                home_up = pose.pos[2] - v.relative_alt  # ENU height of home
+                self._command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
+                                   math.nan, h - home_up)
+        elif phase == "climb":
+            pose = self.poses.latest()
+            L["tries"] = 0  # climbing takes as long as it takes
+            if pose is not None and pose.pos[2] >= h - 1.0:
+                result, reason = self._preconditions()
+                if result == mavlink.MAV_RESULT_ACCEPTED:
+                    self._launch = None
+                    self._enter_monitoring()
+                elif reason == Reason.NO_SENSOR_DATA:
+                    self.say("launch: at altitude, waiting for DF data", once="wait_df")
+                elif reason != Reason.NOT_FLYING:  # NOT_FLYING: takeoff not reported done yet
+                    self.say(f"launch: cannot start: {REASON_TEXT[reason]}", once=f"launch{reason}")
+
+    # ----- tick scheduling
+    def _schedule_tick(self, now: float) -> None:
+        if self._worker_busy:
+            return
+        wait = self.params["PMON_SCAN_WAIT"]
+        due = [k for k in self.scans.pending if self.scans.complete(k) or now >= k + wait]
+        if not due:
+            # no DF data: coast the filters on the 1 s grid so they stay in step with time
+            # (late enough that a DF delivering a few seconds late is not overtaken: a coast tick
+            # takes that scan time, and a scan arriving after it is rejected as stale_time)
+            if self.last_tick_t is not None and now >= self.last_tick_t + 1.0 + wait + COAST_AFTER_S:
+                if not self._silent:  # once per silence episode
+                    self._silent = True
+                    self._count("df_silences")
+                    self.say("no DF data: predicting only", mavlink.MAV_SEVERITY_WARNING)
+                self._count("ticks_coasted")
+                key = self.last_tick_t + 1.0
+                self.scans.consumed_until = max(self.scans.consumed_until, key)
+                self._submit(TickRecord(key, {}, 0))
+            return
+        # scans still within their budget are ticked in order; past it, only the newest is
+        # ticked and the older ones are skipped (an overrun is skipped, never queued)
+        live = [k for k in due if now <= k + self.params["PMON_BUDGET"]]
+        key = min(live) if live else max(due)
+        taken = self.scans.take_until(key)
+        if self._silent:
+            self._silent = False
+            self.say("DF data back: updating again")
+        skipped = len(taken) - 1
+        if skipped:
+            self._count("ticks_skipped", skipped)
+        if self.last_tick_t is not None and key > self.last_tick_t + 1.5:
+            missed = int(round(key - self.last_tick_t)) - 1 - skipped
+            if missed > 0:
+                self._count("ticks_coasted_missing", missed)
+        self._submit(TickRecord(key, taken[-1][1], skipped, arrived_t=self.scans.last_arrival))
+
+    def _submit(self, rec: TickRecord) -> None:
+        rec.started_local = self.mono()
+        rec.due_t = self.clock.now()
+        self.last_tick_t = rec.t
+        self._worker_busy = True
+        self._job = rec
+        self._job_event.set()
+
+    # ------------------------------------------------------------------ watchdog thread
+    def _alarm(self, key: str, text: str) -> None:
+        """Report from the watchdog: no app lock (the stuck thread may hold it)."""
+        self.watchdog[key] = self.watchdog.get(key, 0) + 1
+        full = f"PMON: {text}"
+        self.events.append((None, full))
+        log.error(full)
+        if self.vehicle.sysid is not None:
+            self.link.send(self.link.mav.statustext_encode(mavlink.MAV_SEVERITY_CRITICAL, full.encode()[:50]))
+
+    def _watchdog_loop(self) -> None:
+        """Reports a stuck io loop or a tick running past ``watchdog_s`` of autopilot time,
+        once per episode. The io thread keeps re-sending the last (checked) setpoint while a
+        tick is stuck, so the vehicle holds a safe point; an overrun's scans are skipped."""
+        while not self._stop.wait(0.1):
+            local = self.mono()
+            rate = getattr(self.clock, "rate", 1.0) or 1.0
+            limit = self.cfg.watchdog_s / rate
+            stuck_io = local - self._io_beat > max(limit, 0.5)
+            if stuck_io and "io" not in self._alarmed:
+                self._alarmed.add("io")
+                self._alarm("io_stuck", f"watchdog: io loop stuck {local - self._io_beat:.1f} s")
+            elif not stuck_io:
+                self._alarmed.discard("io")
+            job = self._running
+            started = job.run_local if job is not None else None
+            stuck_tick = started is not None and local - started > limit
+            if stuck_tick and "tick" not in self._alarmed:
+                self._alarmed.add("tick")
+                self._alarm("tick_stuck", f"watchdog: tick t={job.t:.0f} running {(local - started) * rate:.1f} s")
+            elif not stuck_tick:
+                self._alarmed.discard("tick")
+
+    # ------------------------------------------------------------------ worker thread
+    def _worker_loop(self) -> None:
+        while not self._stop.is_set():
+            self._job_event.wait(0.1)
+            self._job_event.clear()
+            job, self._job = self._job, None
+            if job is None:
+                continue
+            job.run_local = self.mono()
+            self._running = job
+            try:
+                self._run_tick(job)
+            except Exception:
+                with self.lock:
+                    self._count("tick_errors")
+                log.exception("tick error")
+            finally:
+                self._running = None
+                with self.lock:
+                    self._worker_busy = False
+
+    def _run_tick(self, job: TickRecord) -> None:
+        t_start = self.mono()
+        with self.lock:
+            self._build_setup()
+            setup = self.setup
+            grid = self._grid_within_reach()
+            generation = self.generation
+            planning = self.state == State.MONITORING and self._guided_deadline is None
+            now = self.clock.now() or job.t
+            # pair the scan with where the DF was at the scan's time (telemetry, not setpoint)
+            sensor_pos = self.poses.at(job.t)
+            centre = self.poses.at(now) if planning else None  # where the vehicle is now
+        bearings = tuple(job.scans[ch].bearings if ch in job.scans else np.empty(0)
+                         for ch in range(self.M))
+        for ch in job.scans:  # newest scan time <= this tick per channel (PMON_TGT[8])
+            self._scan_t_used[ch] = max(self._scan_t_used[ch], job.t)
+        scans = []
+        if sensor_pos is not None and job.scans:
+            scans = [Scan(sensor_pos, bearings)]
+        elif job.scans:
+            with self.lock:
+                self._count("scans_without_pose")
+                self.say("DF scan without a vehicle position: dropped",
+                         mavlink.MAV_SEVERITY_WARNING, once="nopose")
+        if grid.n_radial != setup.grid.n_radial:
+            setup = _with_grid(setup, grid)
+        # guidance time, in autopilot s: PMON_GUID_S, and never more than what is left of the
+        # tick's budget after a reserve for planning and sending (converted to local seconds
+        # at the clock's rate: at a SITL speedup of 4, 0.3 s of autopilot time is 75 ms)
+        guid_s = self.params["PMON_GUID_S"]
+        rate = getattr(self.clock, "rate", 1.0) or 1.0
+        left = job.t + self.params["PMON_BUDGET"] - PLAN_RESERVE_S - (self.clock.now() or job.t)
+        per_target_s = max(min(guid_s, left), 0.0) / rate / max(setup.n_targets, 1)
+        setup = replace(setup, guidance=replace(setup.guidance, max_solve_time_s=per_target_s))
+        self.core_state, res = tick(setup, self.core_state, scans, self.rng,
+                                    plan_from=centre, workspace=self.workspace)
+        reseeded = self._check_beliefs(setup, res)
+        nxt = res.next_position
+        with self.lock:
+            self._report_guidance(res)
+            for j in reseeded:
+                self._count("reseeds")
+                self.say(f"T{j + 1}: particle collapse: re-seeded from its last estimate",
+                         mavlink.MAV_SEVERITY_ERROR)
+            sent = False
+            refused = None
+            if nxt is not None and planning:
+                if self.generation != generation or self.state != State.MONITORING:
+                    refused = "state changed during the tick"
+                else:
+                    refused = self._unsafe(nxt, centre, setup)
+                    if refused is None:
+                        self.setpoint = np.array(nxt, float)
+                        sent = self._send_setpoint(self.setpoint, self.clock.now() or job.t)
+                    else:
+                        self._count("setpoints_refused")
+                        self.say(f"setpoint refused: {refused}", mavlink.MAV_SEVERITY_ERROR)
+            t_sent = self.mono()
+            ap_sent = self.clock.now()
+            self._count("ticks")
+            late = ap_sent is not None and ap_sent > job.t + self.params["PMON_BUDGET"]
+            if late and planning and job.scans:  # a coast tick has no scan to be late for
+                self._count("ticks_late")
+            rec = self._record(job, res, sensor_pos, centre, nxt, sent, refused,
+                               t_start, t_sent, ap_sent)
+            rec["planned"] = planning
+            rec["plans"] = [p.status for p in res.plans]
+            rec["qp_solves"] = [p.qp_solves for p in res.plans]
+            rec["guidance_timeouts"] = [p.status == "timeout" for p in res.plans]
+            rec["reseeded"] = reseeded
+            if self._runlog is not None:
+                self._runlog.write(json.dumps(rec, allow_nan=False, default=_json_default) + "\n")
+            self._publish_tick(rec, res)
+            self._tick_times = (self._tick_times + [job.t])[-10:]
+
+    def _check_beliefs(self, setup: MonitorSetup, res) -> list[int]:
+        """Particle collapse: a target whose update left no finite weight (``degenerate``) or
+        whose belief holds a NaN/inf is re-seeded from its last good estimate, covariance
+        inflated (x4 plus the initial covariance: it was lost, so be generous). Only that
+        target's belief is replaced; the others are untouched. Worker thread."""
+        out = []
+        beliefs = list(self.core_state.beliefs)
+        for j, b in enumerate(beliefs):
+            bad = bool(res.degenerate[j]) or not (np.all(np.isfinite(b.particles))
+                                                  and np.all(np.isfinite(b.log_weights))
+                                                  and np.all(np.isfinite(res.means[j])))
+            if not bad:
+                self._last_good[j] = (res.means[j].copy(), res.covs[j].copy())
+                continue
+            mean, cov = self._last_good[j] or (setup.initial_means[j], setup.initial_cov)
+            cov = 4.0 * cov + setup.initial_cov
+            try:
+                beliefs[j] = tracking.initialise(mean, cov, len(b.particles), self.rng)
+            except np.linalg.LinAlgError:
+                beliefs[j] = tracking.initialise(mean, setup.initial_cov, len(b.particles), self.rng)
+            out.append(j)
+        if out:
+            self.core_state = type(self.core_state)(tuple(beliefs), self.core_state.plans,
+                                                    self.core_state.step)
+        return out
+
+    def _report_guidance(self, res) -> None:
+        """Guidance time-outs and fallbacks: counted every tick, said when a target enters or
+        leaves a fallback (not every tick). Under the lock."""
+        if any(p.status == "timeout" for p in res.plans):
+            self._count("guidance_timeouts")
+        for j, plan in enumerate(res.plans):
+            fb = plan.status.startswith("fallback")
+            if fb:
+                self._count(plan.status)
+            if fb and not self._fallback[j]:
+                how = "previous plan shifted" if plan.status == "fallback_previous" else "coasting"
+                self.say(f"T{j + 1} guidance failed: {how}", mavlink.MAV_SEVERITY_WARNING)
+            elif not fb and self._fallback[j]:
+                self.say(f"T{j + 1} guidance back")
+            self._fallback[j] = fb
+
+    def _unsafe(self, p: np.ndarray, centre, setup: MonitorSetup | None = None) -> str | None:
+        """Why a setpoint must not be sent (None: safe): inside the area, inside the altitude
+        band, at the h of the setup the tick used, clear of the obstacles inflated by the UAV
+        margin, and the straight path to it clear as well. Never clipped: refused."""
+        s = setup or self.setup
+        p = np.asarray(p, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            return "not a finite position"
+        if np.any(p < s.area_min) or np.any(p > s.area_max):
+            return "outside the area"
+        if not self.params["PMON_ALT_MIN"] <= p[2] <= self.params["PMON_ALT_MAX"]:
+            return "outside the altitude band"
+        if abs(p[2] - s.grid.altitude_m) > 1e-6:
+            return "not at altitude h"
+        if len(s.uav_obstacles) and s.uav_obstacles.contains(p).any():
+            return "inside an obstacle"
+        if centre is not None and len(s.uav_obstacles):
+            start = np.array([centre[0], centre[1], p[2]])
+            if s.uav_obstacles.segments_cross(start[None], p[None]).any():
+                return "path crosses an obstacle"
+        return None
+
+    def _record(self, job, res, sensor_pos, centre, nxt, sent, refused, t_start, t_sent, ap_sent) -> dict:
+        sig = np.sqrt(np.maximum(np.diagonal(res.covs, axis1=1, axis2=2), 0.0))
+        sum_trace = None
+        if res.planning is not None and res.planning.index is not None:
+            sum_trace = float(res.planning.scores[res.planning.index])
+        rec = {
+            "t": job.t, "state": int(self.state), "planned": None, "sent_t": ap_sent, "due_t": job.due_t,
+            "arrived_t": job.arrived_t,
+            "channels": sorted(job.scans), "n_bearings": [len(job.scans[c].bearings) if c in job.scans else None
+                                                         for c in range(self.M)],
+            "uav_enu": None if sensor_pos is None else [round(float(x), 3) for x in sensor_pos],
+            "plan_from": None if centre is None else [round(float(x), 3) for x in centre],
+            "means": np.round(res.means, 3).tolist(),
+            "sigmas_xy": np.round(sig[:, :2], 3).tolist(),
+            "next": None if nxt is None else [round(float(x), 3) for x in nxt],
+            "sent": sent, "refused": refused, "skipped_before": job.skipped,
+            "n_candidates": None if res.planning is None else int(len(res.planning.candidates)),
+            "n_admissible": None if res.planning is None else int(res.planning.admissible.sum()),
+            "sum_trace": sum_trace,
+            "timings_ms": {k: round(v * 1e3, 2) for k, v in res.timings_s.items()},
+            "tick_ms": round(res.timings_s["tick"] * 1e3, 2),
+            "latency_ms": round((t_sent - job.started_local) * 1e3, 2) if sent else None,
+            "wait_ms": round((t_start - job.started_local) * 1e3, 2),
+        }
+        self.latest = rec
+        self.ticks.append(rec)
+        return rec
+
+    def _publish_tick(self, rec: dict, res) -> None:
+        if self.vehicle.sysid is None:
+            return
+        for j in range(self.M):
+            c = res.covs[j]
+            since = rec["t"] - self._scan_t_used[j] if math.isfinite(self._scan_t_used[j]) else -1.0
+            values = [*res.means[j], math.sqrt(max(c[0, 0], 0)), math.sqrt(max(c[1, 1], 0)), since,
+                      c[0, 1], math.sqrt(max(c[3, 3], 0)), math.sqrt(max(c[4, 4], 0)),
+                      float(res.degenerate[j]), rec["t"]]
+            self._debug_array("PMON_TGT", j, values, rec["t"])
+        self._publish_stat()
+        self._stat_local = self.mono()
+
+
+def _with_grid(setup: MonitorSetup, grid: CandidateGrid) -> MonitorSetup:
+    return replace(setup, grid=grid)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+__all__ = ["AppConfig", "OnboardApp", "State", "Action", "Reason", "TGT_FIELDS", "STAT_FIELDS",
+           "SPECS"]

@@ -1,0 +1,114 @@
+"""The vehicle's pose from MAVLink telemetry, in the ENU mission frame, and the frame edge.
+
+Only this module and `link` know about NED and degE7: the mission frame is ENU (m) at the
+scenario's geodetic origin. GLOBAL_POSITION_INT gives an absolute position, so the app does
+not depend on where the autopilot's local (EKF) origin is; setpoints in LOCAL_NED are made
+relative to that origin (GPS_GLOBAL_ORIGIN, or HOME_POSITION's origin-relative fields).
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import pymap3d
+
+
+@dataclass(frozen=True)
+class PoseSample:
+    t: float  # autopilot s
+    pos: np.ndarray  # (3,) ENU m
+    vel: np.ndarray  # (3,) ENU m/s
+
+
+class Frame:
+    """ENU mission frame at a geodetic origin (deg, deg, m AMSL)."""
+
+    def __init__(self, lat: float, lon: float, alt: float):
+        self.origin = (float(lat), float(lon), float(alt))
+
+    def enu_from_geodetic(self, lat: float, lon: float, alt: float) -> np.ndarray:
+        return np.array(pymap3d.geodetic2enu(lat, lon, alt, *self.origin), dtype=float)
+
+    def geodetic_from_enu(self, enu) -> tuple[float, float, float]:
+        lat, lon, alt = pymap3d.enu2geodetic(float(enu[0]), float(enu[1]), float(enu[2]), *self.origin)
+        return float(lat), float(lon), float(alt)
+
+    def ned_from_enu(self, enu, ned_origin: tuple[float, float, float]) -> np.ndarray:
+        """Mission ENU -> the autopilot's local NED (origin ``ned_origin``, deg, deg, m AMSL)."""
+        lat, lon, alt = self.geodetic_from_enu(enu)
+        return np.array(pymap3d.geodetic2ned(lat, lon, alt, *ned_origin), dtype=float)
+
+    def enu_from_ned(self, ned, ned_origin: tuple[float, float, float]) -> np.ndarray:
+        lat, lon, alt = pymap3d.ned2geodetic(float(ned[0]), float(ned[1]), float(ned[2]), *ned_origin)
+        return self.enu_from_geodetic(lat, lon, alt)
+
+    def pose_from_global_position_int(self, msg) -> PoseSample:
+        pos = self.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        vel = np.array([msg.vy, msg.vx, -msg.vz], dtype=float) / 100.0  # NED cm/s -> ENU m/s
+        return PoseSample(msg.time_boot_ms / 1000.0, pos, vel)
+
+
+def valid_global_position_int(msg) -> bool:
+    """A fix worth using: lat/lon in range and not the all-zero 'no fix' message."""
+    if msg.lat == 0 and msg.lon == 0:
+        return False
+    return abs(msg.lat) <= 900_000_000 and abs(msg.lon) <= 1_800_000_000
+
+
+class PoseHistory:
+    """Telemetry history; position at any autopilot time by interpolation.
+
+    Beyond the newest sample the position is extrapolated with its velocity for at most
+    ``max_extrapolation_s``; earlier than the oldest kept sample it is unknown (None).
+    """
+
+    def __init__(self, keep_s: float = 30.0, max_extrapolation_s: float = 1.0):
+        self.keep_s = keep_s
+        self.max_extrapolation_s = max_extrapolation_s
+        self._t: list[float] = []
+        self._s: list[PoseSample] = []
+        self._lock = threading.Lock()
+
+    def add(self, sample: PoseSample) -> None:
+        with self._lock:
+            if self._t and sample.t <= self._t[-1]:
+                if sample.t < self._t[-1] - 5.0:  # autopilot rebooted: start over
+                    self._t.clear()
+                    self._s.clear()
+                else:
+                    return
+            self._t.append(sample.t)
+            self._s.append(sample)
+            cut = bisect.bisect_left(self._t, sample.t - self.keep_s)
+            if cut > 0:
+                del self._t[:cut]
+                del self._s[:cut]
+
+    def latest(self) -> PoseSample | None:
+        with self._lock:
+            return self._s[-1] if self._s else None
+
+    def at(self, t: float) -> np.ndarray | None:
+        """ENU position (3,) at autopilot time t, or None if not covered."""
+        with self._lock:
+            if not self._t or t < self._t[0] - 0.05:
+                return None
+            i = bisect.bisect_left(self._t, t)
+            if i == len(self._t):
+                last = self._s[-1]
+                dt = t - last.t
+                if dt > self.max_extrapolation_s:
+                    return None
+                return last.pos + last.vel * dt
+            if i == 0 or self._t[i] == t:
+                return self._s[i].pos.copy()
+            a, b = self._s[i - 1], self._s[i]
+            w = (t - a.t) / (b.t - a.t)
+            return a.pos + w * (b.pos - a.pos)
+
+
+def is_finite(v) -> bool:
+    return all(math.isfinite(float(x)) for x in v)

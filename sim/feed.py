@@ -1,0 +1,339 @@
+"""Simulated direction-finder feeds: live (truth world + DF model) and replay (a recorded file).
+
+Live: the feed is an ordinary MAVLink client of the autopilot on its OWN connection (so it works
+against the mock, an ArduPilot SITL or anything else that streams GLOBAL_POSITION_INT). From that
+telemetry it learns the autopilot clock and the UAV's position; at every whole second T of
+autopilot time it takes the DF scan of the true targets from where the UAV was at T
+(interpolated telemetry), sends one datagram per channel (docs/DATAGRAM.md) to the app, writes
+the truth to a JSONL file and steps the truth world by one dt.
+
+Truth JSONL, one line per scan:
+    {"t": T, "k": k, "uav_enu": [e, n, u], "targets": [[x, y, z, vx, vy, vz], ...],
+     "bearings": [[...], ...]}          # the bearings sent, per channel
+preceded by a header line {"header": {...scenario, seed, origin...}}.
+
+Replay: sends the "bearings" of such a file (or of any JSONL with t/ch/bearings_rad records) on
+the autopilot clock (``--mavlink``, times rebased to the first whole second after start) or on a
+wall clock (``--speedup``, times kept). The bearings were taken from where the UAV was in the
+recording: a replay tests the app's input path and timing, not geometry of a new flight.
+"""
+from __future__ import annotations
+
+import json
+import math
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from onboard.app import datagram as dg
+from onboard.app.clock import AutopilotClock
+from onboard.app.link import Link, mavlink
+from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
+
+FEED_SYSID = 245  # a client of its own, never mistaken for the vehicle or the app
+FEED_COMPID = mavlink.MAV_COMP_ID_USER1
+
+
+class Telemetry:
+    """Clock and pose of the vehicle from a MAVLink connection, read on a thread."""
+
+    def __init__(self, url: str, frame: Frame, tlog_path: str | None = None):
+        self.link = Link(url, tlog_path=tlog_path, source_system=FEED_SYSID, source_component=FEED_COMPID)
+        self.frame = frame
+        self.clock = AutopilotClock()
+        self.poses = PoseHistory(keep_s=60.0, max_extrapolation_s=0.5)
+        self.sysid: int | None = None
+        self.compid: int | None = None
+        self.armed = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="feed-telemetry", daemon=True)
+        self._hb = 0.0
+
+    def start(self) -> "Telemetry":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self.link.close()
+
+    def _run(self) -> None:
+        import select
+        while not self._stop.is_set():
+            fd = self.link.fileno()
+            if fd is not None:
+                try:
+                    select.select([fd], [], [], 0.005)
+                except (OSError, ValueError):
+                    time.sleep(0.005)
+            else:
+                time.sleep(0.002)
+            for _ in range(500):
+                msg = self.link.recv()
+                if msg is None:
+                    break
+                try:
+                    self._on(msg)
+                except Exception:  # one odd message must not stop the feed
+                    pass
+            if self.sysid is not None and time.monotonic() - self._hb > 1.0:
+                self._hb = time.monotonic()
+                self.link.send(self.link.mav.heartbeat_encode(
+                    mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE))
+
+    def _on(self, msg) -> None:
+        mtype = msg.get_type()
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if mtype == "HEARTBEAT":
+            if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
+                    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER):
+                return
+            if self.sysid is None:
+                self.sysid, self.compid = src
+                # our own link's rates: enough to interpolate the pose at a scan time
+                for msg_id, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
+                                   (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0)):
+                    self.link.send(self.link.mav.command_long_encode(
+                        self.sysid, self.compid, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                        msg_id, 1e6 / hz, 0, 0, 0, 0, 0))
+            if src == (self.sysid, self.compid):
+                self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            return
+        if src != (self.sysid, self.compid):
+            return
+        tb = getattr(msg, "time_boot_ms", None)
+        if tb is not None:
+            self.clock.observe(tb)
+        if mtype == "GLOBAL_POSITION_INT" and valid_global_position_int(msg):
+            self.poses.add(self.frame.pose_from_global_position_int(msg))
+
+
+def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
+    while not stop.is_set():
+        now = clock.now()
+        if now is not None and now >= t:
+            return True
+        time.sleep(poll)
+    return False
+
+
+@dataclass(frozen=True)
+class LiveFeedConfig:
+    mavlink_url: str
+    app_host: str = "127.0.0.1"
+    app_port: int = 14600
+    truth_path: str | None = None
+    seed: int = 1
+    duration_s: float | None = None  # None: the scenario's mission.duration_s
+    wait_armed: bool = False  # start the truth world when the vehicle arms
+    tlog_path: str | None = None
+
+
+class LiveFeed:
+    def __init__(self, cfg: LiveFeedConfig, scenario, log: Callable[[str], None] = print):
+        from sim.sensors import DirectionFinder
+        from sim.truth import TruthWorld
+
+        self.cfg = cfg
+        self.sc = scenario
+        self.frame = Frame(scenario.origin.lat_deg, scenario.origin.lon_deg, scenario.origin.alt_m)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.truth = TruthWorld.from_scenario(scenario, self.rng)
+        self.df = DirectionFinder.from_config(scenario.sensor)
+        self.log = log
+        self.sent = 0
+        self.scans = 0
+        self.stop_event = threading.Event()
+        self.records: list[dict] = []
+        self.step_ms: list[float] = []
+
+    def run(self) -> int:
+        from sim.sensors import df_scan
+
+        tel = Telemetry(self.cfg.mavlink_url, self.frame, self.cfg.tlog_path).start()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        out = open(self.cfg.truth_path, "w", buffering=1) if self.cfg.truth_path else None
+        dest = (self.cfg.app_host, self.cfg.app_port)
+        n_scans = int(round(self.cfg.duration_s if self.cfg.duration_s is not None
+                            else self.sc.mission.duration_s))
+        try:
+            if out is not None:
+                o = self.sc.origin
+                out.write(json.dumps({"header": {
+                    "scenario": self.sc.name, "seed": self.cfg.seed, "origin": [o.lat_deg, o.lon_deg, o.alt_m],
+                    "targets": [t.name for t in self.sc.targets], "scans": n_scans}}) + "\n")
+            # wait for the clock and a position (and the arming, if asked)
+            while not self.stop_event.is_set():
+                if tel.clock.now() is not None and tel.poses.latest() is not None and \
+                        (tel.armed or not self.cfg.wait_armed):
+                    break
+                time.sleep(0.01)
+            if self.stop_event.is_set():
+                return 130
+            T = math.floor(tel.clock.now()) + 1.0
+            self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
+            seq = 0
+            for k in range(n_scans):
+                if not _sleep_until(tel.clock, T, self.stop_event):
+                    return 130
+                # a telemetry sample at or after T makes the pose an interpolation, not a guess
+                deadline = time.monotonic() + 0.5
+                while (tel.poses.latest() is None or tel.poses.latest().t < T) \
+                        and time.monotonic() < deadline and not self.stop_event.is_set():
+                    time.sleep(0.001)
+                uav = tel.poses.at(T)
+                if uav is None:
+                    self.log(f"feed: no UAV position at t={T:.1f}: scan skipped")
+                    T += 1.0
+                    continue
+                states = self.truth.states
+                bearings = df_scan(states[:, :2], uav[:2], self.df, self.rng)
+                for ch, b in enumerate(bearings):
+                    sock.sendto(dg.encode(T, ch, b, seq), dest)
+                    seq += 1
+                    self.sent += 1
+                rec = {"t": T, "k": k, "uav_enu": [round(float(x), 3) for x in uav],
+                       "targets": np.round(states, 4).tolist(),
+                       "bearings": [[float(x) for x in b] for b in bearings]}
+                self.records.append(rec)
+                if out is not None:
+                    out.write(json.dumps(rec) + "\n")
+                self.scans += 1
+                t0 = time.perf_counter()
+                self.truth.step()
+                self.step_ms.append((time.perf_counter() - t0) * 1e3)
+                T += 1.0
+            self.log(f"feed: done: {self.scans} scans, {self.sent} datagrams, "
+                     f"truth step median {np.median(self.step_ms) if self.step_ms else 0:.0f} ms")
+            return 0
+        finally:
+            tel.stop()
+            sock.close()
+            if out is not None:
+                out.close()
+
+
+def read_recording(path: str | Path) -> Iterator[tuple[float, int, list[float]]]:
+    """(t, ch, bearings) from a truth JSONL (``bearings`` per channel) or a datagram JSONL."""
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError as exc:
+                raise ValueError(f"{path}:{n}: not JSON: {exc}") from None
+            if not isinstance(rec, dict) or "header" in rec:
+                continue
+            if "bearings" in rec:
+                for ch, b in enumerate(rec["bearings"]):
+                    yield float(rec["t"]), ch, list(b)
+            elif "bearings_rad" in rec:
+                yield float(rec["t"]), int(rec["ch"]), list(rec["bearings_rad"])
+            else:
+                raise ValueError(f"{path}:{n}: neither 'bearings' nor 'bearings_rad'")
+
+
+class WallClock:
+    def __init__(self, speedup: float = 1.0, t0: float = 0.0):
+        self.speedup, self.t0, self.start = speedup, t0, time.monotonic()
+
+    def now(self) -> float:
+        return self.t0 + (time.monotonic() - self.start) * self.speedup
+
+
+def replay(path: str | Path, dest: tuple[str, int], mavlink_url: str | None = None,
+           speedup: float = 1.0, stop: threading.Event | None = None,
+           log: Callable[[str], None] = print, frame: Frame | None = None) -> int:
+    """Send a recording; returns the number of datagrams sent."""
+    records = sorted(read_recording(path), key=lambda r: (r[0], r[1]))
+    if not records:
+        log(f"replay: {path}: no scans")
+        return 0
+    stop = stop or threading.Event()
+    tel = None
+    offset = 0.0
+    if mavlink_url:
+        tel = Telemetry(mavlink_url, frame or Frame(0, 0, 0)).start()
+        while tel.clock.now() is None and not stop.is_set():
+            time.sleep(0.01)
+        clock = tel.clock
+        offset = math.floor(clock.now()) + 1.0 - records[0][0]  # rebase onto the autopilot clock
+    else:
+        clock = WallClock(speedup, records[0][0])
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sent = 0
+    try:
+        for seq, (t, ch, b) in enumerate(records):
+            if not _sleep_until(clock, t + offset, stop):
+                break
+            sock.sendto(dg.encode(t + offset, ch, b, seq), dest)
+            sent += 1
+    finally:
+        sock.close()
+        if tel is not None:
+            tel.stop()
+    log(f"replay: sent {sent} datagrams")
+    return sent
+
+
+def main(argv=None) -> int:
+    """``pmon feed live|replay ...`` (also ``python -m sim.feed``)."""
+    import argparse
+    import signal
+
+    from onboard.config import ConfigError, load_scenario
+
+    ap = argparse.ArgumentParser(prog="pmon feed", description="simulated DF feed to the onboard app")
+    sub = ap.add_subparsers(dest="mode", required=True)
+    lv = sub.add_parser("live", help="truth world + DF model, UAV pose from MAVLink telemetry")
+    lv.add_argument("--mavlink", required=True, help="the feed's own connection to the autopilot, "
+                    "e.g. tcp:127.0.0.1:5760 or udpin:127.0.0.1:14551")
+    lv.add_argument("--to", default="127.0.0.1:14600", help="the app's DF port HOST:PORT")
+    lv.add_argument("--scenario", default="paper")
+    lv.add_argument("--truth", help="write the truth JSONL here")
+    lv.add_argument("--seed", type=int, default=1)
+    lv.add_argument("--duration", type=float, help="scans to send (s); default: mission.duration_s")
+    lv.add_argument("--wait-armed", action="store_true", help="start the targets when the vehicle arms")
+    rp = sub.add_parser("replay", help="send a recorded truth/datagram JSONL")
+    rp.add_argument("file")
+    rp.add_argument("--to", default="127.0.0.1:14600")
+    rp.add_argument("--mavlink", help="pace on this autopilot's clock (times rebased)")
+    rp.add_argument("--speedup", type=float, default=1.0, help="without --mavlink: wall-clock pace")
+    args = ap.parse_args(argv)
+    host, _, port = args.to.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        ap.error(f"--to wants HOST:PORT, got {args.to!r}")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        if args.mode == "live":
+            if args.duration is not None and not args.duration >= 1:
+                ap.error("--duration must be >= 1")
+            sc = load_scenario(args.scenario)
+            feed = LiveFeed(LiveFeedConfig(args.mavlink, host, int(port), args.truth, args.seed,
+                                           args.duration, args.wait_armed), sc,
+                            log=lambda s: print(s, flush=True))
+            feed.stop_event = stop
+            return feed.run()
+        if not args.speedup > 0:
+            ap.error("--speedup must be > 0")
+        replay(args.file, (host, int(port)), args.mavlink, args.speedup, stop,
+               log=lambda s: print(s, flush=True))
+        return 0
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"pmon feed: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

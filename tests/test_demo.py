@@ -1,0 +1,48 @@
+"""`pmon demo` as a user runs it: exits 0, writes the table, the PNG and the logs, and leaves no
+process behind; Ctrl-C stops everything."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.sitl
+
+
+def _children_gone(out: Path) -> bool:
+    logs = [out / n for n in ("autopilot.log", "app.log")]
+    return all(p.exists() for p in logs) and "mock autopilot stopped" in logs[0].read_text() \
+        and "pmon run: stopped" in logs[1].read_text()
+
+
+@pytest.mark.timeout(90)
+def test_demo_flies_scores_and_cleans_up(tmp_path):
+    out = tmp_path / "d"
+    p = subprocess.run([sys.executable, "-m", "onboard.cli", "demo", "--duration", "20", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=80)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "RMSE" in p.stdout and "T4" in p.stdout
+    assert (out / "flight.png").stat().st_size > 10_000
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["scored_ticks"] >= 18 and len(rep["rmse_m"]) == 4
+    assert _children_gone(out)
+
+
+@pytest.mark.timeout(60)
+def test_demo_ctrl_c_stops_every_process(tmp_path):
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "demo", "--out", str(out)], cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not (out / "feed.log").exists():
+        time.sleep(0.2)
+    time.sleep(2)
+    p.send_signal(signal.SIGINT)
+    p.wait(timeout=20)
+    assert p.returncode in (130, 1)
+    assert _children_gone(out)

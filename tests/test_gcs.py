@@ -1,0 +1,246 @@
+"""The ground-station CLI's error paths (message and exit code each), retries on a lossy link
+that never execute a command twice, the real console script, and the wire constants it shares
+with the onboard app."""
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
+
+from groundstation import protocol as P
+from groundstation.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run(capsys, *argv):
+    capsys.readouterr()
+    rc = main(list(argv))
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+# ----------------------------------------------------------------------------- no vehicle
+@pytest.mark.timeout(20)
+def test_unreachable_vehicle_times_out_with_exit_3(capsys):
+    port = free_udp_port()
+    rc, out, err = run(capsys, "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "1", "status")
+    assert rc == 3 and out == ""
+    assert one_line(err) == f"pmon gcs: no vehicle heard on udpin:127.0.0.1:{port} within 1 s (no MAVLink at all)"
+    rc, out, err = run(capsys, "--connect", f"udpin:127.0.0.1:{port}", "--timeout", "1", "--json", "arm")
+    assert rc == 3 and json.loads(out) == {"ok": False, "error": one_line(err)[10:], "exit_code": 3}
+    with socket.socket() as s:  # a TCP port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        tcp = s.getsockname()[1]
+    rc, out, err = run(capsys, "--connect", f"tcp:127.0.0.1:{tcp}", "--timeout", "1", "status")
+    assert rc == 3 and out == "" and "cannot open" in one_line(err) and "refused" in err
+
+
+def test_usage_errors_exit_2(capsys):
+    for argv, why in ((["takeoff", "-5"], "ALT must be in (0, 1000]"),
+                      (["params", "set", "PMON_PD", "abc"], "is not a number"),
+                      (["--timeout", "0", "status"], "--timeout must be > 0"),
+                      (["watch", "--count", "0"], "--count must be >= 1")):
+        rc, out, err = run(capsys, "--connect", "udpin:127.0.0.1:1", *argv)
+        assert rc == 2 and why in one_line(err), (argv, err)
+    rc, _, err = run(capsys, "fly-to-the-moon")
+    assert rc == 2 and "invalid choice" in err
+
+
+def test_plot_of_a_missing_or_foreign_file_exits_1(capsys, tmp_path):
+    rc, _, err = run(capsys, "plot", str(tmp_path / "nope.tlog"))
+    assert rc == 1 and "no such file" in one_line(err)
+    bad = tmp_path / "x.jsonl"
+    bad.write_text('{"hello": 1}\n')
+    rc, _, err = run(capsys, "plot", str(bad))
+    assert rc == 1 and "not a pmon run log" in one_line(err)
+
+
+def test_wire_constants_match_the_onboard_app():
+    from onboard.app.app import MAV_CMD_PMON, REASON_TEXT, Action, State
+    from onboard.app.link import COMP_ID
+
+    assert P.APP_COMPID == COMP_ID and P.APP_COMMAND == MAV_CMD_PMON
+    assert P.ACTIONS == {a.name.lower(): int(a) for a in Action}
+    assert P.APP_STATES == tuple(s.name.lower().replace("_", " ") for s in sorted(State))
+    assert P.REASONS == {int(r): text for r, text in REASON_TEXT.items()}
+
+
+# ----------------------------------------------------------------------------- against a vehicle
+class AckDropper:
+    """UDP relay GCS <-> mock autopilot that drops chosen packets towards the GCS: a lossy link
+    whose losses are the ones that matter (the first acknowledgement of a command)."""
+
+    def __init__(self, autopilot_port: int, drop, drop_up=lambda msgid, payload: False):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.up.bind(("127.0.0.1", 0))
+        self.up.settimeout(0.05)
+        self.ap = ("127.0.0.1", autopilot_port)
+        self.drop = drop  # (msgid, srccomp, payload) -> bool, towards the GCS
+        self.drop_up = drop_up  # (msgid, payload) -> bool, towards the vehicle
+        self.dropped: list = []
+        self.gcs = None
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=f, daemon=True) for f in (self._fwd, self._back)]
+        for t in self._threads:
+            t.start()
+
+    @property
+    def port(self) -> int:
+        return self.sock.getsockname()[1]
+
+    def _fwd(self):
+        while not self._stop.is_set():
+            try:
+                data, self.gcs = self.sock.recvfrom(65535)
+                if data[:1] == b"\xfd" and len(data) >= 10 and \
+                        self.drop_up(int.from_bytes(data[7:10], "little"), data[10:10 + data[1]]):
+                    self.dropped.append("up")
+                    continue
+                self.up.sendto(data, self.ap)
+            except (socket.timeout, OSError):
+                pass
+
+    def _back(self):
+        while not self._stop.is_set():
+            try:
+                data, _ = self.up.recvfrom(65535)
+            except (socket.timeout, OSError):
+                continue
+            if data[:1] == b"\xfd" and len(data) >= 10:
+                msgid = int.from_bytes(data[7:10], "little")
+                if self.drop(msgid, data[6], data[10:10 + data[1]]):
+                    self.dropped.append(msgid)
+                    continue
+            if self.gcs is not None:
+                self.sock.sendto(data, self.gcs)
+
+    def close(self):
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2)
+        self.sock.close()
+        self.up.close()
+
+
+@pytest.fixture(scope="module")
+def stack():
+    with SitlStack(speedup=4.0, gcs_udpin=True) as st:  # no DF feed: start lacks sensor data
+        yield st
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_refusals_and_parameter_errors_say_why(stack, capsys):
+    url = ["--connect", stack.gcs_url, "--timeout", "3"]
+    rc, out, err = run(capsys, *url, "start")
+    assert rc == 1 and one_line(err) == "pmon gcs: start refused by the onboard app (DENIED): vehicle not armed"
+    rc, out, err = run(capsys, *url, "--json", "pause")
+    assert rc == 1 and "pause refused by the onboard app (DENIED): not possible in this state" in err
+    assert json.loads(out)["exit_code"] == 1
+    rc, out, err = run(capsys, *url, "takeoff", "30")  # disarmed: the autopilot says no
+    assert rc == 1 and one_line(err).startswith("pmon gcs: takeoff to 30 m refused by the autopilot (FAILED)")
+    assert "disarmed" in err
+    rc, out, err = run(capsys, *url, "params", "get", "PMON_WARP")
+    assert rc == 1 and one_line(err) == "pmon gcs: unknown parameter PMON_WARP (params list shows them)"
+    rc, out, err = run(capsys, *url, "params", "set", "PMON_WARP", "9")
+    assert rc == 1 and "unknown parameter PMON_WARP" in err
+    rc, out, err = run(capsys, *url, "params", "set", "PMON_PD", "1.5")
+    assert rc == 1 and one_line(err) == "pmon gcs: params set PMON_PD refused: PMON_PD=1.5 out of range [0.01, 1]"
+    assert stack.app.params["PMON_PD"] == pytest.approx(0.95)
+    rc, out, err = run(capsys, *url, "params", "set", "PMON_NR", "3.4")  # an integer parameter
+    assert rc == 0 and "PMON_NR = 3 (rounded from 3.4)" in out and stack.app.params["PMON_NR"] == 3
+    rc, out, _ = run(capsys, *url, "params", "list")
+    from onboard.app.params import SPECS
+    assert rc == 0 and len(out.splitlines()) == len(SPECS) and "PMON_PARTICLES" in out
+    rc, out, err = run(capsys, "--connect", stack.gcs_url, "--sysid", "42", "--timeout", "1", "status")
+    assert rc == 3 and one_line(err).startswith(f"pmon gcs: vehicle 42 not heard on {stack.gcs_url} within 1 s")
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_lost_acknowledgements_are_retried_and_nothing_runs_twice(stack, capsys):
+    ap = stack.ap
+    seen = {"takeoff": 0}
+    COMMAND_ACK = 77
+
+    def drop(msgid, comp, payload):  # the first acknowledgement of a take-off
+        if msgid == COMMAND_ACK and comp == 1 and int.from_bytes(payload[:2], "little") == 22 \
+                and seen["takeoff"] == 0:
+            seen["takeoff"] += 1
+            return True
+        return False
+    arm_sent = []
+
+    def drop_up(msgid, payload):  # the first arm command is lost on the way up
+        if msgid == 76 and len(payload) >= 30 and int.from_bytes(payload[28:30], "little") == 400:
+            arm_sent.append(payload[32] if len(payload) > 32 else 0)  # confirmation (0 is truncated)
+            return len(arm_sent) == 1
+        return False
+    relay = AckDropper(stack.udpin_port, drop, drop_up)
+    try:
+        url = ["--connect", f"udpout:127.0.0.1:{relay.port}", "--timeout", "5"]
+        rc, out, err = run(capsys, "--json", *url, "arm")
+        r = json.loads(out)
+        assert rc == 0 and r["attempts"] == 2 and r["result"] == "ACCEPTED", (r, err)
+        assert arm_sent == [0, 1]  # resent once, confirmation incremented
+        rc, out, err = run(capsys, *url, "--json", "takeoff", "20")
+        r = json.loads(out)
+        # the ACK is lost, but the climb is seen: success, and the take-off is not sent again
+        # (a second copy would be refused by ArduCopter as "already flying")
+        assert rc == 0 and r["result"] == "OBSERVED" and r["attempts"] == 1, (r, err)
+        assert relay.dropped == ["up", COMMAND_ACK]
+        assert ap.wait_until(lambda s: s.alt_rel > 3.0, 10)
+        # parameters: a set whose answer is lost is simply sent again (setting is idempotent)
+        rc, out, err = run(capsys, *url, "params", "set", "PMON_CLUTTER", "2")
+        assert rc == 0 and stack.app.params["PMON_CLUTTER"] == 2
+        rc, out, err = run(capsys, *url, "land")
+        assert rc == 0 and ap.state().mode_name == "LAND"
+    finally:
+        relay.close()
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_the_console_scripts_and_the_environment_variable(stack):
+    exe = Path(sys.executable).parent
+    pmon_gcs = shutil.which("pmon-gcs", path=str(exe)) or shutil.which("pmon-gcs")
+    pmon = shutil.which("pmon", path=str(exe)) or shutil.which("pmon")
+    assert pmon is not None
+    env = dict(os.environ, PMON_GCS_CONNECT=stack.gcs_url)
+    argv = [pmon_gcs] if pmon_gcs else [pmon, "gcs"]
+    p = subprocess.run(argv + ["--json", "status"], env=env, capture_output=True, text=True, timeout=30, cwd=REPO)
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert s["ok"] and s["vehicle"]["sysid"] == 1 and s["app"]["state"] in P.APP_STATES
+    p = subprocess.run([pmon, "gcs", "--timeout", "2", "params", "get", "PMON_HORIZON"], env=env,
+                       capture_output=True, text=True, timeout=30, cwd=REPO)
+    assert p.returncode == 0 and p.stdout.strip() == "PMON_HORIZON = 50", p.stderr
+    p = subprocess.run([pmon, "gcs", "--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--timeout", "1",
+                        "start"], capture_output=True, text=True, timeout=30, cwd=REPO)
+    assert p.returncode == 3 and p.stdout == "" and len(p.stderr.strip().splitlines()) == 1
