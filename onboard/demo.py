@@ -55,8 +55,7 @@ class Proc:
         self.lines: "queue.Queue[str]" = queue.Queue()
         self.log = open(log_path, "w", buffering=1)
         env = dict(os.environ, PYTHONUNBUFFERED="1", MAVLINK20="1")
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                  env=env, cwd=str(Path(__file__).resolve().parents[1]))
+        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         self._t = threading.Thread(target=self._pump, daemon=True)
         self._t.start()
 
@@ -131,7 +130,7 @@ def run(args) -> int:
     if duration < 5:
         console.print("pmon demo: --duration must be >= 5 s")
         return 2
-    out = Path(args.out)
+    out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.speedup == "auto":
         tick_s = measure_tick_s(sc)

@@ -86,3 +86,42 @@ def test_cost_matches_exact_miqp_on_small_instances():
     assert len(ratios) >= 6
     assert np.mean(np.array(ratios) <= 1.01) >= 0.75, ratios
     assert max(ratios) <= 1.10, ratios
+
+
+def test_closed_loop_gain_matches_finite_differences(paper, model):
+    """Plan.feedback (du_0/dx, for the bound of a target that steers by this guidance) comes from
+    the QP's sensitivity with the active set held: it equals central differences of the QP's
+    solution for the plan's own face assignment, and zero-gain directions are those the
+    constraints pin."""
+    from onboard.core.guidance import GuidanceWorkspace, _reduce_obstacles
+    from onboard.core.dynamics import predict_mean
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    ws = GuidanceWorkspace()
+    T = params.horizon
+    for target in paper.targets:
+        goal = np.array(paper.goal_of(target).center_m)
+        x, plan = np.array(target.mean, float), None
+        for _ in range(20):
+            plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+            x = plan.means[0]
+        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True)
+        assert plan.feedback is not None and plan.feedback.shape == (3, 6)
+        qp = ws.qp(T, len(obs), model, params)
+        z = np.concatenate([[x[2]], predict_mean(model, x, np.zeros((T, 3)))[:, 2]])
+        geo = _reduce_obstacles(obs, params.obstacle_margin_m, z)
+        rows = geo.rows(plan.faces)
+
+        def p2(state):
+            x0 = state[[0, 1, 3, 4]]
+            bound = np.maximum(params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides),
+                               np.linalg.norm(x0[2:]) * (1 - model.friction) ** np.arange(1, T + 1) + 1e-6)
+            return qp.solve(x0, goal[:2], bound, *rows), bound
+        sol, bound = p2(x)
+        dP = qp.sensitivity(x[[0, 1, 3, 4]], goal[:2], bound, *rows, sol)
+        for col, i in enumerate((0, 1, 3, 4)):
+            up, down = x.copy(), x.copy()
+            up[i] += 1e-4
+            down[i] -= 1e-4
+            fd = (p2(up)[0].pts[1] - p2(down)[0].pts[1]) / 2e-4
+            np.testing.assert_allclose(dP[0, :, col], fd, atol=1e-3, err_msg=f"{target.name} state {i}")

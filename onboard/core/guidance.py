@@ -49,7 +49,7 @@ from onboard.core.obstacles import N_LATERAL, Obstacles
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 _FEAS_TOL_M = 1e-3  # accept a QP solution whose obstacle rows are violated by less than this
 _NO_FACE = -1
-_STALL_FRACTION = 1e-3  # a warm plan whose cost fell less than this since the last tick is stalled
+_STALL_SPEED_FRACTION = 0.25  # a warm plan against an obstacle this slow (of v_max) is stuck
 _SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved
 _GUIDE_SPEEDS = (0.8, 1.0, 0.6)  # fractions of v_max at which the shortest path is timed
 _LOCAL_SEARCH_STARTS = 3  # local search from this many of the cheapest assignments found
@@ -94,7 +94,7 @@ class Plan:
     means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
-    feedback: np.ndarray | None = None  # (3, 6) du_0/dx, N per state unit: the closed-loop gain
+    feedback: np.ndarray | None = None  # (3, 6) du_0/dx, N per state unit (with_feedback=True)
 
     @property
     def feasible(self) -> bool:
@@ -292,18 +292,29 @@ class _QP:
         n = self.ny
         _, _, A, lo, hi, _ = self._rows(x0, goal, speed_bound, coef, rhs)
         act = np.flatnonzero(sol.lam != 0.0)
-        A_a = A[act]
-        K = np.block([[self.H, A_a.T], [A_a, np.zeros((len(act), len(act)))]])
-        f0 = self._cost_vector(x0, goal)
         b0 = np.where(sol.lam[act] < 0, lo[act], hi[act])
-        rhs_cols = []
+        keep = np.isfinite(b0)  # a multiplier on an infinite bound is round-off, not a constraint
+        act, b0 = act[keep], b0[keep]
+        A_a = A[act]
+        f0 = self._cost_vector(x0, goal)
+        df, db = [], []
         for i in range(4):
             x1 = x0.copy()
             x1[i] += 1.0
             _, _, _, lo1, hi1, _ = self._rows(x1, goal, speed_bound, coef, rhs)
-            db = np.where(sol.lam[act] < 0, lo1[act], hi1[act]) - b0
-            rhs_cols.append(np.concatenate([-(self._cost_vector(x1, goal) - f0), db]))
-        d = np.linalg.lstsq(K, np.column_stack(rhs_cols), rcond=None)[0][:n]  # (2T, 4)
+            db.append(np.where(sol.lam[act] < 0, lo1[act], hi1[act]) - b0)
+            df.append(self._cost_vector(x1, goal) - f0)
+        df, db = np.column_stack(df), np.column_stack(db)
+        # Schur complement on the (few) active rows, H's Cholesky factor cached: dy = -H^-1 (df +
+        # A_a^T dlam), A_a dy = db. Dependent active rows make S singular: least squares there.
+        Hi_df = cho_solve(self.H_chol, df)
+        if len(act):
+            Hi_At = cho_solve(self.H_chol, A_a.T)
+            S = A_a @ Hi_At
+            dlam = np.linalg.lstsq(S, -(db + A_a @ Hi_df), rcond=1e-10)[0]
+            d = -(Hi_df + Hi_At @ dlam)
+        else:
+            d = -Hi_df
         return d.reshape(self.T, 2, 4) * self.L
 
     def _cost_vector(self, x0, goal):
@@ -558,11 +569,13 @@ def _controls_kn(x0: np.ndarray, pts: np.ndarray, dt: float, decay: float, gain:
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
                   workspace: GuidanceWorkspace | None = None,
-                  timer: Callable[[], float] = time.perf_counter) -> Plan:
+                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool = False) -> Plan:
     """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
 
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
     fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
+    ``with_feedback``: also compute ``Plan.feedback``, the closed-loop gain du_0/dx (for the
+    posterior Cramer-Rao bound of a target that steers by this guidance).
     """
     t_start = timer()
     T, K = params.horizon, len(obstacles)
@@ -656,6 +669,12 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
                 return
             faces = nxt
 
+    def hold_assignment():
+        """Every obstacle kept, for every segment, on the face p_1 is outside of: the target
+        does not pass any obstacle within the horizon."""
+        still = np.tile(x0[:2] + model.dt_s * x0[2:], (T + 1, 1))
+        return geo.sanitise(np.broadcast_to(geo.repick(still)[:1], (T - 1, K)).copy(), still)
+
     empty = np.full((T - 1, K), _NO_FACE)
     if K == 0:
         evaluate(empty)
@@ -666,24 +685,27 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         prev_path = np.vstack([x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
         refine(geo.sanitise(shifted, prev_path))
         warm = best["pts"] is not None
-    # 2. the shortest path around the obstacles, timed at a cruise speed. Also when warm if the
-    #    plan is stalled against an obstacle: an obstacle row is active and the cost has not
-    #    fallen since the last tick (a shifted assignment can hold a target pressed against a
-    #    face: a local optimum). With no obstacle row active the plan solves a relaxation of
-    #    every assignment, so it is globally optimal.
-    #    Then the obstacle-free optimum, and copies of it pushed around the blocking obstacles
-    #    on either side (the shortest path can be the costlier side given the initial velocity).
+    # 2. the shortest path around the obstacles, timed at a cruise speed; the obstacle-free
+    #    optimum, and copies of it pushed around the blocking obstacles on either side (the
+    #    shortest path can be the dearer side given the initial velocity); holding back. All of
+    #    it for a plan from scratch. A warm plan with no obstacle row active solves a relaxation
+    #    of every assignment, so it is globally optimal. A warm plan that is stuck (an obstacle
+    #    row active and the target planned to crawl, less than a quarter of v_max, at its first
+    #    step: a shifted assignment can hold a target pressed against a face, a local optimum
+    #    seen with T1 against O3) gets a light search: the shortest path at one speed and
+    #    holding back, a handful of QPs.
     pressed = best["duals"] is not None and bool(np.any(best["duals"] != 0.0))
-    stalled = warm and pressed and best["cost"] >= previous.cost * (1.0 - _STALL_FRACTION)
-    explore = not warm or stalled
-    if K and budget_left() and explore:
+    first_speed = float(np.linalg.norm(best["pts"][1] - best["pts"][0])) / model.dt_s if warm else 0.0
+    stalled = warm and pressed and first_speed < _STALL_SPEED_FRACTION * params.speed_max_mps
+    explore = not warm
+    if K and budget_left() and (explore or stalled):
         guide = geo.guide_path(x0[:2] + model.dt_s * x0[2:], goal2)
         if guide is not None:
-            for speed in _GUIDE_SPEEDS:
+            for speed in _GUIDE_SPEEDS if explore else _GUIDE_SPEEDS[:1]:
                 faces = geo.repick(_timed(guide, x0[:2], speed * params.speed_max_mps * model.dt_s, T))
                 if faces.tobytes() not in tried and budget_left():
                     refine(faces)
-    if K and budget_left() and (not warm or stalled):
+    if K and budget_left() and explore:
         free = solve(empty)
         if free is not None:
             ref = path(free.pts)
@@ -698,11 +720,8 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
                 faces = geo.repick(pts)
                 if faces.tobytes() not in tried and budget_left():
                     refine(faces)
-        # holding back: an obstacle not passed within the horizon keeps, for every segment, the
-        # face p_1 is outside of; alone, and for each obstacle in the best assignment so far
-        p1 = x0[:2] + model.dt_s * x0[2:]
-        hold = geo.sanitise(np.broadcast_to(geo.repick(np.tile(p1, (T + 1, 1)))[:1], (T - 1, K)).copy(),
-                            np.tile(p1, (T + 1, 1)))
+        # holding back, alone, and for each obstacle in the best assignment so far
+        hold = hold_assignment()
         holds = [hold]
         if best["faces"] is not None:
             for k in range(K):
@@ -712,6 +731,10 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         for faces in holds:
             if faces.tobytes() not in tried and budget_left():
                 refine(faces)
+    elif K and budget_left() and stalled:
+        hold = hold_assignment()
+        if hold.tobytes() not in tried:
+            refine(hold)
 
     # 3. local search: move each face switch one to three steps either way (the switch between
     #    two faces happens where the path rounds a corner; its best step is what the re-pick by
@@ -775,14 +798,20 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     controls = np.zeros((T, 3))
     controls[:, :2] = _controls_kn(x0, best["pts"], model.dt_s, decay, gain) * KN
     status = "optimal" if budget_left() else ("timeout" if timed_out() else "budget")
-    # the closed-loop gain du_0/dx of this plan: the optimum is affine in the state while its
-    # active set holds, so a nearby state (another particle) would be steered by u_0 + K dx
-    dP = qp.sensitivity(x0, goal2, speed_bound, *geo.rows(best["faces"]), best["sol"])
-    dp1 = np.hstack([np.eye(2), model.dt_s * np.eye(2)])
-    dv0 = np.hstack([np.zeros((2, 2)), np.eye(2)])
-    dw0 = ((dP[0] - dp1) / model.dt_s - decay * dv0) / gain  # kN per unit of (px, py, vx, vy)
-    feedback = np.zeros((3, 6))
-    feedback[:2, [0, 1, 3, 4]] = dw0 * KN
+    feedback = None
+    if with_feedback and np.all(np.isfinite(best["sol"].y)):
+        # the closed-loop gain du_0/dx of this plan: the optimum is affine in the state while
+        # its active set holds, so a nearby state would be steered by u_0 + K dx (about 3 ms)
+        try:
+            dP = qp.sensitivity(x0, goal2, speed_bound, *geo.rows(best["faces"]), best["sol"])
+        except np.linalg.LinAlgError:
+            dP = np.full((T, 2, 4), np.nan)
+        dp1 = np.hstack([np.eye(2), model.dt_s * np.eye(2)])
+        dv0 = np.hstack([np.zeros((2, 2)), np.eye(2)])
+        dw0 = ((dP[0] - dp1) / model.dt_s - decay * dv0) / gain  # kN per unit of (px, py, vx, vy)
+        if np.all(np.isfinite(dw0)):
+            feedback = np.zeros((3, 6))
+            feedback[:2, [0, 1, 3, 4]] = dw0 * KN
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
                 predict_mean(model, mean0, controls), best["faces"], best["active"], feedback)
 
