@@ -65,7 +65,7 @@ def main() -> None:
     sc = load_scenario("paper")
     results = {}
     for planner, motion in CASES:
-        setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion.from_config(sc.planning).__class__(
+        setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
             motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
         results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
     print(f"paper scenario, {args.ticks} ticks, lookahead over {sc.planning.lookahead_steps} ticks, one BLAS thread")
