@@ -88,7 +88,8 @@ _FD_STEP = np.array([1.0, 1.0, 0.0, 0.1, 0.1, 0.0])
 def closed_loop_gain(model: MotionModel, guidance: GuidanceParams, obstacles: Obstacles, x: np.ndarray,
                      goal: np.ndarray, plan: Plan, workspace: GuidanceWorkspace | None = None) -> np.ndarray:
     """du_0/dx (3, 6) of the guidance policy at state x: the plan's own ``feedback`` when the
-    guidance provides one, else central finite differences of plan_guidance in the planar states
+    guidance provides one (``plan_guidance(..., with_feedback=True)``, the exact gain of the QP
+    with its active set held), else central finite differences of plan_guidance in the planar states
     (warm-started from ``plan``, so the same face assignment is differentiated). A fallback plan
     has no feedback: zero gain. The closed-loop transition Jacobian is A + B du_0/dx."""
     if not plan.feasible:
@@ -195,7 +196,7 @@ class TruthWorld:
         gains = np.zeros((len(self._states), 3, 6))
         for j, x in enumerate(self._states):
             plan = plan_guidance(self.model, self.guidance, self.obstacles, x, self._goals[j],
-                                 previous=self._plans[j], workspace=self._ws)
+                                 previous=self._plans[j], workspace=self._ws, with_feedback=self.record_gains)
             self._plans[j] = plan
             if self.record_gains:
                 gains[j] = closed_loop_gain(self.model, self.guidance, self.obstacles, x, self._goals[j], plan,

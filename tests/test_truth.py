@@ -127,3 +127,14 @@ def test_mismatch_validation(paper):
         TruthWorld.from_scenario(paper, rng, [Mismatch(4, "stop", 3)])
     with pytest.raises(ValueError, match="goal"):
         TruthWorld.from_scenario(paper, rng, [Mismatch(0, "other_goal", 3, goal=1)])  # paper has one goal
+
+
+def test_recording_the_closed_loop_gains_changes_no_state(short):
+    """The PCRB's gains (the guidance's du_0/dx at each true state) come with the truth, and
+    asking for them does not change the truth (no random draw, the same plans)."""
+    plain = simulate_truth(short, 6, np.random.default_rng(5))
+    states, gains = simulate_truth(short, 6, np.random.default_rng(5), with_gains=True)
+    np.testing.assert_array_equal(plain, states)
+    assert gains.shape == (6, len(short.targets), 3, 6)
+    assert np.all(np.isfinite(gains)) and np.abs(gains).max() > 0.0
+    assert np.all(gains[:, :, 2] == 0.0)  # u_z = 0: no vertical feedback
