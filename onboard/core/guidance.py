@@ -44,7 +44,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.csgraph import shortest_path
 
 from onboard.core.dynamics import MotionModel, predict_mean
-from onboard.core.obstacles import N_LATERAL, Obstacles
+from onboard.core.obstacles import N_LATERAL, Obstacles, polygons_crossed
 
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 _FEAS_TOL_M = 1e-3  # accept a QP solution whose obstacle rows are violated by less than this
@@ -103,15 +103,6 @@ class Plan:
     @property
     def next_control(self) -> np.ndarray:
         return self.controls[0]
-
-    def controls_for(self, states: np.ndarray, about: np.ndarray, u_max_n: float) -> np.ndarray:
-        """u_0 for states (N, 6) near the state ``about`` the plan was made from: u_0 + K dx with
-        the closed-loop gain, within the input box. (N, 3) N. Without a gain (a fallback plan),
-        u_0 for every state."""
-        if self.feedback is None:
-            return np.broadcast_to(self.next_control, (len(states), 3))
-        u = self.next_control + (np.asarray(states, float) - about) @ self.feedback.T
-        return np.clip(u, -u_max_n, u_max_n)
 
 
 # --------------------------------------------------------------------------- the convex QP
@@ -477,16 +468,8 @@ class _Geometry:
         return out
 
     def segments_cross(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """(S,) True where segment a[s] -> b[s] passes through any polygon's interior (Liang-Barsky)."""
-        d = b - a
-        num = self.offsets[None] - np.einsum("kfd,sd->skf", self.normals, a)
-        den = np.einsum("kfd,sd->skf", self.normals, d)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = num / den
-        t_in = np.maximum(np.where(den < 0, t, -np.inf).max(axis=-1), 0.0)
-        t_out = np.minimum(np.where(den > 0, t, np.inf).min(axis=-1), 1.0)
-        parallel_out = np.any((den == 0) & (num <= 0), axis=-1)
-        return ((t_out - t_in > 1e-9) & ~parallel_out).any(axis=-1)
+        """(S,) True where segment a[s] -> b[s] passes through any polygon's interior."""
+        return polygons_crossed(self.normals, self.offsets, a, b)
 
     def corners(self, extra: float) -> np.ndarray:
         """Corners of every polygon pushed out by ``extra`` along both faces: (4K, 2)."""

@@ -154,7 +154,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # one control for every particle (eq:prediction). A true target steers from its own state,
     # which pulls deviations back, so this cloud is somewhat wider than the truth's spread
     # (position NEES about 1.3-1.5, not 2). Steering each particle by the plan's closed-loop
-    # gain (Plan.controls_for) was tried and is worse: where constraints are active the gain
+    # gain (u_0 + K (x_i - mean), K = Plan.feedback) was tried and is worse: where constraints are active the gain
     # is dead-beat, the cloud collapses along that direction and the filter loses the target
     # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
     beliefs = tuple(tracking.predict(posts[j], setup.model,

@@ -87,3 +87,19 @@ class Obstacles:
         """
         return (self.normals[:, :N_LATERAL, :2], self.offsets[:, :N_LATERAL],
                 -self.offsets[:, 5], self.offsets[:, 4])
+
+
+def polygons_crossed(normals: np.ndarray, offsets: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(S,) True where the planar segment a[s] -> b[s] passes through the interior of any convex
+    polygon {p : n_f . p < b_f for all faces f} (Liang-Barsky). normals (K, F, 2), offsets (K, F)."""
+    if not len(offsets):
+        return np.zeros(len(a), dtype=bool)
+    d = b - a
+    num = offsets[None] - np.einsum("kfd,sd->skf", normals, a)
+    den = np.einsum("kfd,sd->skf", normals, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+    t_in = np.maximum(np.where(den < 0, t, -np.inf).max(axis=-1), 0.0)
+    t_out = np.minimum(np.where(den > 0, t, np.inf).min(axis=-1), 1.0)
+    parallel_out = np.any((den == 0) & (num <= 0), axis=-1)
+    return ((t_out - t_in > 1e-9) & ~parallel_out).any(axis=-1)

@@ -11,7 +11,7 @@ from scipy.special import logsumexp
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
-from onboard.core.obstacles import Obstacles
+from onboard.core.obstacles import Obstacles, polygons_crossed
 
 OBJECTIVES = ("trace", "position_trace")
 
@@ -235,21 +235,6 @@ def _blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarra
     return n[keep], b[keep]
 
 
-def _cross_2d(normals, offsets, a, b) -> np.ndarray:
-    """(S,) segment a[s] -> b[s] passes through a polygon's interior (Liang-Barsky)."""
-    if not len(offsets):
-        return np.zeros(len(a), dtype=bool)
-    d = b - a
-    num = offsets[None] - np.einsum("kfd,sd->skf", normals, a)
-    den = np.einsum("kfd,sd->skf", normals, d)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = num / den
-    t_in = np.maximum(np.where(den < 0, t, -np.inf).max(axis=-1), 0.0)
-    t_out = np.minimum(np.where(den > 0, t, np.inf).min(axis=-1), 1.0)
-    parallel_out = np.any((den == 0) & (num <= 0), axis=-1)
-    return ((t_out - t_in > 1e-9) & ~parallel_out).any(axis=-1)
-
-
 def _inside_2d(normals, offsets, pts, extra: float = 0.0) -> np.ndarray:
     if not len(offsets):
         return np.zeros(len(pts), dtype=bool)
@@ -279,7 +264,7 @@ def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
     i, j = np.triu_indices(n, 1)
     keep = (i < nc) | (j < nc)  # waypoint-waypoint edges are never needed
     i, j = i[keep], j[keep]
-    ok = ~_cross_2d(normals, offsets, nodes[i], nodes[j])
+    ok = ~polygons_crossed(normals, offsets, nodes[i], nodes[j])
     if not len(offsets):
         return [np.vstack([start, w]) for w in waypoints]
     from scipy.sparse import coo_matrix
