@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,15 +37,23 @@ class MotionModel:
         return np.sqrt(np.clip(np.diag(self.Q), 0.0, None))
 
 
+def velocity_rollout(v0: np.ndarray, controls: np.ndarray, decay: float, gain: float) -> np.ndarray:
+    """v_1..v_T (T, d) of v_(k+1) = decay v_k + gain u_k from v_0 (d,), controls (T, d).
+
+    A first-order recursion: one ``lfilter`` call instead of a Python loop over the horizon.
+    """
+    u = np.asarray(controls, dtype=float)
+    v0 = np.asarray(v0, dtype=float)
+    return lfilter([gain], [1.0, -decay], u, axis=0, zi=(decay * v0)[None, :])[0]
+
+
 def predict_mean(model: MotionModel, mean: np.ndarray, controls: np.ndarray) -> np.ndarray:
     """Predicted means mu_(t+tau+1|t), tau = 0..T-1, for controls (T, 3): returns (T, 6)."""
-    controls = np.asarray(controls, dtype=float)
-    out = np.empty((len(controls), 6))
+    controls = np.asarray(controls, dtype=float).reshape(-1, 3)
     x = np.asarray(mean, dtype=float)
-    for k, u in enumerate(controls):
-        x = model.A @ x + model.B @ u
-        out[k] = x
-    return out
+    v = velocity_rollout(x[3:], controls, 1.0 - model.friction, model.dt_s / model.mass_kg)
+    p = x[:3] + model.dt_s * np.cumsum(np.vstack([x[3:], v[:-1]]), axis=0)
+    return np.hstack([p, v])
 
 
 def predict_cov(model: MotionModel, cov: np.ndarray, steps: int) -> np.ndarray:

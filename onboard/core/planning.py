@@ -6,12 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
 from onboard.core.obstacles import Obstacles, polygons_crossed
+from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
 
