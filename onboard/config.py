@@ -105,6 +105,19 @@ class Tracking:
 
 
 @dataclass(frozen=True)
+class Lookahead:
+    """The lookahead planner's knobs (onboard.core.planning.LookaheadParams; docs/PLANNING.md)."""
+
+    ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
+    n_headings: int = 16
+    loiter_radius_m: float = 40.0
+    objective: str = "position"  # position | trace
+    corner_clearance_m: float = 3.0
+    spacing_m: float = 2.0
+    discount: float = 1.0
+
+
+@dataclass(frozen=True)
 class Planning:
     objective: str
     planner: str = "greedy"  # greedy (the paper's one-step rule) | lookahead
@@ -112,6 +125,7 @@ class Planning:
     motion: str = "jump"  # jump (the paper: anywhere on the polar grid each tick) | vehicle
     speed_max_mps: float = 10.0  # vehicle motion: ArduCopter WPNAV_SPEED default
     accel_max_mps2: float = 2.5  # vehicle motion: ArduCopter WPNAV_ACCEL default
+    lookahead: Lookahead = Lookahead()
 
 
 @dataclass(frozen=True)
@@ -349,7 +363,20 @@ def _parse(root: _Node, source: str) -> Scenario:
         control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
-                                       "speed_max_mps", "accel_max_mps2"})
+                                       "speed_max_mps", "accel_max_mps2", "lookahead"})
+    la = pl.get("lookahead", {}).mapping({"ranges_m", "n_headings", "loiter_radius_m", "objective",
+                                          "corner_clearance_m", "spacing_m", "discount"})
+    d_la = Lookahead()
+    ranges = la.get("ranges_m", list(d_la.ranges_m))
+    lookahead = Lookahead(
+        ranges_m=ranges.vector(len(ranges.items(min_len=1)), _positive, "must be > 0"),
+        n_headings=la.get("n_headings", d_la.n_headings).integer(1, 360),
+        loiter_radius_m=la.get("loiter_radius_m", d_la.loiter_radius_m).number(_positive, "must be > 0"),
+        objective=la.get("objective", d_la.objective).choice(("position", "trace")),
+        corner_clearance_m=la.get("corner_clearance_m", d_la.corner_clearance_m).number(_nonneg, "must be >= 0"),
+        spacing_m=la.get("spacing_m", d_la.spacing_m).number(lambda v: 0.1 <= v <= 50, "must be in [0.1, 50]"),
+        discount=la.get("discount", d_la.discount).number(lambda v: 0 < v <= 1, "must be in (0, 1]"),
+    )
     planning = Planning(
         objective=pl.get("objective", "trace").choice(("trace", "position_trace")),
         planner=pl.get("planner", "greedy").choice(("greedy", "lookahead")),
@@ -357,6 +384,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         motion=pl.get("motion", "jump").choice(("jump", "vehicle")),
         speed_max_mps=pl.get("speed_max_mps", 10.0).number(_positive, "must be > 0"),
         accel_max_mps2=pl.get("accel_max_mps2", 2.5).number(_positive, "must be > 0"),
+        lookahead=lookahead,
     )
     if planning.planner == "lookahead" and planning.lookahead_steps > guidance.horizon:
         raise ConfigError("planning.lookahead_steps: must be <= guidance.horizon "

@@ -35,6 +35,9 @@ def test_builtin_and_file_agree(paper):
     (lambda d: d.pop("dynamics"), "dynamics: missing"),
     (lambda d: d["dynamics"].update(process_noise_diag=[1, 2, 3]), "dynamics.process_noise_diag: must have 6"),
     (lambda d: d["sensor"].update(sigma_deg=float("nan")), "sensor.sigma_deg: must be finite"),
+    (lambda d: d["planning"]["lookahead"].update(ranges_m=[30, -5]), "planning.lookahead.ranges_m[1]: must be > 0"),
+    (lambda d: d["planning"]["lookahead"].update(objective="range"), "planning.lookahead.objective"),
+    (lambda d: d["planning"]["lookahead"].update(radius=3), "planning.lookahead: unknown key 'radius'"),
 ])
 def test_invalid_field_is_named(raw, edit, message):
     data = copy.deepcopy(raw)
@@ -55,3 +58,16 @@ def test_bad_files(tmp_path):
     obj.write_text("!!python/object/apply:os.system ['echo pwned']\n")
     with pytest.raises(ConfigError):  # safe loader: nothing is executed
         load_scenario(obj)
+
+
+def test_lookahead_settings_reach_the_planner(raw):
+    """planning.lookahead in a scenario sets the planner's knobs; left out, the planner's defaults."""
+    from onboard.core.monitor import MonitorSetup
+    from onboard.core.planning import LOOKAHEAD_DEFAULT
+    data = copy.deepcopy(raw)
+    del data["planning"]["lookahead"]
+    assert MonitorSetup.from_scenario(parse_scenario(data)).lookahead == LOOKAHEAD_DEFAULT
+    data["planning"]["lookahead"] = {"loiter_radius_m": 15.0, "ranges_m": [50, 100]}
+    got = MonitorSetup.from_scenario(parse_scenario(data)).lookahead
+    assert got.loiter_radius_m == 15.0 and got.ranges_m == (50.0, 100.0)
+    assert got.n_headings == LOOKAHEAD_DEFAULT.n_headings

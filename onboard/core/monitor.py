@@ -20,8 +20,8 @@ from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
-from onboard.core.planning import (CandidateGrid, PlanningResult, UavMotion, choose_lookahead,
-                                   choose_next_position)
+from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
+                                   choose_lookahead, choose_next_position)
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,6 +46,7 @@ class MonitorSetup:
     planner: str = "greedy"  # greedy | lookahead
     lookahead_steps: int = 10
     motion: UavMotion = UavMotion()
+    lookahead: LookaheadParams = LOOKAHEAD_DEFAULT
 
     @classmethod
     def from_scenario(cls, sc, **overrides) -> "MonitorSetup":
@@ -69,6 +70,7 @@ class MonitorSetup:
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
             motion=UavMotion.from_config(sc.planning),
+            lookahead=LookaheadParams.from_config(sc.planning.lookahead),
         )
         fields.update(overrides)
         return cls(**fields)
@@ -174,7 +176,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
                                              setup.sensor.sigma_rad)
             planning = choose_lookahead(particles, log_w, paths, here, vel, setup.grid, setup.motion,
                                         setup.model, setup.sensor.sigma_rad, q, setup.area_min,
-                                        setup.area_max, setup.uav_obstacles, setup.objective)
+                                        setup.area_max, setup.uav_obstacles, setup.objective,
+                                        params=setup.lookahead)
         else:
             planning = choose_next_position(particles, log_w, here, setup.grid, setup.sensor.sigma_rad,
                                             setup.area_min, setup.area_max, setup.uav_obstacles,

@@ -222,6 +222,12 @@ class LookaheadParams:
     spacing_m: float = 2.0  # arc-length resolution of the sampled routes
     discount: float = 1.0  # weight discount**k on tick k of the horizon
 
+    @classmethod
+    def from_config(cls, c) -> "LookaheadParams":
+        """From ``onboard.config.Lookahead`` (the scenario's ``planning.lookahead``)."""
+        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.objective, c.corner_clearance_m,
+                   c.spacing_m, c.discount)
+
 
 LOOKAHEAD_DEFAULT = LookaheadParams()
 
