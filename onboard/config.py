@@ -102,6 +102,8 @@ class Tracking:
     particles: int
     resample_ess_fraction: float
     control_mix: float = 0.1  # fraction of particles predicted with a random control (docs/TRACKING.md)
+    regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
+    particle_feedback: float = 0.0  # fraction of the guidance's unconstrained gain steering each particle
 
 
 @dataclass(frozen=True)
@@ -355,12 +357,15 @@ def _parse(root: _Node, source: str) -> Scenario:
         obstacle_margin_m=u.get("obstacle_margin_m", 10.0).number(_nonneg, "must be >= 0"),
     )
 
-    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix"})
+    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "regularise_bandwidth",
+                                         "particle_feedback"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
             lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
+        regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        particle_feedback=tr.get("particle_feedback", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})
@@ -456,8 +461,11 @@ def parse_scenario(data: Any, source: str = "<memory>") -> Scenario:
     return _parse(_Node(data, ""), source)
 
 
-def load_scenario(path_or_name: str | Path = "paper") -> Scenario:
-    """Load a scenario from a YAML file, or a built-in one by name (``paper``)."""
+def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load a scenario from a YAML file, or a built-in one by name (``paper``).
+
+    overrides: dotted keys set before validation, e.g. ``{"tracking.control_mix": 0.0}``; a key
+    whose parent is missing is an error naming it."""
     text, source = _read(path_or_name)
     try:
         data = yaml.safe_load(text)
@@ -465,6 +473,15 @@ def load_scenario(path_or_name: str | Path = "paper") -> Scenario:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         raise ConfigError(f"{source}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    for key, value in (overrides or {}).items():
+        node, *parents = data, *key.split(".")[:-1]
+        for i, part in enumerate(parents):
+            if not isinstance(node, dict) or part not in node:
+                raise ConfigError(f"{source}: {'.'.join(parents[:i + 1])}: missing (setting {key})")
+            node = node[part]
+        if not isinstance(node, dict):
+            raise ConfigError(f"{source}: {key}: its parent is not a mapping")
+        node[key.split(".")[-1]] = value
     try:
         return parse_scenario(data, source)
     except ConfigError as exc:

@@ -214,7 +214,8 @@ class TruthWorld:
                     self.stuck_steps[j] += 1
             new[j] = cand
         self._states = new
-        self.gains.append(gains)
+        if self.record_gains:
+            self.gains.append(gains)
         self.step_count += 1
         self.time_s = self.step_count * self.model.dt_s
         return self.states

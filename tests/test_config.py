@@ -71,3 +71,12 @@ def test_lookahead_settings_reach_the_planner(raw):
     got = MonitorSetup.from_scenario(parse_scenario(data)).lookahead
     assert got.loiter_radius_m == 15.0 and got.ranges_m == (50.0, 100.0)
     assert got.n_headings == LOOKAHEAD_DEFAULT.n_headings
+
+
+def test_overrides_set_dotted_keys_and_name_missing_parents():
+    sc = load_scenario("paper", {"tracking.control_mix": 0.0, "planning.lookahead.loiter_radius_m": 20.0})
+    assert sc.tracking.control_mix == 0.0 and sc.planning.lookahead.loiter_radius_m == 20.0
+    with pytest.raises(ConfigError, match=r"trackin: missing \(setting trackin.control_mix\)"):
+        load_scenario("paper", {"trackin.control_mix": 0.0})
+    with pytest.raises(ConfigError, match="tracking.control_mix: must be in"):
+        load_scenario("paper", {"tracking.control_mix": 2.0})

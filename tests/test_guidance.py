@@ -137,3 +137,28 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
             else:
                 fd = (sol.pts[1] - s_down.pts[1]) / h
             np.testing.assert_allclose(dP[0, :, col], fd, atol=1e-3, err_msg=f"{target.name} state {i}")
+
+
+def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, rng):
+    """The unconstrained guidance gain pulls a displaced state back (position and velocity
+    deviations shrink under A + B K); with tracking.particle_feedback the monitor gives each
+    particle u + f K (x_i - mean), inside the input box."""
+    from dataclasses import replace as dc_replace
+    from onboard.core.guidance import free_gain
+    from onboard.core.monitor import MonitorSetup, _particle_controls
+    params = GuidanceParams.from_config(paper.guidance)
+    K = free_gain(model, params)
+    closed = model.A + model.B @ K
+    planar = [0, 1, 3, 4]
+    assert np.max(np.abs(np.linalg.eigvals(closed[np.ix_(planar, planar)]))) < 1.0
+    assert np.max(np.abs(np.linalg.eigvals(model.A[np.ix_(planar, planar)]))) == pytest.approx(1.0)
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, particle_feedback=0.5, control_mix=0.0))
+    setup = MonitorSetup.from_scenario(sc)
+    np.testing.assert_allclose(setup.particle_gain, 0.5 * K)
+    mean = np.array([500.0, 500.0, 0.0, 2.0, 0.0, 0.0])
+    particles = mean + np.array([[0, 0, 0, 0, 0, 0], [20.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, -3.0, 0], [1e5, 0, 0, 0, 0, 0]])
+    u = np.array([100.0, -50.0, 0.0])
+    out = _particle_controls(u, particles, mean, setup, rng)
+    np.testing.assert_allclose(out[0], u)
+    assert out[1, 0] < u[0] and out[2, 1] > u[1]  # pulled back toward the plan
+    assert np.all(np.abs(out[:, :2]) <= params.u_max_n) and out[3, 0] == -params.u_max_n

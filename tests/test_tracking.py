@@ -115,3 +115,24 @@ def test_empty_set_is_uninformative_and_resampling_keeps_mean(rng):
     skewed = tracking.ParticleSet(ps.particles, np.log(w / w.sum()))
     res = tracking.resample_if_needed(skewed, 1.0, rng)
     np.testing.assert_allclose(tracking.estimate(res)[0], tracking.estimate(skewed)[0], atol=0.15)
+
+
+def test_regularised_resampling_spreads_copies_and_widens_by_one_plus_h_squared(rng):
+    """A collapsed cloud (few distinct particles) comes back with distinct particles, the same
+    mean, and a planar covariance (1 + h^2) times the weighted one; z stays untouched."""
+    base = tracking.initialise([100, 200, 30, 3, -2, 0], np.diag([25, 25, 1e-10, 1, 1, 1e-10]), 20000, rng)
+    logw = np.full(20000, -np.inf)
+    logw[:400] = -np.log(400)  # 400 survivors: resampling makes ~50 copies of each
+    skewed = tracking.ParticleSet(base.particles, logw)
+    h = 0.3
+    plain = tracking.resample_if_needed(skewed, 0.5, rng)
+    reg = tracking.resample_if_needed(skewed, 0.5, rng, bandwidth=h)
+    assert len(np.unique(plain.particles[:, 0])) <= 400
+    assert len(np.unique(reg.particles[:, 0])) == 20000
+    m0, c0 = tracking.estimate(skewed)
+    m1, c1 = tracking.estimate(reg)
+    np.testing.assert_allclose(m1[[0, 1, 3, 4]], m0[[0, 1, 3, 4]], atol=0.2)
+    planar = [0, 1, 3, 4]
+    ratio = np.diag(c1)[planar] / np.diag(c0)[planar]
+    np.testing.assert_allclose(ratio, 1 + h ** 2, rtol=0.1)
+    np.testing.assert_array_equal(np.sort(reg.particles[:, 2]), np.sort(plain.particles[:, 2]))

@@ -568,6 +568,33 @@ def _controls_kn(x0: np.ndarray, pts: np.ndarray, dt: float, decay: float, gain:
     return (v[1:] - decay * v[:-1]) / gain
 
 
+def _first_control_gain(dP: np.ndarray, model: MotionModel, decay: float, gain: float) -> np.ndarray | None:
+    """du_0/dx (3, 6), N per state unit, from dp_(2..T+1)/dx0 (T, 2, 4); None if not finite."""
+    dp1 = np.hstack([np.eye(2), model.dt_s * np.eye(2)])
+    dv0 = np.hstack([np.zeros((2, 2)), np.eye(2)])
+    dw0 = ((dP[0] - dp1) / model.dt_s - decay * dv0) / gain  # kN per unit of (px, py, vx, vy)
+    if not np.all(np.isfinite(dw0)):
+        return None
+    out = np.zeros((3, 6))
+    out[:2, [0, 1, 3, 4]] = dw0 * KN
+    return out
+
+
+def free_gain(model: MotionModel, params: GuidanceParams, workspace: GuidanceWorkspace | None = None) -> np.ndarray:
+    """du_0/dx (3, 6) of P1 with no constraint active: how the guidance steers a state that
+    deviates a little from the planned one, away from obstacles and limits. The same for every
+    state and goal (the unconstrained optimum is affine in both), so computed once."""
+    ws = workspace or GuidanceWorkspace()
+    qp = ws.qp(params.horizon, 0, model, params)
+    x0, goal = np.zeros(4), np.zeros(2)
+    speed = np.full(params.horizon, np.inf)
+    coef, rhs = np.zeros((0, params.horizon - 1, 2, 2)), np.zeros((0, params.horizon - 1, 2))
+    _, A, _, _ = qp._rows(x0, goal, speed, coef, rhs)
+    none_active = _Solution(None, None, 0.0, None, np.zeros(qp.ny), np.zeros(len(A)))
+    dP = qp.sensitivity(x0, goal, speed, coef, rhs, none_active)
+    return _first_control_gain(dP, model, 1.0 - model.friction, qp.gain)
+
+
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
                   workspace: GuidanceWorkspace | None = None,
@@ -808,12 +835,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
             dP = qp.sensitivity(x0, goal2, speed_bound, *geo.rows(best["faces"]), best["sol"])
         except np.linalg.LinAlgError:
             dP = np.full((T, 2, 4), np.nan)
-        dp1 = np.hstack([np.eye(2), model.dt_s * np.eye(2)])
-        dv0 = np.hstack([np.zeros((2, 2)), np.eye(2)])
-        dw0 = ((dP[0] - dp1) / model.dt_s - decay * dv0) / gain  # kN per unit of (px, py, vx, vy)
-        if np.all(np.isfinite(dw0)):
-            feedback = np.zeros((3, 6))
-            feedback[:2, [0, 1, 3, 4]] = dw0 * KN
+        feedback = _first_control_gain(dP, model, decay, gain)
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
                 predict_mean(model, mean0, controls), best["faces"], best["active"], feedback)
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, free_gain, plan_guidance
 from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
 from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
@@ -43,6 +43,8 @@ class MonitorSetup:
     resample_fraction: float
     objective: str
     control_mix: float = 0.0  # fraction of particles predicted with a random control
+    regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
+    particle_gain: np.ndarray | None = None  # (3, 6) N per state unit: per-particle steering (free_gain)
     planner: str = "greedy"  # greedy | lookahead
     lookahead_steps: int = 10
     motion: UavMotion = UavMotion()
@@ -52,8 +54,9 @@ class MonitorSetup:
     def from_scenario(cls, sc, **overrides) -> "MonitorSetup":
         obstacles = Obstacles.from_boxes(sc.obstacles)
         d = sc.dynamics
+        model = MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag)
         fields = dict(
-            model=MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag),
+            model=model,
             sensor=tracking.SensorModel.from_config(sc.sensor),
             guidance=GuidanceParams.from_config(sc.guidance),
             obstacles=obstacles,
@@ -66,6 +69,9 @@ class MonitorSetup:
             n_particles=sc.tracking.particles,
             resample_fraction=sc.tracking.resample_ess_fraction,
             control_mix=sc.tracking.control_mix,
+            regularise_bandwidth=sc.tracking.regularise_bandwidth,
+            particle_gain=(sc.tracking.particle_feedback * free_gain(model, GuidanceParams.from_config(sc.guidance))
+                           if sc.tracking.particle_feedback > 0 else None),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -109,14 +115,22 @@ class TickResult:
         return None if self.planning is None else self.planning.position
 
 
-def _particle_controls(u: np.ndarray, n: int, setup: MonitorSetup, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) controls: the plan's u for most particles; for a fraction ``control_mix`` a control
-    uniform in the input box (u_z = 0), i.e. the prior says a target follows the predicted plan
-    only with probability 1 - control_mix (it may take the other way around an obstacle)."""
-    out = np.broadcast_to(np.asarray(u, float), (n, 3)).copy()
+def _particle_controls(u: np.ndarray, particles: np.ndarray, mean: np.ndarray, setup: MonitorSetup,
+                       rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) controls: the plan's u for most particles (with ``particle_gain``, u + K (x_i - mean)
+    within the input box: each particle steered back toward the plan as the guidance would
+    steer a target there); for a fraction ``control_mix`` a control uniform in the input box
+    (u_z = 0), i.e. the prior says a target follows the predicted plan only with probability
+    1 - control_mix (it may take the other way around an obstacle)."""
+    n = len(particles)
+    u_max = setup.guidance.u_max_n
+    if setup.particle_gain is not None:
+        out = np.asarray(u, float) + (particles - mean) @ setup.particle_gain.T
+        out[:, :2] = np.clip(out[:, :2], -u_max, u_max)
+    else:
+        out = np.broadcast_to(np.asarray(u, float), (n, 3)).copy()
     if setup.control_mix > 0.0:
         other = rng.random(n) < setup.control_mix
-        u_max = setup.guidance.u_max_n
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
         out[other, 2] = 0.0
     return out
@@ -144,7 +158,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
         upd = tracking.update(state.beliefs[j], j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
         means[j], covs[j] = tracking.estimate(upd.particles)
-        posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng))
+        posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng,
+                                                     setup.regularise_bandwidth))
     t1 = timer()
 
     plans = tuple(
@@ -160,7 +175,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # is dead-beat, the cloud collapses along that direction and the filter loses the target
     # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
     beliefs = tuple(tracking.predict(posts[j], setup.model,
-                                     _particle_controls(plans[j].next_control, len(posts[j]), setup, rng), rng)
+                                     _particle_controls(plans[j].next_control, posts[j].particles, means[j],
+                                                        setup, rng), rng)
                     for j in range(M))
     t3 = timer()
 

@@ -133,13 +133,35 @@ def systematic_indices(weights: np.ndarray, rng: np.random.Generator) -> np.ndar
     return np.searchsorted(cumulative, positions, side="right")
 
 
-def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.random.Generator) -> ParticleSet:
-    """Resample systematically when the effective sample size falls below threshold * N."""
+PLANAR_STATES = [0, 1, 3, 4]  # x, y, vx, vy: what the bearings observe and the targets move in
+
+
+def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.random.Generator,
+                       bandwidth: float = 0.0) -> ParticleSet:
+    """Resample systematically when the effective sample size falls below threshold * N.
+
+    bandwidth h > 0 regularises (Musso et al.'s regularised particle filter): each resampled
+    particle moves by N(0, h^2 C) in the planar states, C the weighted covariance before
+    resampling, so copies of one particle do not stay identical (sample impoverishment makes a
+    filter with informative bearings confidently wrong). It widens the cloud by a factor
+    (1 + h^2) in variance at each resampling.
+    """
     n = len(ps)
     if effective_sample_size(ps) >= threshold_fraction * n:
         return ps
     idx = systematic_indices(ps.weights, rng)
-    return ParticleSet(ps.particles[idx], np.full(n, -np.log(n)))
+    particles = ps.particles[idx]
+    if bandwidth > 0.0:
+        _, cov = estimate(ps)
+        C = cov[np.ix_(PLANAR_STATES, PLANAR_STATES)]
+        try:
+            L = np.linalg.cholesky(C + 1e-9 * np.eye(4))
+        except np.linalg.LinAlgError:
+            L = None
+        if L is not None and np.all(np.isfinite(L)):
+            particles = particles.copy()
+            particles[:, PLANAR_STATES] += bandwidth * rng.standard_normal((n, 4)) @ L.T
+    return ParticleSet(particles, np.full(n, -np.log(n)))
 
 
 def estimate(ps: ParticleSet) -> tuple[np.ndarray, np.ndarray]:
