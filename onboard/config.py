@@ -102,6 +102,7 @@ class Tracking:
     particles: int
     resample_ess_fraction: float
     control_mix: float = 0.1  # fraction of particles predicted with a random control (docs/TRACKING.md)
+    control_mix_when: str = "always"  # always | obstacle (only while the plan rounds an obstacle)
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
     particle_feedback: float = 0.0  # fraction of the guidance's unconstrained gain steering each particle
 
@@ -357,13 +358,14 @@ def _parse(root: _Node, source: str) -> Scenario:
         obstacle_margin_m=u.get("obstacle_margin_m", 10.0).number(_nonneg, "must be >= 0"),
     )
 
-    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "regularise_bandwidth",
-                                         "particle_feedback"})
+    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
+                                         "regularise_bandwidth", "particle_feedback"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
             lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
+        control_mix_when=tr.get("control_mix_when", "always").choice(("always", "obstacle")),
         regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         particle_feedback=tr.get("particle_feedback", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
     )

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from onboard.core.guidance import GuidanceParams, plan_guidance
+from onboard.core.guidance import GuidanceParams, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 from bench.miqp_reference import random_instance
 
@@ -158,7 +158,47 @@ def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, 
     mean = np.array([500.0, 500.0, 0.0, 2.0, 0.0, 0.0])
     particles = mean + np.array([[0, 0, 0, 0, 0, 0], [20.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, -3.0, 0], [1e5, 0, 0, 0, 0, 0]])
     u = np.array([100.0, -50.0, 0.0])
-    out = _particle_controls(u, particles, mean, setup, rng)
+    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (params.horizon, 1)), np.zeros((params.horizon, 6)),
+                np.zeros((params.horizon - 1, 0), int))
+    out = _particle_controls(plan, particles, mean, setup, rng)
     np.testing.assert_allclose(out[0], u)
     assert out[1, 0] < u[0] and out[2, 1] > u[1]  # pulled back toward the plan
     assert np.all(np.abs(out[:, :2]) <= params.u_max_n) and out[3, 0] == -params.u_max_n
+
+
+def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):
+    """An estimate between particles on both sides of an obstacle can lie inside it: the plan
+    starts from the nearest point outside (same velocity), is feasible, and avoids it."""
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    box = paper.obstacles[0]
+    centre = np.array(box.center_m, float)
+    x = np.array([centre[0], centre[1], 0.0, 0.0, 0.0, 0.0])
+    goal = np.array(paper.goal_of(paper.targets[0]).center_m)
+    plan = plan_guidance(model, params, obs, x, goal)
+    assert plan.feasible and plan.status in ("optimal", "budget")
+    inflated = obs.inflate(params.obstacle_margin_m - 0.1)
+    assert not inflated.contains(np.column_stack([plan.means[:, :2], np.zeros(len(plan.means))])).any()
+
+
+def test_control_mixture_only_while_the_plan_rounds_an_obstacle(paper, rng):
+    """control_mix_when: obstacle: random controls only for a plan with an obstacle row active
+    (or unknown: a fallback); a plan in open ground moves every particle by its control."""
+    from dataclasses import replace as dc_replace
+    from onboard.core.guidance import _Active
+    from onboard.core.monitor import MonitorSetup, _particle_controls
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5, control_mix_when="obstacle"))
+    setup = MonitorSetup.from_scenario(sc)
+    T, K = setup.guidance.horizon, len(setup.obstacles)
+    u = np.array([100.0, -50.0, 0.0])
+    particles = np.zeros((1000, 6))
+
+    def plan(active):
+        return Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int), active)
+    free = _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool))
+    pressed = _Active(np.zeros(10, bool), free.obstacles.copy())
+    pressed.obstacles[0, 3, 1] = True
+    n_random = lambda p: int(np.sum(np.any(_particle_controls(p, particles, particles[0], setup, rng) != u, axis=1)))  # noqa: E731
+    assert n_random(plan(free)) == 0
+    assert 400 < n_random(plan(pressed)) < 600
+    assert 400 < n_random(plan(None)) < 600

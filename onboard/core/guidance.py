@@ -49,6 +49,7 @@ from onboard.core.obstacles import N_LATERAL, Obstacles, polygons_crossed
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 _FEAS_TOL_M = 1e-3  # accept a QP solution whose obstacle rows are violated by less than this
 _NO_FACE = -1
+_PUSH_OUT_M = 0.01  # a start inside an inflated obstacle is planned from this far outside it
 _STALL_SPEED_FRACTION = 0.25  # a warm plan against an obstacle this slow (of v_max) is stuck
 _SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved
 _GUIDE_SPEEDS = (0.8, 1.0, 0.6)  # fractions of v_max at which the shortest path is timed
@@ -103,6 +104,12 @@ class Plan:
     @property
     def next_control(self) -> np.ndarray:
         return self.controls[0]
+
+    @property
+    def touches_obstacle(self) -> bool:
+        """An obstacle row is active somewhere on the horizon: the plan rounds an obstacle, and a
+        target could take another way around it. True when unknown (fallback plans)."""
+        return self.active is None or bool(self.active.obstacles.any())
 
 
 # --------------------------------------------------------------------------- the convex QP
@@ -384,6 +391,25 @@ class _Geometry:
         """pts (P, 2) -> (P, K, 4): a . p - b, > 0 outside that face."""
         return np.einsum("kfd,pd->pkf", self.normals, pts) - self.offsets[None]
 
+    def push_out(self, x: np.ndarray, which: np.ndarray) -> np.ndarray | None:
+        """x = (px, py, vx, vy): the position moved across the nearest face of each polygon in
+        ``which`` (K,) it is inside, to just outside it, and the velocity's component into that
+        face removed; None if it is inside none."""
+        x = np.array(x, dtype=float)
+        moved = False
+        for _ in range(len(self.offsets)):
+            c = self.clearance(x[None, :2])[0]  # (K, 4)
+            inside = np.all(c < 0, axis=-1) & which
+            if not inside.any():
+                break
+            k = int(np.flatnonzero(inside)[0])
+            f = int(np.argmax(c[k]))
+            n = self.normals[k, f]
+            x[:2] += (_PUSH_OUT_M - c[k, f]) * n
+            x[2:] -= min(0.0, float(n @ x[2:])) * n
+            moved = True
+        return x if moved else None
+
     def inside(self, pts: np.ndarray) -> np.ndarray:
         """(P, K): strictly inside the inflated polygon."""
         return np.all(self.clearance(pts) < 0, axis=-1)
@@ -616,11 +642,18 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     solves = 0
 
     x0 = mean0[[0, 1, 3, 4]]
+    z_path = predict_mean(model, mean0, np.zeros((T, 3)))[:, 2]
+    geo = _reduce_obstacles(obstacles, params.obstacle_margin_m, np.concatenate([[mean0[2]], z_path]))
+    # a start inside an inflated obstacle (noise carried the target into the margin, or an
+    # estimate averages particles on both sides of an obstacle) has no feasible plan: plan from
+    # the nearest point just outside, not moving into the obstacle
+    out = geo.push_out(x0, geo.relevant[0]) if K else None
+    if out is not None:
+        mean0 = mean0.copy()
+        mean0[[0, 1, 3, 4]] = x0 = out
     v0 = float(np.linalg.norm(x0[2:]))
     speed_bound = np.maximum(params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides),
                              v0 * decay ** np.arange(1, T + 1) + 1e-6)
-    z_path = predict_mean(model, mean0, np.zeros((T, 3)))[:, 2]
-    geo = _reduce_obstacles(obstacles, params.obstacle_margin_m, np.concatenate([[mean0[2]], z_path]))
 
     def path(pts):
         """p_0..p_T from a QP's p_1..p_(T+1)."""

@@ -43,6 +43,7 @@ class MonitorSetup:
     resample_fraction: float
     objective: str
     control_mix: float = 0.0  # fraction of particles predicted with a random control
+    control_mix_when: str = "always"  # always | obstacle: only while the plan rounds an obstacle
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
     particle_gain: np.ndarray | None = None  # (3, 6) N per state unit: per-particle steering (free_gain)
     planner: str = "greedy"  # greedy | lookahead
@@ -69,6 +70,7 @@ class MonitorSetup:
             n_particles=sc.tracking.particles,
             resample_fraction=sc.tracking.resample_ess_fraction,
             control_mix=sc.tracking.control_mix,
+            control_mix_when=sc.tracking.control_mix_when,
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
             particle_gain=(sc.tracking.particle_feedback * free_gain(model, GuidanceParams.from_config(sc.guidance))
                            if sc.tracking.particle_feedback > 0 else None),
@@ -115,7 +117,7 @@ class TickResult:
         return None if self.planning is None else self.planning.position
 
 
-def _particle_controls(u: np.ndarray, particles: np.ndarray, mean: np.ndarray, setup: MonitorSetup,
+def _particle_controls(plan: Plan, particles: np.ndarray, mean: np.ndarray, setup: MonitorSetup,
                        rng: np.random.Generator) -> np.ndarray:
     """(n, 3) controls: the plan's u for most particles (with ``particle_gain``, u + K (x_i - mean)
     within the input box: each particle steered back toward the plan as the guidance would
@@ -123,13 +125,14 @@ def _particle_controls(u: np.ndarray, particles: np.ndarray, mean: np.ndarray, s
     (u_z = 0), i.e. the prior says a target follows the predicted plan only with probability
     1 - control_mix (it may take the other way around an obstacle)."""
     n = len(particles)
+    u = plan.next_control
     u_max = setup.guidance.u_max_n
     if setup.particle_gain is not None:
         out = np.asarray(u, float) + (particles - mean) @ setup.particle_gain.T
         out[:, :2] = np.clip(out[:, :2], -u_max, u_max)
     else:
         out = np.broadcast_to(np.asarray(u, float), (n, 3)).copy()
-    if setup.control_mix > 0.0:
+    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
         other = rng.random(n) < setup.control_mix
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
         out[other, 2] = 0.0
@@ -175,7 +178,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # is dead-beat, the cloud collapses along that direction and the filter loses the target
     # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
     beliefs = tuple(tracking.predict(posts[j], setup.model,
-                                     _particle_controls(plans[j].next_control, posts[j].particles, means[j],
+                                     _particle_controls(plans[j], posts[j].particles, means[j],
                                                         setup, rng), rng)
                     for j in range(M))
     t3 = timer()
