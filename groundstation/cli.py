@@ -37,6 +37,10 @@ def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
                         f"(default: $PMON_GCS_CONNECT or {DEFAULT_URL})")
     p.add_argument("--sysid", type=int, default=d(None), help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--timeout", type=float, default=d(5.0), help="seconds to wait for an answer (default 5)")
+    p.add_argument("--signing-key", metavar="FILE", default=d(None),
+                   help="MAVLink 2 signing key file (64 hex chars, mode 0600), the vehicle's: sign "
+                        "every command and parameter write, accept only signed packets "
+                        "(default: $PMON_GCS_SIGNING_KEY, else unsigned)")
     p.add_argument("--json", action="store_true", default=d(False), help="machine-readable output")
 
 
@@ -121,7 +125,14 @@ def run(args, console) -> tuple[str, dict]:
                                 or (args.duration is not None and args.duration <= 0)):
         raise UsageError("watch: --count must be >= 1 and --duration > 0")
     tlog = args.file if args.cmd == "record" else None
-    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog) as gl:
+    key = None
+    if args.signing_key:
+        from onboard.app.signing import KeyFileError, load_key  # the one key loader (app, mock, GCS)
+        try:
+            key = load_key(args.signing_key)
+        except KeyFileError as exc:
+            raise UsageError(f"--signing-key {exc}")
+    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key) as gl:
         gl.connect()
         cmd = args.cmd
         if cmd == "status":
@@ -182,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse: usage errors are 2, --help is 0
         return int(exc.code or 0)
     args.connect = args.connect or os.environ.get("PMON_GCS_CONNECT") or DEFAULT_URL
+    args.signing_key = args.signing_key or os.environ.get("PMON_GCS_SIGNING_KEY") or None
     if not args.timeout > 0:
         return _error(args, UsageError(f"--timeout must be > 0, got {args.timeout:g}"), EXIT_USAGE)
     if args.sysid is not None and not 1 <= args.sysid <= 255:

@@ -2,8 +2,9 @@
 retried until acknowledged, and the app's parameters.
 
 One thread (the caller's): every wait pumps the socket. The connection itself is the onboard
-app's ``Link`` (same URLs, MAVLink 2, optional tlog of both directions), opened as sysid 255,
-component MISSIONPLANNER (190).
+app's ``Link`` (same URLs, MAVLink 2, optional tlog of both directions, optional MAVLink 2
+signing with a key from ``onboard.app.signing.load_key``), opened as sysid 255, component
+MISSIONPLANNER (190).
 """
 from __future__ import annotations
 
@@ -102,7 +103,9 @@ class Vehicle:
 
 class GcsLink:
     def __init__(self, url: str, timeout: float = 5.0, sysid: int | None = None,
-                 tlog_path: str | None = None):
+                 tlog_path: str | None = None, signing_key: bytes | None = None):
+        """``signing_key``: 32 bytes (``onboard.app.signing.load_key``): every packet sent is
+        signed, and received ones are accepted only with a good signature."""
         self.url = url
         self.timeout = timeout
         self.want_sysid = sysid
@@ -110,7 +113,7 @@ class GcsLink:
             _probe_tcp(url, timeout)
             with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints its retries
                 self.link = Link(url, tlog_path=tlog_path, source_system=P.GCS_SYSID,
-                                 source_component=P.GCS_COMPID)
+                                 source_component=P.GCS_COMPID, signing_key=signing_key)
         except (OSError, ConnectionError) as exc:
             raise GcsError(f"cannot open {url}: {exc.strerror or exc}", TIMEOUT) from exc
         self.v = Vehicle()
@@ -218,10 +221,18 @@ class GcsLink:
             if self.v.sysid is not None:  # only the app answered (a link to the companion alone)
                 return self
             who = f"vehicle {self.want_sysid} not" if self.want_sysid else "no vehicle"
-            raise GcsError(f"{who} heard on {self.url} within {self.timeout:g} s "
-                           f"({'no MAVLink at all' if not self.received else 'other traffic only'})",
-                           TIMEOUT)
+            what = 'no MAVLink at all' if not self.received else 'other traffic only'
+            if self.link.signing and self.link.mav.signing.reject_count:
+                what = (f"{self.link.mav.signing.reject_count} packets failed the signature check: "
+                        "wrong --signing-key, or the vehicle does not sign")
+            raise GcsError(f"{who} heard on {self.url} within {self.timeout:g} s ({what})", TIMEOUT)
         return self
+
+    def _signing_hint(self) -> str:
+        """Why the vehicle may be ignoring us: it signs and we do not."""
+        if not self.link.signing and self.link.mav.signing.sig_count:
+            return "; the vehicle signs its MAVLink and drops unsigned commands: give --signing-key"
+        return ""
 
     def request(self, *msg_ids: int) -> None:
         """MAV_CMD_REQUEST_MESSAGE to the autopilot (answered at once; ACKs are ignored)."""
@@ -282,7 +293,7 @@ class GcsLink:
                 return Ack("OBSERVED", 0, attempts, time.monotonic() - t0, tuple(self.texts_since(t0, comp)))
         if ack is None:
             raise GcsError(f"{name}: no answer from the {'onboard app' if comp == P.APP_COMPID else 'autopilot'}"
-                           f" within {self.timeout:g} s ({attempts} attempts)", TIMEOUT)
+                           f" within {self.timeout:g} s ({attempts} attempts){self._signing_hint()}", TIMEOUT)
         result = P.RESULTS.get(ack.result, str(ack.result))
         reason = int(getattr(ack, "result_param2", 0) or 0)
         if ack.result != mavlink.MAV_RESULT_ACCEPTED:
@@ -319,7 +330,7 @@ class GcsLink:
         finally:
             self._listeners.remove(listen)
         raise GcsError(f"params: the onboard app did not answer within {self.timeout:g} s "
-                       f"({len(got)} of {count[0] or '?'} parameters)", TIMEOUT)
+                       f"({len(got)} of {count[0] or '?'} parameters){self._signing_hint()}", TIMEOUT)
 
     def param_exchange(self, name: str, value: float | None = None) -> float:
         """Read (value None) or set one app parameter; returns the value the app holds.
@@ -360,8 +371,8 @@ class GcsLink:
                         return got[-1]
         finally:
             self._listeners.remove(listen)
-        raise GcsError(f"params {what} {name}: no answer from the onboard app within {self.timeout:g} s",
-                       TIMEOUT)
+        raise GcsError(f"params {what} {name}: no answer from the onboard app within {self.timeout:g} s"
+                       f"{self._signing_hint()}", TIMEOUT)
 
 
 def _probe_tcp(url: str, timeout: float) -> None:

@@ -12,6 +12,15 @@ Truth JSONL, one line per scan:
      "bearings": [[...], ...]}          # the bearings sent, per channel
 preceded by a header line {"header": {...scenario, seed, origin...}}.
 
+The truth world does not depend on the UAV, so it is stepped AHEAD on a thread of its own
+(``TruthAhead``, at most ``LiveFeedConfig.ahead`` states, from the moment the feed starts, i.e.
+also while it waits for the vehicle to arm): a scan at T then only costs the DF model. Without
+this the targets' own guidance (a QP per target per step; the first one ~1 s of warm-up, later
+re-plans around obstacles 0.2-0.7 s) made the feed deliver scans seconds late at a SITL speedup
+of 5, and the app rightly refused them as stale: misses of the simulator, not of the app. The
+truth world and the DF noise draw from separate random streams (``SeedSequence(seed).spawn``),
+so a seed gives the same flight whatever the threads' timing.
+
 Replay: sends the "bearings" of such a file (or of any JSONL with t/ch/bearings_rad records) on
 the autopilot clock (``--mavlink``, times rebased to the first whole second after start) or on a
 wall clock (``--speedup``, times kept). The bearings were taken from where the UAV was in the
@@ -21,10 +30,12 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import socket
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
@@ -36,6 +47,10 @@ from onboard.app.clock import AutopilotClock
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
 
+READY_STATES = 5  # truth states computed before the first scan is sent
+# a scan sent this long (autopilot s) after its time counts as late: the feed waits for a
+# telemetry sample at or after T (GLOBAL_POSITION_INT every 0.1 s), so ~0.1 s is normal
+LATE_S = 0.25
 FEED_SYSID = 245  # a client of its own, never mistaken for the vehicle or the app
 FEED_COMPID = mavlink.MAV_COMP_ID_USER1
 
@@ -43,8 +58,9 @@ FEED_COMPID = mavlink.MAV_COMP_ID_USER1
 class Telemetry:
     """Clock and pose of the vehicle from a MAVLink connection, read on a thread."""
 
-    def __init__(self, url: str, frame: Frame, tlog_path: str | None = None):
-        self.link = Link(url, tlog_path=tlog_path, source_system=FEED_SYSID, source_component=FEED_COMPID)
+    def __init__(self, url: str, frame: Frame, tlog_path: str | None = None, signing_key: bytes | None = None):
+        self.link = Link(url, tlog_path=tlog_path, source_system=FEED_SYSID, source_component=FEED_COMPID,
+                         signing_key=signing_key)
         self.frame = frame
         self.clock = AutopilotClock()
         self.poses = PoseHistory(keep_s=60.0, max_extrapolation_s=0.5)
@@ -124,6 +140,71 @@ def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) ->
     return False
 
 
+class TruthAhead:
+    """The truth world's states 0, 1, 2, ... (one per dt), computed ahead on a daemon thread and
+    handed out in order by ``next()``; at most ``ahead`` are kept. A step that raises ends the
+    thread and ``next()`` re-raises it in the caller."""
+
+    def __init__(self, truth, ahead: int = 60):
+        self.truth = truth
+        self._q: queue.Queue = queue.Queue(maxsize=max(int(ahead), 1))
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self.step_ms: deque[float] = deque(maxlen=3600)  # the last hour of steps (wall ms)
+        self._thread = threading.Thread(target=self._run, name="feed-truth", daemon=True)
+
+    def start(self) -> "TruthAhead":
+        self._thread.start()
+        return self
+
+    def _put(self, states) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._q.put(states, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _run(self) -> None:
+        try:
+            if not self._put(self.truth.states):
+                return
+            while not self._stop.is_set():
+                t0 = time.perf_counter()
+                states = self.truth.step()
+                self.step_ms.append((time.perf_counter() - t0) * 1e3)
+                if not self._put(states):
+                    return
+        except BaseException as exc:  # handed to the consumer
+            self._error = exc
+
+    def wait_ready(self, n: int, stop: threading.Event) -> bool:
+        """Wait until ``n`` states are ready (the guidance's first solves are its slowest)."""
+        n = min(n, self._q.maxsize)
+        while not stop.is_set():
+            if self._q.qsize() >= n:
+                return True
+            if self._error is not None:
+                raise RuntimeError(f"truth world failed: {self._error!r}") from self._error
+            time.sleep(0.01)
+        return False
+
+    def next(self, stop: threading.Event) -> np.ndarray | None:
+        """The next state (M, 6); waits for it (None if ``stop`` is set first)."""
+        while not stop.is_set():
+            try:
+                return self._q.get(timeout=0.05)
+            except queue.Empty:
+                if self._error is not None:
+                    raise RuntimeError(f"truth world failed: {self._error!r}") from self._error
+        return None
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+
 @dataclass(frozen=True)
 class LiveFeedConfig:
     mavlink_url: str
@@ -134,6 +215,8 @@ class LiveFeedConfig:
     duration_s: float | None = None  # None: the scenario's mission.duration_s
     wait_armed: bool = False  # start the truth world when the vehicle arms
     tlog_path: str | None = None
+    ahead: int = 60  # truth states computed ahead of the scans (TruthAhead)
+    signing_key: bytes | None = None  # MAVLink 2 signing on the feed's autopilot link
 
 
 class LiveFeed:
@@ -144,20 +227,25 @@ class LiveFeed:
         self.cfg = cfg
         self.sc = scenario
         self.frame = Frame(scenario.origin.lat_deg, scenario.origin.lon_deg, scenario.origin.alt_m)
-        self.rng = np.random.default_rng(cfg.seed)
-        self.truth = TruthWorld.from_scenario(scenario, self.rng)
+        truth_seq, df_seq = np.random.SeedSequence(cfg.seed).spawn(2)
+        self.rng = np.random.default_rng(df_seq)  # DF noise, clutter, detections (this thread)
+        self.truth = TruthWorld.from_scenario(scenario, np.random.default_rng(truth_seq))
         self.df = DirectionFinder.from_config(scenario.sensor)
         self.log = log
         self.sent = 0
         self.scans = 0
+        self.late_scans = 0  # scans sent more than LATE_S (autopilot) after their time
+        self.max_send_lag_s = 0.0
         self.stop_event = threading.Event()
-        self.records: list[dict] = []
-        self.step_ms: list[float] = []
+        self.last_record: dict | None = None  # the truth of the last scan (all of them: truth_path)
+        self.step_ms: deque[float] = deque(maxlen=3600)  # truth step times (wall ms), the last hour
 
     def run(self) -> int:
         from sim.sensors import df_scan
 
-        tel = Telemetry(self.cfg.mavlink_url, self.frame, self.cfg.tlog_path).start()
+        ahead = TruthAhead(self.truth, self.cfg.ahead).start()  # warms up while we wait
+        self.step_ms = ahead.step_ms
+        tel = Telemetry(self.cfg.mavlink_url, self.frame, self.cfg.tlog_path, self.cfg.signing_key).start()
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         out = open(self.cfg.truth_path, "w", buffering=1) if self.cfg.truth_path else None
         dest = (self.cfg.app_host, self.cfg.app_port)
@@ -169,7 +257,11 @@ class LiveFeed:
                 out.write(json.dumps({"header": {
                     "scenario": self.sc.name, "seed": self.cfg.seed, "origin": [o.lat_deg, o.lon_deg, o.alt_m],
                     "targets": [t.name for t in self.sc.targets], "scans": n_scans}}) + "\n")
-            # wait for the clock and a position (and the arming, if asked)
+            # wait for the truth world's first steps (its warm-up: ~1 s for the first), the
+            # clock and a position (and the arming, if asked); the first scan is the next whole
+            # second after all that, so no scan is late because the simulator was still starting
+            if not ahead.wait_ready(READY_STATES, self.stop_event):
+                return 130
             while not self.stop_event.is_set():
                 if tel.clock.now() is not None and tel.poses.latest() is not None and \
                         (tel.armed or not self.cfg.wait_armed):
@@ -181,7 +273,8 @@ class LiveFeed:
             self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
             seq = 0
             for k in range(n_scans):
-                if not _sleep_until(tel.clock, T, self.stop_event):
+                states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
+                if states is None or not _sleep_until(tel.clock, T, self.stop_event):
                     return 130
                 # a telemetry sample at or after T makes the pose an interpolation, not a guess
                 deadline = time.monotonic() + 0.5
@@ -189,31 +282,32 @@ class LiveFeed:
                         and time.monotonic() < deadline and not self.stop_event.is_set():
                     time.sleep(0.001)
                 uav = tel.poses.at(T)
-                if uav is None:
+                if uav is None:  # the targets moved on all the same (their step k is used up)
                     self.log(f"feed: no UAV position at t={T:.1f}: scan skipped")
                     T += 1.0
                     continue
-                states = self.truth.states
                 bearings = df_scan(states[:, :2], uav[:2], self.df, self.rng)
+                lag = (tel.clock.now() or T) - T
                 for ch, b in enumerate(bearings):
                     sock.sendto(dg.encode(T, ch, b, seq), dest)
                     seq += 1
                     self.sent += 1
+                self.max_send_lag_s = max(self.max_send_lag_s, lag)
+                self.late_scans += lag > LATE_S
                 rec = {"t": T, "k": k, "uav_enu": [round(float(x), 3) for x in uav],
                        "targets": np.round(states, 4).tolist(),
                        "bearings": [[float(x) for x in b] for b in bearings]}
-                self.records.append(rec)
+                self.last_record = rec
                 if out is not None:
                     out.write(json.dumps(rec) + "\n")
                 self.scans += 1
-                t0 = time.perf_counter()
-                self.truth.step()
-                self.step_ms.append((time.perf_counter() - t0) * 1e3)
                 T += 1.0
             self.log(f"feed: done: {self.scans} scans, {self.sent} datagrams, "
+                     f"{self.late_scans} sent > {LATE_S:g} s late (max {self.max_send_lag_s:.2f} s autopilot), "
                      f"truth step median {np.median(self.step_ms) if self.step_ms else 0:.0f} ms")
             return 0
         finally:
+            ahead.stop()
             tel.stop()
             sock.close()
             if out is not None:
@@ -303,6 +397,7 @@ def main(argv=None) -> int:
     lv.add_argument("--seed", type=int, default=1)
     lv.add_argument("--duration", type=float, help="scans to send (s); default: mission.duration_s")
     lv.add_argument("--wait-armed", action="store_true", help="start the targets when the vehicle arms")
+    lv.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file of the autopilot link")
     rp = sub.add_parser("replay", help="send a recorded truth/datagram JSONL")
     rp.add_argument("file")
     rp.add_argument("--to", default="127.0.0.1:14600")
@@ -320,8 +415,12 @@ def main(argv=None) -> int:
             if args.duration is not None and not args.duration >= 1:
                 ap.error("--duration must be >= 1")
             sc = load_scenario(args.scenario)
+            key = None
+            if args.signing_key:
+                from onboard.app.signing import load_key
+                key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
             feed = LiveFeed(LiveFeedConfig(args.mavlink, host, int(port), args.truth, args.seed,
-                                           args.duration, args.wait_armed), sc,
+                                           args.duration, args.wait_armed, signing_key=key), sc,
                             log=lambda s: print(s, flush=True))
             feed.stop_event = stop
             return feed.run()

@@ -40,6 +40,7 @@ class StackConfig:
     runlog_path: str | None = None
     truth_path: str | None = None
     tlog_path: str | None = None
+    signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
 
 
 class SitlStack:
@@ -49,6 +50,10 @@ class SitlStack:
         from dataclasses import replace
         self.cfg = replace(cfg, **overrides)
         self.sc = load_scenario(self.cfg.scenario)
+        self.key = None
+        if self.cfg.signing_key_path is not None:
+            from onboard.app.signing import load_key
+            self.key = load_key(self.cfg.signing_key_path)
         o = self.sc.origin
         endpoints = ["tcpin:127.0.0.1:0"] * 3
         if self.cfg.gcs_udp_port:
@@ -56,7 +61,8 @@ class SitlStack:
         if self.cfg.gcs_udpin:
             endpoints.append("udpin:127.0.0.1:0")
         self.ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=self.cfg.speedup,
-                                seed=self.cfg.seed, endpoints=endpoints, params=DEMO_VEHICLE_PARAMS)
+                                seed=self.cfg.seed, endpoints=endpoints, params=DEMO_VEHICLE_PARAMS,
+                                signing_key=self.key)
         self.app: OnboardApp | None = None
         self.feed: LiveFeed | None = None
         self._feed_thread: threading.Thread | None = None
@@ -74,7 +80,8 @@ class SitlStack:
         try:
             self.app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 0)}", sensor_port=0,
                                             seed=self.cfg.seed, runlog_path=self.cfg.runlog_path,
-                                            tlog_path=self.cfg.tlog_path), self.sc).start()
+                                            tlog_path=self.cfg.tlog_path,
+                                            signing_key_path=self.cfg.signing_key_path), self.sc).start()
         except Exception:
             self.ap.stop()
             raise
@@ -86,7 +93,7 @@ class SitlStack:
         self.feed = LiveFeed(LiveFeedConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 1)}",
                                             app_port=self.app.sensor_port, seed=self.cfg.seed + 1,
                                             duration_s=self.cfg.feed_duration_s, wait_armed=True,
-                                            truth_path=self.cfg.truth_path),
+                                            truth_path=self.cfg.truth_path, signing_key=self.key),
                              self.sc, log=lambda s: None)
         self._feed_thread = threading.Thread(target=self.feed.run, name="sitl-feed", daemon=True)
         self._feed_thread.start()
@@ -116,17 +123,26 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--runlog", help="the app's JSONL run log")
     p.add_argument("--truth", help="the feed's truth JSONL")
+    p.add_argument("--signing-key", metavar="FILE",
+                   help="MAVLink 2 signing key file (mode 0600): mock, app and feed sign, and drop "
+                   "unsigned packets; give the GCS the same file (pmon gcs --signing-key FILE)")
     args = p.parse_args(argv)
     import logging
     logging.basicConfig(level=logging.WARNING)
-    st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
-                               runlog_path=args.runlog, truth_path=args.truth)).start()
+    from onboard.app.signing import KeyFileError
+    try:
+        st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
+                                   runlog_path=args.runlog, truth_path=args.truth,
+                                   signing_key_path=args.signing_key)).start()
+    except KeyFileError as exc:
+        print(f"python -m sim.stack: {exc}", file=sys.stderr)
+        return 2
     st.start_feed()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     print(f"sitl stack up: GCS on udpin:127.0.0.1:{args.gcs_udp} or {st.gcs_url}; speedup "
-          f"{args.speedup:g}; Ctrl-C stops", flush=True)
+          f"{args.speedup:g}{'; signed' if st.key else ''}; Ctrl-C stops", flush=True)
     try:
         while not stop.wait(0.2):
             pass

@@ -17,7 +17,6 @@ PMON_GUID_S, planning) and its scheduling, at 3x the real-time pressure.
 """
 from __future__ import annotations
 
-import math
 import threading
 import time
 
@@ -25,8 +24,9 @@ import numpy as np
 import pytest
 
 from sim.autopilot import MockAutopilot, Mode  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from conftest import Gcs
 
 from onboard.app.app import AppConfig, OnboardApp, State
 from onboard.config import load_scenario
@@ -46,49 +46,6 @@ BUDGET_S = 0.9  # PMON_BUDGET: setpoint sent within 0.9 s (autopilot) of the sca
 LAG_MEDIAN_MAX_M = 15.0  # see test_uav_follows_commanded_positions
 LAG_MAX_M = 30.0
 RMSE_MAX_M = 50.0
-
-
-class Gcs:
-    """A ground station on its own TCP link to the autopilot (the app is reached by routing)."""
-
-    def __init__(self, port: int):
-        self.conn = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255,
-                                               source_component=190, dialect="ardupilotmega")
-        self.msgs: list = []
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-        self._t.start()
-
-    def _run(self):
-        last_hb = 0.0
-        while not self._stop.is_set():
-            m = self.conn.recv_match(blocking=True, timeout=0.05)
-            if m is not None and m.get_type() != "BAD_DATA":
-                self.msgs.append(m)
-            if time.monotonic() - last_hb > 0.5:
-                last_hb = time.monotonic()
-                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-
-    def wait(self, pred, timeout: float, since: int = 0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for m in self.msgs[since:]:
-                if pred(m):
-                    return m
-            time.sleep(0.01)
-        return None
-
-    def command(self, comp: int, cmd: int, *params, timeout: float = 5.0):
-        since = len(self.msgs)
-        p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(1, comp, cmd, 0, *p)
-        return self.wait(lambda m: m.get_type() == "COMMAND_ACK" and m.command == cmd
-                         and m.get_srcComponent() == comp, timeout, since)
-
-    def close(self):
-        self._stop.set()
-        self._t.join(timeout=2)
-        self.conn.close()
 
 
 @pytest.fixture(scope="module")

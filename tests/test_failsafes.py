@@ -27,8 +27,9 @@ import numpy as np
 import pytest
 
 from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from conftest import Gcs
 
 import onboard.app.app as app_mod
 from onboard.app import datagram as dg
@@ -40,57 +41,6 @@ from onboard.demo import DEMO_VEHICLE_PARAMS
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
 SPEEDUP = 3.0
-
-
-class Gcs:
-    """A ground station (sysid 255) on its own TCP link to the autopilot."""
-
-    def __init__(self, port: int, sysid: int = 255):
-        self.conn = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=sysid,
-                                               source_component=190, dialect="ardupilotmega")
-        self.msgs: list = []
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-        self._t.start()
-
-    def _run(self):
-        last_hb = 0.0
-        while not self._stop.is_set():
-            m = self.conn.recv_match(blocking=True, timeout=0.05)
-            if m is not None and m.get_type() != "BAD_DATA":
-                self.msgs.append(m)
-            if time.monotonic() - last_hb > 0.5:
-                last_hb = time.monotonic()
-                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-
-    def wait(self, pred, timeout: float, since: int = 0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for m in self.msgs[since:]:
-                if pred(m):
-                    return m
-            time.sleep(0.01)
-        return None
-
-    def command(self, comp: int, cmd: int, *params, timeout: float = 5.0):
-        since = len(self.msgs)
-        p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(1, comp, cmd, 0, *p)
-        return self.wait(lambda m: m.get_type() == "COMMAND_ACK" and m.command == cmd
-                         and m.get_srcComponent() == comp, timeout, since)
-
-    def param_set(self, name: str, value: float, timeout: float = 5.0):
-        since = len(self.msgs)
-        self.conn.mav.param_set_send(1, 191, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32)
-        return self.wait(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name, timeout, since)
-
-    def texts(self) -> list[str]:
-        return [m.text for m in self.msgs if m.get_type() == "STATUSTEXT"]
-
-    def close(self):
-        self._stop.set()
-        self._t.join(timeout=2)
-        self.conn.close()
 
 
 class ScriptedDf:

@@ -17,6 +17,7 @@ while the vehicle takes off or a pilot flies; planning and setpoints only in ``m
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import math
@@ -48,6 +49,7 @@ log = logging.getLogger("pmon.app")
 MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010
 COAST_AFTER_S = 2.0  # autopilot s past a scan's wait without any DF datagram -> coast tick
 PLAN_RESERVE_S = 0.25  # autopilot s of a tick's budget kept for tracking, planning and sending
+DF_RCVBUF_BYTES = 1 << 20  # DF socket receive buffer asked for (SO_RCVBUF)
 POSITION_ONLY = 3576  # type_mask: ignore velocity, acceleration, yaw, yaw rate
 ARDUCOPTER_GUIDED = 4
 PX4_MAIN_MODE_OFFBOARD = 6
@@ -128,8 +130,12 @@ class AppConfig:
     # system ids whose commands and parameter writes are obeyed (reads are answered to anyone)
     gcs_sysids: tuple[int, ...] = (255,)
     signing_key_path: str | None = None  # MAVLink 2 signing key file (onboard/app/signing.py)
-    history: int = 5000  # tick records kept in memory (app.ticks); the run log keeps them all
+    history: int = 600  # tick records kept in memory (app.ticks, ~3 kB each); the run log keeps all
     watchdog_s: float = 3.0  # autopilot s a tick may run (or the io loop stall) before a report
+    # autopilot s between returns of freed heap memory to the OS (glibc malloc_trim, by the idle
+    # worker); 0: never. A tick's planning allocates tens of MB for a moment; without this the
+    # allocator keeps the largest such peak resident for good (see docs/SAFETY.md, long flights)
+    trim_memory_s: float = 60.0
 
 
 @dataclass
@@ -197,6 +203,12 @@ class OnboardApp:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        # room for a burst while the io thread is starved (the default ~200 kB holds ~200
+        # datagrams; the kernel caps this at net.core.rmem_max): queued, not dropped unseen
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, DF_RCVBUF_BYTES)
+        except OSError:
+            pass
         self._sock.bind((cfg.sensor_host, cfg.sensor_port))
         self._sock.setblocking(False)
         self.sensor_port = self._sock.getsockname()[1]
@@ -218,16 +230,21 @@ class OnboardApp:
         self._next_sp_t = -math.inf
         self._guided_deadline: float | None = None  # waiting for GUIDED after start/resume
         self.counters: dict[str, int] = {}
-        # bounded: a long flight must not grow the app's memory (bench/soak.py checks RSS)
+        # bounded: a long flight must not grow the app's memory (bench/soak.py checks RSS); every
+        # buffer below has a limit, and whatever must be kept for good goes to the run log
         self.ticks: deque[dict] = deque(maxlen=cfg.history)  # per-tick summaries
         self.latest: dict | None = None
-        self.sent_setpoints: deque[tuple[float, float, np.ndarray]] = deque(maxlen=10_000)  # (ap t, local t, enu)
+        # called with each tick's record (worker thread, after it is complete); a listener keeps
+        # what it needs (bench/latency.py counts every tick this way, whatever ``history`` is);
+        # it must be quick, and an exception in it is counted (listener_errors), never raised
+        self.tick_listeners: list[Callable[[dict], None]] = []
+        self.sent_setpoints: deque[tuple[float, float, np.ndarray]] = deque(maxlen=600)  # (ap t, local t, enu)
         self._hb_local = -math.inf
         self._stat_local = -math.inf
         self._msg_interval_local = -math.inf
         self._launch: dict | None = None
         self._said: set[str] = set()
-        self.events: deque[tuple[float | None, str]] = deque(maxlen=2000)
+        self.events: deque[tuple[float | None, str]] = deque(maxlen=500)
         self._tick_times: list[float] = []
         # failsafes
         self._link_lost = False
@@ -239,6 +256,8 @@ class OnboardApp:
         self._running: TickRecord | None = None
         self._alarmed: set[str] = set()
         self.watchdog: dict[str, int] = {}  # written by the watchdog thread only
+        self._malloc_trim = _malloc_trim() if cfg.trim_memory_s > 0 else None
+        self._trimmed_t = -math.inf
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "OnboardApp":
@@ -740,8 +759,6 @@ class OnboardApp:
         self._next_sp_t = now + 1.0 / self.params["PMON_SP_HZ"]
         if ok:
             self.sent_setpoints.append((now, self.mono(), np.array(enu, float)))
-            if len(self.sent_setpoints) > 100_000:
-                del self.sent_setpoints[:50_000]
         return ok
 
     def _launch_step(self, now: float) -> None:
@@ -873,6 +890,7 @@ class OnboardApp:
             self._job_event.clear()
             job, self._job = self._job, None
             if job is None:
+                self._trim_memory()
                 continue
             job.run_local = self.mono()
             self._running = job
@@ -886,6 +904,24 @@ class OnboardApp:
                 self._running = None
                 with self.lock:
                     self._worker_busy = False
+
+    def _trim_memory(self) -> None:
+        """Give freed heap pages back to the OS, once per ``trim_memory_s`` of autopilot time,
+        from the worker while it is idle (between ticks). Python frees a tick's temporary arrays
+        at once, but glibc keeps the pages (its mmap threshold rises to the largest array ever
+        freed; arenas are trimmed only at the top), so the resident size would follow the
+        largest tick so far, not what is in use. A few ms per call; worker thread."""
+        now = self.clock.now()
+        if self._malloc_trim is None or now is None or now < self._trimmed_t + self.cfg.trim_memory_s:
+            return
+        self._trimmed_t = now
+        try:
+            self._malloc_trim(0)
+        except Exception:  # ctypes failure: never again, never fatal
+            self._malloc_trim = None
+            return
+        with self.lock:
+            self._count("memory_trims")
 
     def _run_tick(self, job: TickRecord) -> None:
         t_start = self.mono()
@@ -961,6 +997,13 @@ class OnboardApp:
                 self._runlog.write(json.dumps(rec, allow_nan=False, default=_json_default) + "\n")
             self._publish_tick(rec, res)
             self._tick_times = (self._tick_times + [job.t])[-10:]
+        for fn in list(self.tick_listeners):
+            try:
+                fn(rec)
+            except Exception:
+                with self.lock:
+                    self._count("listener_errors")
+                log.exception("tick listener error")
 
     def _check_beliefs(self, setup: MonitorSetup, res) -> list[int]:
         """Particle collapse: a target whose update left no finite weight (``degenerate``) or
@@ -1066,6 +1109,18 @@ class OnboardApp:
             self._debug_array("PMON_TGT", j, values, rec["t"])
         self._publish_stat()
         self._stat_local = self.mono()
+
+
+def _malloc_trim():
+    """glibc's ``malloc_trim`` (returns free heap pages of every arena to the OS), or None where
+    the C library has none (musl, macOS: their allocators return memory by themselves)."""
+    try:
+        fn = ctypes.CDLL(None).malloc_trim  # the C library the interpreter is linked with
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_size_t]
+    fn.restype = ctypes.c_int
+    return fn
 
 
 def _with_grid(setup: MonitorSetup, grid: CandidateGrid) -> MonitorSetup:
