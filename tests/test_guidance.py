@@ -142,7 +142,7 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
 def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, rng):
     """The unconstrained guidance gain pulls a displaced state back (position and velocity
     deviations shrink under A + B K); with tracking.particle_feedback the monitor gives each
-    particle u + f K (x_i - mean), inside the input box."""
+    particle u + f K (x_i - mean), inside the input box, while the plan is in open ground."""
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import free_gain
     from onboard.core.monitor import MonitorSetup, _particle_controls
@@ -158,12 +158,18 @@ def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, 
     mean = np.array([500.0, 500.0, 0.0, 2.0, 0.0, 0.0])
     particles = mean + np.array([[0, 0, 0, 0, 0, 0], [20.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, -3.0, 0], [1e5, 0, 0, 0, 0, 0]])
     u = np.array([100.0, -50.0, 0.0])
-    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (params.horizon, 1)), np.zeros((params.horizon, 6)),
-                np.zeros((params.horizon - 1, 0), int))
+    from onboard.core.guidance import _Active
+    K_obs, T = len(setup.obstacles), params.horizon
+    open_ground = _Active(np.zeros(10, bool), np.zeros((K_obs, T - 1, 2), bool))
+    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K_obs), int),
+                open_ground)
     out = _particle_controls(plan, particles, mean, setup, rng)
     np.testing.assert_allclose(out[0], u)
     assert out[1, 0] < u[0] and out[2, 1] > u[1]  # pulled back toward the plan
     assert np.all(np.abs(out[:, :2]) <= params.u_max_n) and out[3, 0] == -params.u_max_n
+    # rounding an obstacle (or unknown), the target may not steer back: no feedback
+    rounding = Plan("fallback_previous", np.nan, 0.0, 1, plan.controls, plan.means, plan.faces, None)
+    np.testing.assert_allclose(_particle_controls(rounding, particles, mean, setup, rng), np.tile(u, (4, 1)))
 
 
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):

@@ -119,20 +119,24 @@ class TickResult:
 
 def _particle_controls(plan: Plan, particles: np.ndarray, mean: np.ndarray, setup: MonitorSetup,
                        rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) controls: the plan's u for most particles (with ``particle_gain``, u + K (x_i - mean)
-    within the input box: each particle steered back toward the plan as the guidance would
-    steer a target there); for a fraction ``control_mix`` a control uniform in the input box
-    (u_z = 0), i.e. the prior says a target follows the predicted plan only with probability
-    1 - control_mix (it may take the other way around an obstacle)."""
+    """(n, 3) controls for the prediction.
+
+    While the plan rounds an obstacle (``Plan.touches_obstacle``) a target may take another way
+    around it: the plan's u for most particles, and for a fraction ``control_mix`` a control
+    uniform in the input box (u_z = 0). In open ground (or with ``control_mix_when: always``,
+    the mixture every tick) a target steers back toward its plan from wherever it is: with
+    ``particle_gain`` (f K, K the guidance's unconstrained gain) each particle gets
+    u + f K (x_i - mean) within the input box. docs/TRACKING.md has the measurements."""
     n = len(particles)
-    u = plan.next_control
+    u = np.asarray(plan.next_control, float)
     u_max = setup.guidance.u_max_n
-    if setup.particle_gain is not None:
-        out = np.asarray(u, float) + (particles - mean) @ setup.particle_gain.T
+    rounding = plan.touches_obstacle
+    if setup.particle_gain is not None and not rounding:
+        out = u + (particles - mean) @ setup.particle_gain.T
         out[:, :2] = np.clip(out[:, :2], -u_max, u_max)
     else:
-        out = np.broadcast_to(np.asarray(u, float), (n, 3)).copy()
-    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
+        out = np.broadcast_to(u, (n, 3)).copy()
+    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or rounding):
         other = rng.random(n) < setup.control_mix
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
         out[other, 2] = 0.0
