@@ -142,7 +142,7 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
 def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, rng):
     """The unconstrained guidance gain pulls a displaced state back (position and velocity
     deviations shrink under A + B K); with tracking.particle_feedback the monitor gives each
-    particle u + f K (x_i - mean), inside the input box, while the plan is in open ground."""
+    particle u + f K (x_i - mean), inside the input box, while no constraint of the plan is active."""
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import free_gain
     from onboard.core.monitor import MonitorSetup, _particle_controls
@@ -170,6 +170,12 @@ def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, 
     # rounding an obstacle (or unknown), the target may not steer back: no feedback
     rounding = Plan("fallback_previous", np.nan, 0.0, 1, plan.controls, plan.means, plan.faces, None)
     np.testing.assert_allclose(_particle_controls(rounding, particles, mean, setup, rng), np.tile(u, (4, 1)))
+    # at its speed limit (a speed row active) the free gain is not the target's: no feedback
+    speed_on = np.zeros(10, bool)
+    speed_on[7] = True
+    cruising = Plan("optimal", 0.0, 0.0, 1, plan.controls, plan.means, plan.faces,
+                    _Active(speed_on, open_ground.obstacles))
+    np.testing.assert_allclose(_particle_controls(cruising, particles, mean, setup, rng), np.tile(u, (4, 1)))
 
 
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):

@@ -106,6 +106,12 @@ class Plan:
         return self.controls[0]
 
     @property
+    def unconstrained(self) -> bool:
+        """No row of P1 is active (no obstacle face, input or speed limit): the plan is the free
+        optimum, which is affine in the state with the gain ``free_gain``. False when unknown."""
+        return self.active is not None and not self.active.fixed.any() and not self.active.obstacles.any()
+
+    @property
     def touches_obstacle(self) -> bool:
         """An obstacle row is active somewhere on the horizon: the plan rounds an obstacle, and a
         target could take another way around it. True when unknown (fallback plans)."""

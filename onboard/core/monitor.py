@@ -123,15 +123,17 @@ def _particle_controls(plan: Plan, particles: np.ndarray, mean: np.ndarray, setu
 
     While the plan rounds an obstacle (``Plan.touches_obstacle``) a target may take another way
     around it: the plan's u for most particles, and for a fraction ``control_mix`` a control
-    uniform in the input box (u_z = 0). In open ground (or with ``control_mix_when: always``,
-    the mixture every tick) a target steers back toward its plan from wherever it is: with
-    ``particle_gain`` (f K, K the guidance's unconstrained gain) each particle gets
-    u + f K (x_i - mean) within the input box. docs/TRACKING.md has the measurements."""
+    uniform in the input box (u_z = 0) (with ``control_mix_when: always``: on every tick).
+    While no constraint of the plan is active (``Plan.unconstrained``: no obstacle face, input
+    or speed limit; e.g. a target slowing into its goal) the guidance's own gain is exact there
+    and a target steers back toward its plan from wherever it is: with ``particle_gain`` (f K,
+    K = ``free_gain``) each particle gets u + f K (x_i - mean) within the input box.
+    docs/TRACKING.md has the measurements."""
     n = len(particles)
     u = np.asarray(plan.next_control, float)
     u_max = setup.guidance.u_max_n
     rounding = plan.touches_obstacle
-    if setup.particle_gain is not None and not rounding:
+    if setup.particle_gain is not None and plan.unconstrained:
         out = u + (particles - mean) @ setup.particle_gain.T
         out[:, :2] = np.clip(out[:, :2], -u_max, u_max)
     else:
