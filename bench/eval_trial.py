@@ -51,7 +51,6 @@ def daqp_forms(calls: int = 200) -> dict:
     qp = GuidanceWorkspace().qp(setup.guidance.horizon, len(setup.obstacles), setup.model,
                                 GuidanceParams.from_config(load_scenario("paper").guidance))
     rng = np.random.default_rng(0)
-    R = np.linalg.inv(qp.Rinv)
     f = rng.normal(size=qp.ny)
     out = {}
     for m in (10, 30, 60):
@@ -66,7 +65,6 @@ def daqp_forms(calls: int = 200) -> dict:
                 daqp.solve(H, ff, AA, hi, lo)
                 times.append(time.perf_counter() - t0)
             out[f"{name}_{m}_rows_ms"] = round(1e3 * float(np.median(times)), 3)
-        assert np.allclose(R @ qp.Rinv, np.eye(qp.ny), atol=1e-8)
     return out
 
 

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
+PLANAR = np.array([0, 1, 3, 4])  # indices of [px, py, vx, vy] in the 6-D state
+
 
 @dataclass(frozen=True, eq=False)
 class MotionModel:

@@ -621,8 +621,7 @@ def free_gain(model: MotionModel, params: GuidanceParams, workspace: GuidanceWor
     x0, goal = np.zeros(4), np.zeros(2)
     speed = np.full(params.horizon, np.inf)
     coef, rhs = np.zeros((0, params.horizon - 1, 2, 2)), np.zeros((0, params.horizon - 1, 2))
-    _, A, _, _ = qp._rows(x0, goal, speed, coef, rhs)
-    none_active = _Solution(None, None, 0.0, None, np.zeros(qp.ny), np.zeros(len(A)))
+    none_active = _Solution(None, None, 0.0, None, np.zeros(qp.ny), np.zeros(len(qp.A_fixed)))
     dP = qp.sensitivity(x0, goal, speed, coef, rhs, none_active)
     return _first_control_gain(dP, model, 1.0 - model.friction, qp.gain)
 

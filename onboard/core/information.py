@@ -11,9 +11,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from onboard.core.dynamics import MotionModel
+from onboard.core.dynamics import PLANAR, MotionModel  # noqa: F401  (PLANAR re-exported)
 
-PLANAR = np.array([0, 1, 3, 4])  # indices of [px, py, vx, vy] in the 6-D state
 
 
 def planar_model(model: MotionModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

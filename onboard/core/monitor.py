@@ -168,7 +168,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
         degenerate[j] = upd.degenerate
         means[j], covs[j] = tracking.estimate(upd.particles)
         posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng,
-                                                     setup.regularise_bandwidth))
+                                                     setup.regularise_bandwidth, covs[j]))
     t1 = timer()
 
     plans = tuple(

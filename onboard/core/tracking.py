@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.core.bearings import bearing, wrap
-from onboard.core.dynamics import MotionModel
+from onboard.core.dynamics import PLANAR, MotionModel
 
 LOG_2PI = np.log(2.0 * np.pi)
 
@@ -133,16 +133,13 @@ def systematic_indices(weights: np.ndarray, rng: np.random.Generator) -> np.ndar
     return np.searchsorted(cumulative, positions, side="right")
 
 
-PLANAR_STATES = [0, 1, 3, 4]  # x, y, vx, vy: what the bearings observe and the targets move in
-
-
 def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.random.Generator,
-                       bandwidth: float = 0.0) -> ParticleSet:
+                       bandwidth: float = 0.0, cov: np.ndarray | None = None) -> ParticleSet:
     """Resample systematically when the effective sample size falls below threshold * N.
 
     bandwidth h > 0 regularises (Musso et al.'s regularised particle filter): each resampled
     particle moves by N(0, h^2 C) in the planar states, C the weighted covariance before
-    resampling, so copies of one particle do not stay identical (sample impoverishment makes a
+    resampling (``cov``, (6, 6), when the caller has it already), so copies of one particle do not stay identical (sample impoverishment makes a
     filter with informative bearings confidently wrong). It widens the cloud by a factor
     (1 + h^2) in variance at each resampling.
     """
@@ -152,15 +149,15 @@ def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.rando
     idx = systematic_indices(ps.weights, rng)
     particles = ps.particles[idx]
     if bandwidth > 0.0:
-        _, cov = estimate(ps)
-        C = cov[np.ix_(PLANAR_STATES, PLANAR_STATES)]
+        cov = estimate(ps)[1] if cov is None else cov
+        C = cov[np.ix_(PLANAR, PLANAR)]
         try:
             L = np.linalg.cholesky(C + 1e-9 * np.eye(4))
         except np.linalg.LinAlgError:
             L = None
         if L is not None and np.all(np.isfinite(L)):
             particles = particles.copy()
-            particles[:, PLANAR_STATES] += bandwidth * rng.standard_normal((n, 4)) @ L.T
+            particles[:, PLANAR] += bandwidth * rng.standard_normal((n, 4)) @ L.T
     return ParticleSet(particles, np.full(n, -np.log(n)))
 
 
