@@ -54,7 +54,7 @@ def main() -> int:
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="change a scenario value, e.g. tracking.particle_feedback=0.5")
+                    help="change a scenario value, e.g. tracking.free_steering=false")
     args = ap.parse_args()
     overrides = {}
     for item in args.set:

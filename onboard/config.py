@@ -104,7 +104,7 @@ class Tracking:
     control_mix: float = 0.1  # fraction of particles predicted with a random control (docs/TRACKING.md)
     control_mix_when: str = "always"  # always | obstacle (only while the plan rounds an obstacle)
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
-    particle_feedback: float = 0.0  # fraction of the guidance's unconstrained gain steering each particle
+    free_steering: bool = False  # particles whose own plan is P1's free optimum steer by it
 
 
 @dataclass(frozen=True)
@@ -234,6 +234,11 @@ class _Node:
             raise self.fail(f"must have {n} numbers, got {len(items)}")
         return tuple(item.number(check, why) for item in items)
 
+    def boolean(self) -> bool:
+        if not isinstance(self.value, bool):
+            raise self.fail(f"must be true or false, got {_kind(self.value)}")
+        return self.value
+
     def text(self) -> str:
         if not isinstance(self.value, str) or not self.value:
             raise self.fail(f"must be a non-empty string, got {_kind(self.value)}")
@@ -359,7 +364,7 @@ def _parse(root: _Node, source: str) -> Scenario:
     )
 
     tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
-                                         "regularise_bandwidth", "particle_feedback"})
+                                         "regularise_bandwidth", "free_steering"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
@@ -367,7 +372,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
         control_mix_when=tr.get("control_mix_when", "always").choice(("always", "obstacle")),
         regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
-        particle_feedback=tr.get("particle_feedback", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        free_steering=tr.get("free_steering", False).boolean(),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})

@@ -139,43 +139,65 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
             np.testing.assert_allclose(dP[0, :, col], fd, atol=1e-3, err_msg=f"{target.name} state {i}")
 
 
-def test_free_gain_steers_deviations_back_and_particles_follow_it(paper, model, rng):
-    """The unconstrained guidance gain pulls a displaced state back (position and velocity
-    deviations shrink under A + B K); with tracking.particle_feedback the monitor gives each
-    particle u + f K (x_i - mean), inside the input box, while no constraint of the plan is active."""
-    from dataclasses import replace as dc_replace
-    from onboard.core.guidance import free_gain
-    from onboard.core.monitor import MonitorSetup, _particle_controls
+def test_free_law_is_the_guidance_wherever_it_says_so(paper, model):
+    """FreeLaw.is_optimal marks states whose unconstrained optimum is P1's optimum: there the
+    guidance (solved in full, with the obstacles) commands exactly FreeLaw.controls. It recognises
+    most states whose plan has no active row, and the free gain pulls deviations back."""
+    from onboard.core.guidance import free_law
     params = GuidanceParams.from_config(paper.guidance)
-    K = free_gain(model, params)
-    closed = model.A + model.B @ K
+    obs = Obstacles.from_boxes(paper.obstacles)
+    law = free_law(model, params)
+    closed = model.A + model.B @ law.gain
     planar = [0, 1, 3, 4]
     assert np.max(np.abs(np.linalg.eigvals(closed[np.ix_(planar, planar)]))) < 1.0
-    assert np.max(np.abs(np.linalg.eigvals(model.A[np.ix_(planar, planar)]))) == pytest.approx(1.0)
-    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, particle_feedback=0.5, control_mix=0.0))
-    setup = MonitorSetup.from_scenario(sc)
-    np.testing.assert_allclose(setup.particle_gain, 0.5 * K)
-    mean = np.array([500.0, 500.0, 0.0, 2.0, 0.0, 0.0])
-    particles = mean + np.array([[0, 0, 0, 0, 0, 0], [20.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, -3.0, 0], [1e5, 0, 0, 0, 0, 0]])
-    u = np.array([100.0, -50.0, 0.0])
+    goal = np.array(paper.goal_of(paper.targets[0]).center_m)
+    rng = np.random.default_rng(7)
+    # around the goal and the obstacle O3 north of it, slow and fast
+    states = np.zeros((150, 6))
+    states[:, :2] = goal[:2] + rng.uniform([-150, -60], [150, 270], (150, 2))
+    states[:, 3:5] = rng.normal(0, 2, (150, 2))
+    states = states[~obs.inflate(params.obstacle_margin_m).contains(states[:, :3]).any(axis=1)]
+    ok = law.is_optimal(states, goal, obs)
+    u = law.controls(states, goal)
+    free_plans = 0
+    for x, says, u_free in zip(states, ok, u):
+        plan = plan_guidance(model, params, obs, x, goal)
+        if says:
+            assert plan.unconstrained
+            np.testing.assert_allclose(plan.next_control, u_free, atol=1.0)
+        free_plans += plan.unconstrained
+    assert 10 < ok.sum() and ok.sum() >= 0.9 * free_plans
+    # a small wall between an arriving target and its goal: the free path would cross it
+    from onboard.config import Box
+    wall = Obstacles.from_boxes([Box("wall", (goal[0], goal[1] + 30.0, 10.0), (30.0, 6.0, 20.0), 0.0)])
+    x = np.r_[goal[:2] + [0.0, 60.0], 0, 0, 0, 0][None]
+    assert law.is_optimal(x, goal, Obstacles.empty())[0] and not law.is_optimal(x, goal, wall)[0]
+    assert plan_guidance(model, params, wall, x[0], goal).touches_obstacle
+
+
+def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model, rng):
+    """tracking.free_steering: a particle whose own plan is the free optimum gets its control;
+    the others get the plan's u, and only they can draw the random control of the mixture."""
+    from dataclasses import replace as dc_replace
     from onboard.core.guidance import _Active
-    K_obs, T = len(setup.obstacles), params.horizon
-    open_ground = _Active(np.zeros(10, bool), np.zeros((K_obs, T - 1, 2), bool))
-    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K_obs), int),
-                open_ground)
-    out = _particle_controls(plan, particles, mean, setup, rng)
-    np.testing.assert_allclose(out[0], u)
-    assert out[1, 0] < u[0] and out[2, 1] > u[1]  # pulled back toward the plan
-    assert np.all(np.abs(out[:, :2]) <= params.u_max_n) and out[3, 0] == -params.u_max_n
-    # rounding an obstacle (or unknown), the target may not steer back: no feedback
-    rounding = Plan("fallback_previous", np.nan, 0.0, 1, plan.controls, plan.means, plan.faces, None)
-    np.testing.assert_allclose(_particle_controls(rounding, particles, mean, setup, rng), np.tile(u, (4, 1)))
-    # at its speed limit (a speed row active) the free gain is not the target's: no feedback
-    speed_on = np.zeros(10, bool)
-    speed_on[7] = True
-    cruising = Plan("optimal", 0.0, 0.0, 1, plan.controls, plan.means, plan.faces,
-                    _Active(speed_on, open_ground.obstacles))
-    np.testing.assert_allclose(_particle_controls(cruising, particles, mean, setup, rng), np.tile(u, (4, 1)))
+    from onboard.core.monitor import MonitorSetup, _particle_controls
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, free_steering=True, control_mix=0.5,
+                                               control_mix_when="always"))
+    setup = MonitorSetup.from_scenario(sc)
+    goal = setup.goals[0]
+    T, K = setup.guidance.horizon, len(setup.obstacles)
+    u = np.array([100.0, -50.0, 0.0])
+    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
+                _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool)))
+    near = np.tile(np.r_[goal[:2] + [10.0, -5.0], 0, 0.5, 0, 0], (500, 1))  # arriving: free
+    far = np.tile(np.r_[goal[:2] + [0.0, 500.0], 0, 0, 0, 0], (500, 1))  # behind O3: not free
+    out = _particle_controls(plan, np.vstack([near, far]), goal, setup, rng)
+    np.testing.assert_allclose(out[:500], setup.free_steering.controls(near, goal))
+    assert np.all(out[:500, 0] < 0) and np.all(out[:500, 1] > 0)  # back toward the goal
+    n_plan = int(np.all(out[500:] == u, axis=1).sum())
+    assert 150 < n_plan < 350  # the rest: half the plan's u, half random
+    off = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, free_steering=False)))
+    assert off.free_steering is None
 
 
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):
@@ -210,7 +232,7 @@ def test_control_mixture_only_while_the_plan_rounds_an_obstacle(paper, rng):
     free = _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool))
     pressed = _Active(np.zeros(10, bool), free.obstacles.copy())
     pressed.obstacles[0, 3, 1] = True
-    n_random = lambda p: int(np.sum(np.any(_particle_controls(p, particles, particles[0], setup, rng) != u, axis=1)))  # noqa: E731
+    n_random = lambda p: int(np.sum(np.any(_particle_controls(p, particles, setup.goals[0], setup, rng) != u, axis=1)))  # noqa: E731
     assert n_random(plan(free)) == 0
     assert 400 < n_random(plan(pressed)) < 600
     assert 400 < n_random(plan(None)) < 600

@@ -43,7 +43,7 @@ import scipy.sparse as sp
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.sparse.csgraph import shortest_path
 
-from onboard.core.dynamics import MotionModel, predict_mean, velocity_rollout
+from onboard.core.dynamics import PLANAR, MotionModel, predict_mean, velocity_rollout
 from onboard.core.obstacles import N_LATERAL, Obstacles, polygons_crossed
 
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
@@ -108,7 +108,7 @@ class Plan:
     @property
     def unconstrained(self) -> bool:
         """No row of P1 is active (no obstacle face, input or speed limit): the plan is the free
-        optimum, which is affine in the state with the gain ``free_gain``. False when unknown."""
+        optimum, which is affine in the state (``FreeLaw``). False when unknown."""
         return self.active is not None and not self.active.fixed.any() and not self.active.obstacles.any()
 
     @property
@@ -612,18 +612,80 @@ def _first_control_gain(dP: np.ndarray, model: MotionModel, decay: float, gain: 
     return out
 
 
-def free_gain(model: MotionModel, params: GuidanceParams, workspace: GuidanceWorkspace | None = None) -> np.ndarray:
-    """du_0/dx (3, 6) of P1 with no constraint active: how the guidance steers a state that
-    deviates a little from the planned one, away from obstacles and limits. The same for every
-    state and goal (the unconstrained optimum is affine in both), so computed once."""
+@dataclass(frozen=True, eq=False)
+class FreeLaw:
+    """P1's optimum while none of its rows is active, as a map of the state. That optimum is
+    linear in r = (p0 - goal, v0) (the QP is translation invariant and has no other constant
+    term), and so are its whole path, speeds and controls: one set of maps serves every state and
+    goal. Built once by ``free_law``."""
+
+    gain: np.ndarray  # (3, 6) du_0/dx, N per state unit
+    points: np.ndarray  # (4, 2T): p_1..p_T - goal = r @ points, m
+    speeds: np.ndarray  # (4, 2T): v_1..v_T, m/s
+    controls_map: np.ndarray  # (4, 2T): u_0..u_(T-1), N
+    params: GuidanceParams
+
+    def controls(self, states: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """(n, 3) first controls u_0, N, of the free optimum from states (n, 6) toward goal (3,)."""
+        rel = np.asarray(states, float).copy()
+        rel[:, :2] -= np.asarray(goal, float)[:2]
+        return rel @ self.gain.T
+
+    def is_optimal(self, states: np.ndarray, goal: np.ndarray, obstacles: Obstacles) -> np.ndarray:
+        """(n,) bool: the free optimum from each state is feasible for P1, hence P1's optimum
+        (it is optimal for the relaxation without constraints): every control inside the input
+        box, every speed inside the polygon's inscribed circle (conservative), and every segment
+        p_s -> p_(s+1), s = 1..T-1, outside one face of each inflated obstacle at the state's
+        altitude, as P1 demands. Where True, ``controls`` is what the guidance commands."""
+        p, T = self.params, self.params.horizon
+        u_max = p.u_max_n * (1 + 1e-9)
+        ok = np.all(np.abs(self.controls(states, goal)[:, :2]) <= u_max, axis=1)
+        cand = np.flatnonzero(ok)  # u_0 outside the box rules out most states cheaply
+        if not len(cand):
+            return ok
+        goal2 = np.asarray(goal, float)[:2]
+        rel = np.asarray(states, float)[cand][:, PLANAR]
+        rel[:, :2] -= goal2
+        sub = np.all(np.abs(rel @ self.controls_map) <= u_max, axis=1)
+        v2 = (rel @ self.speeds) ** 2  # (n, 2T): vx, vy interleaved
+        v_max = p.speed_max_mps * np.cos(np.pi / p.speed_polygon_sides)
+        sub &= np.all(v2[:, 0::2] + v2[:, 1::2] <= v_max ** 2, axis=1)
+        if len(obstacles) and sub.any():
+            normals, offsets, z_lo, z_hi = obstacles.inflate(p.obstacle_margin_m).lateral()
+            z = float(np.median(np.asarray(states, float)[cand, 2]))
+            near = (z_lo <= z) & (z <= z_hi)
+            normals, offsets = normals[near], offsets[near] - normals[near] @ goal2  # goal-relative
+            pts = rel @ self.points
+            # a path stays within reach_i of the goal; only obstacles nearer than that can matter
+            c = -offsets  # clearance of the goal itself, per face (rectangles: faces f, f+2 opposite)
+            gap = np.hypot(np.maximum(np.maximum(c[:, 0], c[:, 2]), 0), np.maximum(np.maximum(c[:, 1], c[:, 3]), 0))
+            reach = np.sqrt(np.max(pts[:, 0::2] ** 2 + pts[:, 1::2] ** 2, axis=1))
+            check = np.flatnonzero(sub & (reach[:, None] >= gap[None]).any(axis=1))
+            if len(check):
+                out = np.einsum("kfd,ntd->ntkf", normals, pts[check].reshape(-1, T, 2)) > offsets  # p_1..p_T outside
+                sub[check] = np.all(np.any(out[:, :-1] & out[:, 1:], axis=-1), axis=(1, 2))
+        ok[cand] = sub
+        return ok
+
+
+def free_law(model: MotionModel, params: GuidanceParams, workspace: GuidanceWorkspace | None = None) -> FreeLaw:
+    """P1's unconstrained optimum as linear maps (``FreeLaw``); its ``gain`` is how the guidance
+    steers a state that deviates a little from the planned one, away from obstacles and limits."""
     ws = workspace or GuidanceWorkspace()
-    qp = ws.qp(params.horizon, 0, model, params)
+    T = params.horizon
+    qp = ws.qp(T, 0, model, params)
     x0, goal = np.zeros(4), np.zeros(2)
-    speed = np.full(params.horizon, np.inf)
-    coef, rhs = np.zeros((0, params.horizon - 1, 2, 2)), np.zeros((0, params.horizon - 1, 2))
+    speed = np.full(T, np.inf)
+    coef, rhs = np.zeros((0, T - 1, 2, 2)), np.zeros((0, T - 1, 2))
     none_active = _Solution(None, None, 0.0, None, np.zeros(qp.ny), np.zeros(len(qp.A_fixed)))
-    dP = qp.sensitivity(x0, goal, speed, coef, rhs, none_active)
-    return _first_control_gain(dP, model, 1.0 - model.friction, qp.gain)
+    dP = qp.sensitivity(x0, goal, speed, coef, rhs, none_active)  # (T, 2, 4): p_2..p_(T+1)
+    # push the four unit states r = e_i through the path: p_1..p_(T+1), then speeds and controls
+    basis = np.eye(4)
+    pts = np.concatenate([(basis[:, :2] + model.dt_s * basis[:, 2:])[:, None], np.moveaxis(dP, 2, 0)], axis=1)
+    v = np.concatenate([basis[:, None, 2:], np.diff(pts, axis=1) / model.dt_s], axis=1)  # v_0..v_T
+    u = (v[:, 1:] - (1.0 - model.friction) * v[:, :-1]) * (model.mass_kg / model.dt_s)
+    return FreeLaw(_first_control_gain(dP, model, 1.0 - model.friction, qp.gain),
+                   pts[:, :T].reshape(4, -1), v[:, 1:].reshape(4, -1), u.reshape(4, -1), params)
 
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,

@@ -17,7 +17,7 @@ import numpy as np
 
 from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, free_gain, plan_guidance
+from onboard.core.guidance import FreeLaw, GuidanceParams, GuidanceWorkspace, Plan, free_law, plan_guidance
 from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
 from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
@@ -45,7 +45,7 @@ class MonitorSetup:
     control_mix: float = 0.0  # fraction of particles predicted with a random control
     control_mix_when: str = "always"  # always | obstacle: only while the plan rounds an obstacle
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
-    particle_gain: np.ndarray | None = None  # (3, 6) N per state unit: per-particle steering (free_gain)
+    free_steering: FreeLaw | None = None  # particles whose own plan is the free optimum steer by it
     planner: str = "greedy"  # greedy | lookahead
     lookahead_steps: int = 10
     motion: UavMotion = UavMotion()
@@ -72,8 +72,8 @@ class MonitorSetup:
             control_mix=sc.tracking.control_mix,
             control_mix_when=sc.tracking.control_mix_when,
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
-            particle_gain=(sc.tracking.particle_feedback * free_gain(model, GuidanceParams.from_config(sc.guidance))
-                           if sc.tracking.particle_feedback > 0 else None),
+            free_steering=(free_law(model, GuidanceParams.from_config(sc.guidance))
+                           if sc.tracking.free_steering else None),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -117,29 +117,29 @@ class TickResult:
         return None if self.planning is None else self.planning.position
 
 
-def _particle_controls(plan: Plan, particles: np.ndarray, mean: np.ndarray, setup: MonitorSetup,
+def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: MonitorSetup,
                        rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) controls for the prediction.
+    """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq:prediction),
+    except:
 
-    While the plan rounds an obstacle (``Plan.touches_obstacle``) a target may take another way
-    around it: the plan's u for most particles, and for a fraction ``control_mix`` a control
-    uniform in the input box (u_z = 0) (with ``control_mix_when: always``: on every tick).
-    While no constraint of the plan is active (``Plan.unconstrained``: no obstacle face, input
-    or speed limit; e.g. a target slowing into its goal) the guidance's own gain is exact there
-    and a target steers back toward its plan from wherever it is: with ``particle_gain`` (f K,
-    K = ``free_gain``) each particle gets u + f K (x_i - mean) within the input box.
+    * ``free_steering``: a particle from which P1's optimum has no active row (checked on its
+      whole free path: input box, speed, obstacles; ``FreeLaw.is_optimal``) gets that optimum's
+      control, which is exactly what the guidance commands a target there. A target in open
+      ground steers back toward its goal from wherever it is; a target already past an obstacle
+      no longer follows a plan that still rounds it.
+    * while the plan rounds an obstacle (``Plan.touches_obstacle``) a target may take another
+      way around it: of the other particles, a fraction ``control_mix`` gets a control uniform in
+      the input box (u_z = 0) (with ``control_mix_when: always``: on every tick).
     docs/TRACKING.md has the measurements."""
     n = len(particles)
-    u = np.asarray(plan.next_control, float)
-    u_max = setup.guidance.u_max_n
-    rounding = plan.touches_obstacle
-    if setup.particle_gain is not None and plan.unconstrained:
-        out = u + (particles - mean) @ setup.particle_gain.T
-        out[:, :2] = np.clip(out[:, :2], -u_max, u_max)
-    else:
-        out = np.broadcast_to(u, (n, 3)).copy()
-    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or rounding):
-        other = rng.random(n) < setup.control_mix
+    out = np.broadcast_to(np.asarray(plan.next_control, float), (n, 3)).copy()
+    free = np.zeros(n, dtype=bool)
+    if setup.free_steering is not None:
+        free = setup.free_steering.is_optimal(particles, goal, setup.obstacles)
+        out[free] = setup.free_steering.controls(particles[free], goal)
+    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
+        u_max = setup.guidance.u_max_n
+        other = (rng.random(n) < setup.control_mix) & ~free
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
         out[other, 2] = 0.0
     return out
@@ -184,7 +184,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # is dead-beat, the cloud collapses along that direction and the filter loses the target
     # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
     beliefs = tuple(tracking.predict(posts[j], setup.model,
-                                     _particle_controls(plans[j], posts[j].particles, means[j],
+                                     _particle_controls(plans[j], posts[j].particles, setup.goals[j],
                                                         setup, rng), rng)
                     for j in range(M))
     t3 = timer()
