@@ -3,8 +3,8 @@
     python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20]
                                 [--set tracking.regularise_bandwidth=0 ...]
 
-Runs the evaluation's closed loop (``sim.evaluation.run_method``, the flight code) on the same
-trials and seeds as ``pmon eval`` (seed 2024) in this process, and prints per method: ANEES
+Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
+trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and prints per method: ANEES
 (the mean NEES over trials, targets and the window, as ``pmon eval`` reports it), the median of
 the per-(trial, target) window-mean NEES (the bulk: 2 for a consistent filter, below for a
 conservative one), the five largest per-(trial, target) values (the tails: a filter confidently
@@ -25,26 +25,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from onboard.config import load_scenario  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
-from sim.truth import simulate_truth  # noqa: E402
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
-                overrides: dict | None = None) -> dict:
+                overrides: dict | None = None, workers: int | None = None) -> dict:
     cfg = ev.make_config(load_scenario(scenario, overrides), trials, seed, methods=methods)
+    results = ev.run_trials(cfg, workers=workers, progress=False)  # the trials of ``pmon eval``
+    w = slice(cfg.window_start, None)
     out = {}
-    for m in cfg.methods:
-        nees, rmse = [], []
-        for t in range(trials):
-            truth = simulate_truth(cfg.scenario, cfg.n_ticks - 1, ev._rng(cfg.seed, t, 0))
-            start = ev.draw_start(cfg, ev._rng(cfg.seed, t, 1))
-            tr = ev.run_method(cfg, m, t, truth, start)
-            w = slice(cfg.window_start, None)
-            nees.append(tr.nees[w].mean(axis=0))
-            rmse.append(np.mean(tr.error_m[w] ** 2))
-        nees = np.array(nees)
-        out[m.name] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
-                       "top5": np.sort(nees.ravel())[-5:].round(1).tolist(),
-                       "rmse_m": round(float(np.sqrt(np.mean(rmse))), 1)}
+    for m in cfg.method_names:
+        nees = np.stack([r.traces[m].nees[w].mean(axis=0) for r in results])  # (N, M)
+        err = np.stack([r.traces[m].error_m[w] for r in results])
+        out[m] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
+                  "top5": np.sort(nees.ravel())[-5:].round(1).tolist(),
+                  "rmse_m": round(float(np.sqrt(np.mean(err ** 2))), 1)}
     return out
 
 
@@ -53,6 +47,7 @@ def main() -> int:
     ap.add_argument("scenario", nargs="?", default="paper")
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--workers", type=int, default=None, help="local processes (default: one per core)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change a scenario value, e.g. tracking.free_steering=false")
     args = ap.parse_args()
@@ -62,7 +57,8 @@ def main() -> int:
         if not sep:
             ap.error(f"--set {item!r}: expected KEY=VALUE")
         overrides[key] = yaml.safe_load(value)
-    res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides)
+    res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
+                      workers=args.workers)
     for name, r in res.items():
         print(f"{name:12s} ANEES {r['anees']:6.2f}  median {r['median']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m")
     print(json.dumps(res))

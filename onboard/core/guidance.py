@@ -624,6 +624,9 @@ class FreeLaw:
     speeds: np.ndarray  # (4, 2T): v_1..v_T, m/s
     controls_map: np.ndarray  # (4, 2T): u_0..u_(T-1), N
     params: GuidanceParams
+    scale: np.ndarray  # (4,) weights of r: within |scale * r| <= radius no input or speed row binds
+    radius: float
+    reach_gain: float  # |p_tau - goal| <= reach_gain * |scale * r| for every tau, m
 
     def controls(self, states: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """(n, 3) first controls u_0, N, of the free optimum from states (n, 6) toward goal (3,)."""
@@ -646,23 +649,27 @@ class FreeLaw:
         goal2 = np.asarray(goal, float)[:2]
         rel = np.asarray(states, float)[cand][:, PLANAR]
         rel[:, :2] -= goal2
-        sub = np.all(np.abs(rel @ self.controls_map) <= u_max, axis=1)
-        v2 = (rel @ self.speeds) ** 2  # (n, 2T): vx, vy interleaved
-        v_max = p.speed_max_mps * np.cos(np.pi / p.speed_polygon_sides)
-        sub &= np.all(v2[:, 0::2] + v2[:, 1::2] <= v_max ** 2, axis=1)
+        sub = np.ones(len(cand), dtype=bool)
+        size = np.linalg.norm(rel * self.scale, axis=1)
+        edge = np.flatnonzero(size > self.radius)  # the others pass
+        if len(edge):
+            r = rel[edge]
+            ok_edge = np.all(np.abs(r @ self.controls_map) <= u_max, axis=1)
+            v2 = (r @ self.speeds) ** 2  # (n, 2T): vx, vy interleaved
+            ok_edge &= np.all(v2[:, 0::2] + v2[:, 1::2] <= _free_speed_max(p) ** 2, axis=1)
+            sub[edge] = ok_edge
         if len(obstacles) and sub.any():
             normals, offsets, z_lo, z_hi = obstacles.inflate(p.obstacle_margin_m).lateral()
             z = float(np.median(np.asarray(states, float)[cand, 2]))
             near = (z_lo <= z) & (z <= z_hi)
             normals, offsets = normals[near], offsets[near] - normals[near] @ goal2  # goal-relative
-            pts = rel @ self.points
-            # a path stays within reach_i of the goal; only obstacles nearer than that can matter
+            # a path stays within reach_gain * size of the goal; only obstacles nearer can matter
             c = -offsets  # clearance of the goal itself, per face (rectangles: faces f, f+2 opposite)
             gap = np.hypot(np.maximum(np.maximum(c[:, 0], c[:, 2]), 0), np.maximum(np.maximum(c[:, 1], c[:, 3]), 0))
-            reach = np.sqrt(np.max(pts[:, 0::2] ** 2 + pts[:, 1::2] ** 2, axis=1))
-            check = np.flatnonzero(sub & (reach[:, None] >= gap[None]).any(axis=1))
+            check = np.flatnonzero(sub & (self.reach_gain * size[:, None] >= gap[None]).any(axis=1))
             if len(check):
-                out = np.einsum("kfd,ntd->ntkf", normals, pts[check].reshape(-1, T, 2)) > offsets  # p_1..p_T outside
+                pts = (rel[check] @ self.points).reshape(-1, T, 2)
+                out = np.einsum("kfd,ntd->ntkf", normals, pts) > offsets  # p_1..p_T outside
                 sub[check] = np.all(np.any(out[:, :-1] & out[:, 1:], axis=-1), axis=(1, 2))
         ok[cand] = sub
         return ok
@@ -684,8 +691,24 @@ def free_law(model: MotionModel, params: GuidanceParams, workspace: GuidanceWork
     pts = np.concatenate([(basis[:, :2] + model.dt_s * basis[:, 2:])[:, None], np.moveaxis(dP, 2, 0)], axis=1)
     v = np.concatenate([basis[:, None, 2:], np.diff(pts, axis=1) / model.dt_s], axis=1)  # v_0..v_T
     u = (v[:, 1:] - (1.0 - model.friction) * v[:, :-1]) * (model.mass_kg / model.dt_s)
+    controls, speeds = u.reshape(4, -1), v[:, 1:].reshape(4, -1)
+    # a ball in a weighted norm of r inside which no input or speed row can bind (Cauchy-Schwarz
+    # per row): most particles of a cloud near its goal skip the row-by-row check. Velocity is
+    # weighted by 10 s: a cloud's velocity spread is about a tenth of its position spread (m/s, m)
+    w = np.array([1.0, 1.0, 10.0, 10.0])
+    r_u = params.u_max_n / np.max(np.linalg.norm(controls / w[:, None], axis=0))
+    vt = (speeds / w[:, None]).reshape(4, T, 2)
+    r_v = _free_speed_max(params) / max(np.linalg.norm(vt[:, t].T, 2) for t in range(T))
+    pw = (pts[:, :T] / w[:, None, None])
+    reach = max(np.linalg.norm(pw[:, t].T, 2) for t in range(T))
     return FreeLaw(_first_control_gain(dP, model, 1.0 - model.friction, qp.gain),
-                   pts[:, :T].reshape(4, -1), v[:, 1:].reshape(4, -1), u.reshape(4, -1), params)
+                   pts[:, :T].reshape(4, -1), speeds, controls, params, w, float(min(r_u, r_v)),
+                   float(reach))
+
+
+def _free_speed_max(params: GuidanceParams) -> float:
+    """The speed polygon's inscribed radius, m/s: below it no speed row binds."""
+    return params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides)
 
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
