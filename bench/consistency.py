@@ -8,7 +8,8 @@ trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and pri
 (the mean NEES over trials, targets and the window, as ``pmon eval`` reports it), the median of
 the per-(trial, target) window-mean NEES (the bulk: 2 for a consistent filter, below for a
 conservative one), the five largest per-(trial, target) values (the tails: a filter confidently
-wrong on one trial shows here), and the window RMSE. docs/TRACKING.md compares filter settings
+wrong on one trial shows here), the window RMSE, and RMSE / PCRB per 10 s of the mission and
+the median of the per-trial ratio (where the bound gap comes from). docs/TRACKING.md compares filter settings
 with it (``--set KEY=VALUE``: a scenario value changed, VALUE read as YAML). Last line: JSON figures.
 """
 from __future__ import annotations
@@ -39,6 +40,15 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
         out[m] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
                   "top5": np.sort(nees.ravel())[-5:].round(1).tolist(),
                   "rmse_m": round(float(np.sqrt(np.mean(err ** 2))), 1)}
+        if all(r.traces[m].bound_m2 is not None for r in results):
+            # RMSE / PCRB (as pmon eval forms them) per 10 s of the mission, and per trial
+            e_all = np.stack([r.traces[m].error_m for r in results])  # (N, K, M)
+            b_all = np.stack([r.traces[m].bound_m2 for r in results])
+            eps, bnd = np.sqrt(np.mean(e_all ** 2, axis=0)).mean(axis=1), np.sqrt(b_all.mean(axis=0)).mean(axis=1)
+            out[m]["over_bound_by_10s"] = [round(float(eps[k:k + 10].mean() / bnd[k:k + 10].mean()), 2)
+                                           for k in range(0, len(eps), 10)]
+            per_trial = np.sqrt(np.mean(e_all[:, w] ** 2, axis=(1, 2)) / b_all[:, w].mean(axis=(1, 2)))
+            out[m]["over_bound_trial_median"] = round(float(np.median(per_trial)), 2)
     return out
 
 
@@ -61,6 +71,9 @@ def main() -> int:
                       workers=args.workers)
     for name, r in res.items():
         print(f"{name:12s} ANEES {r['anees']:6.2f}  median {r['median']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m")
+        if "over_bound_by_10s" in r:
+            print(f"{'':12s} RMSE / bound per 10 s {r['over_bound_by_10s']}; median over trials "
+                  f"{r['over_bound_trial_median']}")
     print(json.dumps(res))
     return 0
 

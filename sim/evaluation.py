@@ -509,6 +509,7 @@ class Summary:
     ratio_ci: tuple[float, float] | None
     wall_s: float
     n_trials: int
+    target_speed_10s: tuple[float, ...] = ()  # the true targets' mean speed per 10 s of mission, m/s
 
 
 def _paired_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[float, float, float]:
@@ -599,7 +600,10 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             idx = boot_rng.integers(0, N, N)
             rs.append(_window_mean_rmse(a[idx], w0) / _window_mean_rmse(b[idx], w0))
         ratio_ci = (float(np.percentile(rs, 2.5)), float(np.percentile(rs, 97.5))) if N > 1 else None
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N)
+    speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
+    per10 = int(round(10.0 / cfg.dt_s))
+    speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
+    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s)
 
 
 def headline(summary: Summary) -> dict:
@@ -708,6 +712,9 @@ def results_markdown(summary: Summary, command: str) -> str:
                      f"{100 * mo['stay_fraction']:.0f} % | {mo['mean_away_m']:+.2f} | {mo['mean_across_m']:.2f} | "
                      f"{mo['mean_range_m']:.0f} |")
         L.append("")
+        if summary.target_speed_10s:
+            L += ["The targets' mean true speed per 10 s of the mission [m/s]: "
+                  + ", ".join(f"{v:.1f}" for v in summary.target_speed_10s) + ".", ""]
     L += ["## Methods", ""] + [f"- `{m.name}`: {m.description}" for m in cfg.methods]
     L += ["", f"Orbit: radius {cfg.orbit_radius_m:g} m around the targets' initial centroid "
               f"({cfg.orbit_center[0]:.0f}, {cfg.orbit_center[1]:.0f}) m, counter-clockwise.",

@@ -660,7 +660,7 @@ class FreeLaw:
             sub[edge] = ok_edge
         if len(obstacles) and sub.any():
             normals, offsets, z_lo, z_hi = obstacles.inflate(p.obstacle_margin_m).lateral()
-            z = float(np.median(np.asarray(states, float)[cand, 2]))
+            z = float(np.mean(np.asarray(states, float)[cand, 2]))
             near = (z_lo <= z) & (z <= z_hi)
             normals, offsets = normals[near], offsets[near] - normals[near] @ goal2  # goal-relative
             # a path stays within reach_gain * size of the goal; only obstacles nearer can matter
@@ -669,7 +669,7 @@ class FreeLaw:
             check = np.flatnonzero(sub & (self.reach_gain * size[:, None] >= gap[None]).any(axis=1))
             if len(check):
                 pts = (rel[check] @ self.points).reshape(-1, T, 2)
-                out = np.einsum("kfd,ntd->ntkf", normals, pts) > offsets  # p_1..p_T outside
+                out = (pts @ normals.reshape(-1, 2).T).reshape(len(check), T, -1, 4) > offsets  # outside
                 sub[check] = np.all(np.any(out[:, :-1] & out[:, 1:], axis=-1), axis=(1, 2))
         ok[cand] = sub
         return ok

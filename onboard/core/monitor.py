@@ -177,12 +177,11 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
         for j in range(M))
     t2 = timer()
 
-    # one control for every particle (eq:prediction). A true target steers from its own state,
-    # which pulls deviations back, so this cloud is somewhat wider than the truth's spread
-    # (position NEES about 1.3-1.5, not 2). Steering each particle by the plan's closed-loop
-    # gain (u_0 + K (x_i - mean), K = Plan.feedback) was tried and is worse: where constraints are active the gain
-    # is dead-beat, the cloud collapses along that direction and the filter loses the target
-    # when the truth takes another active set (NEES in the hundreds; docs/GUIDANCE.md).
+    # the plan's one control for every particle (eq:prediction), except where a particle's own
+    # plan is known in closed form (_particle_controls). The plan's closed-loop gain for every
+    # particle (u_0 + K (x_i - mean), K = Plan.feedback) was tried and is worse: where
+    # constraints are active that gain is dead-beat, the cloud collapses along that direction and
+    # the filter loses the target when the truth takes another active set (docs/TRACKING.md).
     beliefs = tuple(tracking.predict(posts[j], setup.model,
                                      _particle_controls(plans[j], posts[j].particles, setup.goals[j],
                                                         setup, rng), rng)
