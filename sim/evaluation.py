@@ -392,7 +392,7 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
     console = console or Console(stderr=True)
     bar = Progress(TextColumn("[bold]eval[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
                    TextColumn("trials"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                   console=console, disable=not progress, transient=False)
+                   console=console, disable=not progress, transient=False, refresh_per_second=2)
     results: list[TrialResult] = []
     n = cfg.n_trials
     label = f"{len(cfg.methods)} methods x {cfg.n_ticks} ticks"

@@ -177,6 +177,7 @@ class _QP:
     gain: float  # m/s of velocity change per kN over one step
     params: GuidanceParams
     n_solves: int = field(init=False, default=0)
+    _start: tuple | None = field(init=False, default=None, repr=False)
     n_osqp: int = field(init=False, default=0)
 
     L = 100.0  # m
@@ -225,20 +226,35 @@ class _QP:
         Wc[1:] = (Vc[1:] - self.decay * Vc[:-1]) / self.gain
         return p1, Vc, Wc
 
-    def _bounds(self, x0, goal, speed_bound, coef, rhs):
-        """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
-        p1, lower, upper (R,), obstacle index (k, s, end), coefficients (Ro, 2) on columns 2j, 2j+1."""
+    def _start_terms(self, x0, goal, speed_bound):
+        """What depends only on the start, goal and speed bound (the same for every QP of one
+        plan, so kept for the last start): p1, the fixed rows' bounds, the cost vector f and
+        its whitened form Rinv^T f."""
+        key = (x0.tobytes(), goal.tobytes(), speed_bound.tobytes())
+        cached = self._start  # (key, terms), replaced in one assignment
+        if cached is not None and cached[0] == key:
+            return cached[1]
         L = self.L
         p1, Vc, Wc = self._fixed_terms(x0, goal)
         box = self.params.u_max_n / KN / L
         cv = np.einsum("kd,td->tk", self.speed_normals, Vc)
+        lo = np.concatenate([(-box - Wc).reshape(-1), np.full(cv.size, -np.inf)])
+        hi = np.concatenate([(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1)])
+        f = self._cost_vector(x0, goal)
+        terms = (p1, lo, hi, f, self.Rinv.T @ f)
+        self._start = (key, terms)
+        return terms
+
+    def _bounds(self, x0, goal, speed_bound, coef, rhs):
+        """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
+        p1, lower, upper (R,), obstacle index (k, s, end), coefficients (Ro, 2) on columns 2j, 2j+1."""
+        p1, lo_fixed, hi_fixed, _, _ = self._start_terms(x0, goal, speed_bound)
         # obstacle rows: coef . p_tau >= rhs for segment s (1..T-1) and end tau = s, s+1; p_1 fixed
         k_i, s_i, e_i = np.nonzero(np.isfinite(rhs))
         c = coef[k_i, s_i, e_i]
         j = s_i + e_i - 1  # column pair of p_tau, tau = s_i + 1 + e_i (y holds p_2..p_(T+1))
-        lo = np.concatenate([(-box - Wc).reshape(-1), np.full(cv.size, -np.inf), (rhs[k_i, s_i, e_i] - c @ goal) / L])
-        hi = np.concatenate([(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1),
-                             np.full(len(k_i), np.inf)])
+        lo = np.concatenate([lo_fixed, (rhs[k_i, s_i, e_i] - c @ goal) / self.L])
+        hi = np.concatenate([hi_fixed, np.full(len(k_i), np.inf)])
         return p1, lo, hi, (k_i, s_i, e_i), c, j
 
     @staticmethod
@@ -263,8 +279,7 @@ class _QP:
         p1, lo, hi, obs_index, c, j = self._bounds(x0, goal, speed_bound, coef, rhs)
         c0, c1, col = c[:, 0], c[:, 1], 2 * j  # an obstacle row is c0 y[col] + c1 y[col + 1]
         n_fixed = len(self.A_fixed)
-        f = self._cost_vector(x0, goal)
-        fw = self.Rinv.T @ f  # min 1/2 |w|^2 + fw . w
+        _, _, _, f, fw = self._start_terms(x0, goal, speed_bound)  # min 1/2 |w|^2 + fw . w
         work = np.zeros(len(lo), dtype=bool)
         if hint is not None:
             work[:n_fixed] = hint.fixed
