@@ -678,11 +678,13 @@ class FreeLaw:
             z = float(np.mean(np.asarray(states, float)[cand, 2]))
             near = (z_lo <= z) & (z <= z_hi)
             normals, offsets = normals[near], offsets[near] - normals[near] @ goal2  # goal-relative
-            # a path stays within reach_gain * size of the goal; only obstacles nearer can matter
-            c = -offsets  # clearance of the goal itself, per face (rectangles: faces f, f+2 opposite)
-            gap = np.hypot(np.maximum(np.maximum(c[:, 0], c[:, 2]), 0), np.maximum(np.maximum(c[:, 1], c[:, 3]), 0))
+            # a path stays within reach_gain * size of the goal: an obstacle one of whose faces has
+            # the goal that far outside it has the whole path outside that face, every segment OK
+            gap = (-offsets).max(axis=1)  # the goal's largest clearance over each obstacle's faces
             check = np.flatnonzero(sub & (self.reach_gain * size[:, None] >= gap[None]).any(axis=1))
             if len(check):
+                k = gap <= self.reach_gain * size[check].max()  # the obstacles any of them can reach
+                normals, offsets = normals[k], offsets[k]
                 pts = (rel[check] @ self.points).reshape(-1, T, 2)
                 out = (pts @ normals.reshape(-1, 2).T).reshape(len(check), T, -1, 4) > offsets  # outside
                 sub[check] = np.all(np.any(out[:, :-1] & out[:, 1:], axis=-1), axis=(1, 2))
