@@ -117,10 +117,19 @@ def test_mavproxy_reports_mode_arming_and_position(tmp_path):
         commander.wait_heartbeat(timeout=10)
 
         def command(cmd, *params):
+            # the commander does not read while the test watches MAVProxy: its socket buffer
+            # fills with telemetry and the kernel would drop the ACK, so drain it first and,
+            # as a GCS does, resend (confirmation 1, 2) when no ACK comes
             p = list(params) + [0.0] * (7 - len(params))
-            commander.mav.command_long_send(1, 1, cmd, 0, *p)
-            ack = commander.recv_match(type="COMMAND_ACK", blocking=True, timeout=5,
-                                       condition=f"COMMAND_ACK.command=={cmd}")
+            ack = None
+            for confirmation in range(3):
+                while commander.recv_msg() is not None:
+                    pass
+                commander.mav.command_long_send(1, 1, cmd, confirmation, *p)
+                ack = commander.recv_match(type="COMMAND_ACK", blocking=True, timeout=5,
+                                           condition=f"COMMAND_ACK.command=={cmd}")
+                if ack is not None:
+                    break
             assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
 
         mark = len(out.lines)
