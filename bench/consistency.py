@@ -36,13 +36,12 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
     out = {}
     for m in cfg.method_names:
         nees = np.stack([r.traces[m].nees[w].mean(axis=0) for r in results])  # (N, M)
-        err = np.stack([r.traces[m].error_m[w] for r in results])
+        e_all = np.stack([r.traces[m].error_m for r in results])  # (N, K, M)
         out[m] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
                   "top5": np.sort(nees.ravel())[-5:].round(1).tolist(),
-                  "rmse_m": round(float(np.sqrt(np.mean(err ** 2))), 1)}
+                  "rmse_m": round(float(np.sqrt(np.mean(e_all[:, w] ** 2))), 1)}
         if all(r.traces[m].bound_m2 is not None for r in results):
             # RMSE / PCRB (as pmon eval forms them) per 10 s of the mission, and per trial
-            e_all = np.stack([r.traces[m].error_m for r in results])  # (N, K, M)
             b_all = np.stack([r.traces[m].bound_m2 for r in results])
             eps, bnd = np.sqrt(np.mean(e_all ** 2, axis=0)).mean(axis=1), np.sqrt(b_all.mean(axis=0)).mean(axis=1)
             out[m]["over_bound_by_10s"] = [round(float(eps[k:k + 10].mean() / bnd[k:k + 10].mean()), 2)

@@ -125,6 +125,10 @@ def run(args) -> int:
 
     console = Console()
     wall0 = time.monotonic()
+    # Ctrl-C stops every process even when started from a shell that ignores SIGINT (a
+    # background job without job control inherits SIG_IGN, and Python then never raises
+    # KeyboardInterrupt); the children get the default disposition back at exec
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     sc = load_scenario(args.scenario)
     duration = int(round(args.duration if args.duration is not None else sc.mission.duration_s))
     if duration < 5:

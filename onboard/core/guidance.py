@@ -649,15 +649,18 @@ class FreeLaw:
         rel[:, :2] -= np.asarray(goal, float)[:2]
         return rel @ self.gain.T
 
-    def is_optimal(self, states: np.ndarray, goal: np.ndarray, obstacles: Obstacles) -> np.ndarray:
+    def is_optimal(self, states: np.ndarray, goal: np.ndarray, obstacles: Obstacles,
+                   u0: np.ndarray | None = None) -> np.ndarray:
         """(n,) bool: the free optimum from each state is feasible for P1, hence P1's optimum
         (it is optimal for the relaxation without constraints): every control inside the input
         box, every speed inside the polygon's inscribed circle (conservative), and every segment
         p_s -> p_(s+1), s = 1..T-1, outside one face of each inflated obstacle at the state's
-        altitude, as P1 demands. Where True, ``controls`` is what the guidance commands."""
+        altitude, as P1 demands. Where True, ``controls`` is what the guidance commands.
+        ``u0``: ``controls(states, goal)`` when the caller has it already."""
         p, T = self.params, self.params.horizon
         u_max = p.u_max_n * (1 + 1e-9)
-        ok = np.all(np.abs(self.controls(states, goal)[:, :2]) <= u_max, axis=1)
+        u0 = self.controls(states, goal) if u0 is None else u0
+        ok = np.all(np.abs(u0[:, :2]) <= u_max, axis=1)
         cand = np.flatnonzero(ok)  # u_0 outside the box rules out most states cheaply
         if not len(cand):
             return ok
@@ -671,7 +674,7 @@ class FreeLaw:
             r = rel[edge]
             ok_edge = np.all(np.abs(r @ self.controls_map) <= u_max, axis=1)
             v2 = (r @ self.speeds) ** 2  # (n, 2T): vx, vy interleaved
-            ok_edge &= np.all(v2[:, 0::2] + v2[:, 1::2] <= _free_speed_max(p) ** 2, axis=1)
+            ok_edge &= np.all(v2[:, 0::2] + v2[:, 1::2] <= _speed_bound_mps(p) ** 2, axis=1)
             sub[edge] = ok_edge
         if len(obstacles) and sub.any():
             normals, offsets, z_lo, z_hi = obstacles.inflate(p.obstacle_margin_m).lateral()
@@ -706,16 +709,16 @@ def free_law(model: MotionModel, params: GuidanceParams, workspace: GuidanceWork
     # push the four unit states r = e_i through the path: p_1..p_(T+1), then speeds and controls
     basis = np.eye(4)
     pts = np.concatenate([(basis[:, :2] + model.dt_s * basis[:, 2:])[:, None], np.moveaxis(dP, 2, 0)], axis=1)
-    v = np.concatenate([basis[:, None, 2:], np.diff(pts, axis=1) / model.dt_s], axis=1)  # v_0..v_T
-    u = (v[:, 1:] - (1.0 - model.friction) * v[:, :-1]) * (model.mass_kg / model.dt_s)
-    controls, speeds = u.reshape(4, -1), v[:, 1:].reshape(4, -1)
+    speeds = (np.diff(pts, axis=1) / model.dt_s).reshape(4, -1)  # v_1..v_T
+    controls = KN * np.stack([_controls_kn(e, p, model.dt_s, 1.0 - model.friction, qp.gain)
+                              for e, p in zip(basis, pts)]).reshape(4, -1)
     # a ball in a weighted norm of r inside which no input or speed row can bind (Cauchy-Schwarz
     # per row): most particles of a cloud near its goal skip the row-by-row check. Velocity is
     # weighted by 10 s: a cloud's velocity spread is about a tenth of its position spread (m/s, m)
     w = np.array([1.0, 1.0, 10.0, 10.0])
     r_u = params.u_max_n / np.max(np.linalg.norm(controls / w[:, None], axis=0))
     vt = (speeds / w[:, None]).reshape(4, T, 2)
-    r_v = _free_speed_max(params) / max(np.linalg.norm(vt[:, t].T, 2) for t in range(T))
+    r_v = _speed_bound_mps(params) / max(np.linalg.norm(vt[:, t].T, 2) for t in range(T))
     pw = (pts[:, :T] / w[:, None, None])
     reach = max(np.linalg.norm(pw[:, t].T, 2) for t in range(T))
     return FreeLaw(_first_control_gain(dP, model, 1.0 - model.friction, qp.gain),
@@ -723,7 +726,7 @@ def free_law(model: MotionModel, params: GuidanceParams, workspace: GuidanceWork
                    float(reach))
 
 
-def _free_speed_max(params: GuidanceParams) -> float:
+def _speed_bound_mps(params: GuidanceParams) -> float:
     """The speed polygon's inscribed radius, m/s: below it no speed row binds."""
     return params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides)
 
@@ -759,7 +762,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         mean0 = mean0.copy()
         mean0[[0, 1, 3, 4]] = x0 = out
     v0 = float(np.linalg.norm(x0[2:]))
-    speed_bound = np.maximum(params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides),
+    speed_bound = np.maximum(_speed_bound_mps(params),
                              v0 * decay ** np.arange(1, T + 1) + 1e-6)
 
     def path(pts):

@@ -135,8 +135,9 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
     out = np.broadcast_to(np.asarray(plan.next_control, float), (n, 3)).copy()
     free = np.zeros(n, dtype=bool)
     if setup.free_steering is not None:
-        free = setup.free_steering.is_optimal(particles, goal, setup.obstacles)
-        out[free] = setup.free_steering.controls(particles[free], goal)
+        u_free = setup.free_steering.controls(particles, goal)
+        free = setup.free_steering.is_optimal(particles, goal, setup.obstacles, u_free)
+        out[free] = u_free[free]
     if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
         u_max = setup.guidance.u_max_n
         other = (rng.random(n) < setup.control_mix) & ~free
