@@ -105,6 +105,11 @@ class Tracking:
     control_mix_when: str = "always"  # always | obstacle (only while the plan rounds an obstacle)
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
     free_steering: bool = False  # particles whose own plan is P1's free optimum steer by it
+    plan_steering: bool = False  # particles steer by the law of the nearest reference plan (docs/TRACKING.md)
+    plan_references: int = 2  # reference plans besides the mean's, per target whose plan is constrained
+    plan_spread_sigma: float = 1.5  # the others at +-this many sigma along the cloud's major axis
+    plan_steered_share: float = 0.7  # share of the particles a reference plan steers (the rest: its control)
+    plan_trust_sigma: float = 2.0  # only particles this close (Mahalanobis) to a reference are steered
 
 
 @dataclass(frozen=True)
@@ -364,7 +369,9 @@ def _parse(root: _Node, source: str) -> Scenario:
     )
 
     tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
-                                         "regularise_bandwidth", "free_steering"})
+                                         "regularise_bandwidth", "free_steering", "plan_steering",
+                                         "plan_references", "plan_spread_sigma", "plan_steered_share",
+                                         "plan_trust_sigma"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
@@ -373,6 +380,11 @@ def _parse(root: _Node, source: str) -> Scenario:
         control_mix_when=tr.get("control_mix_when", "always").choice(("always", "obstacle")),
         regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         free_steering=tr.get("free_steering", False).boolean(),
+        plan_steering=tr.get("plan_steering", False).boolean(),
+        plan_references=tr.get("plan_references", 2).integer(0, 8),
+        plan_spread_sigma=tr.get("plan_spread_sigma", 1.5).number(lambda v: 0 < v <= 5, "must be in (0, 5]"),
+        plan_steered_share=tr.get("plan_steered_share", 0.7).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        plan_trust_sigma=tr.get("plan_trust_sigma", 2.0).number(_positive, "must be > 0"),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})

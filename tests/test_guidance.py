@@ -200,6 +200,94 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     assert off.free_steering is None
 
 
+def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
+    """Plan.law (u_0 + gain (x - start), with_feedback=True): at its start it is the plan's
+    control, and from a start a little off, in most directions (one can cross a kink where a
+    speed-polygon row switches), it moves the control as the guidance itself does."""
+    from onboard.core.guidance import GuidanceWorkspace
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    ws = GuidanceWorkspace()
+    target = paper.targets[0]
+    goal = np.array(paper.goal_of(target).center_m)
+    x, plan = np.array(target.mean, float), None
+    for _ in range(20):  # T1 heads south-east, rounding O1 and then O3
+        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+        x = plan.means[0]
+    assert plan.touches_obstacle and plan.law is None  # only asked for
+    steered = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True)
+    assert steered.law is not None
+    np.testing.assert_allclose(steered.law.controls(x[None])[0], steered.next_control, atol=1e-6)
+    agree = 0
+    for dx in ([0.02, 0, 0, 0, 0, 0], [0, -0.02, 0, 0, 0, 0], [0, 0, 0, 0.002, 0, 0], [0, 0, 0, 0, -0.002, 0]):
+        x1 = x + np.array(dx)
+        own = plan_guidance(model, params, obs, x1, goal, previous=plan, workspace=ws).next_control - steered.next_control
+        law = steered.law.controls(x1[None])[0] - steered.next_control
+        assert np.linalg.norm(own) > 1e-3  # the guidance does react
+        agree += np.linalg.norm(law - own) <= 0.05 * np.linalg.norm(own)
+    assert agree >= 3
+
+
+def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng):
+    """tracking.plan_steering: of the particles not on the free law, a share plan_steered_share
+    takes the control of the nearest reference law (clipped to the input box) if within
+    plan_trust_sigma of it; the others keep the plan's control (or the mixture's random one)."""
+    from dataclasses import replace as dc_replace
+    from onboard.core.guidance import LocalLaw, _Active
+    from onboard.core.monitor import MonitorSetup, _particle_controls
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, free_steering=True, control_mix=0.0,
+                                               plan_steering=True, plan_steered_share=0.7))
+    setup = MonitorSetup.from_scenario(sc)
+    assert setup.plan_steering is not None and setup.plan_steering.steered_share == 0.7
+    goal = setup.goals[0]
+    T, K = setup.guidance.horizon, len(setup.obstacles)
+    u = np.array([100.0, -50.0, 0.0])
+    plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
+                _Active(np.zeros(10, bool), np.ones((K, T - 1, 2), bool)))
+    gain = np.zeros((3, 6))
+    gain[0, 0] = -50.0  # N per m east of the reference
+    a = LocalLaw(np.array([500.0, 600.0, 0.0, -10.0]), np.array([1000.0, 0.0, 0.0]), gain)
+    b = LocalLaw(np.array([500.0, 700.0, 0.0, -10.0]), np.array([-1000.0, 0.0, 0.0]), gain)
+    near_a = np.tile([504.0, 610.0, 0.0, 0.0, -10.0, 0.0], (1000, 1))
+    near_b = np.tile([400.0, 690.0, 0.0, 0.0, -10.0, 0.0], (1000, 1))
+    metric = np.eye(2) / 100.0 ** 2  # sigma 100 m
+    out = _particle_controls(plan, np.vstack([near_a, near_b]), goal, setup, rng, [a, b], metric)
+    on_a = np.all(out[:1000] == [1000.0 - 200.0, 0.0, 0.0], axis=1)
+    on_b = np.all(out[1000:] == [-1000.0 + 5000.0, 0.0, 0.0], axis=1)
+    kept = np.all(out == u, axis=1)
+    assert 620 < on_a.sum() < 780 and 620 < on_b.sum() < 780  # the steered share
+    assert np.all(on_a | kept[:1000]) and np.all(on_b | kept[1000:])
+    clipped = np.tile([320.0, 700.0, 0.0, 0.0, -10.0, 0.0], (100, 1))  # 1.8 sigma; law -1000 + 9000 N
+    out = _particle_controls(plan, clipped, goal, setup, rng, [b], metric)
+    assert np.all(np.abs(out[:, :2]) <= setup.guidance.u_max_n) and (out[:, 0] == setup.guidance.u_max_n).any()
+    far = np.tile([200.0, 690.0, 0.0, 0.0, -10.0, 0.0], (100, 1))  # 3 sigma > plan_trust_sigma = 2
+    out = _particle_controls(plan, far, goal, setup, rng, [b], metric)
+    assert np.all(out == u)  # not pulled onto a plan linearised 300 m away
+
+
+def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
+    """tracking.plan_steering builds one law from the mean's plan and plan_references more, from
+    points within +-plan_spread_sigma standard deviations along the cloud's major position axis,
+    each a feasible plan of its own; the metric is the inverse position covariance."""
+    from dataclasses import replace as dc_replace
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.monitor import MonitorSetup, _reference_laws
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_references=2,
+                                               plan_spread_sigma=1.5))
+    setup = MonitorSetup.from_scenario(sc)
+    ws = GuidanceWorkspace()
+    goal = setup.goals[1]
+    mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
+    plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
+    cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
+    laws, metric = _reference_laws(setup, mean, cov, goal, plan, None, ws, lambda: 0.0)
+    assert len(laws) == 3 and laws[0] is plan.law
+    np.testing.assert_allclose(metric, np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2)))
+    offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
+    np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
+    assert all(abs(lw.x_ref[1] - mean[1]) < 1e-6 for lw in laws[1:])
+
+
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):
     """An estimate between particles on both sides of an obstacle can lie inside it: the plan
     starts from the nearest point outside (same velocity), is feasible, and avoids it."""

@@ -96,6 +96,7 @@ class Plan:
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
     feedback: np.ndarray | None = None  # (3, 6) du_0/dx, N per state unit (with_feedback=True)
+    law: "LocalLaw | None" = None  # u_0 + feedback (x - start) around the start (with_feedback=True)
 
     @property
     def feasible(self) -> bool:
@@ -628,6 +629,22 @@ def _first_control_gain(dP: np.ndarray, model: MotionModel, decay: float, gain: 
 
 
 @dataclass(frozen=True, eq=False)
+class LocalLaw:
+    """A plan's first control as an affine law of its start state: P1's optimum is affine in the
+    start while the plan's active set (and face assignment) holds, u_0(x) = u_ref + gain (x - x_ref).
+    Outside that region it is the plan's linearisation (how the tracker uses it: docs/TRACKING.md)."""
+
+    x_ref: np.ndarray  # (4,) planar start (px, py, vx, vy) the plan was solved from, m and m/s
+    u_ref: np.ndarray  # (3,) the plan's first control there, N
+    gain: np.ndarray  # (3, 6) du_0/dx, N per state unit
+
+    def controls(self, states: np.ndarray) -> np.ndarray:
+        """(n, 3) first controls, N, from states (n, 6)."""
+        dx = np.asarray(states, float)[:, PLANAR] - self.x_ref
+        return self.u_ref + dx @ self.gain[:, PLANAR].T
+
+
+@dataclass(frozen=True, eq=False)
 class FreeLaw:
     """P1's optimum while none of its rows is active, as a map of the state. That optimum is
     linear in r = (p0 - goal, v0) (the QP is translation invariant and has no other constant
@@ -740,7 +757,8 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
     fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
     ``with_feedback``: also compute ``Plan.feedback``, the closed-loop gain du_0/dx (for the
-    posterior Cramer-Rao bound of a target that steers by this guidance).
+    posterior Cramer-Rao bound of a target that steers by this guidance) and ``Plan.law`` (for
+    the tracker's ``plan_steering``).
     """
     t_start = timer()
     T, K = params.horizon, len(obstacles)
@@ -970,7 +988,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     controls = np.zeros((T, 3))
     controls[:, :2] = _controls_kn(x0, best["pts"], model.dt_s, decay, gain) * KN
     status = "optimal" if budget_left() else ("timeout" if timed_out() else "budget")
-    feedback = None
+    feedback = law = None
     if with_feedback and np.all(np.isfinite(best["sol"].y)):
         # the closed-loop gain du_0/dx of this plan: the optimum is affine in the state while
         # its active set holds, so a nearby state would be steered by u_0 + K dx (about 3 ms)
@@ -979,8 +997,10 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         except np.linalg.LinAlgError:
             dP = np.full((T, 2, 4), np.nan)
         feedback = _first_control_gain(dP, model, decay, gain)
+        if feedback is not None:
+            law = LocalLaw(x0.copy(), controls[0].copy(), feedback)
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
-                predict_mean(model, mean0, controls), best["faces"], best["active"], feedback)
+                predict_mean(model, mean0, controls), best["faces"], best["active"], feedback, law)
 
 
 def _shift_switches(faces: np.ndarray, d: int) -> np.ndarray | None:

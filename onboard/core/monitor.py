@@ -16,12 +16,35 @@ from typing import Callable, Sequence
 import numpy as np
 
 from onboard.core import tracking
-from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import FreeLaw, GuidanceParams, GuidanceWorkspace, Plan, free_law, plan_guidance
+from onboard.core.dynamics import PLANAR, MotionModel
+from onboard.core.guidance import (FreeLaw, GuidanceParams, GuidanceWorkspace, LocalLaw, Plan, free_law,
+                                   plan_guidance)
 from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
 from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
                                    choose_lookahead, choose_next_position)
+
+
+@dataclass(frozen=True)
+class PlanSteering:
+    """How the particles of a target whose plan is constrained are steered (docs/TRACKING.md):
+    by the affine law (``LocalLaw``) of the nearest reference plan: the posterior mean's, and
+    ``references`` more from points within ``spread_sigma`` standard deviations either side along
+    the cloud's major axis, if it lies within ``trust_sigma`` standard deviations (Mahalanobis,
+    position) of one. A share ``1 - steered_share``, and every particle farther out, keeps the
+    mean plan's control (robustness where the target's plan differs from all of them). Used while the mean's plan has an active row
+    (rounding an obstacle, or at an input or speed limit): elsewhere the free law is exact."""
+
+    references: int = 2
+    spread_sigma: float = 1.5
+    steered_share: float = 0.7
+    trust_sigma: float = 2.0
+
+    @classmethod
+    def from_config(cls, tr) -> "PlanSteering | None":
+        if not tr.plan_steering:
+            return None
+        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma)
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,6 +69,7 @@ class MonitorSetup:
     control_mix_when: str = "always"  # always | obstacle: only while the plan rounds an obstacle
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
     free_steering: FreeLaw | None = None  # particles whose own plan is the free optimum steer by it
+    plan_steering: PlanSteering | None = None  # the others, while rounding an obstacle, by reference plans
     planner: str = "greedy"  # greedy | lookahead
     lookahead_steps: int = 10
     motion: UavMotion = UavMotion()
@@ -74,6 +98,7 @@ class MonitorSetup:
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
             free_steering=(free_law(model, GuidanceParams.from_config(sc.guidance))
                            if sc.tracking.free_steering else None),
+            plan_steering=PlanSteering.from_config(sc.tracking),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -118,7 +143,8 @@ class TickResult:
 
 
 def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: MonitorSetup,
-                       rng: np.random.Generator) -> np.ndarray:
+                       rng: np.random.Generator, laws: Sequence[LocalLaw] = (),
+                       metric: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq:prediction),
     except:
 
@@ -127,9 +153,14 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
       control, which is exactly what the guidance commands a target there. A target in open
       ground steers back toward its goal from wherever it is; a target already past an obstacle
       no longer follows a plan that still rounds it.
-    * while the plan rounds an obstacle (``Plan.touches_obstacle``) a target may take another
-      way around it: of the other particles, a fraction ``control_mix`` gets a control uniform in
-      the input box (u_z = 0) (with ``control_mix_when: always``: on every tick).
+    * ``plan_steering`` (``laws``: reference plans of a target whose plan is constrained,
+      ``_reference_laws``): a share of the other particles, those within ``trust_sigma`` of a
+      reference (``metric``: position Mahalanobis), steers by the affine law of the nearest one,
+      clipped to the input box: a target pressed against a face or cruising at its speed limit
+      is pulled back onto its plan as the true one is.
+    * a fraction ``control_mix`` of the particles not on the free law gets a control uniform in
+      the input box (u_z = 0): the target may take another way around an obstacle (with
+      ``control_mix_when: obstacle`` only while the plan rounds one).
     docs/TRACKING.md has the measurements."""
     n = len(particles)
     out = np.broadcast_to(np.asarray(plan.next_control, float), (n, 3)).copy()
@@ -138,12 +169,58 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
         u_free = setup.free_steering.controls(particles, goal)
         free = setup.free_steering.is_optimal(particles, goal, setup.obstacles, u_free)
         out[free] = u_free[free]
+    if laws and setup.plan_steering is not None:
+        rest = np.flatnonzero(~free)
+        rest = rest[rng.random(len(rest)) < setup.plan_steering.steered_share]
+        x = particles[rest]
+        d = x[:, None, :2] - np.array([lw.x_ref[:2] for lw in laws])[None]
+        m2 = np.einsum("nri,ij,nrj->nr", d, metric, d)
+        which = np.argmin(m2, axis=1)
+        # a linearisation holds near its reference only: a particle far from every reference
+        # (the target may round the obstacle on another side) is not pulled onto their plans
+        near = m2[np.arange(len(x)), which] <= setup.plan_steering.trust_sigma ** 2
+        rest, x, which = rest[near], x[near], which[near]
+        u_max = setup.guidance.u_max_n
+        for r, lw in enumerate(laws):
+            sel = which == r
+            u = lw.controls(x[sel])
+            u[:, :2] = np.clip(u[:, :2], -u_max, u_max)
+            u[:, 2] = 0.0
+            out[rest[sel]] = u
     if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
         u_max = setup.guidance.u_max_n
         other = (rng.random(n) < setup.control_mix) & ~free
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))
         out[other, 2] = 0.0
     return out
+
+
+def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal: np.ndarray, plan: Plan,
+                    previous: Plan | None, workspace: GuidanceWorkspace | None,
+                    timer: Callable[[], float]) -> tuple[list[LocalLaw], np.ndarray]:
+    """The laws of the mean's plan and of plans from ``references`` points within
+    +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
+    regressed on position, as the cloud correlates them), each solved from the mean plan's face
+    assignment with a small QP budget; and the position metric (inverse covariance) that picks
+    a particle's nearest reference. A reference with no feasible plan is left out."""
+    ps = setup.plan_steering
+    C = cov[np.ix_(PLANAR, PLANAR)]
+    Cpp = C[:2, :2] + 1e-6 * np.eye(2)
+    metric = np.linalg.inv(Cpp)
+    laws = [plan.law]
+    if ps.references:
+        lam, vec = np.linalg.eigh(Cpp)
+        axis = vec[:, -1] * np.sqrt(lam[-1])
+        for o in ps.spread_sigma * np.linspace(-1.0, 1.0, ps.references):
+            if abs(o) < 1e-9:
+                continue
+            x = np.asarray(mean, float).copy()
+            x[PLANAR] += C[:, :2] @ np.linalg.solve(Cpp, o * axis)
+            p = plan_guidance(setup.model, setup.guidance, setup.obstacles, x, goal, previous=previous,
+                              workspace=workspace, timer=timer, with_feedback=True)
+            if p.feasible and p.law is not None:
+                laws.append(p.law)
+    return laws, metric
 
 
 def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
@@ -174,7 +251,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
 
     plans = tuple(
         plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
-                      previous=state.plans[j], workspace=workspace, timer=timer)
+                      previous=state.plans[j], workspace=workspace, timer=timer,
+                      with_feedback=setup.plan_steering is not None)
         for j in range(M))
     t2 = timer()
 
@@ -183,10 +261,16 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # particle (u_0 + K (x_i - mean), K = Plan.feedback) was tried and is worse: where
     # constraints are active that gain is dead-beat, the cloud collapses along that direction and
     # the filter loses the target when the truth takes another active set (docs/TRACKING.md).
-    beliefs = tuple(tracking.predict(posts[j], setup.model,
-                                     _particle_controls(plans[j], posts[j].particles, setup.goals[j],
-                                                        setup, rng), rng)
-                    for j in range(M))
+    beliefs = []
+    for j in range(M):
+        laws, metric = (), None
+        if setup.plan_steering is not None and plans[j].law is not None and not plans[j].unconstrained:
+            laws, metric = _reference_laws(setup, means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
+                                           workspace, timer)
+        beliefs.append(tracking.predict(posts[j], setup.model,
+                                        _particle_controls(plans[j], posts[j].particles, setup.goals[j],
+                                                           setup, rng, laws, metric), rng))
+    beliefs = tuple(beliefs)
     t3 = timer()
 
     planning = None
