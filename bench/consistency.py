@@ -20,11 +20,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 
 
@@ -61,12 +60,10 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change a scenario value, e.g. tracking.free_steering=false")
     args = ap.parse_args()
-    overrides = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set {item!r}: expected KEY=VALUE")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = parse_overrides(args.set)
+    except ConfigError as exc:
+        ap.error(str(exc))
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
                       workers=args.workers)
     for name, r in res.items():

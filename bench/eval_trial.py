@@ -1,6 +1,7 @@
 """Cost of one evaluation trial, per method, and of one DAQP call in either form of the QP.
 
     python bench/eval_trial.py [--trial 0] [--methods greedy_l1,greedy_l8,fixed3,hover,orbit,random]
+                               [--set tracking.plan_steering=true ...]
 
 One trial as `pmon eval` runs it (seed 2024), in this process on one core: the truth (with the
 closed-loop gains the bound needs) and each method's closed loop, wall seconds each; then the
@@ -25,15 +26,15 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.truth import simulate_truth  # noqa: E402
 
 
-def trial_times(trial: int, methods: list[str]) -> dict:
-    cfg = ev.make_config(load_scenario("paper"), trial + 1, 2024, methods=methods)
+def trial_times(trial: int, methods: list[str], overrides: dict | None = None) -> dict:
+    cfg = ev.make_config(load_scenario("paper", overrides), trial + 1, 2024, methods=methods)
     t0 = time.perf_counter()
     truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, ev._rng(cfg.seed, trial, 0), with_gains=True)
     out = {"truth": time.perf_counter() - t0}
@@ -72,8 +73,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trial", type=int, default=0)
     ap.add_argument("--methods", default=",".join(ev.DEFAULT_METHODS))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a scenario value, e.g. tracking.plan_steering=true")
     args = ap.parse_args()
-    t = trial_times(args.trial, args.methods.split(","))
+    try:
+        overrides = parse_overrides(args.set)
+    except ConfigError as exc:
+        ap.error(str(exc))
+    t = trial_times(args.trial, args.methods.split(","), overrides)
     print("one trial, s of one core: " + ", ".join(f"{k} {v}" for k, v in t.items()))
     d = daqp_forms()
     print("DAQP call, median ms: " + ", ".join(f"{k} {v}" for k, v in d.items()))

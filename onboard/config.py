@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import yaml
@@ -478,6 +478,18 @@ def _check_geometry(root: _Node, sc: Scenario) -> None:
 def parse_scenario(data: Any, source: str = "<memory>") -> Scenario:
     """Validate an already-parsed YAML tree (a dict) into a Scenario."""
     return _parse(_Node(data, ""), source)
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings (the benches' ``--set``) as ``load_scenario`` overrides; VALUE is read
+    as YAML (``true``, ``0.5``, ``[1, 2]``). ConfigError names an item without ``=``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. tracking.plan_steering=true")
+        out[key] = yaml.safe_load(value)
+    return out
 
 
 def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] | None = None) -> Scenario:

@@ -82,3 +82,16 @@ def test_overrides_set_dotted_keys_and_name_missing_parents():
         load_scenario("paper", {"trackin.control_mix": 0.0})
     with pytest.raises(ConfigError, match="tracking.control_mix: must be in"):
         load_scenario("paper", {"tracking.control_mix": 2.0})
+
+
+def test_bench_set_items_become_overrides():
+    """The benches' --set KEY=VALUE: VALUE read as YAML; an item without '=' is named."""
+    from onboard.config import parse_overrides
+    ov = parse_overrides(["tracking.plan_steering=true", "tracking.plan_trust_sigma=1.5",
+                          "planning.lookahead.ranges_m=[30, 80]"])
+    assert ov == {"tracking.plan_steering": True, "tracking.plan_trust_sigma": 1.5,
+                  "planning.lookahead.ranges_m": [30, 80]}
+    sc = load_scenario("paper", ov)
+    assert sc.tracking.plan_steering and sc.tracking.plan_trust_sigma == 1.5
+    with pytest.raises(ConfigError, match="'tracking.plan_steering': expected KEY=VALUE"):
+        parse_overrides(["tracking.plan_steering"])
