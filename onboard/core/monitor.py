@@ -257,10 +257,11 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     t2 = timer()
 
     # the plan's one control for every particle (eq:prediction), except where a particle's own
-    # plan is known in closed form (_particle_controls). The plan's closed-loop gain for every
-    # particle (u_0 + K (x_i - mean), K = Plan.feedback) was tried and is worse: where
-    # constraints are active that gain is dead-beat, the cloud collapses along that direction and
-    # the filter loses the target when the truth takes another active set (docs/TRACKING.md).
+    # plan is known in closed form, and (opt-in plan_steering) near a reference plan's
+    # linearisation (_particle_controls; the reference plans count as tracking time). The mean
+    # plan's law for every particle is worse: where constraints are active it is dead-beat, the
+    # cloud collapses onto the mean's plan and is lost when the truth takes another active set
+    # or side of an obstacle (docs/TRACKING.md).
     beliefs = []
     for j in range(M):
         laws, metric = (), None
