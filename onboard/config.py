@@ -106,7 +106,7 @@ class Tracking:
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
     free_steering: bool = False  # particles whose own plan is P1's free optimum steer by it
     plan_steering: bool = False  # particles steer by the law of the nearest reference plan (docs/TRACKING.md)
-    plan_references: int = 2  # reference plans besides the mean's, per target whose plan is constrained
+    plan_references: int = 2  # reference plans besides the mean's (even: pairs either side of it)
     plan_spread_sigma: float = 1.5  # the others at +-this many sigma along the cloud's major axis
     plan_steered_share: float = 0.7  # share of the particles a reference plan steers (the rest: its control)
     plan_trust_sigma: float = 2.0  # only particles this close (Mahalanobis) to a reference are steered
@@ -256,6 +256,14 @@ class _Node:
         return v
 
 
+def _even(node: "_Node", lo: int, hi: int) -> int:
+    """An even integer in [lo, hi] (reference plans come in pairs, one either side)."""
+    v = node.integer(lo, hi)
+    if v % 2:
+        raise node.fail(f"must be even (pairs either side of the mean), got {v}")
+    return v
+
+
 def _kind(v: Any) -> str:
     return "nothing" if v is None else type(v).__name__
 
@@ -381,7 +389,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         free_steering=tr.get("free_steering", False).boolean(),
         plan_steering=tr.get("plan_steering", False).boolean(),
-        plan_references=tr.get("plan_references", 2).integer(0, 8),
+        plan_references=_even(tr.get("plan_references", 2), 0, 8),
         plan_spread_sigma=tr.get("plan_spread_sigma", 1.5).number(lambda v: 0 < v <= 5, "must be in (0, 5]"),
         plan_steered_share=tr.get("plan_steered_share", 0.7).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         plan_trust_sigma=tr.get("plan_trust_sigma", 2.0).number(_positive, "must be > 0"),

@@ -286,6 +286,10 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
     np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
     assert all(abs(lw.x_ref[1] - mean[1]) < 1e-6 for lw in laws[1:])
+    four = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, plan_references=4)))
+    laws, _ = _reference_laws(four, mean, cov, goal, plan, None, ws, lambda: 0.0)
+    np.testing.assert_allclose(sorted(lw.x_ref[0] - mean[0] for lw in laws[1:]), [-45.0, -22.5, 22.5, 45.0],
+                               atol=1e-6)
 
 
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):

@@ -28,12 +28,13 @@ from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadPa
 @dataclass(frozen=True)
 class PlanSteering:
     """How the particles of a target whose plan is constrained are steered (docs/TRACKING.md):
-    by the affine law (``LocalLaw``) of the nearest reference plan: the posterior mean's, and
-    ``references`` more from points within ``spread_sigma`` standard deviations either side along
-    the cloud's major axis, if it lies within ``trust_sigma`` standard deviations (Mahalanobis,
-    position) of one. A share ``1 - steered_share``, and every particle farther out, keeps the
-    mean plan's control (robustness where the target's plan differs from all of them). Used while the mean's plan has an active row
-    (rounding an obstacle, or at an input or speed limit): elsewhere the free law is exact."""
+    by the affine law (``LocalLaw``) of the nearest reference plan, the posterior mean's or one
+    of ``references`` more (an even number: pairs out to ``spread_sigma`` standard deviations
+    either side along the cloud's major axis), if it lies within ``trust_sigma`` standard
+    deviations (Mahalanobis, position) of one. A share ``1 - steered_share``, and every particle
+    farther out, keeps the mean plan's control (robustness where the target's plan differs from
+    all of them). Used while the mean's plan has an active row (rounding an obstacle, or at an
+    input or speed limit): elsewhere the free law is exact."""
 
     references: int = 2
     spread_sigma: float = 1.5
@@ -69,7 +70,7 @@ class MonitorSetup:
     control_mix_when: str = "always"  # always | obstacle: only while the plan rounds an obstacle
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
     free_steering: FreeLaw | None = None  # particles whose own plan is the free optimum steer by it
-    plan_steering: PlanSteering | None = None  # the others, while rounding an obstacle, by reference plans
+    plan_steering: PlanSteering | None = None  # the others, while the plan is constrained, by reference plans
     planner: str = "greedy"  # greedy | lookahead
     lookahead_steps: int = 10
     motion: UavMotion = UavMotion()
@@ -198,22 +199,22 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
 def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal: np.ndarray, plan: Plan,
                     previous: Plan | None, workspace: GuidanceWorkspace | None,
                     timer: Callable[[], float]) -> tuple[list[LocalLaw], np.ndarray]:
-    """The laws of the mean's plan and of plans from ``references`` points within
-    +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
-    regressed on position, as the cloud correlates them), each solved from the mean plan's face
-    assignment with a small QP budget; and the position metric (inverse covariance) that picks
-    a particle's nearest reference. A reference with no feasible plan is left out."""
+    """The laws of the mean's plan and of plans from ``references`` points, pairs evenly spaced
+    out to +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
+    regressed on position, as the cloud correlates them), each planned as the mean is (warm-started
+    by last tick's plan, so each may round an obstacle on its own side); and the position metric
+    (inverse covariance) that picks a particle's nearest reference. A reference with no feasible
+    plan is left out."""
     ps = setup.plan_steering
     C = cov[np.ix_(PLANAR, PLANAR)]
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
     metric = np.linalg.inv(Cpp)
     laws = [plan.law]
-    if ps.references:
+    if ps.references >= 2:
         lam, vec = np.linalg.eigh(Cpp)
         axis = vec[:, -1] * np.sqrt(lam[-1])
-        for o in ps.spread_sigma * np.linspace(-1.0, 1.0, ps.references):
-            if abs(o) < 1e-9:
-                continue
+        half = ps.spread_sigma * np.arange(1, ps.references // 2 + 1) / (ps.references // 2)
+        for o in np.concatenate([-half, half]):
             x = np.asarray(mean, float).copy()
             x[PLANAR] += C[:, :2] @ np.linalg.solve(Cpp, o * axis)
             p = plan_guidance(setup.model, setup.guidance, setup.obstacles, x, goal, previous=previous,
