@@ -94,7 +94,7 @@ def closed_loop_gain(model: MotionModel, guidance: GuidanceParams, obstacles: Ob
     has no feedback: zero gain. The closed-loop transition Jacobian is A + B du_0/dx."""
     if not plan.feasible:
         return np.zeros((3, 6))
-    fb = getattr(plan, "feedback", None)
+    fb = plan.feedback
     if fb is not None:
         return np.asarray(fb, float)
     K = np.zeros((3, 6))

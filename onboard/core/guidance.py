@@ -95,8 +95,12 @@ class Plan:
     means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
-    feedback: np.ndarray | None = None  # (3, 6) du_0/dx, N per state unit (with_feedback=True)
-    law: "LocalLaw | None" = None  # u_0 + feedback (x - start) around the start (with_feedback=True)
+    law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (with_feedback=True)
+
+    @property
+    def feedback(self) -> np.ndarray | None:
+        """(3, 6) du_0/dx, N per state unit (with_feedback=True), else None."""
+        return None if self.law is None else self.law.gain
 
     @property
     def feasible(self) -> bool:
@@ -988,7 +992,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     controls = np.zeros((T, 3))
     controls[:, :2] = _controls_kn(x0, best["pts"], model.dt_s, decay, gain) * KN
     status = "optimal" if budget_left() else ("timeout" if timed_out() else "budget")
-    feedback = law = None
+    law = None
     if with_feedback and np.all(np.isfinite(best["sol"].y)):
         # the closed-loop gain du_0/dx of this plan: the optimum is affine in the state while
         # its active set holds, so a nearby state would be steered by u_0 + K dx (about 3 ms)
@@ -1000,7 +1004,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         if feedback is not None:
             law = LocalLaw(x0.copy(), controls[0].copy(), feedback)
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
-                predict_mean(model, mean0, controls), best["faces"], best["active"], feedback, law)
+                predict_mean(model, mean0, controls), best["faces"], best["active"], law)
 
 
 def _shift_switches(faces: np.ndarray, d: int) -> np.ndarray | None:

@@ -181,11 +181,10 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
         # (the target may round the obstacle on another side) is not pulled onto their plans
         near = m2[np.arange(len(x)), which] <= setup.plan_steering.trust_sigma ** 2
         rest, x, which = rest[near], x[near], which[near]
-        u_max = setup.guidance.u_max_n
         for r, lw in enumerate(laws):
             sel = which == r
             u = lw.controls(x[sel])
-            u[:, :2] = np.clip(u[:, :2], -u_max, u_max)
+            u[:, :2] = np.clip(u[:, :2], -setup.guidance.u_max_n, setup.guidance.u_max_n)
             u[:, 2] = 0.0
             out[rest[sel]] = u
     if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
