@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from onboard.config import ConfigError, load_scenario
+from onboard.config import ConfigError, load_scenario, parse_overrides
 
 
 def _check(args) -> int:
@@ -72,7 +72,7 @@ def _eval(args) -> int:
 
     from sim import evaluation as ev
 
-    sc = load_scenario(args.scenario)
+    sc = load_scenario(args.scenario, parse_overrides(args.set))
     if args.scheduler is not None and not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+|[\w.\-\[\]:]+:\d+",
                                                        args.scheduler):
         args._parser.error(f"--scheduler: {args.scheduler!r} is not an address like tcp://127.0.0.1:8786")
@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--particles", type=int, default=None, help="particles per target (default: the scenario's)")
     e.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
     e.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
+    e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change a scenario value for this run (VALUE read as YAML; repeatable), "
+                        "e.g. --set planning.speed_max_mps=15")
     e.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.set_defaults(func=_eval, _parser=e)

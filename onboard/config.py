@@ -110,6 +110,7 @@ class Tracking:
     plan_spread_sigma: float = 1.5  # the others at +-this many sigma along the cloud's major axis
     plan_steered_share: float = 0.7  # share of the particles a reference plan steers (the rest: its control)
     plan_trust_sigma: float = 2.0  # only particles this close (Mahalanobis) to a reference are steered
+    plan_max_qp_solves: int = 80  # QP budget of each reference plan (the mean's: guidance.max_qp_solves)
 
 
 @dataclass(frozen=True)
@@ -379,7 +380,7 @@ def _parse(root: _Node, source: str) -> Scenario:
     tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
                                          "regularise_bandwidth", "free_steering", "plan_steering",
                                          "plan_references", "plan_spread_sigma", "plan_steered_share",
-                                         "plan_trust_sigma"})
+                                         "plan_trust_sigma", "plan_max_qp_solves"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
@@ -393,6 +394,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         plan_spread_sigma=tr.get("plan_spread_sigma", 1.5).number(lambda v: 0 < v <= 5, "must be in (0, 5]"),
         plan_steered_share=tr.get("plan_steered_share", 0.7).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         plan_trust_sigma=tr.get("plan_trust_sigma", 2.0).number(_positive, "must be > 0"),
+        plan_max_qp_solves=tr.get("plan_max_qp_solves", 80).integer(1, 1000),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})

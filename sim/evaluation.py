@@ -45,7 +45,7 @@ import os
 import platform
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -93,9 +93,11 @@ class Method:
     ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). greedy: let the monitor's tick run the paper's
     one-step rule (eq:optimization) from the UAV position; ``policy`` is then not called.
-    (With ``setup`` overrides such as ``planner="lookahead"`` or ``motion=UavMotion("vehicle")``
-    the tick runs that planner instead: ``greedy`` means "the monitor's tick plans the UAV".)
+    (With ``setup`` overrides such as ``planner="lookahead"`` the tick runs that planner
+    instead: ``greedy`` means "the monitor's tick plans the UAV".)
     setup: MonitorSetup field overrides for this method only (applied after the config's).
+    motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
+    ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
     """
 
     name: str
@@ -105,12 +107,15 @@ class Method:
     greedy: bool = False
     policy: Policy | None = None
     setup: tuple[tuple[str, Any], ...] = ()
+    motion: str | None = None
 
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed"):
             raise ValueError(f"method {self.name}: sensing must be 'uav' or 'fixed'")
         if self.sensing == "uav" and not self.greedy and self.policy is None:
             raise ValueError(f"method {self.name}: a UAV method needs greedy=True or a policy")
+        if self.motion not in (None, "jump", "vehicle"):
+            raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
 
 
 def hover_policy(ctx: PolicyContext) -> np.ndarray:
@@ -171,16 +176,15 @@ def register_method(method: Method) -> Method:
     return method
 
 
-_VEHICLE = UavMotion("vehicle")  # ArduCopter's WPNAV_SPEED / WPNAV_ACCEL defaults
-
 for _m in (
     Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", greedy=True, clutter_rate=1.0),
     Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"), ("motion", UavMotion("jump")))),
-    Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (10 m/s, 2.5 m/s^2), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"), ("motion", _VEHICLE))),
-    Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (10 m/s, 2.5 m/s^2), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"), ("motion", _VEHICLE))),
+           greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="jump"),
+    Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
+           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", greedy=True,
+           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle"),
+    Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
+           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle"),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", greedy=True, clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
     Method("hover", "single UAV hovering at its start, Lambda = 1", policy=hover_policy, clutter_rate=1.0),
@@ -307,7 +311,10 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
         lam = sc.sensor.clutter_rate if method.clutter_rate is None else method.clutter_rate
         sensor = tracking.SensorModel(sigma, sc.sensor.p_detect, lam)
         df = DirectionFinder(sigma, sc.sensor.p_detect, lam)
-    return MonitorSetup.from_scenario(sc, **{**dict(cfg.overrides), **dict(method.setup)}, sensor=sensor), df
+    fields = {**dict(cfg.overrides), **dict(method.setup)}
+    if method.motion is not None:
+        fields["motion"] = replace(UavMotion.from_config(sc.planning), kind=method.motion)
+    return MonitorSetup.from_scenario(sc, **fields, sensor=sensor), df
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,

@@ -280,14 +280,14 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
     plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
-    laws, metric = _reference_laws(setup, mean, cov, goal, plan, None, ws, lambda: 0.0)
+    laws, metric, _ = _reference_laws(setup, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
     assert len(laws) == 3 and laws[0] is plan.law
     np.testing.assert_allclose(metric, np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2)))
     offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
     np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
     assert all(abs(lw.x_ref[1] - mean[1]) < 1e-6 for lw in laws[1:])
     four = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, plan_references=4)))
-    laws, _ = _reference_laws(four, mean, cov, goal, plan, None, ws, lambda: 0.0)
+    laws, _, _ = _reference_laws(four, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
     np.testing.assert_allclose(sorted(lw.x_ref[0] - mean[0] for lw in laws[1:]), [-45.0, -22.5, 22.5, 45.0],
                                atol=1e-6)
 

@@ -10,7 +10,7 @@ Order within a tick t (the beliefs held between ticks are the predictions for th
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -40,12 +40,14 @@ class PlanSteering:
     spread_sigma: float = 1.5
     steered_share: float = 0.7
     trust_sigma: float = 2.0
+    max_qp_solves: int = 80  # per reference plan (capped by the guidance's budget, which the mean's has)
 
     @classmethod
     def from_config(cls, tr) -> "PlanSteering | None":
         if not tr.plan_steering:
             return None
-        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma)
+        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
+                   tr.plan_max_qp_solves)
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +121,9 @@ class MonitorState:
     beliefs: tuple[tracking.ParticleSet, ...]  # predicted beliefs for the next scan time
     plans: tuple[Plan | None, ...]
     step: int = 0
+    # per target, last tick's reference plans (plan_steering; empty while the plan was free): the
+    # warm start of this tick's plan from the same offset
+    references: tuple[tuple[Plan | None, ...], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,31 +201,36 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
 
 
 def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal: np.ndarray, plan: Plan,
-                    previous: Plan | None, workspace: GuidanceWorkspace | None,
-                    timer: Callable[[], float]) -> tuple[list[LocalLaw], np.ndarray]:
+                    previous: Plan | None, previous_refs: Sequence[Plan | None], workspace: GuidanceWorkspace | None,
+                    timer: Callable[[], float]) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
     """The laws of the mean's plan and of plans from ``references`` points, pairs evenly spaced
     out to +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
     regressed on position, as the cloud correlates them), each planned as the mean is (warm-started
-    by last tick's plan, so each may round an obstacle on its own side); and the position metric
-    (inverse covariance) that picks a particle's nearest reference. A reference with no feasible
+    by last tick's plan from the same offset, else the mean's, so each may round an obstacle on its
+    own side); the position metric (inverse covariance) that picks a particle's nearest
+    reference; and the reference plans (next tick's warm starts). A reference with no feasible
     plan is left out."""
     ps = setup.plan_steering
     C = cov[np.ix_(PLANAR, PLANAR)]
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
     metric = np.linalg.inv(Cpp)
-    laws = [plan.law]
+    laws, refs = [plan.law], []
+    params = replace(setup.guidance, max_qp_solves=min(ps.max_qp_solves, setup.guidance.max_qp_solves))
     if ps.references >= 2:
         lam, vec = np.linalg.eigh(Cpp)
         axis = vec[:, -1] * np.sqrt(lam[-1])
         half = ps.spread_sigma * np.arange(1, ps.references // 2 + 1) / (ps.references // 2)
-        for o in np.concatenate([-half, half]):
+        for i, o in enumerate(np.concatenate([-half, half])):
             x = np.asarray(mean, float).copy()
             x[PLANAR] += C[:, :2] @ np.linalg.solve(Cpp, o * axis)
-            p = plan_guidance(setup.model, setup.guidance, setup.obstacles, x, goal, previous=previous,
+            own = previous_refs[i] if i < len(previous_refs) else None
+            p = plan_guidance(setup.model, params, setup.obstacles, x, goal,
+                              previous=own if own is not None and own.feasible else previous,
                               workspace=workspace, timer=timer, with_feedback=True)
+            refs.append(p if p.feasible else None)
             if p.feasible and p.law is not None:
                 laws.append(p.law)
-    return laws, metric
+    return laws, metric, tuple(refs)
 
 
 def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
@@ -262,12 +272,13 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # plan's law for every particle is worse: where constraints are active it is dead-beat, the
     # cloud collapses onto the mean's plan and is lost when the truth takes another active set
     # or side of an obstacle (docs/TRACKING.md).
-    beliefs = []
+    beliefs, references = [], []
     for j in range(M):
-        laws, metric = (), None
+        laws, metric, refs = (), None, ()
         if setup.plan_steering is not None and plans[j].law is not None and not plans[j].unconstrained:
-            laws, metric = _reference_laws(setup, means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
-                                           workspace, timer)
+            laws, metric, refs = _reference_laws(setup, means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
+                                                 state.references[j] if state.references else (), workspace, timer)
+        references.append(refs)
         beliefs.append(tracking.predict(posts[j], setup.model,
                                         _particle_controls(plans[j], posts[j].particles, setup.goals[j],
                                                            setup, rng, laws, metric), rng))
@@ -294,5 +305,5 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
                                             setup.objective, setup.motion, vel, setup.model.dt_s)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
-    return (MonitorState(beliefs, plans, state.step + 1),
+    return (MonitorState(beliefs, plans, state.step + 1, tuple(references)),
             TickResult(means, covs, plans, planning, degenerate, timings))
