@@ -41,6 +41,7 @@ def test_builtin_and_file_agree(paper):
     (lambda d: d["tracking"].update(plan_steered_share=1.5), "tracking.plan_steered_share: must be in [0, 1]"),
     (lambda d: d["tracking"].update(plan_steering="yes please"), "tracking.plan_steering"),
     (lambda d: d["tracking"].update(plan_references=3), "tracking.plan_references: must be even"),
+    (lambda d: d["tracking"].update(plan_max_qp_solves=0), "tracking.plan_max_qp_solves"),
 ])
 def test_invalid_field_is_named(raw, edit, message):
     data = copy.deepcopy(raw)

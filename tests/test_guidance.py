@@ -280,8 +280,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
     plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
-    laws, metric, _ = _reference_laws(setup, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
-    assert len(laws) == 3 and laws[0] is plan.law
+    laws, metric, refs = _reference_laws(setup, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
+    assert len(laws) == 3 and laws[0] is plan.law and len(refs) == 2
     np.testing.assert_allclose(metric, np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2)))
     offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
     np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
@@ -290,6 +290,18 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     laws, _, _ = _reference_laws(four, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
     np.testing.assert_allclose(sorted(lw.x_ref[0] - mean[0] for lw in laws[1:]), [-45.0, -22.5, 22.5, 45.0],
                                atol=1e-6)
+    # next tick each reference is warm-started by its own plan from the same offset: it keeps
+    # its way around the obstacles for fewer QP solves than when started from the mean's plan
+    mean2 = plan.means[0]
+    plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan, workspace=ws,
+                          with_feedback=True)
+    _, _, own = _reference_laws(setup, mean2, cov, goal, plan2, plan, refs, ws, lambda: 0.0)
+    _, _, cold = _reference_laws(setup, mean2, cov, goal, plan2, plan, (), ws, lambda: 0.0)
+    pairs = [(a, b, c) for a, b, c in zip(refs, own, cold) if b is not None and c is not None]
+    assert pairs
+    for before, warm, from_mean in pairs:
+        np.testing.assert_array_equal(warm.faces[:-1], before.faces[1:])
+    assert sum(w.qp_solves for _, w, _ in pairs) < sum(c.qp_solves for _, _, c in pairs)
 
 
 def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, model):
