@@ -98,6 +98,8 @@ class Method:
     setup: MonitorSetup field overrides for this method only (applied after the config's).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
     ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
+    jump_twin: for a vehicle method, the method with the same planner and the jump model; when
+    both run, the summary reports this method's RMSE over the twin's, paired, with its CI.
     """
 
     name: str
@@ -108,6 +110,7 @@ class Method:
     policy: Policy | None = None
     setup: tuple[tuple[str, Any], ...] = ()
     motion: str | None = None
+    jump_twin: str | None = None
 
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed"):
@@ -182,9 +185,10 @@ for _m in (
            greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="jump"),
     Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
            "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", greedy=True,
-           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle"),
+           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle", jump_twin="lookahead"),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle"),
+           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle",
+           jump_twin="greedy_l1"),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", greedy=True, clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
     Method("hover", "single UAV hovering at its start, Lambda = 1", policy=hover_policy, clutter_rate=1.0),
@@ -501,6 +505,8 @@ class MethodSummary:
     degenerate: int
     bound_mean_m: float = float("nan")  # the PCRB, averaged like rmse_mean_m (sqrt of the trial mean)
     bound_t_mean: np.ndarray | None = None  # (K,) the bound per step, averaged over targets
+    # vehicle method whose jump twin ran: (twin, rmse_mean_m / twin's with its 95 % paired CI)
+    vs_jump: tuple[str, tuple[float, float, float]] | None = None
 
     @property
     def rmse_over_bound(self) -> float:
@@ -595,7 +601,9 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             float(np.mean((anees[w0:] >= band[0]) & (anees[w0:] <= band[1]))), diff, ratio_ref, motion,
             1e3 * float(np.mean([t.traces[m.name].tick_s for t in trials])),
             int(sum(t.traces[m.name].degenerate for t in trials)),
-            *_bound_summary([t.traces[m.name].bound_m2 for t in trials], w0))
+            *_bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
+            vs_jump=None if m.jump_twin not in cfg.method_names else (m.jump_twin, _paired_ratio(
+                err, np.stack([t.traces[m.jump_twin].error_m for t in trials]), w0, cfg.seed)))
     ratio = ratio_ci = None
     if REFERENCE in out and FIXED in out:
         ratio = out[REFERENCE].rmse_mean_m / out[FIXED].rmse_mean_m
@@ -620,7 +628,8 @@ def headline(summary: Summary) -> dict:
     return {
         "methods": {n: {"rmse_mean_m": r(s.rmse_mean_m), "nees_mean": r(s.nees_mean),
                         "bound_m": r(s.bound_mean_m), "rmse_over_bound": r(s.rmse_over_bound),
-                        "ratio_vs_ref": None if s.ratio_vs_ref is None else [r(v) for v in s.ratio_vs_ref]}
+                        "ratio_vs_ref": None if s.ratio_vs_ref is None else [r(v) for v in s.ratio_vs_ref],
+                        **({} if s.vs_jump is None else {"ratio_vs_jump": [r(v) for v in s.vs_jump[1]]})}
                     for n, s in summary.methods.items()},
         "uav_vs_fixed_ratio": r(summary.ratio),
         "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
@@ -704,6 +713,12 @@ def results_markdown(summary: Summary, command: str) -> str:
                                                   f"(paired percentile bootstrap over trials, {BOOTSTRAP_RESAMPLES} resamples)"
         L += [f"**Single UAV (Lambda = 1) over fixed sensors:** RMSE ratio {REFERENCE} / {FIXED} = "
               f"{summary.ratio:.2f}{ci}.", ""]
+    for n, s in summary.methods.items():
+        if s.vs_jump is not None:
+            twin, (v, a, b) = s.vs_jump
+            tb = summary.methods[twin].bound_mean_m
+            L += [f"**Vehicle limits:** {n} / {twin} (the same planner, jump model): RMSE ratio {v:.2f}, "
+                  f"95 % CI [{a:.2f}, {b:.2f}] (paired bootstrap); PCRB ratio {s.bound_mean_m / tb:.2f}.", ""]
     uav = {n: s for n, s in summary.methods.items() if s.motion}
     if uav:
         L += ["## How the UAV moved", "",

@@ -154,6 +154,15 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
     s = ev.summarise(cfg, [tr])
     for name in names:
         assert 0.5 < s.methods[name].rmse_over_bound < 5.0, (name, s.methods[name].rmse_over_bound)
+    # issue 4's vehicle target: each vehicle method against its planner with the jump model, paired
+    for name, twin in (("lookahead_vehicle", "lookahead"), ("greedy_vehicle", "greedy_l1")):
+        got, (ratio, _, _) = s.methods[name].vs_jump
+        assert got == twin
+        assert ratio == pytest.approx(s.methods[name].rmse_mean_m / s.methods[twin].rmse_mean_m)
+        assert f"{name} / {twin} (the same planner, jump model): RMSE ratio {ratio:.2f}" in ev.results_markdown(s, "x")
+    assert s.methods["lookahead"].vs_jump is None
+    assert ev.headline(s)["methods"]["greedy_vehicle"]["ratio_vs_jump"][0] == pytest.approx(
+        s.methods["greedy_vehicle"].vs_jump[1][0], abs=1e-4)
 
 
 def test_orbit_converges_to_its_circle(quick):
