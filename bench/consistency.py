@@ -51,6 +51,17 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
     return out
 
 
+def report(res: dict, label: str = "") -> None:
+    """Print consistency()'s figures a method a line (and RMSE / bound a line), then the JSON."""
+    for name, r in res.items():
+        head = f"{label}{name:12s}"
+        print(f"{head} ANEES {r['anees']:6.2f}  median {r['median']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m")
+        if "over_bound_by_10s" in r:
+            print(f"{'':{len(head)}s} RMSE / bound {r['over_bound']}; per 10 s {r['over_bound_by_10s']}; "
+                  f"median over trials {r['over_bound_trial_median']}")
+    print(json.dumps(res))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scenario", nargs="?", default="paper")
@@ -66,12 +77,7 @@ def main() -> int:
         ap.error(str(exc))
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
                       workers=args.workers)
-    for name, r in res.items():
-        print(f"{name:12s} ANEES {r['anees']:6.2f}  median {r['median']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m")
-        if "over_bound_by_10s" in r:
-            print(f"{'':12s} RMSE / bound {r['over_bound']}; per 10 s {r['over_bound_by_10s']}; median over trials "
-                  f"{r['over_bound_trial_median']}")
-    print(json.dumps(res))
+    report(res)
     return 0
 
 

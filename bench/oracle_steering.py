@@ -13,7 +13,6 @@ The trial loop and the filter are the evaluation's own; the oracle is patched in
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -76,17 +75,14 @@ _monitor._particle_controls = _oracle_controls
 
 
 def main() -> int:
-    from bench.consistency import consistency
+    from bench.consistency import consistency, report
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--methods", default="lookahead,greedy_l1,orbit")
     ap.add_argument("--trials", type=int, default=16)
     ap.add_argument("--workers", type=int, default=None)
     args = ap.parse_args()
     res = consistency("paper", args.methods.split(","), args.trials, workers=args.workers)
-    for name, r in res.items():
-        print(f"oracle {name:12s} ANEES {r['anees']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m  "
-              f"RMSE / bound {r.get('over_bound')}; per 10 s {r.get('over_bound_by_10s')}")
-    print(json.dumps(res))
+    report(res, label="oracle ")
     return 0
 
 

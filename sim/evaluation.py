@@ -570,13 +570,14 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     N, w0 = len(trials), cfg.window_start
     band = nees_band(N)
     out: dict[str, MethodSummary] = {}
+    errs = {m.name: np.stack([t.traces[m.name].error_m for t in trials]) for m in cfg.methods}  # (N, K, M)
     ref_r = None
-    if REFERENCE in cfg.method_names:
-        ref_err = np.stack([t.traces[REFERENCE].error_m for t in trials])
+    if REFERENCE in errs:
+        ref_err = errs[REFERENCE]
         ref_r = np.sqrt(np.mean(ref_err[:, w0:] ** 2, axis=(1, 2)))
     full_step = cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m
     for m in cfg.methods:
-        err = np.stack([t.traces[m.name].error_m for t in trials])  # (N, K, M)
+        err = errs[m.name]
         nees = np.stack([t.traces[m.name].nees for t in trials])
         eps = np.sqrt(np.mean(err ** 2, axis=0))
         anees = nees.mean(axis=0)
@@ -602,13 +603,12 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             1e3 * float(np.mean([t.traces[m.name].tick_s for t in trials])),
             int(sum(t.traces[m.name].degenerate for t in trials)),
             *_bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
-            vs_jump=None if m.jump_twin not in cfg.method_names else (m.jump_twin, _paired_ratio(
-                err, np.stack([t.traces[m.jump_twin].error_m for t in trials]), w0, cfg.seed)))
+            vs_jump=None if m.jump_twin not in errs else (m.jump_twin, _paired_ratio(err, errs[m.jump_twin], w0,
+                                                                                       cfg.seed)))
     ratio = ratio_ci = None
     if REFERENCE in out and FIXED in out:
         ratio = out[REFERENCE].rmse_mean_m / out[FIXED].rmse_mean_m
-        a = np.stack([t.traces[REFERENCE].error_m for t in trials])
-        b = np.stack([t.traces[FIXED].error_m for t in trials])
+        a, b = errs[REFERENCE], errs[FIXED]
         boot_rng = _rng(cfg.seed, 2**31 - 1)  # its own stream: does not touch any trial's
         rs = []
         for _ in range(BOOTSTRAP_RESAMPLES):

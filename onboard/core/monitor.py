@@ -225,7 +225,7 @@ def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal
             x[PLANAR] += C[:, :2] @ np.linalg.solve(Cpp, o * axis)
             own = previous_refs[i] if i < len(previous_refs) else None
             p = plan_guidance(setup.model, params, setup.obstacles, x, goal,
-                              previous=own if own is not None and own.feasible else previous,
+                              previous=own if own is not None else previous,
                               workspace=workspace, timer=timer, with_feedback=True)
             refs.append(p if p.feasible else None)
             if p.feasible and p.law is not None:
