@@ -40,6 +40,7 @@ Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import platform
@@ -386,10 +387,18 @@ def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
 
 # --------------------------------------------------------------------------- running many trials
 
-def _worker_init() -> None:
+def _one_blas_thread() -> None:
     # one BLAS thread per worker: the workers already fill the cores
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+
+
+def _worker_init() -> None:
+    import signal
+
+    _one_blas_thread()
+    # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
@@ -428,17 +437,43 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
                     results.append(run_trial(cfg, i))
                     bar.advance(task)
             else:
+                import functools
                 import multiprocessing as mp
-                from concurrent.futures import ProcessPoolExecutor, as_completed as done
 
-                _worker_init()  # inherited by the spawned workers' environment
+                _one_blas_thread()  # inherited by the spawned workers' environment
                 ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
-                with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init) as pool:
-                    futures = [pool.submit(run_trial, cfg, i) for i in range(n)]
-                    for fut in done(futures):
-                        results.append(fut.result())
-                        bar.advance(task)
+                # leaving the block for any reason (a worker's error, Ctrl-C, SIGTERM) terminates the
+                # workers at once: none is left computing trials nobody will read
+                with _sigterm_raises(), ctx.Pool(workers, initializer=_worker_init) as pool:
+                    try:
+                        for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
+                            results.append(res)
+                            bar.advance(task)
+                    except BaseException:
+                        console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
+                        raise
     return sorted(results, key=lambda r: r.trial)
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """While the block runs in the main thread, SIGTERM raises SystemExit(143) instead of
+    killing the process outright, so the ``with`` blocks inside it clean up (the worker pool)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum, frame):
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 # --------------------------------------------------------------------------- metrics
@@ -713,12 +748,18 @@ def results_markdown(summary: Summary, command: str) -> str:
                                                   f"(paired percentile bootstrap over trials, {BOOTSTRAP_RESAMPLES} resamples)"
         L += [f"**Single UAV (Lambda = 1) over fixed sensors:** RMSE ratio {REFERENCE} / {FIXED} = "
               f"{summary.ratio:.2f}{ci}.", ""]
+    pl, u = cfg.scenario.planning, cfg.scenario.uav
+    jump_m = u.n_radial * u.step_m
+    equal_step = pl.speed_max_mps * dt / u.n_radial  # the grid step that makes the jump as fast
     for n, s in summary.methods.items():
         if s.vs_jump is not None:
             twin, (v, a, b) = s.vs_jump
             tb = summary.methods[twin].bound_mean_m
             L += [f"**Vehicle limits:** {n} / {twin} (the same planner, jump model): RMSE ratio {v:.2f}, "
-                  f"95 % CI [{a:.2f}, {b:.2f}] (paired bootstrap); PCRB ratio {s.bound_mean_m / tb:.2f}.", ""]
+                  f"95 % CI [{a:.2f}, {b:.2f}] (paired bootstrap); PCRB ratio {s.bound_mean_m / tb:.2f}. "
+                  f"The jump model moves up to {jump_m:g} m per tick, the vehicle at most {pl.speed_max_mps:g} m/s "
+                  f"({pl.accel_max_mps2:g} m/s^2); the same comparison at equal speed: "
+                  f"`--set uav.step_m={equal_step:g}`.", ""]
     uav = {n: s for n, s in summary.methods.items() if s.motion}
     if uav:
         L += ["## How the UAV moved", "",

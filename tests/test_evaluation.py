@@ -2,9 +2,14 @@
 harness is deterministic for a seed (whatever the workers or the cluster), a short evaluation
 keeps every target with every method, and ``pmon eval`` writes what it promises."""
 import json
+import os
+import re
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,6 +165,9 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
         assert got == twin
         assert ratio == pytest.approx(s.methods[name].rmse_mean_m / s.methods[twin].rmse_mean_m)
         assert f"{name} / {twin} (the same planner, jump model): RMSE ratio {ratio:.2f}" in ev.results_markdown(s, "x")
+    # and how to compare at equal speed: the grid step that makes the jump model as fast as the vehicle
+    equal = f"`--set uav.step_m={8.0 * cfg.dt_s / slow.uav.n_radial:g}`"
+    assert "the vehicle at most 8 m/s (2 m/s^2)" in ev.results_markdown(s, "x") and equal in ev.results_markdown(s, "x")
     assert s.methods["lookahead"].vs_jump is None
     assert ev.headline(s)["methods"]["greedy_vehicle"]["ratio_vs_jump"][0] == pytest.approx(
         s.methods["greedy_vehicle"].vs_jump[1][0], abs=1e-4)
@@ -218,3 +226,57 @@ def test_pmon_eval_bad_arguments(tmp_path, args, message):
     assert res.returncode == 2
     assert message in res.stderr and "Traceback" not in res.stderr
     assert not (tmp_path / "x").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) processes whose parent is pid, from /proc."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue  # gone meanwhile
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("how, code", [("sigterm", 143), ("ctrl-c", 130)])
+def test_pmon_eval_stopped_midway_stops_its_workers(tmp_path, how, code):
+    """SIGTERM to pmon eval, or Ctrl-C to its process group, while two workers run trials: it
+    exits at once with 128 + the signal, says how far it got, writes nothing, and no worker is
+    left computing (before: SIGTERM orphaned them, Ctrl-C waited for the running trials)."""
+    out = tmp_path / "ev"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "eval", "--trials", "8", "--methods", "greedy_l1",
+                          "--workers", "2", "--no-figures", "--quiet", "--out", str(out)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while len(_children(p.pid)) < 2 and time.monotonic() < deadline and p.poll() is None:
+            time.sleep(0.1)
+        kids = _children(p.pid)
+        assert len(kids) >= 2, "the workers never started"
+        time.sleep(1.0)  # they are inside their first trials (several seconds each)
+        if how == "sigterm":
+            os.kill(p.pid, signal.SIGTERM)
+        else:
+            os.killpg(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=15)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == code, err
+    assert re.search(r"stopped after [0-7] of 8 trials", err) and "Traceback" not in err
+    assert not out.exists()
+    deadline = time.monotonic() + 5
+    while any(_alive(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(k) for k in kids)
