@@ -1,6 +1,7 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
     python bench/planner.py [--ticks 60] [--seed 1] [--figure bench/planner_tick.png]
+                            [--set tracking.plan_steering=true ...]
 
 Closed loop on the core alone (as bench/tick.py): the targets follow their own plans, the DF
 bearings carry noise, the UAV goes where the planner says (and, for the vehicle motion, with
@@ -25,7 +26,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
@@ -60,15 +61,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")))
+    ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
+                    help="where to write the figure ('' for none)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a scenario value, e.g. tracking.plan_steering=true")
     args = ap.parse_args()
-    sc = load_scenario("paper")
+    try:
+        sc = load_scenario("paper", parse_overrides(args.set))
+    except ConfigError as exc:
+        ap.error(str(exc))
     results = {}
     for planner, motion in CASES:
         setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
             motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
         results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
-    print(f"paper scenario, {args.ticks} ticks, lookahead over {sc.planning.lookahead_steps} ticks, one BLAS thread")
+    print(f"paper scenario{''.join(' --set ' + x for x in args.set)}, {args.ticks} ticks, lookahead over "
+          f"{sc.planning.lookahead_steps} ticks, one BLAS thread")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")
     for name, r in results.items():
         print(f"{name:20s} {np.median(r['tick']):9.1f} {np.percentile(r['tick'], 95):9.1f} "

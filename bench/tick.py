@@ -1,6 +1,6 @@
 """One tick of the paper scenario, split into tracking / guidance / planning; and a large case.
 
-    python bench/tick.py [--ticks 30] [--large-ticks 10]
+    python bench/tick.py [--ticks 30] [--large-ticks 8] [--set tracking.plan_steering=true ...]
 
 Prints a table and, last, one JSON line of figures (milliseconds, medians over ticks after the
 first, which includes OSQP setup and the exploratory face search).
@@ -18,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
@@ -72,12 +72,18 @@ def main() -> None:
     ap.add_argument("--ticks", type=int, default=30)
     ap.add_argument("--large-ticks", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a scenario value, e.g. tracking.plan_steering=true")
     args = ap.parse_args()
-    sc = load_scenario("paper")
+    try:
+        sc = load_scenario("paper", parse_overrides(args.set))
+    except ConfigError as exc:
+        ap.error(str(exc))
     base = MonitorSetup.from_scenario(sc)
     paper = run(base, args.ticks, args.seed)
     large = run(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
-    print(f"paper scenario: 4 targets, {len(base.obstacles)} obstacles, T={base.guidance.horizon}, "
+    print(f"paper scenario{''.join(' --set ' + x for x in args.set)}: 4 targets, {len(base.obstacles)} obstacles, "
+          f"T={base.guidance.horizon}, "
           f"{base.n_particles} particles/target, {args.ticks} ticks")
     for k, v in paper.items():
         print(f"  {k:9s} median {np.median(v):8.1f} ms   p95 {np.percentile(v, 95):8.1f} ms")
