@@ -87,6 +87,8 @@ def log_likelihood(positions: np.ndarray, sensor_xy: np.ndarray, bearings: np.nd
     n_pos = len(positions)
     if b.size == 0:
         return np.zeros(n_pos)
+    if not np.isfinite(b).all():  # a corrupt set carries no likelihood: update() keeps the prior, flagged
+        return np.full(n_pos, np.nan)
     predicted = bearing(positions, sensor_xy)  # (N,)
     resid = wrap(b[None, :] - predicted[:, None])  # (N, n)
     log_c = -0.5 * (resid / model.sigma_rad) ** 2 - np.log(model.sigma_rad) - 0.5 * LOG_2PI
@@ -106,7 +108,8 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
     """eq:update with one or more scans [(sensor_xy, bearings), ...], their likelihoods multiplied.
 
     If the update leaves no finite weight (a set impossible under the model, e.g. p_D = 1 with
-    the target far from every bearing), the prior weights are kept and ``degenerate`` is set.
+    the target far from every bearing, or a scan holding a non-finite bearing), the prior weights
+    are kept and ``degenerate`` is set.
     """
     logw = ps.log_weights.copy()
     for sensor_xy, bearings in scans:
