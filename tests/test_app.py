@@ -140,3 +140,51 @@ def test_commands_are_acknowledged_with_reasons(rig):
                   and m.custom_mode == State.IDLE, 5, n)
     assert hb is not None and hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
     assert app.counters.get("io_errors", 0) == 0
+
+
+def _warned(app, text):
+    return any(text in e for _, e in list(app.events))
+
+
+@pytest.mark.timeout(60)
+def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
+    """At connection the app reads WPNAV_SPEED / WPNAV_ACCEL. The mock's stock 10 m/s is half of
+    the paper's 20 m steps per tick: one warning (the vehicle will lag the setpoints); the jump
+    model assumes no acceleration limit, so none about that."""
+    ap, app, gcs, _ = rig
+    deadline = time.monotonic() + 5
+    while (app.vehicle.speed_limit_mps is None or app.vehicle.accel_limit_mps2 is None) \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert app.vehicle.speed_limit_mps == pytest.approx(10.0)
+    assert app.vehicle.accel_limit_mps2 == pytest.approx(2.5)
+    assert _warned(app, "WPNAV_SPEED 10 m/s < 20 planned")
+    assert not _warned(app, "WPNAV_ACCEL")
+
+
+@pytest.mark.timeout(60)
+def test_vehicle_motion_is_checked_against_the_autopilot_speed_and_acceleration():
+    """planning.motion: vehicle at 8 m/s and 5 m/s^2 against an autopilot with 20 m/s and
+    2.5 m/s^2: the acceleration is reported (to a ground station on the autopilot's other link,
+    connected before the app), the speed is not."""
+    from dataclasses import replace
+
+    sc = load_scenario("paper")
+    sc = replace(sc, planning=replace(sc.planning, motion="vehicle", speed_max_mps=8.0, accel_max_mps2=5.0))
+    o = sc.origin
+    ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0, endpoints=["tcpin:127.0.0.1:0"] * 2,
+                       params={"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 250}).start()
+    gcs = Gcs(ap.port("tcpin", 1))
+    app = None
+    try:
+        assert gcs.wait(lambda m: m.get_type() == "HEARTBEAT", 5) is not None
+        app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0), sc).start()
+        told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "WPNAV_ACCEL" in m.text, 10)
+        assert told is not None and told.text == "PMON: WPNAV_ACCEL 2.5 m/s^2 < 5 planned"
+        assert told.severity == mavlink.MAV_SEVERITY_WARNING
+        assert app.vehicle.speed_limit_mps == pytest.approx(20.0) and not _warned(app, "WPNAV_SPEED")
+    finally:
+        gcs.close()
+        if app is not None:
+            app.stop()
+        ap.stop()

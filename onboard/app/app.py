@@ -53,6 +53,12 @@ DF_RCVBUF_BYTES = 1 << 20  # DF socket receive buffer asked for (SO_RCVBUF)
 POSITION_ONLY = 3576  # type_mask: ignore velocity, acceleration, yaw, yaw rate
 ARDUCOPTER_GUIDED = 4
 PX4_MAIN_MODE_OFFBOARD = 6
+# the autopilot's horizontal speed and acceleration limits for guided position setpoints, read at
+# connection to check what the planner's moves assume: (name, factor to SI) per autopilot
+SPEED_ACCEL_PARAMS = {
+    mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: (("WPNAV_SPEED", 0.01), ("WPNAV_ACCEL", 0.01)),  # cm/s, cm/s^2
+    mavlink.MAV_AUTOPILOT_PX4: (("MPC_XY_CRUISE", 1.0), ("MPC_ACC_HOR", 1.0)),  # m/s, m/s^2
+}
 
 
 class State(IntEnum):
@@ -165,6 +171,8 @@ class Vehicle:
     ned_origin: tuple[float, float, float] | None = None  # autopilot local origin (deg, deg, m)
     heartbeat_local: float = -math.inf
     mode_seen_local: float = -math.inf
+    speed_limit_mps: float | None = None  # horizontal, from its parameters (SPEED_ACCEL_PARAMS)
+    accel_limit_mps2: float | None = None
 
     def is_guided(self) -> bool:
         if self.custom_mode is None:
@@ -461,6 +469,8 @@ class OnboardApp:
                 self.vehicle.ned_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
             elif mtype == "COMMAND_ACK":
                 self._on_autopilot_ack(msg)
+            elif mtype == "PARAM_VALUE":
+                self._on_autopilot_param(msg)
             return
         # messages for this component (from a ground station, routed or direct)
         tsys = getattr(msg, "target_system", None)
@@ -503,6 +513,7 @@ class OnboardApp:
             self.link.set_source_system(src_sys)  # the app is a component of this vehicle
             self.say(f"autopilot {src_sys}/{src_comp} found")
             self._request_telemetry()
+            self._request_speed_limits()
             self._msg_interval_local = self.mono()
         elif (src_sys, src_comp) != (v.sysid, v.compid):
             return
@@ -537,6 +548,41 @@ class OnboardApp:
                 and not v.is_guided():
             self._launch = None
             self.say("launch aborted: mode changed", mavlink.MAV_SEVERITY_WARNING)
+
+    def _request_speed_limits(self) -> None:
+        v = self.vehicle
+        for name, _ in SPEED_ACCEL_PARAMS.get(v.autopilot, ()):
+            self.link.send(self.link.mav.param_request_read_encode(v.sysid, v.compid, name.encode(), -1))
+
+    def _on_autopilot_param(self, msg) -> None:
+        """The autopilot's speed / acceleration limit: warn once when it is below what the
+        planner's moves assume (the vehicle would lag its setpoints; docs/MAVLINK.md)."""
+        names = SPEED_ACCEL_PARAMS.get(self.vehicle.autopilot)
+        if not names:
+            return
+        (speed_name, speed_k), (accel_name, accel_k) = names
+        name, value = self._param_name(msg.param_id), float(msg.param_value)
+        if not math.isfinite(value) or value <= 0.0 or name not in (speed_name, accel_name):
+            return
+        sc = self.base_scenario
+        pl = sc.planning
+        if name == speed_name:
+            self.vehicle.speed_limit_mps = have = value * speed_k
+            if pl.motion == "vehicle":
+                need, why = pl.speed_max_mps, "planning.speed_max_mps"
+            else:  # the paper's jump: the largest ring asked for, per tick
+                reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
+                need, why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
+            unit = "m/s"
+        else:
+            self.vehicle.accel_limit_mps2 = have = value * accel_k
+            if pl.motion != "vehicle":
+                return  # the jump model assumes no acceleration limit at all: nothing to compare
+            need, why, unit = pl.accel_max_mps2, "planning.accel_max_mps2", "m/s^2"
+        if have < need - 1e-6:
+            log.warning("autopilot %s = %g %s is below %s = %g %s: the vehicle will lag the setpoints",
+                        name, have, unit, why, need, unit)
+            self.say(f"{name} {have:g} {unit} < {need:g} planned", mavlink.MAV_SEVERITY_WARNING, once=name)
 
     def _on_autopilot_ack(self, msg) -> None:
         if msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
