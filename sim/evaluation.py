@@ -44,6 +44,7 @@ import contextlib
 import math
 import os
 import platform
+import signal
 import time
 import zlib
 from dataclasses import dataclass, replace
@@ -394,11 +395,32 @@ def _one_blas_thread() -> None:
 
 
 def _worker_init() -> None:
-    import signal
-
     _one_blas_thread()
     # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
+    # (they already start with SIGINT ignored, _pool_starting; this covers a replaced worker)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _pool_starting():
+    """While the worker pool starts (milliseconds: the workers import on their own afterwards),
+    in the main thread: SIGINT ignored, a disposition the spawned workers inherit across exec,
+    so a Ctrl-C never kills one mid-import (one pressed in this window is lost); SIGTERM held
+    back, delivered when this ends, with the pool there to terminate."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    masked = hasattr(signal, "pthread_sigmask")
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM}) if masked else None
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old_int)
+        if masked:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
 
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
@@ -442,16 +464,22 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
 
                 _one_blas_thread()  # inherited by the spawned workers' environment
                 ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
-                # leaving the block for any reason (a worker's error, Ctrl-C, SIGTERM) terminates the
-                # workers at once: none is left computing trials nobody will read
-                with _sigterm_raises(), ctx.Pool(workers, initializer=_worker_init) as pool:
+                # leaving for any reason (a worker's error, Ctrl-C, SIGTERM) terminates the workers
+                # at once: none is left computing trials nobody will read
+                pool = None
+                with _sigterm_raises():
                     try:
+                        with _pool_starting():
+                            pool = ctx.Pool(workers, initializer=_worker_init)
                         for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
                             results.append(res)
                             bar.advance(task)
                     except BaseException:
                         console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
                         raise
+                    finally:
+                        if pool is not None:
+                            pool.terminate()
     return sorted(results, key=lambda r: r.trial)
 
 
@@ -459,7 +487,6 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
 def _sigterm_raises():
     """While the block runs in the main thread, SIGTERM raises SystemExit(143) instead of
     killing the process outright, so the ``with`` blocks inside it clean up (the worker pool)."""
-    import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():

@@ -252,8 +252,9 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("how, code", [("sigterm", 143), ("ctrl-c", 130)])
 def test_pmon_eval_stopped_midway_stops_its_workers(tmp_path, how, code):
     """SIGTERM to pmon eval, or Ctrl-C to its process group, while two workers run trials: it
-    exits at once with 128 + the signal, says how far it got, writes nothing, and no worker is
-    left computing (before: SIGTERM orphaned them, Ctrl-C waited for the running trials)."""
+    exits with 128 + the signal, says how far it got, writes nothing, no worker prints a
+    traceback (they ignore SIGINT from birth) and none is left computing (before: SIGTERM
+    orphaned them, Ctrl-C waited for the running trials)."""
     out = tmp_path / "ev"
     p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "eval", "--trials", "8", "--methods", "greedy_l1",
                           "--workers", "2", "--no-figures", "--quiet", "--out", str(out)],
@@ -264,12 +265,12 @@ def test_pmon_eval_stopped_midway_stops_its_workers(tmp_path, how, code):
             time.sleep(0.1)
         kids = _children(p.pid)
         assert len(kids) >= 2, "the workers never started"
-        time.sleep(1.0)  # they are inside their first trials (several seconds each)
+        time.sleep(1.0)  # importing or inside their first trials (several seconds each): either way
         if how == "sigterm":
             os.kill(p.pid, signal.SIGTERM)
         else:
             os.killpg(p.pid, signal.SIGINT)
-        _, err = p.communicate(timeout=15)
+        _, err = p.communicate(timeout=30)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
