@@ -70,8 +70,13 @@ def _eval(args) -> int:
     import shlex
     import time
 
+    import signal
+
     from sim import evaluation as ev
 
+    # Ctrl-C stops the evaluation (and its workers) even when started from a shell that ignores
+    # SIGINT: a background job without job control inherits SIG_IGN (as pmon demo does)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     sc = load_scenario(args.scenario, parse_overrides(args.set))
     if args.scheduler is not None and not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+|[\w.\-\[\]:]+:\d+",
                                                        args.scheduler):
