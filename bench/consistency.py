@@ -23,7 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
+from bench import add_set_option, set_overrides  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 
 
@@ -68,13 +69,9 @@ def main() -> int:
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--workers", type=int, default=None, help="local processes (default: one per core)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="change a scenario value, e.g. tracking.free_steering=false")
+    add_set_option(ap, "tracking.free_steering=false")
     args = ap.parse_args()
-    try:
-        overrides = parse_overrides(args.set)
-    except ConfigError as exc:
-        ap.error(str(exc))
+    overrides = set_overrides(ap, args)
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
                       workers=args.workers)
     report(res)

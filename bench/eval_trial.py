@@ -26,7 +26,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
+from bench import add_set_option, set_overrides  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
@@ -73,13 +74,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trial", type=int, default=0)
     ap.add_argument("--methods", default=",".join(ev.DEFAULT_METHODS))
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="change a scenario value, e.g. tracking.plan_steering=true")
+    add_set_option(ap)
     args = ap.parse_args()
-    try:
-        overrides = parse_overrides(args.set)
-    except ConfigError as exc:
-        ap.error(str(exc))
+    overrides = set_overrides(ap, args)
     t = trial_times(args.trial, args.methods.split(","), overrides)
     print("one trial, s of one core: " + ", ".join(f"{k} {v}" for k, v in t.items()))
     d = daqp_forms()

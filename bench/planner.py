@@ -26,7 +26,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
+from bench import add_set_option, set_overrides  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
@@ -63,13 +64,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
                     help="where to write the figure ('' for none)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="change a scenario value, e.g. tracking.plan_steering=true")
+    add_set_option(ap)
     args = ap.parse_args()
-    try:
-        sc = load_scenario("paper", parse_overrides(args.set))
-    except ConfigError as exc:
-        ap.error(str(exc))
+    sc = load_scenario("paper", set_overrides(ap, args))
     results = {}
     for planner, motion in CASES:
         setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(

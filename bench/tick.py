@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
+from bench import add_set_option, set_overrides  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
@@ -72,13 +73,9 @@ def main() -> None:
     ap.add_argument("--ticks", type=int, default=30)
     ap.add_argument("--large-ticks", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="change a scenario value, e.g. tracking.plan_steering=true")
+    add_set_option(ap)
     args = ap.parse_args()
-    try:
-        sc = load_scenario("paper", parse_overrides(args.set))
-    except ConfigError as exc:
-        ap.error(str(exc))
+    sc = load_scenario("paper", set_overrides(ap, args))
     base = MonitorSetup.from_scenario(sc)
     paper = run(base, args.ticks, args.seed)
     large = run(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)

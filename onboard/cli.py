@@ -68,9 +68,8 @@ def _eval(args) -> int:
     import json
     import re
     import shlex
-    import time
-
     import signal
+    import time
 
     from sim import evaluation as ev
 

@@ -397,30 +397,44 @@ def _one_blas_thread() -> None:
 def _worker_init() -> None:
     _one_blas_thread()
     # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
-    # (they already start with SIGINT ignored, _pool_starting; this covers a replaced worker)
+    # (they already start with SIGINT ignored, _worker_pool; this covers a replaced worker)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @contextlib.contextmanager
-def _pool_starting():
-    """While the worker pool starts (milliseconds: the workers import on their own afterwards),
-    in the main thread: SIGINT ignored, a disposition the spawned workers inherit across exec,
-    so a Ctrl-C never kills one mid-import (one pressed in this window is lost); SIGTERM held
-    back, delivered when this ends, with the pool there to terminate."""
+def _worker_pool(ctx, workers: int):
+    """A pool of spawned workers that never outlives the block: terminated on leaving it for any
+    reason (a worker's error, Ctrl-C, or SIGTERM, which raises SystemExit(143) meanwhile). While
+    the pool starts (milliseconds: the workers import on their own afterwards) SIGINT is ignored,
+    a disposition the workers inherit across exec, so a Ctrl-C never kills one mid-import (one
+    pressed in that window is lost), and SIGTERM is held back until the pool exists. Signal
+    handling only from the main thread, where Python allows it."""
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    masked = hasattr(signal, "pthread_sigmask")
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM}) if masked else None
+    main = threading.current_thread() is threading.main_thread()
+
+    def _raise(signum, frame):
+        raise SystemExit(128 + signum)
+
+    old_term = signal.signal(signal.SIGTERM, _raise) if main else None
+    pool = None
     try:
-        yield
+        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+        masked = main and hasattr(signal, "pthread_sigmask")
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM}) if masked else None
+        try:
+            pool = ctx.Pool(workers, initializer=_worker_init)
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old_int)
+            if masked:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a held SIGTERM raises here
+        yield pool
     finally:
-        signal.signal(signal.SIGINT, old_int)
-        if masked:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        if pool is not None:
+            pool.terminate()
+        if main:
+            signal.signal(signal.SIGTERM, old_term)
 
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
@@ -464,43 +478,16 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
 
                 _one_blas_thread()  # inherited by the spawned workers' environment
                 ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
-                # leaving for any reason (a worker's error, Ctrl-C, SIGTERM) terminates the workers
-                # at once: none is left computing trials nobody will read
-                pool = None
-                with _sigterm_raises():
-                    try:
-                        with _pool_starting():
-                            pool = ctx.Pool(workers, initializer=_worker_init)
+                # stopped for any reason, the workers go at once: none computes trials nobody reads
+                try:
+                    with _worker_pool(ctx, workers) as pool:
                         for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
                             results.append(res)
                             bar.advance(task)
-                    except BaseException:
-                        console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
-                        raise
-                    finally:
-                        if pool is not None:
-                            pool.terminate()
+                except BaseException:
+                    console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
+                    raise
     return sorted(results, key=lambda r: r.trial)
-
-
-@contextlib.contextmanager
-def _sigterm_raises():
-    """While the block runs in the main thread, SIGTERM raises SystemExit(143) instead of
-    killing the process outright, so the ``with`` blocks inside it clean up (the worker pool)."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def _raise(signum, frame):
-        raise SystemExit(128 + signum)
-
-    old = signal.signal(signal.SIGTERM, _raise)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 # --------------------------------------------------------------------------- metrics

@@ -228,16 +228,27 @@ def test_pmon_eval_bad_arguments(tmp_path, args, message):
     assert not (tmp_path / "x").exists()
 
 
+def _state_and_parent(pid: int) -> tuple[str, int] | None:
+    """(state letter, parent pid) of a process from /proc, None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return fields[0], int(fields[1])
+
+
+def _alive(pid: int) -> bool:
+    st = _state_and_parent(pid)
+    return st is not None and st[0] != "Z"
+
+
 def _children(pid: int) -> list[int]:
-    """Live (not zombie) processes whose parent is pid, from /proc."""
+    """Live (not zombie) processes whose parent is pid."""
     out = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue  # gone meanwhile
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.append(int(stat.parent.name))
+    for d in Path("/proc").iterdir():
+        st = _state_and_parent(int(d.name)) if d.name.isdigit() else None
+        if st is not None and st[0] != "Z" and st[1] == pid:
+            out.append(int(d.name))
     return out
 
 
@@ -251,13 +262,6 @@ def _workers(pid: int) -> list[int]:
         except OSError:
             continue
     return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
