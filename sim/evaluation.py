@@ -439,8 +439,8 @@ def _worker_pool(ctx, workers: int):
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
                progress: bool = True, console=None) -> list[TrialResult]:
-    """All trials, in trial order. workers: local processes (default os.cpu_count(); 1 runs in
-    this process); scheduler: a Dask distributed scheduler address instead of local processes."""
+    """All trials, in trial order. workers: local processes (default os.cpu_count()), each with
+    one BLAS thread; scheduler: a Dask distributed scheduler address instead of local processes."""
     from rich.console import Console
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
@@ -468,25 +468,23 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
         workers = min(workers, n)
         with bar:
             task = bar.add_task(label + f" on {workers} local worker(s)", total=n)
-            if workers == 1:
-                for i in range(n):
-                    results.append(run_trial(cfg, i))
-                    bar.advance(task)
-            else:
-                import functools
-                import multiprocessing as mp
+            import functools
+            import multiprocessing as mp
 
-                _one_blas_thread()  # inherited by the spawned workers' environment
-                ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
-                # stopped for any reason, the workers go at once: none computes trials nobody reads
-                try:
-                    with _worker_pool(ctx, workers) as pool:
-                        for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
-                            results.append(res)
-                            bar.advance(task)
-                except BaseException:
-                    console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
-                    raise
+            # even one worker is a spawned process: BLAS sums in another order with more threads
+            # (this process's numpy may have them), and the plan-steering filter amplifies last-bit
+            # differences, so only workers with one BLAS thread each give the same trials whatever K
+            _one_blas_thread()  # inherited by the spawned workers' environment
+            ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
+            # stopped for any reason, the workers go at once: none computes trials nobody reads
+            try:
+                with _worker_pool(ctx, workers) as pool:
+                    for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
+                        results.append(res)
+                        bar.advance(task)
+            except BaseException:
+                console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
+                raise
     return sorted(results, key=lambda r: r.trial)
 
 

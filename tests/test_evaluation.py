@@ -77,6 +77,15 @@ def test_harness_is_deterministic_for_a_seed_and_across_workers(tiny, tiny_seria
     assert not np.array_equal(other[0].traces["greedy_l1"].error_m, tiny_serial[0].traces["greedy_l1"].error_m)
 
 
+def test_plan_steering_trials_are_the_same_whatever_the_workers(paper):
+    """The plan-steering filter amplifies last-bit differences (this process's BLAS may sum in
+    another order with more threads): every local worker, even a lone one, is a spawned process
+    with one BLAS thread, so --workers does not change the numbers."""
+    sc = replace(paper, tracking=replace(paper.tracking, plan_steering=True))
+    cfg = ev.make_config(sc, 2, 42, ["orbit"], duration_s=3, particles=200)
+    assert _same(ev.run_trials(cfg, workers=1, progress=False), ev.run_trials(cfg, workers=2, progress=False))
+
+
 def test_a_method_does_not_change_another_methods_numbers(tiny, tiny_serial):
     alone = ev.run_trials(replace(tiny, methods=(ev.METHODS["hover"],)), workers=1, progress=False)
     for a, b in zip(alone, tiny_serial):
