@@ -8,9 +8,11 @@ trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and pri
 (the mean NEES over trials, targets and the window, as ``pmon eval`` reports it), the median of
 the per-(trial, target) window-mean NEES (the bulk: 2 for a consistent filter, below for a
 conservative one), the five largest per-(trial, target) values (the tails: a filter confidently
-wrong on one trial shows here), the window RMSE, and RMSE / PCRB per 10 s of the mission and
-the median of the per-trial ratio (where the bound gap comes from). docs/TRACKING.md compares filter settings
-with it (``--set KEY=VALUE``: a scenario value changed, VALUE read as YAML). Last line: JSON figures.
+wrong on one trial shows here), the window RMSE, the three (trial, target) pairs with the largest
+shares of the window's squared error (the trials to look at first), and RMSE / PCRB per 10 s of
+the mission and the median of the per-trial ratio (where the bound gap comes from).
+docs/TRACKING.md compares filter settings with it (``--set KEY=VALUE``: a scenario value changed,
+VALUE read as YAML). Last line: JSON figures.
 """
 from __future__ import annotations
 
@@ -40,6 +42,12 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
         out[m] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
                   "top5": np.sort(nees.ravel())[-5:].round(1).tolist(),
                   "rmse_m": round(float(np.sqrt(np.mean(e_all[:, w] ** 2))), 1)}
+        # the (trial, target) pairs that carry the most of the window's squared error
+        sq = np.mean(e_all[:, w] ** 2, axis=1)  # (N, M)
+        out[m]["worst_pairs"] = [
+            {"trial": int(i), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
+             "share": round(float(sq[i, j] / sq.sum()), 3), "nees": round(float(nees[i, j]), 1)}
+            for i, j in zip(*np.unravel_index(np.argsort(sq, axis=None)[::-1][:3], sq.shape))]
         if all(r.traces[m].bound_m2 is not None for r in results):
             # RMSE / PCRB (as pmon eval forms them) per 10 s of the mission, and per trial
             b_all = np.stack([r.traces[m].bound_m2 for r in results])
@@ -57,6 +65,9 @@ def report(res: dict, label: str = "") -> None:
     for name, r in res.items():
         head = f"{label}{name:12s}"
         print(f"{head} ANEES {r['anees']:6.2f}  median {r['median']:5.2f}  top5 {r['top5']}  RMSE {r['rmse_m']} m")
+        worst = ", ".join(f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
+                          for p in r["worst_pairs"])
+        print(f"{'':{len(head)}s} largest shares of the squared error: {worst}")
         if "over_bound_by_10s" in r:
             print(f"{'':{len(head)}s} RMSE / bound {r['over_bound']}; per 10 s {r['over_bound_by_10s']}; "
                   f"median over trials {r['over_bound_trial_median']}")
