@@ -150,7 +150,8 @@ def _warned(app, text):
 def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
     """At connection the app reads WPNAV_SPEED / WPNAV_ACCEL. The mock's stock 10 m/s is half of
     the paper's 20 m steps per tick: one warning (the vehicle will lag the setpoints); the jump
-    model assumes no acceleration limit, so none about that."""
+    model assumes no acceleration limit, so none about that. A limit or PMON_REACH changed in
+    flight is checked again."""
     ap, app, gcs, _ = rig
     deadline = time.monotonic() + 5
     while (app.vehicle.speed_limit_mps is None or app.vehicle.accel_limit_mps2 is None) \
@@ -160,6 +161,21 @@ def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
     assert app.vehicle.accel_limit_mps2 == pytest.approx(2.5)
     assert _warned(app, "WPNAV_SPEED 10 m/s < 20 planned")
     assert not _warned(app, "WPNAV_ACCEL")
+    # changed in flight, by the operator (PMON_REACH) or on the autopilot (WPNAV_SPEED, which
+    # ArduPilot re-sends on every link): checked again, each new shortfall said once
+    n = len(app.events)
+    assert gcs.param_set("PMON_REACH", 10.0).param_value == 10.0
+    assert gcs.param_set("PMON_REACH", 15.0).param_value == 15.0
+    assert gcs.param_set("PMON_REACH", 15.0).param_value == 15.0
+    told = [e for _, e in list(app.events)[n:] if "WPNAV_SPEED" in e]
+    assert told == ["PMON: WPNAV_SPEED 10 m/s < 15 planned"]
+    gcs.conn.mav.param_set_send(1, 1, b"WPNAV_SPEED", 1200.0, mavlink.MAV_PARAM_TYPE_REAL32)
+    assert ap.wait_until(lambda s: _warned(app, "WPNAV_SPEED 12 m/s < 15 planned"), 5)
+    gcs.conn.mav.param_set_send(1, 1, b"WPNAV_SPEED", 2000.0, mavlink.MAV_PARAM_TYPE_REAL32)
+    assert ap.wait_until(lambda s: app.vehicle.speed_limit_mps == pytest.approx(20.0), 5)
+    assert gcs.param_set("PMON_REACH", 20.0).param_value == 20.0
+    told = [e for _, e in list(app.events)[n:] if "WPNAV_SPEED" in e]
+    assert told == ["PMON: WPNAV_SPEED 10 m/s < 15 planned", "PMON: WPNAV_SPEED 12 m/s < 15 planned"]
 
 
 @pytest.mark.timeout(60)

@@ -555,8 +555,8 @@ class OnboardApp:
             self.link.send(self.link.mav.param_request_read_encode(v.sysid, v.compid, name.encode(), -1))
 
     def _on_autopilot_param(self, msg) -> None:
-        """The autopilot's speed / acceleration limit: warn once when it is below what the
-        planner's moves assume (the vehicle would lag its setpoints; docs/MAVLINK.md)."""
+        """The autopilot's speed / acceleration limit, read at connection and again whenever it
+        sends one (ArduPilot tells every link when a ground station changes it)."""
         names = SPEED_ACCEL_PARAMS.get(self.vehicle.autopilot)
         if not names:
             return
@@ -564,25 +564,37 @@ class OnboardApp:
         name, value = self._param_name(msg.param_id), float(msg.param_value)
         if not math.isfinite(value) or value <= 0.0 or name not in (speed_name, accel_name):
             return
+        if name == speed_name:
+            self.vehicle.speed_limit_mps = value * speed_k
+        else:
+            self.vehicle.accel_limit_mps2 = value * accel_k
+        self._check_speed_limits()
+
+    def _check_speed_limits(self) -> None:
+        """Warn when the autopilot's limits are below what the planner's moves assume (the
+        vehicle would lag its setpoints; docs/MAVLINK.md): once per limit and value, so a limit
+        or PMON_REACH changed in flight is checked again without repeating itself."""
+        names = SPEED_ACCEL_PARAMS.get(self.vehicle.autopilot)
+        if not names:
+            return
+        (speed_name, _), (accel_name, _) = names
         sc = self.base_scenario
         pl = sc.planning
-        if name == speed_name:
-            self.vehicle.speed_limit_mps = have = value * speed_k
-            if pl.motion == "vehicle":
-                need, why = pl.speed_max_mps, "planning.speed_max_mps"
-            else:  # the paper's jump: the largest ring asked for, per tick
-                reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
-                need, why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
-            unit = "m/s"
-        else:
-            self.vehicle.accel_limit_mps2 = have = value * accel_k
-            if pl.motion != "vehicle":
-                return  # the jump model assumes no acceleration limit at all: nothing to compare
-            need, why, unit = pl.accel_max_mps2, "planning.accel_max_mps2", "m/s^2"
-        if have < need - 1e-6:
-            log.warning("autopilot %s = %g %s is below %s = %g %s: the vehicle will lag the setpoints",
-                        name, have, unit, why, need, unit)
-            self.say(f"{name} {have:g} {unit} < {need:g} planned", mavlink.MAV_SEVERITY_WARNING, once=name)
+        if pl.motion == "vehicle":
+            speed_need, speed_why = pl.speed_max_mps, "planning.speed_max_mps"
+        else:  # the paper's jump: the largest ring asked for, per tick
+            reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
+            speed_need, speed_why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
+        checks = [(speed_name, self.vehicle.speed_limit_mps, speed_need, speed_why, "m/s")]
+        if pl.motion == "vehicle":  # the jump model assumes no acceleration limit: nothing to compare
+            checks.append((accel_name, self.vehicle.accel_limit_mps2, pl.accel_max_mps2,
+                           "planning.accel_max_mps2", "m/s^2"))
+        for name, have, need, why, unit in checks:
+            text = f"{name} {have:g} {unit} < {need:g} planned"
+            if have is not None and have < need - 1e-6 and text not in self._said:
+                log.warning("autopilot %s = %g %s is below %s = %g %s: the vehicle will lag the setpoints",
+                            name, have, unit, why, need, unit)
+                self.say(text, mavlink.MAV_SEVERITY_WARNING, once=text)
 
     def _on_autopilot_ack(self, msg) -> None:
         if msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
@@ -743,6 +755,8 @@ class OnboardApp:
         if refused:
             self.say(refused, mavlink.MAV_SEVERITY_WARNING)
         self._param_value(name)
+        if name == "PMON_REACH" and not refused:
+            self._check_speed_limits()  # longer steps may now be faster than the autopilot flies
 
     # ----- periodic jobs (io thread, under the lock)
     def _periodic(self) -> None:
