@@ -176,6 +176,7 @@ def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
     assert gcs.param_set("PMON_REACH", 20.0).param_value == 20.0
     told = [e for _, e in list(app.events)[n:] if "WPNAV_SPEED" in e]
     assert told == ["PMON: WPNAV_SPEED 10 m/s < 15 planned", "PMON: WPNAV_SPEED 12 m/s < 15 planned"]
+    assert app.counters.get("io_errors", 0) == 0
 
 
 @pytest.mark.timeout(60)
@@ -199,6 +200,7 @@ def test_vehicle_motion_is_checked_against_the_autopilot_speed_and_acceleration(
         assert told is not None and told.text == "PMON: WPNAV_ACCEL 2.5 m/s^2 < 5 planned"
         assert told.severity == mavlink.MAV_SEVERITY_WARNING
         assert app.vehicle.speed_limit_mps == pytest.approx(20.0) and not _warned(app, "WPNAV_SPEED")
+        assert app.counters.get("io_errors", 0) == 0  # one limit known before the other: no handler error
     finally:
         gcs.close()
         if app is not None:

@@ -590,8 +590,10 @@ class OnboardApp:
             checks.append((accel_name, self.vehicle.accel_limit_mps2, pl.accel_max_mps2,
                            "planning.accel_max_mps2", "m/s^2"))
         for name, have, need, why, unit in checks:
+            if have is None or have >= need - 1e-6:  # not read yet (the other may be), or enough
+                continue
             text = f"{name} {have:g} {unit} < {need:g} planned"
-            if have is not None and have < need - 1e-6 and text not in self._said:
+            if text not in self._said:
                 log.warning("autopilot %s = %g %s is below %s = %g %s: the vehicle will lag the setpoints",
                             name, have, unit, why, need, unit)
                 self.say(text, mavlink.MAV_SEVERITY_WARNING, once=text)
