@@ -18,3 +18,8 @@ def set_overrides(ap: argparse.ArgumentParser, args: argparse.Namespace) -> dict
         return parse_overrides(args.set)
     except ConfigError as exc:
         ap.error(str(exc))
+
+
+def set_label(args: argparse.Namespace) -> str:
+    """The run's ``--set`` items as they were given, for the benches' headings."""
+    return "".join(f" --set {x}" for x in args.set)

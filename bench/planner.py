@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_overrides  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
@@ -72,7 +72,7 @@ def main() -> None:
         setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
             motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
         results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
-    print(f"paper scenario{''.join(' --set ' + x for x in args.set)}, {args.ticks} ticks, lookahead over "
+    print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
           f"{sc.planning.lookahead_steps} ticks, one BLAS thread")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")
     for name, r in results.items():

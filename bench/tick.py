@@ -18,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_overrides  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
@@ -79,7 +79,7 @@ def main() -> None:
     base = MonitorSetup.from_scenario(sc)
     paper = run(base, args.ticks, args.seed)
     large = run(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
-    print(f"paper scenario{''.join(' --set ' + x for x in args.set)}: 4 targets, {len(base.obstacles)} obstacles, "
+    print(f"paper scenario{set_label(args)}: 4 targets, {len(base.obstacles)} obstacles, "
           f"T={base.guidance.horizon}, "
           f"{base.n_particles} particles/target, {args.ticks} ticks")
     for k, v in paper.items():
