@@ -111,6 +111,8 @@ class Tracking:
     plan_steered_share: float = 0.7  # share of the particles a reference plan steers (the rest: its control)
     plan_trust_sigma: float = 2.0  # only particles this close (Mahalanobis) to a reference are steered
     plan_max_qp_solves: int = 80  # QP budget of each reference plan (the mean's: guidance.max_qp_solves)
+    plan_sides: bool = False  # references: one plan per side of an obstacle, a side per particle
+    plan_side_temperature: float = 0.05  # relative P1 cost scale of a side's share at its birth
 
 
 @dataclass(frozen=True)
@@ -380,7 +382,8 @@ def _parse(root: _Node, source: str) -> Scenario:
     tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
                                          "regularise_bandwidth", "free_steering", "plan_steering",
                                          "plan_references", "plan_spread_sigma", "plan_steered_share",
-                                         "plan_trust_sigma", "plan_max_qp_solves"})
+                                         "plan_trust_sigma", "plan_max_qp_solves", "plan_sides",
+                                         "plan_side_temperature"})
     tracking = Tracking(
         particles=tr.get("particles").integer(10, 1_000_000),
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
@@ -395,6 +398,8 @@ def _parse(root: _Node, source: str) -> Scenario:
         plan_steered_share=tr.get("plan_steered_share", 0.7).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         plan_trust_sigma=tr.get("plan_trust_sigma", 2.0).number(_positive, "must be > 0"),
         plan_max_qp_solves=tr.get("plan_max_qp_solves", 80).integer(1, 1000),
+        plan_sides=tr.get("plan_sides", False).boolean(),
+        plan_side_temperature=tr.get("plan_side_temperature", 0.05).number(_positive, "must be > 0"),
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})
@@ -420,6 +425,9 @@ def _parse(root: _Node, source: str) -> Scenario:
         accel_max_mps2=pl.get("accel_max_mps2", 2.5).number(_positive, "must be > 0"),
         lookahead=lookahead,
     )
+    if tracking.plan_sides and not tracking.plan_steering:
+        raise ConfigError("tracking.plan_sides: needs tracking.plan_steering: true (the sides choose "
+                          "among its reference plans)")
     if planning.planner == "lookahead" and planning.lookahead_steps > guidance.horizon:
         raise ConfigError("planning.lookahead_steps: must be <= guidance.horizon "
                           f"({guidance.horizon}): the lookahead follows the guidance plans")

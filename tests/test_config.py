@@ -42,6 +42,9 @@ def test_builtin_and_file_agree(paper):
     (lambda d: d["tracking"].update(plan_steering="yes please"), "tracking.plan_steering"),
     (lambda d: d["tracking"].update(plan_references=3), "tracking.plan_references: must be even"),
     (lambda d: d["tracking"].update(plan_max_qp_solves=0), "tracking.plan_max_qp_solves"),
+    (lambda d: d["tracking"].update(plan_sides="maybe"), "tracking.plan_sides"),
+    (lambda d: d["tracking"].update(plan_sides=True), "tracking.plan_sides: needs tracking.plan_steering"),
+    (lambda d: d["tracking"].update(plan_side_temperature=0), "tracking.plan_side_temperature"),
 ])
 def test_invalid_field_is_named(raw, edit, message):
     data = copy.deepcopy(raw)

@@ -340,3 +340,94 @@ def test_control_mixture_only_while_the_plan_rounds_an_obstacle(paper, rng):
     assert n_random(plan(free)) == 0
     assert 400 < n_random(plan(pressed)) < 600
     assert 400 < n_random(plan(None)) < 600
+
+
+def _one_box(paper, **tracking):
+    """The paper's setup with one 100 m box at the origin and T2's goal 300 m south of it."""
+    from dataclasses import replace as dc_replace
+    from onboard.config import Box
+    from onboard.core.monitor import MonitorSetup
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, **tracking))
+    obs = Obstacles.from_boxes([Box("B", (0.0, 0.0, 25.0), (100.0, 100.0, 50.0))])
+    goals = np.tile([0.0, -300.0, 0.0], (len(paper.targets), 1))
+    return MonitorSetup.from_scenario(sc, obstacles=obs, goals=goals)
+
+
+def test_winding_is_the_side_a_plan_rounds_an_obstacle_and_sides_hold_it(paper, model):
+    """A target heading south toward a box: passing it on the west is counterclockwise about the
+    box (winding > 0, the box on the path's left), on the east clockwise; ``sides`` with
+    ``strict_sides`` makes P1 plan the best path round the side asked for, and the unrestricted
+    plan is the cheaper one. Without ``strict_sides`` holding back (winding 0) is allowed."""
+    from onboard.core.guidance import in_class, winding
+    setup = _one_box(paper)
+    x = np.array([-20.0, 300.0, 0.0, 0.0, -10.0, 0.0])  # a little west of the box's axis
+    goal = setup.goals[0]
+    free = plan_guidance(model, setup.guidance, setup.obstacles, x, goal)
+    west = plan_guidance(model, setup.guidance, setup.obstacles, x, goal, sides=np.array([1]), strict_sides=True)
+    east = plan_guidance(model, setup.guidance, setup.obstacles, x, goal, sides=np.array([-1]), strict_sides=True)
+    assert west.feasible and east.feasible
+    assert winding(west.faces)[0] > 0 > winding(east.faces)[0]
+    assert in_class(west.faces, np.array([1])) and not in_class(west.faces, np.array([-1]))
+    holding = np.ones_like(west.faces)  # north of the box all along
+    assert winding(holding)[0] == 0
+    assert in_class(holding, np.array([-1])) and not in_class(holding, np.array([-1]), strict=True)
+    beside = np.abs(west.means[:, 1]) < 50.0  # abreast of the box
+    assert np.all(west.means[beside, 0] < -50.0) and np.all(east.means[beside, 0] > 50.0)
+    for plan in (west, east):
+        check_plan(plan, setup.obstacles, x, setup.guidance)
+    assert west.cost < east.cost  # it starts on the west
+    assert winding(free.faces)[0] > 0 and free.cost == pytest.approx(west.cost, rel=1e-6)
+
+
+def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(paper, model, rng):
+    """tracking.plan_sides: a cloud heading straight at a box, where both sides cost P1 the same,
+    gets one mode per side, each holding about half of the particles; next tick every particle
+    keeps its side (the true target keeps the side its plan took), each mode re-planned from its
+    own particles and steering them by its own law."""
+    from dataclasses import replace as dc_replace
+    from onboard.core import tracking
+    from onboard.core.guidance import GuidanceWorkspace, winding
+    from onboard.core.monitor import _particle_controls, _side_modes
+    setup = _one_box(paper, plan_steering=True, plan_sides=True, free_steering=True, control_mix=0.0)
+    ws = GuidanceWorkspace()
+    goal = setup.goals[0]
+    mean = np.array([0.0, 300.0, 0.0, 0.0, -10.0, 0.0])
+    cov = np.diag([400.0, 400.0, 1e-10, 1.0, 1.0, 1e-10])
+    ps = tracking.initialise(mean, cov, 2000, rng)
+    m, c = tracking.estimate(ps)
+    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=True)
+    laws, modes = _side_modes(setup, ps, m, c, goal, plan, (), None, ws, lambda: 0.0, rng)
+    labels = laws.labels
+    assert len(modes) == 2 and modes[0].plan is plan
+    assert winding(modes[0].plan.faces)[0] * winding(modes[1].plan.faces)[0] < 0
+    assert modes[0].sides[0] == -modes[1].sides[0] != 0
+    assert modes[1].plan.cost == pytest.approx(plan.cost, rel=0.01)  # the knife edge
+    assert 0.4 < np.mean(labels == 1) < 0.6
+    # mode 0: its plan's law and its two spread references; mode 1, born now: its plan's law
+    np.testing.assert_array_equal(laws.group, [0, 0, 0, 1])
+    assert laws.laws[0] is plan.law and laws.laws[3] is modes[1].plan.law
+    u = _particle_controls(plan, ps.particles, goal, setup, rng, sides=laws)
+    east = np.sign(modes[0].plan.means[25, 0])  # mode 0's side (+1: east)
+    # each side's particles are pushed toward its own side of the box
+    assert np.mean(np.sign(u[labels == 0, 0]) == east) > 0.9
+    assert np.mean(np.sign(u[labels == 1, 0]) == -east) > 0.9
+
+    # a tick later: resampled (labels follow their particles) and predicted, the sides are kept
+    weighted = tracking.ParticleSet(ps.particles, ps.log_weights - np.log(np.exp(ps.log_weights).sum()), labels)
+    skew = weighted.log_weights + np.where(ps.particles[:, 0] > 0, 0.0, -3.0)
+    post = tracking.resample_if_needed(dc_replace(weighted, log_weights=skew - tracking.logsumexp(skew)), 0.99, rng)
+    assert post.labels is not None and len(post.labels) == len(post)
+    nxt = tracking.predict(post, setup.model, u[0], rng)
+    m2, c2 = tracking.estimate(nxt)
+    plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan, workspace=ws,
+                          with_feedback=True)
+    laws2, modes2 = _side_modes(setup, nxt, m2, c2, goal, plan2, modes, plan, ws, lambda: 0.0, rng)
+    assert len(modes2) == 2
+    np.testing.assert_array_equal(laws2.labels, nxt.labels)
+    np.testing.assert_array_equal(laws2.group, [0, 0, 0, 1, 1, 1])
+    for i in range(2):
+        assert modes2[i].sides[0] == modes[i].sides[0]
+        assert winding(modes2[i].plan.faces)[0] * modes[i].sides[0] > 0
+        sel = nxt.labels == i
+        centre = nxt.weights[sel] @ nxt.particles[sel] / nxt.weights[sel].sum()
+        np.testing.assert_allclose(modes2[i].plan.law.x_ref, centre[[0, 1, 3, 4]], atol=1e-6)

@@ -117,6 +117,24 @@ def test_empty_set_is_uninformative_and_resampling_keeps_mean(rng):
     np.testing.assert_allclose(tracking.estimate(res)[0], tracking.estimate(skewed)[0], atol=0.15)
 
 
+def test_particle_labels_follow_their_particles_through_update_prediction_and_resampling(model, rng):
+    """The side of an obstacle a particle's target takes (monitor plan_sides) is carried with it."""
+    ps = tracking.initialise([0, 0, 0, 0, 0, 0], np.eye(6), 3000, rng)
+    labels = np.arange(3000)
+    ps = tracking.ParticleSet(ps.particles, ps.log_weights, labels)
+    post = tracking.update(ps, [(np.array([-10.0, 0.0]), bearing(np.zeros((1, 2)), np.array([-10.0, 0.0])))], SENSOR).particles
+    np.testing.assert_array_equal(post.labels, labels)
+    for bandwidth in (0.0, 0.2):
+        res = tracking.resample_if_needed(post, 1.0, rng, bandwidth)
+        assert len(np.unique(res.labels)) < 3000  # resampled: copies of the likely ones
+        if bandwidth == 0.0:
+            np.testing.assert_array_equal(res.particles, post.particles[res.labels])
+        else:
+            np.testing.assert_array_equal(res.particles[:, 2], post.particles[res.labels, 2])  # z untouched
+    moved = tracking.predict(res, model, np.zeros(3), rng)
+    np.testing.assert_array_equal(moved.labels, res.labels)
+
+
 def test_regularised_resampling_spreads_copies_and_widens_by_one_plus_h_squared(rng):
     """A collapsed cloud (few distinct particles) comes back with distinct particles, the same
     mean, and a planar covariance (1 + h^2) times the weighted one; z stays untouched."""

@@ -575,6 +575,34 @@ class _Geometry:
             order.append(v)
         return nodes[order[::-1]]
 
+    def guide_path_around(self, start: np.ndarray, goal: np.ndarray, sides: np.ndarray) -> np.ndarray | None:
+        """Shortest polyline start -> goal through a waypoint beside each polygon k with
+        ``sides[k]`` != 0, on the side that rounds it that way (+1 counterclockwise: the polygon on
+        the left of the travel start -> goal), in order along the travel; None if a waypoint is
+        inside a polygon or a leg has no path."""
+        d = goal - start
+        norm = np.linalg.norm(d)
+        if norm < 1e-9:
+            return None
+        d = d / norm
+        left = np.array([-d[1], d[0]])
+        corners = self.corners(0.0).reshape(-1, N_LATERAL, 2)
+        ks = np.flatnonzero(sides)
+        centres = corners[ks].mean(axis=1)
+        radii = np.linalg.norm(corners[ks] - centres[:, None], axis=-1).max(axis=1)
+        order = np.argsort((centres - start) @ d)
+        points = [centres[i] - sides[ks[i]] * (radii[i] + 2.0) * left for i in order]
+        if len(points) and self.inside(np.array(points)).any():
+            return None
+        legs, a = [], start
+        for b in points + [goal]:
+            leg = self.guide_path(a, b)
+            if leg is None:
+                return None
+            legs.append(leg if not legs else leg[1:])
+            a = b
+        return np.vstack(legs)
+
     def blocking(self, pts: np.ndarray) -> list[int]:
         """Obstacles the path pts passes through (a point inside or a segment crossing)."""
         c = self.clearance(pts)
@@ -752,10 +780,32 @@ def _speed_bound_mps(params: GuidanceParams) -> float:
     return params.speed_max_mps * np.cos(np.pi / params.speed_polygon_sides)
 
 
+def winding(faces: np.ndarray) -> np.ndarray:
+    """(K,) quarter turns a face assignment (T-1, K) makes about each obstacle: + counterclockwise
+    (the obstacle on the path's left), - clockwise, 0 for a path that keeps one face. Its sign is
+    the side on which a path rounds the obstacle (the homotopy class, for a path that rounds it);
+    it shrinks as the target gets round and the passed faces leave the horizon."""
+    a, b = faces[:-1], faces[1:]
+    step = np.where((a >= 0) & (b >= 0), (b - a + 1) % N_LATERAL - 1, 0)
+    return step.sum(axis=0)
+
+
+def in_class(faces: np.ndarray, sides: np.ndarray | None, strict: bool = False) -> bool:
+    """The assignment rounds no obstacle k the other way than ``sides[k]`` (+1 counterclockwise,
+    -1 clockwise, 0 either); ``strict``: it does round each k with ``sides[k]`` != 0 that way
+    (holding back short of it, or having passed it, winding 0, does not)."""
+    if sides is None:
+        return True
+    sides = np.asarray(sides)
+    w = winding(faces) * sides
+    return bool(np.all(np.where(sides != 0, w > 0, True) if strict else w >= 0))
+
+
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
                   workspace: GuidanceWorkspace | None = None,
-                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool = False) -> Plan:
+                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool = False,
+                  sides: np.ndarray | None = None, strict_sides: bool = False) -> Plan:
     """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
 
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
@@ -763,6 +813,9 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     ``with_feedback``: also compute ``Plan.feedback``, the closed-loop gain du_0/dx (for the
     posterior Cramer-Rao bound of a target that steers by this guidance) and ``Plan.law`` (for
     the tracker's ``plan_steering``).
+    ``sides`` (K,): the best plan that rounds no obstacle k the other way than counterclockwise
+    (+1) or clockwise (-1) (0: either); ``strict_sides``: that does round each of them that way
+    (``in_class``; the tracker's ``plan_sides``).
     """
     t_start = timer()
     T, K = params.horizon, len(obstacles)
@@ -837,6 +890,8 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         if np.any(speed > np.maximum(params.speed_max_mps, speed_bound) + 1e-3):
             return None
         c = cost(pts)
+        if not in_class(faces, sides, strict_sides):
+            return out  # its path still guides the re-pick
         found.append((c, faces, pts))
         if c < best["cost"] - 1e-9 * max(1.0, abs(c)):
             best.update(cost=c, pts=pts, faces=faces, duals=out.duals, active=out.active, sol=out)
@@ -893,8 +948,13 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     stalled = warm and pressed and first_speed < _STALL_SPEED_FRACTION * params.speed_max_mps
     explore = not warm
     if K and budget_left() and (explore or stalled):
-        guide = geo.guide_path(x0[:2] + model.dt_s * x0[2:], goal2)
-        if guide is not None:
+        start = x0[:2] + model.dt_s * x0[2:]
+        guides = [geo.guide_path(start, goal2)]
+        if sides is not None and explore:  # the class's own shortest path first
+            guides.insert(0, geo.guide_path_around(start, goal2, sides))
+        for guide in guides:
+            if guide is None:
+                continue
             for speed in _GUIDE_SPEEDS if explore else _GUIDE_SPEEDS[:1]:
                 faces = geo.repick(_timed(guide, x0[:2], speed * params.speed_max_mps * model.dt_s, T))
                 if faces.tobytes() not in tried and budget_left():
@@ -905,9 +965,9 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
             ref = path(free.pts)
             variants = [ref]
             blocking = geo.blocking(ref)[:3]
-            for sides in itertools.product((1.0, -1.0), repeat=len(blocking)):
+            for way in itertools.product((1.0, -1.0), repeat=len(blocking)):
                 pts = ref
-                for k, side in zip(blocking, sides):
+                for k, side in zip(blocking, way):
                     pts = geo.push_around(pts, k, side)
                 variants.append(pts)
             for pts in variants:

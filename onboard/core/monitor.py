@@ -18,7 +18,7 @@ import numpy as np
 from onboard.core import tracking
 from onboard.core.dynamics import PLANAR, MotionModel
 from onboard.core.guidance import (FreeLaw, GuidanceParams, GuidanceWorkspace, LocalLaw, Plan, free_law,
-                                   plan_guidance)
+                                   in_class, plan_guidance, winding)
 from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
 from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
@@ -41,13 +41,34 @@ class PlanSteering:
     steered_share: float = 0.7
     trust_sigma: float = 2.0
     max_qp_solves: int = 80  # per reference plan (capped by the guidance's budget, which the mean's has)
+    # the references are one plan per side of an obstacle, each particle labelled with its side
+    # (``_side_modes``) instead of the spread pairs; a side costing P1 d more (relative) than the
+    # mode's own gets a share 1 / (1 + exp(d / side_temperature)) of its particles at its birth
+    sides: bool = False
+    side_temperature: float = 0.05
 
     @classmethod
     def from_config(cls, tr) -> "PlanSteering | None":
         if not tr.plan_steering:
             return None
         return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
-                   tr.plan_max_qp_solves)
+                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
+
+
+@dataclass(frozen=True, eq=False)
+class SideMode:
+    """One hypothesis of the side on which a target rounds its obstacles (``PlanSteering.sides``):
+    the plan from the weighted mean of the particles labelled with it, held to ``sides`` (K,)
+    (``guidance.in_class``: +1 counterclockwise, -1 clockwise, 0 not yet chosen)."""
+
+    plan: Plan
+    sides: np.ndarray
+    references: tuple[Plan | None, ...] = ()  # its spread reference plans (next tick's warm starts)
+
+
+MAX_SIDE_MODES = 4  # per target
+MIN_SIDE_SHARE = 0.01  # a side mode holding less of the posterior weight is dropped
+SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets two sides
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,6 +145,7 @@ class MonitorState:
     # per target, last tick's reference plans (plan_steering; empty while the plan was free): the
     # warm start of this tick's plan from the same offset
     references: tuple[tuple[Plan | None, ...], ...] = ()
+    modes: tuple[tuple[SideMode, ...], ...] = ()  # per target, last tick's side modes (plan_sides)
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,7 +172,7 @@ class TickResult:
 
 def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: MonitorSetup,
                        rng: np.random.Generator, laws: Sequence[LocalLaw] = (),
-                       metric: np.ndarray | None = None) -> np.ndarray:
+                       metric: np.ndarray | None = None, sides: "SideLaws | None" = None) -> np.ndarray:
     """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq:prediction),
     except:
 
@@ -163,7 +185,9 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
       ``_reference_laws``): a share of the other particles, those within ``trust_sigma`` of a
       reference (``metric``: position Mahalanobis), steers by the affine law of the nearest one,
       clipped to the input box: a target pressed against a face or cruising at its speed limit
-      is pulled back onto its plan as the true one is.
+      is pulled back onto its plan as the true one is. With ``sides`` (plan_sides: the laws and
+      metric of ``_side_modes``) a particle uses the nearest law of its own side mode, and outside
+      the trust radius or the steered share that mode's plan's control, not the mean plan's.
     * a fraction ``control_mix`` of the particles not on the free law gets a control uniform in
       the input box (u_z = 0): the target may take another way around an obstacle (with
       ``control_mix_when: obstacle`` only while the plan rounds one).
@@ -175,12 +199,19 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
         u_free = setup.free_steering.controls(particles, goal)
         free = setup.free_steering.is_optimal(particles, goal, setup.obstacles, u_free)
         out[free] = u_free[free]
+    if sides is not None:
+        laws, metric = sides.laws, sides.metric
     if laws and setup.plan_steering is not None:
         rest = np.flatnonzero(~free)
+        if sides is not None:  # a mode's first law is its own plan's
+            first = np.searchsorted(sides.group, np.arange(sides.group.max() + 1))
+            out[rest] = np.array([laws[i].u_ref for i in first])[sides.labels[rest]]
         rest = rest[rng.random(len(rest)) < setup.plan_steering.steered_share]
         x = particles[rest]
         d = x[:, None, :2] - np.array([lw.x_ref[:2] for lw in laws])[None]
         m2 = np.einsum("nri,ij,nrj->nr", d, metric, d)
+        if sides is not None:
+            m2 = np.where(sides.group[None, :] == sides.labels[rest][:, None], m2, np.inf)
         which = np.argmin(m2, axis=1)
         # a linearisation holds near its reference only: a particle far from every reference
         # (the target may round the obstacle on another side) is not pulled onto their plans
@@ -202,14 +233,15 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
 
 def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal: np.ndarray, plan: Plan,
                     previous: Plan | None, previous_refs: Sequence[Plan | None], workspace: GuidanceWorkspace | None,
-                    timer: Callable[[], float]) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
+                    timer: Callable[[], float], sides: np.ndarray | None = None
+                    ) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
     """The laws of the mean's plan and of plans from ``references`` points, pairs evenly spaced
     out to +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
     regressed on position, as the cloud correlates them), each planned as the mean is (warm-started
     by last tick's plan from the same offset, else the mean's, so each may round an obstacle on its
-    own side); the position metric (inverse covariance) that picks a particle's nearest
-    reference; and the reference plans (next tick's warm starts). A reference with no feasible
-    plan is left out."""
+    own side; with ``sides``, never against them: ``guidance.in_class``); the position metric
+    (inverse covariance) that picks a particle's nearest reference; and the reference plans (next
+    tick's warm starts). A reference with no feasible plan is left out."""
     ps = setup.plan_steering
     C = cov[np.ix_(PLANAR, PLANAR)]
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
@@ -226,11 +258,138 @@ def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal
             own = previous_refs[i] if i < len(previous_refs) else None
             p = plan_guidance(setup.model, params, setup.obstacles, x, goal,
                               previous=own if own is not None else previous,
-                              workspace=workspace, timer=timer, with_feedback=True)
+                              workspace=workspace, timer=timer, with_feedback=True, sides=sides)
             refs.append(p if p.feasible else None)
             if p.feasible and p.law is not None:
                 laws.append(p.law)
     return laws, metric, tuple(refs)
+
+
+@dataclass(frozen=True, eq=False)
+class SideLaws:
+    """What ``_side_modes`` gives the prediction: each particle's mode (``labels``, (n,)), the
+    reference laws of every mode (``laws``; ``group``: the mode of each), and the metric."""
+
+    labels: np.ndarray
+    laws: list[LocalLaw]
+    group: np.ndarray
+    metric: np.ndarray
+
+
+def _side_modes(setup: MonitorSetup, ps: tracking.ParticleSet, mean: np.ndarray, cov: np.ndarray,
+                goal: np.ndarray, plan: Plan, previous: Sequence[SideMode], previous_plan: Plan | None,
+                workspace: GuidanceWorkspace | None, timer: Callable[[], float], rng: np.random.Generator
+                ) -> tuple[SideLaws, tuple[SideMode, ...]]:
+    """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``).
+
+    A true target keeps the side of an obstacle its plan took when the obstacle first bound it
+    (its guidance is warm-started by its own last plan), and where both sides cost P1 about the
+    same that choice is a knife edge no estimate resolves in advance. So each particle carries a
+    side, kept through resampling, and each side present has its own reference plans:
+
+    1. last tick's modes, each re-planned from the weighted mean of its particles, warm-started by
+       its own plan and never rounding an obstacle the other way than its side; a mode with
+       under ``MIN_SIDE_SHARE`` of the weight, or no feasible plan, is dropped (with none left
+       the mean's plan is the one mode);
+    2. a particle without a mode joins the nearest (Mahalanobis, position);
+    3. a mode whose plan has an active row on an obstacle it has no side for yet, not within
+       ``SIDE_LEAD_STEPS`` of now, takes its plan's side there and plans the best path round the
+       other side from the same point; that side takes each of the mode's particles with
+       probability 1 / (1 + exp(d / side_temperature)), d the relative extra cost of its plan (a
+       coin toss at the knife edge), up to ``MAX_SIDE_MODES`` modes;
+    4. each mode's reference plans, as ``_reference_laws`` spreads them over its own particles
+       and held to its sides (a mode born this tick has its own plan only).
+    """
+    st = setup.plan_steering
+    K = len(setup.obstacles)
+    w, x_all = ps.weights, ps.particles
+    metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
+    params = replace(setup.guidance, max_qp_solves=min(st.max_qp_solves, setup.guidance.max_qp_solves))
+
+    def planned(x, previous_plan, sides, strict=False):
+        p = plan_guidance(setup.model, params, setup.obstacles, x, goal, previous=previous_plan,
+                          workspace=workspace, timer=timer, with_feedback=True, sides=sides, strict_sides=strict)
+        return p if p.feasible and p.law is not None else None
+
+    def moments(sel):
+        share = float(w[sel].sum())
+        m = w[sel] @ x_all[sel] / share
+        d = x_all[sel] - m
+        return share, m, (d * w[sel, None]).T @ d / share
+
+    labels = np.full(len(ps), -1) if ps.labels is None else np.asarray(ps.labels).copy()
+    labels[labels >= len(previous)] = -1
+    modes, stats, old = [], [], []  # old: the mode's last plan and references (warm starts)
+    renumber = np.full(len(previous) + 1, -1)  # index -1 (no mode) stays -1
+    for m, mode in enumerate(previous):
+        sel = labels == m
+        if not sel.any():
+            continue
+        share, centre, c = moments(sel)
+        if share < MIN_SIDE_SHARE:
+            continue
+        if share > 1.0 - 1e-12 and in_class(plan.faces, mode.sides):
+            p = plan  # the mean's plan is this mode's: no second solve
+        else:
+            p = planned(centre, mode.plan, mode.sides)
+        if p is None:
+            continue
+        renumber[m] = len(modes)
+        modes.append(SideMode(p, mode.sides))
+        stats.append((centre, c))
+        old.append((mode.plan, mode.references))
+    labels = renumber[labels]
+    if not modes:
+        modes, stats = [SideMode(plan, np.zeros(K, dtype=int))], [(np.asarray(mean, float), cov)]
+        old = [(previous_plan, ())]
+    lost = np.flatnonzero(labels < 0)
+    if len(lost):
+        d = x_all[lost, None, :2] - np.array([c[:2] for c, _ in stats])[None]
+        labels[lost] = np.argmin(np.einsum("nri,ij,nrj->nr", d, metric, d), axis=1)
+
+    n_old = len(modes)
+    for m in range(n_old):
+        mode = modes[m]
+        p = mode.plan
+        if p.active is None:
+            continue
+        wind = winding(p.faces)
+        rows = p.active.obstacles.any(axis=2)  # (K, T-1)
+        # a side is chosen ahead of the obstacle: a plan already against it has made its choice
+        ahead = rows.any(axis=1) & ~rows[:, :SIDE_LEAD_STEPS].any(axis=1)
+        for k in np.flatnonzero(ahead & (wind != 0) & (mode.sides == 0)):
+            held = mode.sides.copy()
+            held[k] = np.sign(wind[k])
+            modes[m] = mode = SideMode(p, held, mode.references)
+            if len(modes) >= MAX_SIDE_MODES:
+                continue
+            other = held.copy()
+            other[k] = -held[k]
+            alt = planned(stats[m][0], None, other, strict=True)
+            if alt is None:
+                continue
+            d = (alt.cost - p.cost) / max(abs(p.cost), 1e-9)
+            share = 1.0 / (1.0 + np.exp(min(d / st.side_temperature, 700.0)))
+            members = np.flatnonzero(labels == m)
+            move = members[rng.random(len(members)) < share]
+            if share < MIN_SIDE_SHARE or not len(move):
+                continue
+            labels[move] = len(modes)
+            modes.append(SideMode(alt, other))
+            stats.append(stats[m])
+
+    laws, group, out = [], [], []
+    for m, mode in enumerate(modes):
+        if m < n_old:
+            centre, c = stats[m]
+            mode_laws, _, refs = _reference_laws(setup, centre, c, goal, mode.plan, old[m][0], old[m][1],
+                                                 workspace, timer, sides=mode.sides)
+        else:
+            mode_laws, refs = [mode.plan.law], ()
+        laws += mode_laws
+        group += [m] * len(mode_laws)
+        out.append(SideMode(mode.plan, mode.sides, refs))
+    return SideLaws(labels, laws, np.array(group), metric), tuple(out)
 
 
 def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
@@ -272,16 +431,25 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     # plan's law for every particle is worse: where constraints are active it is dead-beat, the
     # cloud collapses onto the mean's plan and is lost when the truth takes another active set
     # or side of an obstacle (docs/TRACKING.md).
-    beliefs, references = [], []
+    beliefs, references, modes = [], [], []
     for j in range(M):
-        laws, metric, refs = (), None, ()
+        laws, metric, refs, sides, side_laws, post = (), None, (), (), None, posts[j]
         if setup.plan_steering is not None and plans[j].law is not None and not plans[j].unconstrained:
-            laws, metric, refs = _reference_laws(setup, means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
-                                                 state.references[j] if state.references else (), workspace, timer)
+            if setup.plan_steering.sides:
+                side_laws, sides = _side_modes(setup, post, means[j], covs[j], setup.goals[j], plans[j],
+                                               state.modes[j] if state.modes else (), state.plans[j], workspace,
+                                               timer, rng)
+            else:
+                laws, metric, refs = _reference_laws(setup, means[j], covs[j], setup.goals[j], plans[j],
+                                                     state.plans[j], state.references[j] if state.references
+                                                     else (), workspace, timer)
         references.append(refs)
-        beliefs.append(tracking.predict(posts[j], setup.model,
-                                        _particle_controls(plans[j], posts[j].particles, setup.goals[j],
-                                                           setup, rng, laws, metric), rng))
+        modes.append(sides)
+        # a particle's side is dropped while the mean's plan is free
+        post = replace(post, labels=None if side_laws is None else side_laws.labels)
+        beliefs.append(tracking.predict(post, setup.model,
+                                        _particle_controls(plans[j], post.particles, setup.goals[j],
+                                                           setup, rng, laws, metric, side_laws), rng))
     beliefs = tuple(beliefs)
     t3 = timer()
 
@@ -305,5 +473,5 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
                                             setup.objective, setup.motion, vel, setup.model.dt_s)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
-    return (MonitorState(beliefs, plans, state.step + 1, tuple(references)),
+    return (MonitorState(beliefs, plans, state.step + 1, tuple(references), tuple(modes)),
             TickResult(means, covs, plans, planning, degenerate, timings))

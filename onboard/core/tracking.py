@@ -38,6 +38,9 @@ class SensorModel:
 class ParticleSet:
     particles: np.ndarray  # (N, 6)
     log_weights: np.ndarray  # (N,), logsumexp == 0
+    # (N,) int, or None: which side of an obstacle each particle's target takes (the monitor's
+    # plan_sides; -1 none); carried through prediction, update and resampling
+    labels: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.log_weights)
@@ -59,7 +62,7 @@ def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.ra
     particles or (N, 3), one per particle (N)."""
     noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
     particles = ps.particles @ model.A.T + np.asarray(control, float) @ model.B.T + noise
-    return ParticleSet(particles, ps.log_weights)
+    return ParticleSet(particles, ps.log_weights, ps.labels)
 
 
 def logsumexp(a: np.ndarray, axis: int | None = None, keepdims: bool = False) -> np.ndarray | float:
@@ -119,7 +122,7 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
         return UpdateResult(ps, True)
     logw = logw - total
     logw[~np.isfinite(logw)] = -np.inf
-    return UpdateResult(ParticleSet(ps.particles, logw), False)
+    return UpdateResult(ParticleSet(ps.particles, logw, ps.labels), False)
 
 
 def effective_sample_size(ps: ParticleSet) -> float:
@@ -161,7 +164,7 @@ def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.rando
         if L is not None and np.all(np.isfinite(L)):
             particles = particles.copy()
             particles[:, PLANAR] += bandwidth * rng.standard_normal((n, 4)) @ L.T
-    return ParticleSet(particles, np.full(n, -np.log(n)))
+    return ParticleSet(particles, np.full(n, -np.log(n)), None if ps.labels is None else ps.labels[idx])
 
 
 def estimate(ps: ParticleSet) -> tuple[np.ndarray, np.ndarray]:
