@@ -111,7 +111,7 @@ class Tracking:
     plan_steered_share: float = 0.7  # share of the particles a reference plan steers (the rest: its control)
     plan_trust_sigma: float = 2.0  # only particles this close (Mahalanobis) to a reference are steered
     plan_max_qp_solves: int = 80  # QP budget of each reference plan (the mean's: guidance.max_qp_solves)
-    plan_sides: bool = False  # references: one plan per side of an obstacle, a side per particle
+    plan_sides: bool = False  # a side of each obstacle per particle; the references per side present
     plan_side_temperature: float = 0.05  # relative P1 cost scale of a side's share at its birth
 
 

@@ -41,9 +41,9 @@ class PlanSteering:
     steered_share: float = 0.7
     trust_sigma: float = 2.0
     max_qp_solves: int = 80  # per reference plan (capped by the guidance's budget, which the mean's has)
-    # the references are one plan per side of an obstacle, each particle labelled with its side
-    # (``_side_modes``) instead of the spread pairs; a side costing P1 d more (relative) than the
-    # mode's own gets a share 1 / (1 + exp(d / side_temperature)) of its particles at its birth
+    # each particle carries the side of each obstacle its target takes, and each side present has
+    # its own mean's plan and spread pairs (``_side_modes``); a side costing P1 d more (relative)
+    # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
     sides: bool = False
     side_temperature: float = 0.05
 
