@@ -399,6 +399,10 @@ def _worker_init() -> None:
     # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
     # (they already start with SIGINT ignored, _worker_pool; this covers a replaced worker)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the pool was started with SIGTERM held back (_worker_pool), a mask a worker inherits: left
+    # blocked, terminate() could not stop a worker waiting on a queue lock that a killed one held
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
 
 
 @contextlib.contextmanager
