@@ -208,8 +208,7 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
             out[rest] = np.array([laws[i].u_ref for i in first])[sides.labels[rest]]
         rest = rest[rng.random(len(rest)) < setup.plan_steering.steered_share]
         x = particles[rest]
-        d = x[:, None, :2] - np.array([lw.x_ref[:2] for lw in laws])[None]
-        m2 = np.einsum("nri,ij,nrj->nr", d, metric, d)
+        m2 = _mahalanobis2(x, np.array([lw.x_ref[:2] for lw in laws]), metric)
         if sides is not None:
             m2 = np.where(sides.group[None, :] == sides.labels[rest][:, None], m2, np.inf)
         which = np.argmin(m2, axis=1)
@@ -231,6 +230,18 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
     return out
 
 
+def _mahalanobis2(points: np.ndarray, centres: np.ndarray, metric: np.ndarray) -> np.ndarray:
+    """(n, r) squared Mahalanobis distances of the positions of points (n, >=2) to centres (r, >=2)."""
+    d = points[:, None, :2] - centres[None, :, :2]
+    return np.einsum("nri,ij,nrj->nr", d, metric, d)
+
+
+def _reference_params(setup: MonitorSetup) -> GuidanceParams:
+    """The guidance settings of a reference plan: its own QP budget, capped by the mean's."""
+    ps = setup.plan_steering
+    return replace(setup.guidance, max_qp_solves=min(ps.max_qp_solves, setup.guidance.max_qp_solves))
+
+
 def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal: np.ndarray, plan: Plan,
                     previous: Plan | None, previous_refs: Sequence[Plan | None], workspace: GuidanceWorkspace | None,
                     timer: Callable[[], float], sides: np.ndarray | None = None
@@ -247,7 +258,7 @@ def _reference_laws(setup: MonitorSetup, mean: np.ndarray, cov: np.ndarray, goal
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
     metric = np.linalg.inv(Cpp)
     laws, refs = [plan.law], []
-    params = replace(setup.guidance, max_qp_solves=min(ps.max_qp_solves, setup.guidance.max_qp_solves))
+    params = _reference_params(setup)
     if ps.references >= 2:
         lam, vec = np.linalg.eigh(Cpp)
         axis = vec[:, -1] * np.sqrt(lam[-1])
@@ -304,7 +315,7 @@ def _side_modes(setup: MonitorSetup, ps: tracking.ParticleSet, mean: np.ndarray,
     K = len(setup.obstacles)
     w, x_all = ps.weights, ps.particles
     metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
-    params = replace(setup.guidance, max_qp_solves=min(st.max_qp_solves, setup.guidance.max_qp_solves))
+    params = _reference_params(setup)
 
     def planned(x, previous_plan, sides, strict=False):
         p = plan_guidance(setup.model, params, setup.obstacles, x, goal, previous=previous_plan,
@@ -344,8 +355,7 @@ def _side_modes(setup: MonitorSetup, ps: tracking.ParticleSet, mean: np.ndarray,
         old = [(previous_plan, ())]
     lost = np.flatnonzero(labels < 0)
     if len(lost):
-        d = x_all[lost, None, :2] - np.array([c[:2] for c, _ in stats])[None]
-        labels[lost] = np.argmin(np.einsum("nri,ij,nrj->nr", d, metric, d), axis=1)
+        labels[lost] = np.argmin(_mahalanobis2(x_all[lost], np.array([c[:2] for c, _ in stats]), metric), axis=1)
 
     n_old = len(modes)
     for m in range(n_old):
