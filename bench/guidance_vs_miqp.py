@@ -49,11 +49,11 @@ def main() -> None:
         ref = solve_p1_exact(model, params, obs, mean0, goal, time_limit_s=args.time_limit)
         if not np.isfinite(ref["cost"]):
             skipped += 1
-            print(f"{i:4d}  exact: no solution ({ref['status']}); ours: {ours.status}")
+            print(f"{i:4d}  exact: no solution ({ref['status']}); ours: {ours.status}, margin {ours.margin_m} m")
             continue
         ours_ms.append(ours.solve_time_s * 1e3)
         exact_ms.append(ref["time_s"] * 1e3)
-        if not ours.feasible:
+        if not ours.feasible or ours.margin_m != params.obstacle_margin_m:  # a plan inside the margin: none
             infeasible += 1
             ratios.append(np.inf)
         else:

@@ -319,6 +319,47 @@ def test_start_inside_an_inflated_obstacle_is_planned_from_just_outside(paper, m
     assert not inflated.contains(np.column_stack([plan.means[:, :2], np.zeros(len(plan.means))])).any()
 
 
+def test_target_faster_than_its_speed_bound_gets_a_plan_that_slows_it(paper, model):
+    """Noise can carry a target past speed_max / (1 - friction); its plan slows it down under
+    the relaxed speed polygon (the bound friction alone meets) instead of failing: a failed plan
+    leaves the target on stale controls and the predictor with no plan."""
+    params = GuidanceParams.from_config(paper.guidance)
+    n = params.speed_polygon_sides
+    ang = -np.pi / 2 + np.pi / n  # toward a corner of the speed polygon, between two of its normals
+    v0 = 21.0
+    x = np.array([200.0, 900.0, 0.0, v0 * np.cos(ang), v0 * np.sin(ang), 0.0])  # clear of the obstacles
+    goal = np.array(paper.goal_of(paper.targets[0]).center_m)
+    for obs in (Obstacles.from_boxes(()), Obstacles.from_boxes(paper.obstacles)):
+        plan = plan_guidance(model, params, obs, x, goal)
+        assert plan.feasible and plan.status in ("optimal", "budget")
+        speed = np.linalg.norm(plan.means[:, 3:5], axis=1)
+        decay = 1.0 - model.friction
+        relaxed = np.maximum(params.speed_max_mps, v0 * decay ** np.arange(1, len(speed) + 1) / np.cos(np.pi / n))
+        assert np.all(speed <= relaxed + 1e-3)
+        assert speed[0] < v0 and np.all(speed[5:] <= params.speed_max_mps + 1e-3)
+
+
+def test_target_that_cannot_keep_the_margin_keeps_clear_of_the_obstacle(paper, model):
+    """A target 13 m north of O3 closing at 9 m/s reaches its 5 m margin before any control
+    can stop it: its plan keeps clear of the obstacle itself (margin_m 0), not a fallback that
+    coasts into it; a target with room keeps the margin."""
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    o3 = next(b for b in paper.obstacles if b.name == "O3")
+    north = o3.center_m[1] + o3.size_m[1] / 2  # y of O3's north face
+    goal = np.array(paper.goal_of(paper.targets[0]).center_m)
+    x = np.array([o3.center_m[0], north + 13.0, 0.0, 0.0, -9.0, 0.0])
+    plan = plan_guidance(model, params, obs, x, goal)
+    assert plan.feasible and plan.margin_m == 0.0
+    pts = np.vstack([x[:3], plan.means[:, :3]]) + [0.0, 0.0, 1.0]  # 1 m up: O3 stands on the ground
+    assert not obs.contains(pts).any() and not obs.segments_cross(pts[1:-1], pts[2:]).any()
+    coasting = model.A @ (model.A @ x)  # what a fallback without a previous plan does
+    assert obs.contains(coasting[None, :3] + [0.0, 0.0, 1.0]).any()
+    x_far = x.copy()
+    x_far[1] += 60.0
+    assert plan_guidance(model, params, obs, x_far, goal).margin_m == params.obstacle_margin_m
+
+
 def test_control_mixture_only_while_the_plan_rounds_an_obstacle(paper, rng):
     """control_mix_when: obstacle: random controls only for a plan with an obstacle row active
     (or unknown: a fallback); a plan in open ground moves every particle by its control."""

@@ -84,7 +84,9 @@ class Plan:
     ``status``: ``optimal`` (assignment stable, local search done), ``budget`` (best found when
     the QP budget ran out), ``timeout`` (best found when ``max_solve_time_s`` ran out),
     ``fallback_previous`` (no feasible plan: the previous plan shifted by one step) or ``fallback_coast`` (no feasible plan and none before: zero control, the target
-    coasting under friction). ``cost`` is P1's objective (nan for fallbacks).
+    coasting under friction). ``cost`` is P1's objective (nan for fallbacks). ``margin_m``: the
+    clearance from the obstacles the plan keeps: ``obstacle_margin_m``, or 0 where noise carried the
+    target too close to an obstacle, or too fast toward it, for any plan to keep the margin.
     """
 
     status: str
@@ -96,6 +98,7 @@ class Plan:
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "_Active | None" = None  # the QP rows active at the solution: next tick's warm start
     law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (with_feedback=True)
+    margin_m: float | None = None  # m; None when not set (plans built by hand)
 
     @property
     def feedback(self) -> np.ndarray | None:
@@ -617,9 +620,13 @@ class _Geometry:
 # --------------------------------------------------------------------------- the planner
 
 
-def _reduce_obstacles(obstacles: Obstacles, margin: float, z: np.ndarray) -> _Geometry:
-    inflated = obstacles.inflate(margin)
-    normals, offsets, z_lo, z_hi = inflated.lateral()
+def _reduce_obstacles(obstacles: Obstacles, margin: float, z: np.ndarray,
+                      lateral_margin: float | None = None) -> _Geometry:
+    """The obstacles inflated by ``margin`` (``lateral_margin`` sideways, when given) as seen by
+    a path at altitudes z (T+1,)."""
+    normals, offsets, z_lo, z_hi = obstacles.inflate(margin).lateral()
+    if lateral_margin is not None:
+        normals, offsets, _, _ = obstacles.inflate(lateral_margin).lateral()
     # segment s (p_s -> p_(s+1)) misses obstacle k vertically iff both ends are above or below it
     za, zb = z[1:-1, None], z[2:, None]
     above = (za >= z_hi[None]) & (zb >= z_hi[None])
@@ -818,6 +825,25 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     (``in_class``; the tracker's ``plan_sides``).
     """
     t_start = timer()
+    plan = _search(model, params, obstacles, mean0, goal, previous, workspace, timer, with_feedback, sides,
+                   strict_sides, params.obstacle_margin_m)
+    left = None if params.max_solve_time_s is None else t_start + params.max_solve_time_s - timer()
+    if plan.feasible or not len(obstacles) or params.obstacle_margin_m <= 0.0 or (left is not None and left <= 0):
+        return plan
+    # noise has carried the target so close to an obstacle, or so fast toward it, that no control
+    # keeps the margin: it keeps clear of the obstacle itself (the margin stays vertical, which
+    # keeps ground targets level with the obstacles' bases)
+    retry = _search(model, replace(params, max_solve_time_s=left), obstacles, mean0, goal, previous, workspace,
+                    timer, with_feedback, sides, strict_sides, 0.0)
+    return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
+
+
+def _search(model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,
+            goal: np.ndarray, previous: Plan | None, workspace: GuidanceWorkspace | None,
+            timer: Callable[[], float], with_feedback: bool, sides: np.ndarray | None, strict_sides: bool,
+            lateral_margin_m: float) -> Plan:
+    """``plan_guidance``'s search with the obstacles inflated by ``lateral_margin_m`` sideways."""
+    t_start = timer()
     T, K = params.horizon, len(obstacles)
     mean0 = np.asarray(mean0, dtype=float)
     goal2 = np.asarray(goal, dtype=float)[:2]
@@ -828,7 +854,8 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
 
     x0 = mean0[[0, 1, 3, 4]]
     z_path = predict_mean(model, mean0, np.zeros((T, 3)))[:, 2]
-    geo = _reduce_obstacles(obstacles, params.obstacle_margin_m, np.concatenate([[mean0[2]], z_path]))
+    geo = _reduce_obstacles(obstacles, params.obstacle_margin_m, np.concatenate([[mean0[2]], z_path]),
+                            lateral_margin_m)
     # a start inside an inflated obstacle (noise carried the target into the margin, or an
     # estimate averages particles on both sides of an obstacle) has no feasible plan: plan from
     # the nearest point just outside, not moving into the obstacle
@@ -886,8 +913,11 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         pts = _integrate(x0, w, model.dt_s, decay, gain)
         if geo.violation(faces, path(pts)) > _FEAS_TOL_M:
             return None
-        speed = np.linalg.norm(np.diff(pts, axis=0) / model.dt_s, axis=1)
-        if np.any(speed > np.maximum(params.speed_max_mps, speed_bound) + 1e-3):
+        # the speed rows the QP imposed, the polygon of apothem speed_bound: its corners lie
+        # outside a circle of that radius, which a 2-norm check would reject whenever the bound
+        # is relaxed above speed_max's (a target faster than speed_max / (1 - friction))
+        vel = np.diff(pts, axis=0) / model.dt_s
+        if np.any(vel @ qp.speed_normals.T > speed_bound[:, None] + 1e-3):
             return None
         c = cost(pts)
         if not in_class(faces, sides, strict_sides):
@@ -1064,7 +1094,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
         if feedback is not None:
             law = LocalLaw(x0.copy(), controls[0].copy(), feedback)
     return Plan(status, best["cost"], timer() - t_start, solves, controls,
-                predict_mean(model, mean0, controls), best["faces"], best["active"], law)
+                predict_mean(model, mean0, controls), best["faces"], best["active"], law, lateral_margin_m)
 
 
 def _shift_switches(faces: np.ndarray, d: int) -> np.ndarray | None:

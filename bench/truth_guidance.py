@@ -1,0 +1,76 @@
+"""How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
+
+    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--set KEY=VALUE ...]
+
+The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
+target re-plans every step; a step without a feasible plan leaves it on its previous plan's
+controls (``fallback_previous``), open loop, which no tracker's motion model predicts. Prints
+the target-steps by plan status, the steps planned without the obstacle margin (``margin_m`` 0:
+noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
+(trial, target) pairs with at least one fallback, and one JSON line.
+"""
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+from collections import Counter  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
+from sim import evaluation as ev  # noqa: E402
+from sim.truth import TruthWorld  # noqa: E402
+
+
+def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> list[list[str]]:
+    """Per target, the status of its plan at each step of trial ``trial`` (``margin0``: a plan
+    without the margin)."""
+    cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
+    world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
+    out = [[] for _ in range(len(cfg.scenario.targets))]
+    for _ in range(cfg.n_ticks - 1):
+        world.step()
+        for j, plan in enumerate(world.plans):
+            margin = getattr(plan, "margin_m", None)  # absent before the field was added
+            out[j].append("margin0" if margin == 0.0 else plan.status)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    add_set_option(ap, "guidance.max_qp_solves=40")
+    args = ap.parse_args()
+    overrides = set_overrides(ap, args)
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        trials = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
+                               [args.seed] * args.trials, range(args.trials)))
+    counts = Counter(s for trial in trials for target in trial for s in target)
+    steps = sum(counts.values())
+    fallback = counts["fallback_previous"] + counts["fallback_coast"]
+    pairs = [(i, j) for i, trial in enumerate(trials) for j, target in enumerate(trial)
+             if any(s.startswith("fallback") for s in target)]
+    n_pairs = sum(len(trial) for trial in trials)
+    print(f"paper scenario{set_label(args)}, {args.trials} trials, seed {args.seed}: the targets' own plans")
+    print(f"{'status':20s} {'target-steps':>12s} {'share':>8s}")
+    for status, n in sorted(counts.items(), key=lambda x: -x[1]):
+        print(f"{status:20s} {n:12d} {n / steps:8.2%}")
+    print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
+    print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
+                      "margin0_steps": counts["margin0"], "pairs_with_fallback": len(pairs),
+                      "pairs": n_pairs, "statuses": dict(counts)}))
+
+
+if __name__ == "__main__":
+    main()
