@@ -1,13 +1,15 @@
 """How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
 
-    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--set KEY=VALUE ...]
+    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...]
+                                   [--set KEY=VALUE ...]
 
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
 target re-plans every step; a step without a feasible plan leaves it on its previous plan's
 controls (``fallback_previous``), open loop, which no tracker's motion model predicts. Prints
 the target-steps by plan status, the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
-(trial, target) pairs with at least one fallback, and one JSON line.
+(trial, target) pairs with at least one fallback, and one JSON line. ``--show 82:3``: also the
+times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``.
 """
 from __future__ import annotations
 
@@ -50,8 +52,16 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--show", action="append", default=[], metavar="TRIAL:TARGET",
+                    help="print the times of that pair's non-optimal plans (target from 1, as T1)")
     add_set_option(ap, "guidance.max_qp_solves=40")
     args = ap.parse_args()
+    try:
+        shows = [tuple(int(v) for v in item.split(":")) for item in args.show]
+        if any(len(x) != 2 or not 0 <= x[0] < args.trials or x[1] < 1 for x in shows):
+            raise ValueError
+    except ValueError:
+        ap.error(f"--show takes TRIAL:TARGET, a trial below --trials and a target from 1: {args.show}")
     overrides = set_overrides(ap, args)
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         trials = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
@@ -67,6 +77,17 @@ def main() -> None:
     for status, n in sorted(counts.items(), key=lambda x: -x[1]):
         print(f"{status:20s} {n:12d} {n / steps:8.2%}")
     print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
+    for trial, target in shows:
+        seq = trials[trial][target - 1]
+        runs, k = [], 0
+        while k < len(seq):
+            e = k
+            while e + 1 < len(seq) and seq[e + 1] == seq[k]:
+                e += 1
+            if seq[k] != "optimal":
+                runs.append(f"{seq[k]} at t = {k}" + (f"-{e} s" if e > k else " s"))
+            k = e + 1
+        print(f"trial {trial} T{target}: " + ("; ".join(runs) or "optimal at every step"))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
                       "margin0_steps": counts["margin0"], "pairs_with_fallback": len(pairs),
                       "pairs": n_pairs, "statuses": dict(counts)}))
