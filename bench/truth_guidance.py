@@ -23,6 +23,7 @@ import json  # noqa: E402
 import sys  # noqa: E402
 from collections import Counter  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from itertools import groupby  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -78,14 +79,13 @@ def main() -> None:
         print(f"{status:20s} {n:12d} {n / steps:8.2%}")
     print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
     for trial, target in shows:
-        seq = trials[trial][target - 1]
+        if target > len(trials[trial]):
+            ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
         runs, k = [], 0
-        while k < len(seq):
-            e = k
-            while e + 1 < len(seq) and seq[e + 1] == seq[k]:
-                e += 1
-            if seq[k] != "optimal":
-                runs.append(f"{seq[k]} at t = {k}" + (f"-{e} s" if e > k else " s"))
+        for status, group in groupby(trials[trial][target - 1]):
+            e = k + len(list(group)) - 1
+            if status != "optimal":
+                runs.append(f"{status} at t = {k}" + (f"-{e} s" if e > k else " s"))
             k = e + 1
         print(f"trial {trial} T{target}: " + ("; ".join(runs) or "optimal at every step"))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
