@@ -718,6 +718,36 @@ def machine_description() -> str:
            f"{platform.release()}, Python {platform.python_version()}"
 
 
+def _cpu_model() -> str:
+    with contextlib.suppress(OSError):
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown CPU"
+
+
+def numerics_description() -> str:
+    """The CPU and the numerical packages a run's figures depend on to the last bit.
+
+    The guidance's knife edges (which side of an obstacle a target takes) turn last-bit
+    differences into other trials, so figures reproduce exactly only where these match."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def ver(pkg):
+        try:
+            return version(pkg)
+        except PackageNotFoundError:
+            return "absent"
+
+    blas = "unknown BLAS"
+    with contextlib.suppress(Exception):
+        b = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        blas = f"{b['name']} {b['version']}"
+    pkgs = ", ".join(f"{p} {ver(p)}" for p in ("numpy", "scipy", "daqp", "osqp"))
+    return f"{_cpu_model()}; {pkgs}; {blas}"
+
+
 def results_markdown(summary: Summary, command: str) -> str:
     cfg = summary.config
     dt = cfg.dt_s
@@ -730,7 +760,8 @@ def results_markdown(summary: Summary, command: str) -> str:
          f"{dict(cfg.overrides).get('n_particles', cfg.scenario.tracking.particles)}",
          f"- Convergence window: ticks {cfg.window_start}..{cfg.n_ticks - 1} "
          f"(t = {cfg.window_start * dt:g} s to the end)",
-         f"- Machine: {machine_description()}; wall time {summary.wall_s:.0f} s", "",
+         f"- Machine: {machine_description()}; wall time {summary.wall_s:.0f} s",
+         f"- Numerics: {numerics_description()} (figures reproduce exactly where these match)", "",
          "## Time-averaged RMSE and consistency", "",
          f"RMSE: the paper's eps_t (root mean square over trials of the horizontal position error), "
          f"averaged over the {len(names)} targets and over the window. Paired difference: per-trial "
