@@ -32,8 +32,8 @@ class Gcs:
     """A raw pymavlink ground station (sysid 255 by default, component 190) on its own TCP link
     to the mock autopilot (127.0.0.1:port); the onboard app is reached by the autopilot's
     routing. A thread keeps every message received (``msgs``) and sends a GCS heartbeat every
-    0.5 s. Used by tests/test_app_sitl.py and tests/test_failsafes.py (``from conftest import
-    Gcs``); ``close()`` joins the thread and frees the port."""
+    0.5 s. Used by tests/test_app_sitl.py, tests/test_failsafes.py and tests/test_gcs_terminal.py
+    (``from conftest import Gcs``); ``close()`` joins the thread and frees the port."""
 
     def __init__(self, port: int, sysid: int = 255):
         self.conn = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=sysid,
@@ -71,11 +71,13 @@ class Gcs:
         return self.wait(lambda m: m.get_type() == "COMMAND_ACK" and m.command == cmd
                          and m.get_srcComponent() == comp, timeout, since)
 
-    def param_set(self, name: str, value: float, timeout: float = 5.0):
-        """PARAM_SET of the app's (1, 191) parameter; its PARAM_VALUE or None."""
+    def param_set(self, name: str, value: float, timeout: float = 5.0, comp: int = 191,
+                  ptype: int = mavlink.MAV_PARAM_TYPE_REAL32):
+        """PARAM_SET of a parameter of (1, comp), by default the app's; its PARAM_VALUE or None."""
         since = len(self.msgs)
-        self.conn.mav.param_set_send(1, 191, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32)
-        return self.wait(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name, timeout, since)
+        self.conn.mav.param_set_send(1, comp, name.encode(), value, ptype)
+        return self.wait(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name
+                         and m.get_srcComponent() == comp, timeout, since)
 
     def texts(self) -> list[str]:
         return [m.text for m in self.msgs if m.get_type() == "STATUSTEXT"]

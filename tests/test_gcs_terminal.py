@@ -15,7 +15,8 @@ import pytest
 
 from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
-from pymavlink import mavutil  # noqa: E402  (after sim.stack: MAVLink 2)
+from conftest import Gcs
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from groundstation.cli import main
 
@@ -38,16 +39,12 @@ def test_watch_in_a_real_terminal(capsys):
         # The feed's scans start when it sees the vehicle armed, after its truth world's first
         # steps (seconds on a slow machine), and an idle armed copter disarms itself after
         # DISARM_DELAY (10 s, 2.5 s of wall time here): a GCS turns that off first.
-        link = mavutil.mavlink_connection(st.gcs_url, source_system=254)
+        gcs = Gcs(st.ap.port("tcpin", 2))  # the stack's GCS link (st.gcs_url)
         try:
-            assert link.wait_heartbeat(timeout=10) is not None
-            link.mav.param_set_send(link.target_system, link.target_component, b"DISARM_DELAY", 0,
-                                    mavutil.mavlink.MAV_PARAM_TYPE_INT8)
-            ack = link.recv_match(type="PARAM_VALUE", blocking=True, timeout=10,
-                                  condition="PARAM_VALUE.param_id == 'DISARM_DELAY'")
+            ack = gcs.param_set("DISARM_DELAY", 0, timeout=10, comp=1, ptype=mavlink.MAV_PARAM_TYPE_INT8)
             assert ack is not None and ack.param_value == 0
         finally:
-            link.close()
+            gcs.close()
         assert main(["--connect", st.gcs_url, "arm"]) == 0  # the feed's scans start at arming
         cmd = " ".join(_gcs_argv() + ["--connect", st.gcs_url, "watch", "--duration", "40"])
         try:
