@@ -5,7 +5,8 @@
 
 Closed loop on the core alone (as bench/tick.py): the targets follow their own plans, the DF
 bearings carry noise, the UAV goes where the planner says (and, for the vehicle motion, with
-the velocity it says). One BLAS thread (set before numpy loads), so the figures are one core's.
+the velocity it says). One BLAS thread unless OPENBLAS_NUM_THREADS says otherwise (set before
+numpy loads), so the figures are one core's; the header says the count and the CPU and packages.
 Prints a table per planner x motion (medians and p95 over ticks after the first, which includes
 the guidance's exploratory face search), writes a figure of the tick-time distributions, and
 ends with one JSON line.
@@ -32,6 +33,7 @@ from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
+from sim.evaluation import numerics_description  # noqa: E402
 
 CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("lookahead", "vehicle"))
 
@@ -73,7 +75,8 @@ def main() -> None:
             motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
         results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
     print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
-          f"{sc.planning.lookahead_steps} ticks, one BLAS thread")
+          f"{sc.planning.lookahead_steps} ticks, BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
+    print(f"numerics: {numerics_description()}")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")
     for name, r in results.items():
         print(f"{name:20s} {np.median(r['tick']):9.1f} {np.percentile(r['tick'], 95):9.1f} "
