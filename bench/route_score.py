@@ -50,6 +50,7 @@ from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.information import information_reduction_factor, planar_model  # noqa: E402
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
+from onboard.core.tracking import systematic_indices  # noqa: E402
 
 
 def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans: np.ndarray,
@@ -67,7 +68,6 @@ def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans:
     logw = np.broadcast_to(log_weights - logsumexp(log_weights, axis=1, keepdims=True), (C, M, N)).copy()
     L = np.linalg.cholesky(Q + 1e-12 * np.eye(4))
     total = np.zeros((C, M))
-    rows = np.arange(C * M)[:, None]
     for k in range(H):
         if k:  # linear about the plan, the same noise for every route (common random numbers)
             w = rng.standard_normal((M, N, 4)) @ L.T
@@ -82,18 +82,10 @@ def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans:
         m2 = np.einsum("cmn,cmnd->cmd", wt, x[..., :2] ** 2)
         total += np.sum(m2 - m1 ** 2, axis=2)
         ess = 1.0 / np.sum(wt ** 2, axis=2)  # (C, M)
-        low = (ess < 0.5 * N).ravel()
-        if low.any():  # systematic resampling, batched over the (route, target) rows that need it
-            wf = wt.reshape(C * M, N)[low]
-            cum = np.cumsum(wf, axis=1)
-            cum[:, -1] = 1.0
-            u = (rng.random((len(wf), 1)) + np.arange(N)) / N
-            r = rows[: len(wf)]
-            idx = np.searchsorted((cum + r).ravel(), (u + r).ravel(), side="right").reshape(len(wf), N) - r * N
-            xf = x.reshape(C * M, N, 4)
-            xf[low] = np.take_along_axis(xf[low], idx[..., None], axis=1)
-            lf = logw.reshape(C * M, N)
-            lf[low] = -np.log(N)
+        xf, lf, wf = x.reshape(C * M, N, 4), logw.reshape(C * M, N), wt.reshape(C * M, N)  # views
+        for r in np.flatnonzero(ess.ravel() < 0.5 * N):
+            xf[r] = xf[r][systematic_indices(wf[r], rng)]
+            lf[r] = -np.log(N)
     return total
 
 

@@ -131,13 +131,12 @@ def test_lookahead_routes_around_a_wall_it_cannot_overfly(rng):
 @pytest.mark.parametrize("motion, start_xy", [("jump", (238.0, 640.0)), ("vehicle", (420.0, 800.0))])
 def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, start_xy):
     """The planner's multi-step EKF score against particles flown along the same ~150 routes over
-    the full 50-tick horizon (bench/route_score.py), on the paper scenario's first plan with the
-    UAV 65 m (jump) and 200 m (vehicle, from a standstill) from the nearest target. The EKF ranks
-    the routes as the particles do (rank correlation, where two rollouts agree with each other at
-    about 0.9 on these routes), and the route it flies costs little more, by the particles'
-    own score, than the best one (measured: Spearman 0.95 and 0.82, the EKF's route 0.2 % and 4.6 %
-above the particles' best, with two rollouts of 1000 particles; the top routes lie within 2-3 %
-of each other, about the rollouts' own noise)."""
+    the full 50-tick horizon (bench/route_score.py), on the paper scenario's first plan, the UAV
+    80 m (jump) and 180 m (vehicle, from a standstill) from the nearest target. The EKF ranks the
+    routes as the particles do, and the route it flies costs little more, by the particles' own
+    score, than their best. Measured, with two rollouts of 1000 particles: Spearman 0.95 and
+    0.82 (two rollouts agree with each other at 0.93 and 0.80: the top routes lie within 2-3 % of
+    each other); the EKF's route 0.2 % and 4.6 % above the particles' best."""
     from scipy import stats
 
     from bench.route_score import particle_route_scores, snapshots
