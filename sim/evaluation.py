@@ -399,20 +399,22 @@ def _worker_init() -> None:
     # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
     # (they already start with SIGINT ignored, _worker_pool; this covers a replaced worker)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # the pool was started with SIGTERM held back (_worker_pool), a mask a worker inherits: left
-    # blocked, terminate() could not stop a worker waiting on a queue lock that a killed one held
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
 
 
 @contextlib.contextmanager
 def _worker_pool(ctx, workers: int):
     """A pool of spawned workers that never outlives the block: terminated on leaving it for any
-    reason (a worker's error, Ctrl-C, or SIGTERM, which raises SystemExit(143) meanwhile). While
-    the pool starts (milliseconds: the workers import on their own afterwards) SIGINT is ignored,
-    a disposition the workers inherit across exec, so a Ctrl-C never kills one mid-import (one
-    pressed in that window is lost), and SIGTERM is held back until the pool exists. Signal
-    handling only from the main thread, where Python allows it."""
+    reason (a worker's error, Ctrl-C, or SIGTERM, which raises SystemExit(143) meanwhile).
+
+    While the pool starts (milliseconds: the workers import on their own afterwards):
+    - SIGINT is ignored, a disposition the workers inherit across exec (a signal mask is not:
+      spawned children start unblocked), so a Ctrl-C to the process group never kills one
+      mid-import; one pressed in that window is lost.
+    - SIGTERM is only recorded, and raised once the pool exists, so the pool is terminated rather
+      than left half-built with workers orphaned. Recorded by the handler, not held back by a
+      mask: this process has other threads (the progress bar's, BLAS's) that a signal sent to
+      the process may land on, whatever the main thread blocks.
+    Signal handling only from the main thread, where Python allows it."""
     import threading
 
     main = threading.current_thread() is threading.main_thread()
@@ -420,19 +422,21 @@ def _worker_pool(ctx, workers: int):
     def _raise(signum, frame):
         raise SystemExit(128 + signum)
 
+    held: list[int] = []
     old_term = signal.signal(signal.SIGTERM, _raise) if main else None
     pool = None
     try:
-        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-        masked = main and hasattr(signal, "pthread_sigmask")
-        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM}) if masked else None
+        if main:
+            old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
         try:
             pool = ctx.Pool(workers, initializer=_worker_init)
         finally:
             if main:
                 signal.signal(signal.SIGINT, old_int)
-            if masked:
-                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a held SIGTERM raises here
+                signal.signal(signal.SIGTERM, _raise)
+        if held:
+            _raise(held[0], None)
         yield pool
     finally:
         if pool is not None:

@@ -277,6 +277,34 @@ def _workers(pid: int) -> list[int]:
     return out
 
 
+def test_a_sigterm_while_the_worker_pool_starts_stops_the_run_and_the_pool():
+    """SIGTERM in the milliseconds while the pool starts is recorded, not raised half-way
+    through building it: it stops the run as soon as the pool exists, and the pool is terminated.
+    (Before, the main thread blocked SIGTERM; this process's other threads did not, so the signal
+    could land on one and raise inside the pool's constructor, leaving started workers behind.)"""
+    class Pool:
+        terminated = False
+
+        def terminate(self):
+            self.terminated = True
+
+    class Ctx:
+        def Pool(self, workers, initializer):
+            os.kill(os.getpid(), signal.SIGTERM)  # a service manager stops the run now
+            time.sleep(0.05)  # still starting
+            self.pool = Pool()
+            return self.pool
+
+    ctx, ran = Ctx(), []
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as stop:
+        with ev._worker_pool(ctx, 2):
+            ran.append(True)
+    assert stop.value.code == 143
+    assert ctx.pool.terminated and not ran
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 @pytest.mark.parametrize("how, code", [("sigterm", 143), ("ctrl-c", 130)])
 def test_pmon_eval_stopped_midway_stops_its_workers(tmp_path, how, code):
