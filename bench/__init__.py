@@ -23,3 +23,33 @@ def set_overrides(ap: argparse.ArgumentParser, args: argparse.Namespace) -> dict
 def set_label(args: argparse.Namespace) -> str:
     """The run's ``--set`` items as they were given, for the benches' headings."""
     return "".join(f" --set {x}" for x in args.set)
+
+
+def closed_loop(setup, ticks: int, seed: int, start_xy=(150.0, 200.0)):
+    """The core's closed loop without sockets (bench/tick.py, planner.py, route_score.py): each
+    target's truth follows its own plan, the DF's bearings carry noise, and the UAV, starting at
+    start_xy (m, ENU), goes where the planner says, with the velocity it says for the vehicle
+    motion. Yields (k, state, result, uav) for k = 0..ticks-1: the state and TickResult after
+    tick k, and where that tick's scan was taken (x, y, z)."""
+    import numpy as np
+
+    from onboard.core.bearings import bearing, wrap
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.monitor import Scan, initial_state, tick
+
+    rng = np.random.default_rng(seed)
+    state = initial_state(setup, rng)
+    truth = setup.initial_means.copy()
+    uav = np.array([*start_xy, setup.grid.altitude_m], float)
+    vel = np.zeros(2)
+    ws = GuidanceWorkspace()
+    for k in range(ticks):
+        bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
+                         for j in range(setup.n_targets))
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws, uav_velocity=vel)
+        yield k, state, res, uav
+        truth = np.array([p.means[0] for p in res.plans])
+        p = res.planning
+        if p is not None and p.index is not None:
+            uav = p.position
+            vel = p.velocities[p.index] if p.velocities is not None else np.zeros(2)

@@ -27,11 +27,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
-from onboard.core.bearings import bearing, wrap  # noqa: E402
-from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
-from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
+from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
 from sim.evaluation import numerics_description  # noqa: E402
 
@@ -39,24 +37,10 @@ CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("loo
 
 
 def run(setup: MonitorSetup, ticks: int, seed: int) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    state = initial_state(setup, rng)
-    truth = setup.initial_means.copy()
-    uav = np.array([150.0, 200.0, setup.grid.altitude_m])
-    vel = np.zeros(2)
-    ws = GuidanceWorkspace()
     out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
-    for _ in range(ticks):
-        bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
-                         for j in range(setup.n_targets))
-        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws, uav_velocity=vel)
+    for _, _, res, _ in closed_loop(setup, ticks, seed):
         for k in out:
             out[k].append(res.timings_s[k] * 1e3)
-        truth = np.array([p.means[0] for p in res.plans])
-        p = res.planning
-        if p is not None and p.index is not None:
-            uav = p.position
-            vel = p.velocities[p.index] if p.velocities is not None else np.zeros(2)
     return {k: np.array(v[1:]) for k, v in out.items()}
 
 

@@ -42,13 +42,12 @@ from scipy.special import logsumexp  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.dynamics import PLANAR  # noqa: E402
-from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
 from onboard.core.information import information_reduction_factor, planar_model  # noqa: E402
-from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick  # noqa: E402
+from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
 from onboard.core.tracking import systematic_indices  # noqa: E402
 
@@ -90,27 +89,14 @@ def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans:
 
 
 def snapshots(setup: MonitorSetup, ticks: set[int], seed: int, start_xy=(150.0, 200.0)):
-    """The closed loop of bench/planner.py from the UAV at start_xy (m, ENU); yields, at each
-    tick in ticks, (tick, particles (M, N, 4), log_w, plans (M, H, 4), planning, uav)."""
-    rng = np.random.default_rng(seed)
-    state = initial_state(setup, rng)
-    truth = setup.initial_means.copy()
-    uav = np.array([*start_xy, setup.grid.altitude_m])
-    vel = np.zeros(2)
-    ws = GuidanceWorkspace()
-    for k in range(max(ticks) + 1):
-        bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
-                         for j in range(setup.n_targets))
-        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws, uav_velocity=vel)
+    """bench.closed_loop from the UAV at start_xy (m, ENU); yields, at each tick in ticks,
+    (tick, particles (M, N, 4), log_w, plans (M, H, 4), planning, uav) of that tick's plan."""
+    for k, state, res, uav in closed_loop(setup, max(ticks) + 1, seed, start_xy):
         p = res.planning
         if k in ticks and p is not None and p.paths is not None:
             yield (k, np.stack([b.particles[:, PLANAR] for b in state.beliefs]),
                    np.stack([b.log_weights for b in state.beliefs]),
                    np.stack([pl.means[:setup.lookahead_steps][:, PLANAR] for pl in res.plans]), p, uav)
-        truth = np.array([pl.means[0] for pl in res.plans])
-        if p is not None and p.index is not None:
-            uav = p.position
-            vel = p.velocities[p.index] if p.velocities is not None else np.zeros(2)
 
 
 def main() -> None:
