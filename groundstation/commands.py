@@ -39,7 +39,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         except GcsError:
             params = None
     hb_age = time.monotonic() - v.seen_at.get(("HEARTBEAT", v.autopilot_comp), -math.inf)
-    gp, ss, ext = v.get("GLOBAL_POSITION_INT"), v.get("SYS_STATUS"), v.get("EXTENDED_SYS_STATE")
+    gp, ss = v.get("GLOBAL_POSITION_INT"), v.get("SYS_STATUS")
     landed = {mavlink.MAV_LANDED_STATE_ON_GROUND: "on ground", mavlink.MAV_LANDED_STATE_IN_AIR: "in air",
               mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
               mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")

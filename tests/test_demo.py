@@ -1,7 +1,6 @@
 """`pmon demo` as a user runs it: exits 0, writes the table, the PNG and the logs, and leaves no
 process behind; Ctrl-C stops everything."""
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -16,7 +16,6 @@ import random
 import socket
 import time
 
-import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 

@@ -4,7 +4,6 @@ onboard app, DF feed on loopback TCP; 2x: the three share one GIL here), as an o
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
 

@@ -338,7 +338,6 @@ class _QP:
         set of ``sol`` held fixed (the optimum is affine in x0 there): the KKT system
         [H A_a^T; A_a 0] [dy; dlam] = [-df; db] solved for the four directions of x0.
         The cost vector and every bound are affine in x0, so differences are exact."""
-        n = self.ny
         _, A, lo, hi = self._rows(x0, goal, speed_bound, coef, rhs)
         act = np.flatnonzero(sol.lam != 0.0)
         b0 = np.where(sol.lam[act] < 0, lo[act], hi[act])
