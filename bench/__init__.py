@@ -53,3 +53,16 @@ def closed_loop(setup, ticks: int, seed: int, start_xy=(150.0, 200.0)):
         if p is not None and p.index is not None:
             uav = p.position
             vel = p.velocities[p.index] if p.velocities is not None else np.zeros(2)
+
+
+def tick_timings(setup, ticks: int, seed: int) -> dict:
+    """ms per tick of ``closed_loop`` from its defaults, split as TickResult.timings_s (tick,
+    tracking, guidance, planning): arrays over the ticks after the first, which includes the
+    guidance's first exploratory face search."""
+    import numpy as np
+
+    out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
+    for _, _, res, _ in closed_loop(setup, ticks, seed):
+        for k in out:
+            out[k].append(res.timings_s[k] * 1e3)
+    return {k: np.array(v[1:]) for k, v in out.items()}

@@ -27,21 +27,13 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
+from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
 from sim.evaluation import numerics_description  # noqa: E402
 
 CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("lookahead", "vehicle"))
-
-
-def run(setup: MonitorSetup, ticks: int, seed: int) -> dict[str, np.ndarray]:
-    out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
-    for _, _, res, _ in closed_loop(setup, ticks, seed):
-        for k in out:
-            out[k].append(res.timings_s[k] * 1e3)
-    return {k: np.array(v[1:]) for k, v in out.items()}
 
 
 def main() -> None:
@@ -57,7 +49,7 @@ def main() -> None:
     for planner, motion in CASES:
         setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
             motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
-        results[f"{planner}/{motion}"] = run(setup, args.ticks, args.seed)
+        results[f"{planner}/{motion}"] = tick_timings(setup, args.ticks, args.seed)
     print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
           f"{sc.planning.lookahead_steps} ticks, BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
     print(f"numerics: {numerics_description()}")

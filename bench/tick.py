@@ -18,19 +18,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
+from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.obstacles import Obstacles  # noqa: E402
-
-
-def run(setup: MonitorSetup, ticks: int, seed: int) -> dict[str, np.ndarray]:
-    """Closed loop on the core alone: truth follows each target's own plan (no socket, no sim)."""
-    out = {k: [] for k in ("tick", "tracking", "guidance", "planning")}
-    for _, _, res, _ in closed_loop(setup, ticks, seed):
-        for k in out:
-            out[k].append(res.timings_s[k] * 1e3)
-    return {k: np.array(v[1:]) for k, v in out.items()}
 
 
 def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:
@@ -64,8 +55,8 @@ def main() -> None:
     args = ap.parse_args()
     sc = load_scenario("paper", set_overrides(ap, args))
     base = MonitorSetup.from_scenario(sc)
-    paper = run(base, args.ticks, args.seed)
-    large = run(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
+    paper = tick_timings(base, args.ticks, args.seed)
+    large = tick_timings(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
     print(f"paper scenario{set_label(args)}: 4 targets, {len(base.obstacles)} obstacles, "
           f"T={base.guidance.horizon}, "
           f"{base.n_particles} particles/target, {args.ticks} ticks")
