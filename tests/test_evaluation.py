@@ -135,6 +135,7 @@ def test_short_evaluation_every_filter_keeps_every_target_and_fixed_beats_hover(
     assert d[1] <= d[0] <= d[2]
     assert s.ratio == pytest.approx(s.methods["greedy_l1"].rmse_mean_m / s.methods["fixed3"].rmse_mean_m)
     assert s.ratio_ci[0] <= s.ratio <= s.ratio_ci[1]
+    assert (s.ratio, *s.ratio_ci) == s.methods["fixed3"].ratio_vs_ref  # one CI for one ratio in results.md
     # the greedy UAV moves (the paper's rule with N_r = 4: up to 20 m), the hover one does not
     assert s.methods["greedy_l1"].motion["mean_step_m"] > 1.0
     assert s.methods["hover"].motion["mean_step_m"] == 0.0
