@@ -260,11 +260,12 @@ def test_particle_collapse_reseeds_that_target_only(flight):
     hit = [t for t in flight["ticks"] if t["reseeded"]]
     assert hit and all(t["reseeded"] == [0] for t in hit), [t["reseeded"] for t in hit]
     k = flight["ticks"].index(hit[0])
-    before, at = flight["ticks"][k - 1], hit[0]
-    # T1's belief was re-seeded wide around its last estimate; T2..T4 carried on as they were
-    assert np.linalg.norm(np.array(at["means"][0][:2]) - np.array(before["means"][0][:2])) < 50.0
-    for j in (1, 2, 3):
-        assert np.linalg.norm(np.array(at["means"][j][:2]) - np.array(before["means"][j][:2])) < 20.0
+    at, after = hit[0], flight["ticks"][k + 1]  # the re-seed shows in the tick after it
+    # T1 was re-seeded at 4x its covariance plus the initial one: its spread at least doubles
+    # along the next bearing, which one bearing cannot narrow. T2..T4 carried on as they were
+    # (a tick's prediction and update change a spread by a few per cent; measured up to 8 %).
+    spread = [np.hypot(*after["sigmas_xy"][j]) / np.hypot(*at["sigmas_xy"][j]) for j in range(4)]
+    assert spread[0] > 1.2 and all(0.5 < r < 1.2 for r in spread[1:]), spread
     assert any("T1: particle collapse: re-seeded" in s for s in flight["texts"])
     later = flight["ticks"][k + 1:k + 4]
     assert all(np.all(np.isfinite(t["means"])) and not t["reseeded"] for t in later)
