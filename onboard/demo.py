@@ -93,9 +93,8 @@ class Proc:
 
 def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
     """Median wall time of a core tick on this machine, now. The first ``warmup`` ticks are
-    excluded: their guidance searches every target's faces from scratch (1.4 s and 0.5 s on
-    a 2-core VM, against 50-60 ms after). The median of ticks 2-4 alone came out at 56-104 ms
-    on that VM, run to run, so the demo ran at 1x-2.5x."""
+    excluded: their guidance still searches every target's faces from scratch, several times
+    a steady tick (the earlier ``n=4, warmup=1`` gave 50-104 ms on one 2-core VM, this 40-61)."""
     from onboard.core.guidance import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
