@@ -1,0 +1,316 @@
+"""ArduPilot's own SITL firmware as a child process: the real autopilot for conformance tests,
+benches and the demo.
+
+    sitl = ArduPilotSitl(find_binary(), home=(35.145, 33.411, 160.0), speedup=4).start()
+    sitl.url(0)        # tcp:127.0.0.1:5860: SERIAL0 (one client per TCP port)
+    sitl.url(1)        # SERIAL1, sitl.url(2): SERIAL2
+    sitl.restart()     # SIGTERM, then boot again on the same instance and parameters (eeprom kept)
+    sitl.stop()
+
+The binary is ArduPilot's ``arducopter`` built with ``./waf configure --board sitl`` (the one
+in ``../shared/ardupilot/`` is 4.4.0-dev, stock, with its test harness's ``copter.parm``). Each
+instance runs in a directory of its own (it writes eeprom.bin and logs there) on an instance
+number ``-I N`` no other process holds: the ports of N (5760 + 10 N and up, 5501 + 10 N) are
+checked free and a lock file is held while it runs, so tests in separate processes can fly
+side by side. The firmware's serial ports listen on all interfaces (its own choice; clients here
+connect on 127.0.0.1 only).
+
+As a program, for a terminal session (docs/SITL.md)::
+
+    python -m sim.ardupilot --speedup 1 --param WPNAV_SPEED=2000   # prints the three URLs
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import fcntl
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ENV_VAR = "PMON_ARDUPILOT_SITL"
+REPO = Path(__file__).resolve().parent.parent
+SHARED_BINARY = REPO.parent / "shared" / "ardupilot" / "arducopter"
+FIRST_INSTANCE = 20  # instances tried from here up: leaves 0.. to a developer's own SITL
+LAST_INSTANCE = 99
+SERIALS = 3  # SERIAL0..2 as TCP servers: the app, the DF feed, a ground station
+# the serial TCP ports of instance N are BASE + 10 N + offset (ArduPilot's SITL_State)
+BASE_PORT = 5760
+SERIAL_OFFSETS = (0, 2, 3)
+SIM_PORT_IN = 5501  # its physics-model UDP port, + 10 N
+
+
+class SitlError(RuntimeError):
+    """SITL could not be started or stopped; the message says why in one line."""
+
+
+def find_binary() -> Path | None:
+    """``$PMON_ARDUPILOT_SITL`` if set, else ``../shared/ardupilot/arducopter`` beside the
+    repository if it exists, else None."""
+    env = os.environ.get(ENV_VAR)
+    if env:
+        return Path(env)
+    return SHARED_BINARY if SHARED_BINARY.is_file() else None
+
+
+def skip_reason() -> str | None:
+    """Why the ArduPilot tests cannot run here (one line), or None when a binary is there."""
+    b = find_binary()
+    if b is None:
+        return (f"no ArduPilot SITL: set {ENV_VAR} to an arducopter built with "
+                f"'./waf configure --board sitl && ./waf copter'")
+    if not (b.is_file() and os.access(b, os.X_OK)):
+        return f"{ENV_VAR}={b}: not an executable file"
+    return None
+
+
+def default_params_file(binary: Path) -> Path | None:
+    """The ``copter.parm`` beside the binary (the test harness's defaults), if there is one."""
+    p = Path(binary).with_name("copter.parm")
+    return p if p.is_file() else None
+
+
+def _ports_free(instance: int) -> bool:
+    for off in SERIAL_OFFSETS:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("0.0.0.0", BASE_PORT + 10 * instance + off))
+            except OSError:
+                return False
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("0.0.0.0", SIM_PORT_IN + 10 * instance))
+        except OSError:
+            return False
+    return True
+
+
+@dataclass
+class ArduPilotSitl:
+    """One ArduCopter SITL process. ``home`` = (lat deg, lon deg, alt m AMSL[, yaw deg])."""
+
+    binary: Path
+    home: tuple[float, ...]
+    speedup: float = 1.0
+    params: dict[str, float] = field(default_factory=dict)  # over copter.parm, at every boot
+    defaults: Path | None = None  # None: copter.parm beside the binary
+    model: str = "+"
+    instance: int | None = None  # None: the first free one from FIRST_INSTANCE
+    workdir: Path | None = None  # None: a temporary directory, removed by stop()
+    log_path: Path | None = None  # the firmware's stdout/stderr (None: workdir/arducopter.log)
+    proc: subprocess.Popen | None = field(default=None, init=False)
+    boots: int = field(default=0, init=False)
+
+    def __post_init__(self):
+        self.binary = Path(self.binary)
+        if not (self.speedup > 0 and self.speedup <= 100):
+            raise SitlError(f"speedup must be in (0, 100], got {self.speedup}")
+        self._lock = None
+        self._own_dir = False
+
+    # ----- lifecycle
+    def start(self) -> "ArduPilotSitl":
+        if self.proc is not None:
+            return self
+        if not (self.binary.is_file() and os.access(self.binary, os.X_OK)):
+            raise SitlError(f"{self.binary}: not an executable ArduPilot SITL binary")
+        if self.workdir is None:
+            self.workdir = Path(tempfile.mkdtemp(prefix="pmon-sitl-"))
+            self._own_dir = True
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        if self.instance is None or self._lock is None:
+            self._claim_instance()
+        self._boot(wipe=True)
+        return self
+
+    def restart(self, down_s: float = 0.0) -> None:
+        """Stop the firmware (SIGTERM) and boot it again on the same instance and eeprom, after
+        ``down_s`` wall seconds down: a reboot or a power cycle as the companion sees it."""
+        self._terminate()
+        time.sleep(down_s)
+        self._boot(wipe=False)
+
+    def stop(self) -> None:
+        self._terminate()
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
+        if self._own_dir and self.workdir is not None:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+            self.workdir = None
+
+    def __enter__(self) -> "ArduPilotSitl":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    # ----- addresses
+    def port(self, serial: int) -> int:
+        """TCP port of SERIAL``serial`` (0, 1, 2)."""
+        if self.instance is None:
+            raise SitlError("not started")
+        return BASE_PORT + 10 * self.instance + SERIAL_OFFSETS[serial]
+
+    def url(self, serial: int) -> str:
+        return f"tcp:127.0.0.1:{self.port(serial)}"
+
+    # ----- internals
+    def _claim_instance(self) -> None:
+        lock_dir = Path(tempfile.gettempdir())
+        candidates = [self.instance] if self.instance is not None else \
+            range(FIRST_INSTANCE, LAST_INSTANCE + 1)
+        for n in candidates:
+            f = open(lock_dir / f"pmon-ardupilot-sitl-I{n}.lock", "w")
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                f.close()
+                continue
+            if _ports_free(n):
+                self.instance, self._lock = n, f
+                return
+            f.close()
+        raise SitlError(f"no free SITL instance in {candidates!r}: ports 5760+10N taken")
+
+    def _defaults_arg(self) -> str:
+        files = []
+        base = self.defaults or default_params_file(self.binary)
+        if base is not None:
+            files.append(str(base))
+        if self.params:
+            extra = self.workdir / "pmon.parm"
+            extra.write_text("".join(f"{k} {float(v):g}\n" for k, v in self.params.items()))
+            files.append(str(extra))
+        return ",".join(files)
+
+    def _boot(self, wipe: bool) -> None:
+        home = ",".join(f"{x:g}" for x in (*self.home[:3], self.home[3] if len(self.home) > 3 else 0))
+        argv = [str(self.binary), "--model", self.model, "--speedup", f"{self.speedup:g}",
+                "-I", str(self.instance), "--home", home, "--disable-fgview"]
+        if wipe:
+            argv.append("--wipe")
+        defaults = self._defaults_arg()
+        if defaults:
+            argv += ["--defaults", defaults]
+        for i in range(SERIALS):
+            argv += [f"--serial{i}", f"tcp:{SERIAL_OFFSETS[i]}"]
+        log = open(self.log_path or self.workdir / "arducopter.log", "ab")
+        try:
+            self.proc = subprocess.Popen(argv, cwd=self.workdir, stdout=log, stderr=subprocess.STDOUT,
+                                         stdin=subprocess.DEVNULL, start_new_session=True)
+        finally:
+            log.close()
+        self.boots += 1
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:  # every serial port listening = booted
+            if self.proc.poll() is not None:
+                raise SitlError(f"{self.binary.name} exited with {self.proc.returncode} at boot; "
+                                f"see {self.log_path or self.workdir / 'arducopter.log'}")
+            if all(_listening(self.port(i)) for i in range(SERIALS)):
+                return
+            time.sleep(0.05)
+        self._terminate()
+        raise SitlError(f"{self.binary.name} did not open its serial ports within 20 s")
+
+    def _terminate(self) -> None:
+        p, self.proc = self.proc, None
+        if p is None or p.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(timeout=5)
+        deadline = time.monotonic() + 5.0  # the kernel frees the ports with the process
+        while time.monotonic() < deadline and any(_listening(self.port(i)) for i in range(SERIALS)):
+            time.sleep(0.05)
+
+
+def _listening(port: int) -> bool:
+    """True if something accepts TCP on 127.0.0.1:port. Probes SITL with a connect, which
+    SITL takes as its one client and drops when we close: probe only before clients attach."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim.ardupilot",
+                                 description="Start ArduPilot's ArduCopter SITL on loopback at a "
+                                 "scenario's origin and print its MAVLink URLs.")
+    ap.add_argument("--binary", help=f"arducopter SITL binary (default ${ENV_VAR}, else "
+                    f"../shared/ardupilot/arducopter)")
+    ap.add_argument("--scenario", default="paper", help="home = this scenario's origin (default paper)")
+    ap.add_argument("--speedup", type=float, default=1.0, help="simulated s per wall s (default 1)")
+    ap.add_argument("--instance", type=int, help="SITL -I (default: the first free from "
+                    f"{FIRST_INSTANCE})")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="parameter over copter.parm at boot; repeatable (e.g. WPNAV_SPEED=2000)")
+    args = ap.parse_args(argv)
+    from onboard.config import ConfigError, load_scenario
+    binary = Path(args.binary) if args.binary else find_binary()
+    if binary is None:
+        print(f"python -m sim.ardupilot: {skip_reason()}", file=sys.stderr)
+        return 2
+    if not (args.speedup > 0 and args.speedup <= 100):
+        ap.error(f"--speedup must be in (0, 100], got {args.speedup}")
+    if args.instance is not None and not 0 <= args.instance <= LAST_INSTANCE:
+        ap.error(f"--instance must be in 0..{LAST_INSTANCE}, got {args.instance}")
+    params = {}
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        try:
+            params[name.strip().upper()] = float(value)
+        except ValueError:
+            ap.error(f"--param wants NAME=VALUE with a number, got {item!r}")
+        if not sep or not name.strip():
+            ap.error(f"--param wants NAME=VALUE, got {item!r}")
+    try:
+        sc = load_scenario(args.scenario)
+    except ConfigError as exc:
+        print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
+        return 2
+    o = sc.origin
+    sitl = ArduPilotSitl(binary, (o.lat_deg, o.lon_deg, o.alt_m), args.speedup, params,
+                         instance=args.instance)
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(1))
+    try:
+        sitl.start()
+    except SitlError as exc:
+        print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
+        return 1
+    try:
+        print(f"ArduCopter SITL -I {sitl.instance} at {o.lat_deg}, {o.lon_deg}, {o.alt_m} m, "
+              f"{args.speedup:g}x; log {sitl.workdir / 'arducopter.log'}", flush=True)
+        for i, who in enumerate(("the onboard app", "the DF feed", "a ground station")):
+            print(f"  SERIAL{i}: {sitl.url(i)}   ({who})", flush=True)
+        while not stop and sitl.running:
+            time.sleep(0.2)
+        if not sitl.running and not stop:
+            print("python -m sim.ardupilot: the firmware exited "
+                  f"(see {sitl.workdir / 'arducopter.log'})", file=sys.stderr)
+            return 1
+    finally:
+        sitl.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
