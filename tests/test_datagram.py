@@ -41,11 +41,20 @@ def test_round_trip():
     (raw(bearings_rad=[0.0] * 65), "too_many_bearings"),
     (raw(t=13.0), "future_time"),
     (raw(t=4.0), "stale_time"),
+    # integers too large for a float: float() and math.isfinite() raise OverflowError on these
+    (raw(t=10 ** 400), "out_of_range"),
+    (raw(t=-10 ** 400), "out_of_range"),
+    (raw(bearings_rad=[0.1, 10 ** 400]), "out_of_range"),
+    (raw(bearings_rad=[-10 ** 309]), "out_of_range"),
+    (raw(v=10 ** 400), "bad_version"),
+    (raw(ch=10 ** 400), "unknown_channel"),
+    (raw(seq=10 ** 400), "out_of_range"),
 ])
 def test_bad_datagrams_are_refused_with_their_reason(data, reason):
     with pytest.raises(dg.DatagramError) as e:
         dg.parse(data, n_channels=4, now_s=10.5)
     assert e.value.reason == reason
+    assert len(str(e.value)) < 120, "a huge value is shown cut, not whole"
 
 
 def test_buffer_counts_rejections_and_keeps_the_first_of_duplicates():

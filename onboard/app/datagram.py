@@ -6,12 +6,17 @@ One datagram carries one scan of one channel (= one target's receiver):
 
 Parsing is total: any input either gives a `Datagram` or raises `DatagramError` whose `reason`
 is one of `REASONS` (the key under which the app counts it) and whose message names the field.
-Nothing here touches sockets or clocks; the time window is passed in.
+Numbers are checked without raising anything else: JSON integers are unbounded in Python, and
+``float()`` / ``math.isfinite()`` raise OverflowError on one past ~1e308 (a 400-digit ``t`` or
+bearing), so an integer is range-checked as an integer before it becomes a float. Messages show
+at most ``SHOW_CHARS`` of a value. Nothing here touches sockets or clocks; the time window is
+passed in.
 """
 from __future__ import annotations
 
 import json
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +26,7 @@ MAX_BYTES = 4096
 MAX_BEARINGS = 64  # per datagram: the DF model's clutter is Poisson(Lambda), Lambda <= ~10
 MAX_FUTURE_S = 2.0  # a scan stamped later than the app's clock + this is rejected
 MAX_AGE_S = 5.0  # ... and one older than the clock - this
+SHOW_CHARS = 24  # of a bad value in a message
 
 FIELDS = {"v", "t", "ch", "bearings_rad", "seq"}
 REQUIRED = ("v", "t", "ch", "bearings_rad")
@@ -48,14 +54,23 @@ class Datagram:
     seq: int | None = None
 
 
-def _number(obj: dict, key: str) -> float:
-    v = obj[key]
+def _show(v) -> str:
+    """A value for a message, cut to SHOW_CHARS (a 4000-digit integer must not fill the log)."""
+    text = repr(v) if not isinstance(v, int) or abs(v) < 10 ** SHOW_CHARS else f"{str(v)[:8]}...({len(str(v))} digits)"
+    return text if len(text) <= SHOW_CHARS else text[:SHOW_CHARS - 3] + "..."
+
+
+def _real(v, what: str, lo: float, hi: float, lo_open: bool = False) -> float:
+    """``v`` as a float in [lo, hi] (or (lo, hi]); DatagramError otherwise, never OverflowError:
+    an integer is compared as an integer (exact, any size) before it is converted."""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise DatagramError("bad_type", f"{key} must be a number, got {type(v).__name__}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise DatagramError("not_finite", f"{key} is not finite")
-    return v
+        raise DatagramError("bad_type", f"{what} must be a number, got {type(v).__name__}")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise DatagramError("not_finite", f"{what} is not finite")
+    if (v <= lo if lo_open else v < lo) or v > hi:
+        span = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise DatagramError("out_of_range", f"{what}={_show(v)} not in {span}")
+    return float(v)
 
 
 def _integer(obj: dict, key: str) -> int:
@@ -93,18 +108,16 @@ def parse(data: bytes, n_channels: int, now_s: float | None = None) -> Datagram:
     if unknown:
         raise DatagramError("unknown_field", f"unknown field {unknown[0]!r}")
     if _integer(obj, "v") != VERSION:
-        raise DatagramError("bad_version", f"v={obj['v']}, this app reads v={VERSION}")
-    t = _number(obj, "t")
-    if t < 0:
-        raise DatagramError("out_of_range", f"t={t} < 0")
+        raise DatagramError("bad_version", f"v={_show(obj['v'])}, this app reads v={VERSION}")
+    t = _real(obj["t"], "t", 0.0, sys.float_info.max)
     ch = _integer(obj, "ch")
     if not 0 <= ch < n_channels:
-        raise DatagramError("unknown_channel", f"ch={ch}, channels are 0..{n_channels - 1}")
+        raise DatagramError("unknown_channel", f"ch={_show(ch)}, channels are 0..{n_channels - 1}")
     seq = None
     if "seq" in obj:
         seq = _integer(obj, "seq")
         if not 0 <= seq < 2**63:
-            raise DatagramError("out_of_range", f"seq={seq} must be in [0, 2^63)")
+            raise DatagramError("out_of_range", f"seq={_show(seq)} must be in [0, 2^63)")
     raw = obj["bearings_rad"]
     if not isinstance(raw, list):
         raise DatagramError("bad_type", f"bearings_rad must be a list, got {type(raw).__name__}")
@@ -112,13 +125,7 @@ def parse(data: bytes, n_channels: int, now_s: float | None = None) -> Datagram:
         raise DatagramError("too_many_bearings", f"{len(raw)} bearings > {MAX_BEARINGS}")
     bearings = np.empty(len(raw))
     for i, b in enumerate(raw):
-        if isinstance(b, bool) or not isinstance(b, (int, float)):
-            raise DatagramError("bad_type", f"bearings_rad[{i}] must be a number, got {type(b).__name__}")
-        if not math.isfinite(b):
-            raise DatagramError("not_finite", f"bearings_rad[{i}] is not finite")
-        if not -math.pi < b <= math.pi:
-            raise DatagramError("out_of_range", f"bearings_rad[{i}]={b} not in (-pi, pi]")
-        bearings[i] = b
+        bearings[i] = _real(b, f"bearings_rad[{i}]", -math.pi, math.pi, lo_open=True)
     if now_s is not None:
         if t > now_s + MAX_FUTURE_S:
             raise DatagramError("future_time", f"t={t:.3f} is {t - now_s:.2f} s ahead of the autopilot clock")
