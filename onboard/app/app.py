@@ -1,9 +1,14 @@
 """The onboard app: the imperative shell around ``onboard.core.monitor.tick``.
 
 Threads (all daemon; ``stop()`` joins them):
-  io      MAVLink in (heartbeats, telemetry, commands, parameters), DF datagrams in, and every
-          periodic job on the autopilot clock: heartbeat, setpoint re-send, tick scheduling,
-          launch sequence, link watchdog, PMON_STAT.
+  io      MAVLink in (heartbeats, telemetry, commands, parameters), DF datagrams in (parsed),
+          and every periodic job on the autopilot clock: heartbeat, setpoint re-send, tick
+          scheduling, launch sequence, link watchdog, PMON_STAT. Each message, datagram and job
+          is its own contained handler (onboard/app/contain.py): an error is counted under its
+          kind and the loop goes on, so nothing a peer sends can skip the schedule; reads are
+          bounded per iteration (``IO_MAVLINK_MAX``, ``IO_DF_MAX``).
+  df      reads the DF port at line rate, drops foreign and rate-limited senders unparsed, and
+          queues the rest for the io thread (onboard/app/df_input.py).
   worker  one core tick at a time. A scan that becomes due while the worker is busy waits;
           when it frees, only the newest due scan is ticked and older ones are counted as
           skipped: an overrun is skipped, never queued.
@@ -22,7 +27,6 @@ import json
 import logging
 import math
 import select
-import socket
 import threading
 import time
 from collections import deque
@@ -34,6 +38,8 @@ import numpy as np
 
 from onboard.app import datagram as dg
 from onboard.app.clock import AutopilotClock
+from onboard.app.contain import Contained
+from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
 from onboard.app.link import COMP_ID, Link, mavlink
 from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
@@ -49,7 +55,8 @@ log = logging.getLogger("pmon.app")
 MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010
 COAST_AFTER_S = 2.0  # autopilot s past a scan's wait without any DF datagram -> coast tick
 PLAN_RESERVE_S = 0.25  # autopilot s of a tick's budget kept for tracking, planning and sending
-DF_RCVBUF_BYTES = 1 << 20  # DF socket receive buffer asked for (SO_RCVBUF)
+IO_MAVLINK_MAX = 500  # MAVLink messages handled per io iteration, then the periodic jobs
+IO_DF_MAX = 200  # DF datagrams parsed per io iteration (the reader's rate limit bounds the rest)
 POSITION_ONLY = 3576  # type_mask: ignore velocity, acceleration, yaw, yaw rate
 ARDUCOPTER_GUIDED = 4
 PX4_MAIN_MODE_OFFBOARD = 6
@@ -142,6 +149,9 @@ class AppConfig:
     # worker); 0: never. A tick's planning allocates tens of MB for a moment; without this the
     # allocator keeps the largest such peak resident for good (see docs/SAFETY.md, long flights)
     trim_memory_s: float = 60.0
+    # DF senders accepted (onboard/app/df_input.py); empty: the first peer whose datagram is valid
+    df_sources: tuple[Source, ...] = ()
+    df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
 
 
 @dataclass
@@ -210,16 +220,12 @@ class OnboardApp:
         self.lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        # room for a burst while the io thread is starved (the default ~200 kB holds ~200
-        # datagrams; the kernel caps this at net.core.rmem_max): queued, not dropped unseen
         try:
-            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, DF_RCVBUF_BYTES)
-        except OSError:
-            pass
-        self._sock.bind((cfg.sensor_host, cfg.sensor_port))
-        self._sock.setblocking(False)
-        self.sensor_port = self._sock.getsockname()[1]
+            self.df = DfInput(cfg.sensor_host, cfg.sensor_port, cfg.df_sources, cfg.df_rate_hz)
+        except BaseException:
+            self.link.close()
+            raise
+        self.sensor_port = self.df.port
         self._runlog = open(cfg.runlog_path, "w", buffering=1) if cfg.runlog_path else None
         self.rng = np.random.default_rng(cfg.seed)
         # core state, touched by the worker only (and by stop() after the join)
@@ -261,6 +267,11 @@ class OnboardApp:
         self._scan_t_used = [-math.inf] * self.M
         self._last_good: list[tuple[np.ndarray, np.ndarray] | None] = [None] * self.M
         self._io_beat = self.mono()
+        self._sched_beat = self.mono()  # the tick schedule job last ran to its end (local s)
+        self._submitted_t: float | None = None  # autopilot time the last tick was handed over
+        self.errors = Contained(log, on_first=self._say_error)  # io-thread handler errors by kind
+        self._df_seen: set = set()  # foreign DF senders reported
+        self._df_limited_seen = 0
         self._running: TickRecord | None = None
         self._alarmed: set[str] = set()
         self.watchdog: dict[str, int] = {}  # written by the watchdog thread only
@@ -269,6 +280,7 @@ class OnboardApp:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "OnboardApp":
+        self.df.start()
         for name, fn in (("pmon-io", self._io_loop), ("pmon-worker", self._worker_loop),
                          ("pmon-watchdog", self._watchdog_loop)):
             th = threading.Thread(target=fn, name=name, daemon=True)
@@ -282,7 +294,7 @@ class OnboardApp:
         for th in self._threads:
             th.join(timeout=10.0)
         self._threads = []
-        self._sock.close()
+        self.df.stop()
         self.link.close()
         if self._runlog is not None:
             self._runlog.close()
@@ -370,7 +382,8 @@ class OnboardApp:
             rate = (len(self._tick_times) - 1) / span if span > 0 else 0.0
         values = [
             int(self.state), rate, tk.get("t", math.nan), tk.get("tick_ms", math.nan), *nxt,
-            self.scans.accepted, self.scans.rejected_total, self.counters.get("ticks", 0),
+            self.scans.accepted, self.scans.rejected_total + self.df.dropped_total,
+            self.counters.get("ticks", 0),
             self.counters.get("ticks_skipped", 0), tk.get("latency_ms") if tk.get("latency_ms") is not None else math.nan,
             self.vehicle.custom_mode if self.vehicle.custom_mode is not None else -1,
             float(self.vehicle.armed), *uav, tk.get("sum_trace") if tk.get("sum_trace") is not None else math.nan,
@@ -401,46 +414,58 @@ class OnboardApp:
             self._io_beat = self.mono()
             try:
                 self._io_once()
-            except Exception:  # the loop never dies of one bad message or a bug in a handler
+            except Exception as exc:  # the glue itself: every handler below is contained already
                 self._count("io_errors")
-                log.exception("io loop error")
-                time.sleep(0.01)
+                self.errors.caught("io loop", exc)
+                time.sleep(0.002)
 
     def _io_once(self) -> None:
-        fds = [self._sock]
+        """One iteration: wait up to 2 ms for MAVLink, handle what came (bounded), parse queued
+        DF datagrams (bounded), run the periodic jobs. Each handler is contained: its error is
+        counted and the rest of the iteration runs."""
         fd = self.link.fileno()
         if fd is not None:
-            fds.append(fd)
-        try:
-            readable, _, _ = select.select(fds, [], [], 0.002)
-        except (OSError, ValueError):
-            readable = []
-        # MAVLink: drain (pymavlink buffers several messages per read)
-        for _ in range(500):
+            try:
+                select.select([fd], [], [], 0.002)
+            except (OSError, ValueError):
+                time.sleep(0.002)
+        else:
+            time.sleep(0.002)
+        for _ in range(IO_MAVLINK_MAX):  # pymavlink buffers several messages per read
             msg = self.link.recv()
             if msg is None:
                 break
             with self.lock:
-                self._on_mavlink(msg)
-        if self._sock in readable:
-            self._read_datagrams()
+                self._handle(f"MAVLink {_msg_type(msg)}", self._on_mavlink, msg)
+        for data, addr in self.df.pop(IO_DF_MAX):
+            with self.lock:
+                self._handle("DF datagram", self._on_datagram, data, addr)
         with self.lock:
             self._periodic()
 
-    def _read_datagrams(self) -> None:
-        for _ in range(1000):
-            try:
-                data, _addr = self._sock.recvfrom(65536)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                return
-            with self.lock:
-                try:
-                    self.scans.offer(data, self.clock.now())
-                except dg.DatagramError as err:
-                    if self.scans.rejected[err.reason] == 1:  # the first of each kind
-                        self.say(f"bad DF datagram: {err}"[:44], mavlink.MAV_SEVERITY_WARNING)
+    def _handle(self, where: str, fn, *args) -> bool:
+        """Run one handler contained (io thread, under the lock): an error is counted
+        (``io_errors``, ``errors.counts`` by kind), the first of a kind logged and said."""
+        ok = self.errors.run(where, fn, *args)
+        if not ok:
+            self._count("io_errors")
+        return ok
+
+    def _say_error(self, kind: str, exc: BaseException) -> None:
+        self.say(f"error in {kind}"[:44], mavlink.MAV_SEVERITY_ERROR)
+
+    def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        if not self.df.accepts(addr):  # queued before the lock to another sender
+            self._count("df_foreign_queued")
+            return
+        try:
+            self.scans.offer(data, self.clock.now())
+        except dg.DatagramError as err:
+            if self.scans.rejected[err.reason] == 1:  # the first of each kind
+                self.say(f"bad DF datagram: {err}"[:44], mavlink.MAV_SEVERITY_WARNING)
+            return
+        if self.df.lock(addr):
+            self.say(f"DF source {addr[0]}:{addr[1]}; others ignored")
 
     # ----- MAVLink in
     def _on_mavlink(self, msg) -> None:
@@ -762,8 +787,23 @@ class OnboardApp:
 
     # ----- periodic jobs (io thread, under the lock)
     def _periodic(self) -> None:
+        """Every job on its own: one that raises is counted and the others still run (the
+        tick schedule and the setpoint stream above all)."""
         local = self.mono()
         now = self.clock.now()
+        self._handle("periodic heartbeat", self._periodic_heartbeat, local)
+        self._handle("periodic link", self._periodic_link, local)
+        self._handle("periodic DF input", self._periodic_df_input)
+        if now is None:
+            self._sched_beat = self.mono()  # nothing to schedule before the first clock sample
+            return
+        self._handle("periodic mode", self._periodic_mode, now)
+        self._handle("periodic launch", self._periodic_launch, now)
+        if self._handle("tick schedule", self._schedule_tick, now):
+            self._sched_beat = self.mono()
+        self._handle("setpoint stream", self._stream_setpoint, now)
+
+    def _periodic_heartbeat(self, local: float) -> None:
         v = self.vehicle
         if v.sysid is not None and local - self._hb_local >= 1.0:
             self._hb_local = local
@@ -774,6 +814,9 @@ class OnboardApp:
         if v.sysid is not None and v.ned_origin is None and local - self._msg_interval_local > 2.0:
             self._msg_interval_local = local
             self._request_telemetry()
+
+    def _periodic_link(self, local: float) -> None:
+        v = self.vehicle
         # link loss (local time: no heartbeat for link_timeout_s): stop commanding at once, keep
         # estimating (the clock free-runs, scans are still ticked); fly again only when told
         if v.sysid is not None and not self._link_lost and local - v.heartbeat_local > self.cfg.link_timeout_s:
@@ -784,19 +827,32 @@ class OnboardApp:
             if self._launch is not None:
                 self._launch = None
             self.say("autopilot link lost: setpoints stopped, estimating", mavlink.MAV_SEVERITY_CRITICAL)
-        if now is None:
-            return
+
+    def _periodic_mode(self, now: float) -> None:
         if self.state == State.MONITORING and self._guided_deadline is not None \
                 and now > self._guided_deadline:
             self._set_state(State.PAUSED)
             self.say("GUIDED refused by the autopilot: paused", mavlink.MAV_SEVERITY_WARNING)
+
+    def _periodic_launch(self, now: float) -> None:
         if self.cfg.auto_launch and self.state == State.IDLE and self._launch is None \
                 and not self._said_launch():
             if self._cmd_launch()[0] == mavlink.MAV_RESULT_ACCEPTED and self._launch is not None:
                 self._said.add("auto_launch")
         self._launch_step(now)
-        self._schedule_tick(now)
-        self._stream_setpoint(now)
+
+    def _periodic_df_input(self) -> None:
+        """Say once per foreign DF sender, and once per episode of rate limiting."""
+        for addr in list(self.df.foreign):
+            if addr not in self._df_seen:
+                self._df_seen.add(addr)
+                self._count("df_foreign_sources")
+                self.say(f"DF from {addr[0]}:{addr[1]} ignored", mavlink.MAV_SEVERITY_WARNING)
+        limited = self.df.dropped["rate_limited"]
+        if limited > self._df_limited_seen:
+            self._df_limited_seen = limited
+            self.say(f"DF sender over {self.df.rate_hz:g}/s: excess dropped", mavlink.MAV_SEVERITY_WARNING,
+                     once="df_rate")
 
     def _said_launch(self) -> bool:
         return "auto_launch" in self._said
@@ -907,6 +963,7 @@ class OnboardApp:
     def _submit(self, rec: TickRecord) -> None:
         rec.started_local = self.mono()
         rec.due_t = self.clock.now()
+        self._submitted_t = rec.due_t
         self.last_tick_t = rec.t
         self._worker_busy = True
         self._job = rec
@@ -923,27 +980,36 @@ class OnboardApp:
             self.link.send(self.link.mav.statustext_encode(mavlink.MAV_SEVERITY_CRITICAL, full.encode()[:50]))
 
     def _watchdog_loop(self) -> None:
-        """Reports a stuck io loop or a tick running past ``watchdog_s`` of autopilot time,
-        once per episode. The io thread keeps re-sending the last (checked) setpoint while a
-        tick is stuck, so the vehicle holds a safe point; an overrun's scans are skipped."""
+        """Reports, once per episode: an io loop not iterating; a tick schedule that does not
+        run to its end (its handler failing every time); no tick handed to the worker for
+        ``watchdog_s`` past the longest gap the schedule allows (the coast grid), while the
+        worker is idle, i.e. a loop that stopped ticking; a tick running past ``watchdog_s`` of
+        autopilot time. The io thread keeps re-sending the last (checked) setpoint while a tick
+        is stuck, so the vehicle holds a safe point; an overrun's scans are skipped."""
         while not self._stop.wait(0.1):
             local = self.mono()
             rate = getattr(self.clock, "rate", 1.0) or 1.0
             limit = self.cfg.watchdog_s / rate
-            stuck_io = local - self._io_beat > max(limit, 0.5)
-            if stuck_io and "io" not in self._alarmed:
-                self._alarmed.add("io")
-                self._alarm("io_stuck", f"watchdog: io loop stuck {local - self._io_beat:.1f} s")
-            elif not stuck_io:
-                self._alarmed.discard("io")
+            self._episode("io", local - self._io_beat > max(limit, 0.5),
+                          lambda: f"watchdog: io loop stuck {local - self._io_beat:.1f} s")
+            self._episode("schedule", local - self._sched_beat > max(limit, 0.5),
+                          lambda: f"watchdog: tick schedule failing {local - self._sched_beat:.1f} s")
+            now, sub = self.clock.now(), self._submitted_t
+            gap = self.cfg.watchdog_s + 1.0 + self.params["PMON_SCAN_WAIT"] + COAST_AFTER_S
+            self._episode("ticks", now is not None and sub is not None and self.last_tick_t is not None
+                          and self._running is None and now - sub > gap,
+                          lambda: f"watchdog: no tick for {now - sub:.1f} s")
             job = self._running
             started = job.run_local if job is not None else None
-            stuck_tick = started is not None and local - started > limit
-            if stuck_tick and "tick" not in self._alarmed:
-                self._alarmed.add("tick")
-                self._alarm("tick_stuck", f"watchdog: tick t={job.t:.0f} running {(local - started) * rate:.1f} s")
-            elif not stuck_tick:
-                self._alarmed.discard("tick")
+            self._episode("tick", started is not None and local - started > limit,
+                          lambda: f"watchdog: tick t={job.t:.0f} running {(local - started) * rate:.1f} s")
+
+    def _episode(self, key: str, bad: bool, text: Callable[[], str]) -> None:
+        if bad and key not in self._alarmed:
+            self._alarmed.add(key)
+            self._alarm(f"{key}_stuck", text())
+        elif not bad:
+            self._alarmed.discard(key)
 
     # ------------------------------------------------------------------ worker thread
     def _worker_loop(self) -> None:
@@ -1183,6 +1249,13 @@ def _malloc_trim():
     fn.argtypes = [ctypes.c_size_t]
     fn.restype = ctypes.c_int
     return fn
+
+
+def _msg_type(msg) -> str:
+    try:
+        return str(msg.get_type())
+    except Exception:
+        return "?"
 
 
 def _with_grid(setup: MonitorSetup, grid: CandidateGrid) -> MonitorSetup:

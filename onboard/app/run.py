@@ -17,6 +17,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--df", default="127.0.0.1:14600", metavar="HOST:PORT",
                    help="UDP address to receive DF datagrams on; port 0 picks a free one "
                    "(default 127.0.0.1:14600)")
+    p.add_argument("--df-from", metavar="HOST[:PORT],...",
+                   help="accept DF datagrams only from these senders (HOST: any port of it); default: "
+                   "the first sender whose datagram is valid (docs/DATAGRAM.md, who may send)")
+    p.add_argument("--df-rate", type=float, default=None, metavar="N",
+                   help="DF datagrams/s accepted per sender; the excess is dropped unparsed (default 1000)")
     p.add_argument("--scenario", default="paper", help="YAML file or built-in name (default paper)")
     p.add_argument("--sysid", type=int, help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--auto-launch", action="store_true",
@@ -54,13 +59,24 @@ def run(args) -> int:
     if bad:
         print(f"pmon run: --gcs-sysid must be in 1..255, got {bad[0]}", file=sys.stderr)
         return 2
+    from onboard.app.df_input import DEFAULT_RATE_HZ, parse_sources
+    try:
+        sources = parse_sources(args.df_from) if args.df_from is not None else ()
+    except ValueError as exc:
+        print(f"pmon run: {exc}", file=sys.stderr)
+        return 2
+    rate = DEFAULT_RATE_HZ if args.df_rate is None else args.df_rate
+    if not 1.0 <= rate <= 1e6:  # NaN fails too
+        print(f"pmon run: --df-rate must be in 1..1000000 datagrams/s, got {args.df_rate}", file=sys.stderr)
+        return 2
     try:  # a bad scenario refuses to start, with one error naming the field
         sc = load_scenario(args.scenario)
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     cfg = AppConfig(args.mavlink, host, int(port), args.baud, args.sysid, args.auto_launch,
-                    args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key)
+                    args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
+                    df_sources=sources, df_rate_hz=rate)
     try:
         app = OnboardApp(cfg, sc)
     except KeyFileError as exc:
@@ -92,5 +108,5 @@ def run(args) -> int:
         c = app.counters
         print(f"pmon run: stopped: {c.get('ticks', 0)} ticks, {c.get('ticks_skipped', 0)} skipped, "
               f"{c.get('ticks_late', 0)} late, datagrams {app.scans.accepted} accepted "
-              f"{app.scans.rejected_total} rejected", flush=True)
+              f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
     return 0
