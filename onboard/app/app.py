@@ -40,9 +40,10 @@ from onboard.app import datagram as dg
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
+from onboard.app.fence import Fence, outgoing_violation, violation
 from onboard.app.link import COMP_ID, Link, mavlink
 from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
-from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
+from onboard.app.pose import FixedOrigin, Frame, PoseHistory, origin_of, valid_global_position_int
 from onboard.core import tracking
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
@@ -270,6 +271,8 @@ class OnboardApp:
         self._sched_beat = self.mono()  # the tick schedule job last ran to its end (local s)
         self._submitted_t: float | None = None  # autopilot time the last tick was handed over
         self.errors = Contained(log, on_first=self._say_error)  # io-thread handler errors by kind
+        self.origin = FixedOrigin()  # the autopilot's NED origin, fixed once (pose.py)
+        self._clock_seen = (0, 0)  # clock.jumps, clock.jumps_ignored already reported
         self._df_seen: set = set()  # foreign DF senders reported
         self._df_limited_seen = 0
         self._running: TickRecord | None = None
@@ -491,7 +494,7 @@ class OnboardApp:
             elif mtype == "EXTENDED_SYS_STATE":
                 self.vehicle.landed_state = msg.landed_state
             elif mtype == "GPS_GLOBAL_ORIGIN":
-                self.vehicle.ned_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+                self._on_origin(msg)
             elif mtype == "COMMAND_ACK":
                 self._on_autopilot_ack(msg)
             elif mtype == "PARAM_VALUE":
@@ -525,6 +528,30 @@ class OnboardApp:
             self._on_param_read(msg)
         elif mtype == "PARAM_SET" and tcomp == COMP_ID:
             self._on_param_set(msg)
+
+    def _on_origin(self, msg) -> None:
+        """The NED origin is fixed by the first valid GPS_GLOBAL_ORIGIN and never moved in
+        flight (pose.FixedOrigin): a different one is refused, and since the app cannot tell
+        which one the vehicle flies by, it stops commanding and says so (resume flies on the
+        fixed origin; every setpoint is still checked against the fence as it is sent)."""
+        origin = origin_of(msg)
+        if origin is None:
+            self._count("origin_invalid")
+            return
+        first = self.origin.value is None
+        off = self.origin.offer(origin)
+        if off is None:
+            if first:
+                self.vehicle.ned_origin = self.origin.value
+                self.say(f"NED origin fixed at {origin[0]:.6f} {origin[1]:.6f}")
+            return
+        self._count("origin_changes_refused")
+        if self.state == State.MONITORING:
+            self._set_state(State.FAULT)
+            self.say(f"NED origin moved {off:.0f} m: refused, setpoints stopped", mavlink.MAV_SEVERITY_CRITICAL)
+        else:
+            self.say(f"NED origin moved {off:.0f} m: refused", mavlink.MAV_SEVERITY_CRITICAL,
+                     once="origin_moved")
 
     def _on_heartbeat(self, msg, src_sys: int, src_comp: int) -> None:
         if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
@@ -793,6 +820,7 @@ class OnboardApp:
         now = self.clock.now()
         self._handle("periodic heartbeat", self._periodic_heartbeat, local)
         self._handle("periodic link", self._periodic_link, local)
+        self._handle("periodic clock", self._periodic_clock, now)
         self._handle("periodic DF input", self._periodic_df_input)
         if now is None:
             self._sched_beat = self.mono()  # nothing to schedule before the first clock sample
@@ -841,6 +869,42 @@ class OnboardApp:
                 self._said.add("auto_launch")
         self._launch_step(now)
 
+    def _periodic_clock(self, now: float | None) -> None:
+        """Report the clock's jumps (clock.py): a candidate it refused, or a jump it followed; a
+        followed one restarts the tick schedule on the new timeline (no burst of coast ticks,
+        no scan of the old timeline ticked on the new one); one back in time is a reboot."""
+        c = self.clock
+        seen = (getattr(c, "jumps", 0), getattr(c, "jumps_ignored", 0))
+        if seen == self._clock_seen:
+            return
+        (j0, i0), self._clock_seen = self._clock_seen, seen
+        if seen[1] > i0:
+            self._count("clock_jumps_ignored", seen[1] - i0)
+            self.say("autopilot time jump not confirmed: ignored", mavlink.MAV_SEVERITY_WARNING,
+                     once="clock_ignored")
+        if seen[0] > j0:
+            self._count("clock_jumps", seen[0] - j0)
+            self._submitted_t = now  # the watchdog's tick gap starts again on the new timeline
+            jump = getattr(c, "last_jump_s", 0.0)
+            self.say(f"autopilot clock jumped {jump:+.0f} s: ticks restart", mavlink.MAV_SEVERITY_CRITICAL)
+            self.scans.pending.clear()  # stamped on the old timeline
+            self.scans.arrival.clear()
+            self._tick_times = []
+            if jump < 0:  # a reboot: new timeline, new origin, and the vehicle is not ours to fly
+                self.scans.consumed_until = -math.inf
+                self.scans.last_scan_t = [-math.inf] * self.M
+                self._scan_t_used = [-math.inf] * self.M
+                self.last_tick_t = None
+                self.origin.clear()
+                self.vehicle.ned_origin = None
+                if self.state in (State.MONITORING, State.PAUSED):
+                    self._set_state(State.FAULT)
+            elif now is not None:  # ahead: the coast grid goes on from now, not from the old time
+                start = math.floor(now) - 1.0
+                self.scans.consumed_until = max(self.scans.consumed_until, start)
+                if self.last_tick_t is not None:
+                    self.last_tick_t = max(self.last_tick_t, start)
+
     def _periodic_df_input(self) -> None:
         """Say once per foreign DF sender, and once per episode of rate limiting."""
         for addr in list(self.df.foreign):
@@ -866,15 +930,29 @@ class OnboardApp:
         if now >= self._next_sp_t:
             self._send_setpoint(self.setpoint, now)
 
-    def _send_setpoint(self, enu: np.ndarray, now: float) -> bool:
+    def _send_setpoint(self, enu: np.ndarray, now: float, centre=None) -> bool:
+        """Send the setpoint ``enu`` (checked when planned) in LOCAL_NED at the fixed origin,
+        after checking the message itself against the fence (fence.outgoing_violation: its
+        position read back to ENU). A message that fails is not sent: counted, said, and the
+        setpoint dropped (the stream stops; the vehicle holds its last good one). ``centre``:
+        where the vehicle was when the tick planned it (path rule, first send only)."""
         v = self.vehicle
         if v.ned_origin is None:
             return False
         ned = self.frame.ned_from_enu(enu, v.ned_origin)
-        ok = self.link.send(self.link.mav.set_position_target_local_ned_encode(
+        msg = self.link.mav.set_position_target_local_ned_encode(
             int(now * 1000) & 0xFFFFFFFF, v.sysid, v.compid, mavlink.MAV_FRAME_LOCAL_NED,
-            POSITION_ONLY, float(ned[0]), float(ned[1]), float(ned[2]), 0, 0, 0, 0, 0, 0, 0, 0))
+            POSITION_ONLY, float(ned[0]), float(ned[1]), float(ned[2]), 0, 0, 0, 0, 0, 0, 0, 0)
         self._next_sp_t = now + 1.0 / self.params["PMON_SP_HZ"]
+        refused = outgoing_violation(msg, self.frame, self.origin.value, Fence.of(self.setup, self.params, at_h=False),
+                                     centre)
+        if refused is not None:
+            self._count("setpoints_refused")
+            self._count("setpoints_refused_at_send")
+            self.setpoint = None
+            self.say(f"setpoint refused as sent: {refused}", mavlink.MAV_SEVERITY_ERROR)
+            return False
+        ok = self.link.send(msg)
         if ok:
             self.sent_setpoints.append((now, self.mono(), np.array(enu, float)))
         return ok
@@ -1101,10 +1179,12 @@ class OnboardApp:
                 if self.generation != generation or self.state != State.MONITORING:
                     refused = "state changed during the tick"
                 else:
-                    refused = self._unsafe(nxt, centre, setup)
+                    refused = violation(Fence.of(setup, self.params), nxt, centre)
                     if refused is None:
-                        self.setpoint = np.array(nxt, float)
-                        sent = self._send_setpoint(self.setpoint, self.clock.now() or job.t)
+                        previous, self.setpoint = self.setpoint, np.array(nxt, float)
+                        sent = self._send_setpoint(self.setpoint, self.clock.now() or job.t, centre)
+                        if self.setpoint is None:  # refused as sent: the previous one stays
+                            refused, self.setpoint = "refused as sent", previous
                     else:
                         self._count("setpoints_refused")
                         self.say(f"setpoint refused: {refused}", mavlink.MAV_SEVERITY_ERROR)
@@ -1174,28 +1254,6 @@ class OnboardApp:
             elif not fb and self._fallback[j]:
                 self.say(f"T{j + 1} guidance back")
             self._fallback[j] = fb
-
-    def _unsafe(self, p: np.ndarray, centre, setup: MonitorSetup | None = None) -> str | None:
-        """Why a setpoint must not be sent (None: safe): inside the area, inside the altitude
-        band, at the h of the setup the tick used, clear of the obstacles inflated by the UAV
-        margin, and the straight path to it clear as well. Never clipped: refused."""
-        s = setup or self.setup
-        p = np.asarray(p, float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            return "not a finite position"
-        if np.any(p < s.area_min) or np.any(p > s.area_max):
-            return "outside the area"
-        if not self.params["PMON_ALT_MIN"] <= p[2] <= self.params["PMON_ALT_MAX"]:
-            return "outside the altitude band"
-        if abs(p[2] - s.grid.altitude_m) > 1e-6:
-            return "not at altitude h"
-        if len(s.uav_obstacles) and s.uav_obstacles.contains(p).any():
-            return "inside an obstacle"
-        if centre is not None and len(s.uav_obstacles):
-            start = np.array([centre[0], centre[1], p[2]])
-            if s.uav_obstacles.segments_cross(start[None], p[None]).any():
-                return "path crosses an obstacle"
-        return None
 
     def _record(self, job, res, sensor_pos, centre, nxt, sent, refused, t_start, t_sent, ap_sent) -> dict:
         sig = np.sqrt(np.maximum(np.diagonal(res.covs, axis1=1, axis2=2), 0.0))

@@ -3,10 +3,24 @@
 Every autopilot message with ``time_boot_ms`` (SYSTEM_TIME, GLOBAL_POSITION_INT, ATTITUDE, ...)
 is a sample (autopilot time, local monotonic time). Between samples the clock runs at the rate
 measured over the last few seconds, so it follows a SITL run at any speedup, and a real
-autopilot at 1x. It never goes backwards; an autopilot reboot (time jumps back by > 5 s)
-resets it. Without samples (autopilot link lost) it keeps running at the last measured rate:
+autopilot at 1x. It never goes backwards, except to follow a confirmed
+jump (an autopilot reboot: time back by > 5 s). Without samples (autopilot link lost) it keeps running at the last measured rate:
 the autopilot's clock does not stop when its link does, and the app keeps estimating on the
 DF's timestamps through a link loss (``age_local_s`` says how long the clock has been blind).
+
+Jumps. ``time_boot_ms`` only runs forward at the autopilot's rate, so a sample far from where
+the clock's extrapolation puts it is either a reboot (far behind), a stretch of blindness at a
+wrong rate (far ahead, after a link loss), or a forged message (on an unsigned link anyone can
+send a SYSTEM_TIME "from the autopilot": one an hour ahead used to move the clock an hour, tick
+32 coast ticks in a burst and poison the rate the watchdog scales by). Such a sample is a
+*candidate*: the clock keeps its timeline and follows the candidate only when the samples after
+it confirm it (``CONFIRM_SAMPLES`` of them, continuing from it, over ``CONFIRM_LOCAL_S`` local
+seconds, none back on the old timeline). A sample back on the old timeline cancels it
+(``jumps_ignored`` +1). A followed jump restarts the sample window (the rate is measured on the
+new timeline only) and counts in ``jumps`` (``last_jump_s``: by how much); the app reports both
+and restarts its tick schedule on a followed jump. "Far" is ``JUMP_TOL_S`` plus 0.1 local s and a
+quarter of the local time since the last sample, at the measured rate: a drift of the free-run
+through a link loss is not a jump.
 
 The app and the feed take time only from an object with ``now() -> float | None`` (autopilot
 seconds; None until the first sample), so tests can inject a ``ManualClock``.
@@ -25,6 +39,11 @@ class Clock(Protocol):
 
 class AutopilotClock:
     WINDOW_S = 5.0  # local seconds of samples used to measure the rate
+    JUMP_TOL_S = 2.0  # autopilot s a sample may be ahead of the extrapolation (plus the slack below)
+    REBOOT_S = 5.0  # a sample this far behind the newest one: a reboot candidate
+    CONFIRM_SAMPLES = 3  # samples continuing from a candidate, over ...
+    CONFIRM_LOCAL_S = 1.0  # ... at least this many local seconds, before it is followed
+    MAX_RATE = 1000.0
 
     def __init__(self, monotonic: Callable[[], float] = time.monotonic):
         self._mono = monotonic
@@ -32,17 +51,34 @@ class AutopilotClock:
         self._samples: deque[tuple[float, float]] = deque()  # (local s, autopilot s)
         self._rate = 1.0
         self._last_out = None
-        self.resets = 0
+        self._candidate: list[tuple[float, float]] = []  # samples of an unconfirmed jump
+        self.resets = 0  # followed jumps back (reboots)
         self.resyncs = 0  # times the extrapolation had run > 1 s ahead and was pulled back
+        self.jumps = 0  # followed jumps, either way
+        self.jumps_ignored = 0  # candidates cancelled by a sample on the old timeline
+        self.last_jump_s = 0.0  # the newest followed jump, autopilot s (new - old timeline)
+
+    def _far(self, local: float, ap: float) -> bool:
+        """Is ``ap`` (seen at ``local``) off the current timeline: far ahead of the
+        extrapolation, or behind the newest sample by more than a reboot's margin."""
+        l1, a1 = self._samples[-1]
+        if ap < a1 - self.REBOOT_S:
+            return True
+        gap = max(local - l1, 0.0)
+        return ap > a1 + gap * self._rate + self.JUMP_TOL_S + (0.1 + 0.25 * gap) * self._rate
 
     def observe(self, time_boot_ms: int | float) -> None:
         ap = float(time_boot_ms) / 1000.0
+        if ap != ap or ap in (float("inf"), float("-inf")):
+            return
         local = self._mono()
         with self._lock:
-            if self._samples and ap < self._samples[-1][1] - 5.0:
-                self._samples.clear()  # autopilot rebooted
-                self._last_out = None
-                self.resets += 1
+            if self._samples and self._far(local, ap):
+                self._jump_candidate(local, ap)
+                return
+            if self._candidate:  # back on the old timeline: the candidate was not the autopilot
+                self._candidate = []
+                self.jumps_ignored += 1
             if self._samples and ap <= self._samples[-1][1]:
                 return  # out of order or repeated stamp: no new information
             if self._last_out is not None and ap < self._last_out - 1.0:
@@ -50,12 +86,34 @@ class AutopilotClock:
                 # starved reader took at once): follow the autopilot, not the guess
                 self._last_out = None
                 self.resyncs += 1
-            self._samples.append((local, ap))
-            while len(self._samples) > 2 and local - self._samples[0][0] > self.WINDOW_S:
-                self._samples.popleft()
-            (l0, a0), (l1, a1) = self._samples[0], self._samples[-1]
-            if l1 - l0 >= 1.0:  # a rate over a shorter span is mostly read-out jitter
-                self._rate = max((a1 - a0) / (l1 - l0), 1e-3)
+            self._add(local, ap)
+
+    def _jump_candidate(self, local: float, ap: float) -> None:
+        c = self._candidate
+        if c and c[-1][1] <= ap and not (ap < c[-1][1] - self.REBOOT_S):
+            c.append((local, ap))  # continues from the candidate
+        else:
+            c[:] = [(local, ap)]
+        if len(c) >= self.CONFIRM_SAMPLES and c[-1][0] - c[0][0] >= self.CONFIRM_LOCAL_S:
+            l1, a1 = self._samples[-1]
+            old = a1 + (c[0][0] - l1) * self._rate  # where the old timeline was at the jump
+            self.last_jump_s = c[0][1] - old
+            self.jumps += 1
+            if c[0][1] < a1:
+                self.resets += 1
+            self._samples.clear()
+            self._last_out = None
+            for sample in c:
+                self._add(*sample)
+            self._candidate = []
+
+    def _add(self, local: float, ap: float) -> None:
+        self._samples.append((local, ap))
+        while len(self._samples) > 2 and local - self._samples[0][0] > self.WINDOW_S:
+            self._samples.popleft()
+        (l0, a0), (l1, a1) = self._samples[0], self._samples[-1]
+        if l1 - l0 >= 1.0:  # a rate over a shorter span is mostly read-out jitter
+            self._rate = min(max((a1 - a0) / (l1 - l0), 1e-3), self.MAX_RATE)
 
     @property
     def rate(self) -> float:

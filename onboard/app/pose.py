@@ -51,6 +51,55 @@ class Frame:
         return PoseSample(msg.time_boot_ms / 1000.0, pos, vel)
 
 
+ORIGIN_TOL_M = 0.5  # a GPS_GLOBAL_ORIGIN within this of the fixed one is the same origin
+
+
+def origin_of(msg) -> tuple[float, float, float] | None:
+    """(lat deg, lon deg, alt m AMSL) of a GPS_GLOBAL_ORIGIN, None if out of range."""
+    lat, lon, alt = msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3
+    if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and -1000.0 <= alt <= 10000.0):
+        return None
+    if msg.latitude == 0 and msg.longitude == 0:
+        return None  # "not set"
+    return lat, lon, alt
+
+
+def origin_offset_m(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
+    """Distance between two local origins, m."""
+    return float(np.linalg.norm(pymap3d.geodetic2enu(*b, *a)))
+
+
+class FixedOrigin:
+    """The autopilot's local NED origin, fixed by the first valid GPS_GLOBAL_ORIGIN heard.
+
+    Setpoints go out in LOCAL_NED relative to it. The autopilot sets its EKF origin once (at the
+    first GPS fix, or when a ground station sets it before flight) and does not move it in flight;
+    a different origin arriving later is taken for what it most likely is on an unsigned link, a
+    forged message, and is never adopted: ``offer`` reports it (the app stops commanding and says
+    so, since it cannot tell which origin the vehicle flies by). ``clear()`` (an autopilot
+    reboot) lets the next one be fixed.
+    """
+
+    def __init__(self):
+        self.value: tuple[float, float, float] | None = None
+        self.refused = 0  # different origins heard after the first
+
+    def offer(self, origin: tuple[float, float, float]) -> float | None:
+        """Fix ``origin`` if none is yet; returns None when it is (now) the fixed origin, else
+        its distance in m from the fixed one (refused, counted)."""
+        if self.value is None:
+            self.value = origin
+            return None
+        off = origin_offset_m(self.value, origin)
+        if off <= ORIGIN_TOL_M:
+            return None
+        self.refused += 1
+        return off
+
+    def clear(self) -> None:
+        self.value = None
+
+
 def valid_global_position_int(msg) -> bool:
     """A fix worth using: lat/lon in range and not the all-zero 'no fix' message."""
     if msg.lat == 0 and msg.lon == 0:

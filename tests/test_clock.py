@@ -1,0 +1,82 @@
+"""The autopilot clock follows the autopilot, not a forged message (issue 23, part 3): a sample
+far off the clock's timeline moves nothing until the samples after it confirm it. Local time is
+a fake monotonic clock; samples come at 10 Hz like GLOBAL_POSITION_INT."""
+from __future__ import annotations
+
+import pytest
+
+from onboard.app.clock import AutopilotClock
+
+
+class Fake:
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def run(clock: AutopilotClock, local: Fake, seconds: float, rate: float = 1.0, ap0: float | None = None,
+        spoof=None, step: float = 0.1) -> list[float]:
+    """Feed genuine samples for ``seconds`` local s at ``rate``; ``spoof(i)`` -> extra sample (ms)
+    sent right after sample i, or None. Returns now() after each step."""
+    out = []
+    ap = ap0 if ap0 is not None else (clock.now() or 0.0)
+    for i in range(int(round(seconds / step))):
+        local.t += step
+        ap += step * rate
+        clock.observe(ap * 1000)
+        if spoof is not None and (s := spoof(i, ap)) is not None:
+            clock.observe(s)
+        out.append(clock.now())
+    return out
+
+
+def test_a_forged_sample_an_hour_ahead_moves_nothing_and_is_counted():
+    local, clock = Fake(), None
+    clock = AutopilotClock(local)
+    run(clock, local, 5.0, ap0=100.0)
+    times = run(clock, local, 5.0, spoof=lambda i, ap: (ap + 3600) * 1000 if i in (10, 30) else None)
+    steps = [b - a for a, b in zip(times, times[1:])]
+    assert max(steps) < 0.2 and min(steps) > 0.0, "the clock ran smoothly through the forgeries"
+    assert clock.jumps == 0 and clock.jumps_ignored == 2
+    assert clock.rate == pytest.approx(1.0, abs=0.02), "nor was the measured rate touched"
+
+
+def test_a_forged_sample_far_behind_is_not_taken_for_a_reboot():
+    local = Fake()
+    clock = AutopilotClock(local)
+    run(clock, local, 5.0, ap0=500.0)
+    times = run(clock, local, 3.0, spoof=lambda i, ap: 0 if i == 5 else None)
+    assert min(times) > 500.0 and clock.resets == 0 and clock.jumps == 0 and clock.jumps_ignored == 1
+
+
+def test_a_reboot_is_followed_once_confirmed():
+    local = Fake()
+    clock = AutopilotClock(local)
+    run(clock, local, 5.0, ap0=500.0)
+    before = clock.now()
+    times = run(clock, local, 3.0, ap0=0.0)  # the autopilot restarts its time_boot_ms
+    assert times[0] > before, "one sample is not enough"
+    assert clock.resets == 1 and clock.jumps == 1 and clock.last_jump_s == pytest.approx(-505.0, abs=1.5)
+    assert times[-1] == pytest.approx(3.0, abs=0.2)
+
+
+def test_a_forger_who_keeps_sending_is_cancelled_by_every_genuine_sample():
+    local = Fake()
+    clock = AutopilotClock(local)
+    run(clock, local, 5.0, ap0=100.0)
+    # a forged sample after every genuine one, for 10 s: the candidate never gets confirmed
+    times = run(clock, local, 10.0, spoof=lambda i, ap: (ap + 3600) * 1000)
+    assert max(times) < 116.0 and clock.jumps == 0 and clock.jumps_ignored >= 99
+
+
+def test_free_run_through_a_link_loss_and_a_rate_change_are_not_jumps():
+    local = Fake()
+    clock = AutopilotClock(local)
+    run(clock, local, 5.0, ap0=100.0)
+    local.t += 30.0  # 30 s without samples; the autopilot ran 20 % faster meanwhile
+    run(clock, local, 2.0, ap0=105.0 + 36.0)
+    assert clock.jumps == 0 and clock.jumps_ignored == 0
+    run(clock, local, 10.0, rate=4.0)  # a SITL speedup changed from 1 to 4
+    assert clock.jumps == 0 and clock.rate == pytest.approx(4.0, rel=0.05)
