@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 
+from onboard.argcheck import SEED, OneLineParser, integer
 from onboard.config import ConfigError, load_scenario, parse_overrides
 
 
@@ -100,27 +101,28 @@ def main(argv: list[str] | None = None) -> int:
     if (sys.argv[1:] if argv is None else argv)[:1] == ["gcs"]:  # own parser: options before the command
         from groundstation.cli import main as gcs_main
         return gcs_main(list(sys.argv[2:] if argv is None else argv[1:]))
-    ap = argparse.ArgumentParser(prog="pmon", description="Passive Monitor")
+    ap = OneLineParser(prog="pmon", description="Passive Monitor")  # subparsers are OneLineParsers too
     sub = ap.add_subparsers(dest="command", required=True)
     c = sub.add_parser("check-config", help="validate a scenario file")
     c.add_argument("scenario", nargs="?", default="paper", help="YAML file or built-in name (default: paper)")
     c.set_defaults(func=_check)
     s = sub.add_parser("simulate", help="closed loop on the core, no sockets (truth, DF model, monitor)")
     s.add_argument("scenario", nargs="?", default="paper")
-    s.add_argument("--ticks", type=int, default=30, help="seconds of mission (default 30)")
-    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--ticks", type=integer(1, 100_000), default=30, help="seconds of mission (default 30)")
+    s.add_argument("--seed", type=SEED, default=1)
     s.set_defaults(func=_simulate)
     e = sub.add_parser("eval", help="Monte Carlo evaluation: methods vs baselines, CSV, table, figures, JSON line")
     e.add_argument("scenario", nargs="?", default="paper")
-    e.add_argument("--trials", type=int, default=100, help="Monte Carlo trials (default 100)")
-    e.add_argument("--seed", type=int, default=2024, help="master seed (default 2024)")
+    e.add_argument("--trials", type=integer(1, 1_000_000), default=100, help="Monte Carlo trials (default 100)")
+    e.add_argument("--seed", type=SEED, default=2024, help="master seed (default 2024)")
     e.add_argument("--methods", default="greedy_l1,greedy_l8,fixed3,hover,orbit,random",
                    help="comma-separated method names (default: the paper's six; also lookahead, "
                         "lookahead_vehicle, greedy_vehicle: docs/PLANNING.md)")
     e.add_argument("--out", default="eval_out", help="output directory (default eval_out)")
     e.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
-    e.add_argument("--particles", type=int, default=None, help="particles per target (default: the scenario's)")
-    e.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    e.add_argument("--particles", type=integer(10, 1_000_000), default=None,
+                   help="particles per target (default: the scenario's)")
+    e.add_argument("--workers", type=integer(1, 4096), default=None, help="local worker processes (default: all cores)")
     e.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
     e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a scenario value for this run (VALUE read as YAML; repeatable), "
@@ -146,8 +148,6 @@ def main(argv: list[str] | None = None) -> int:
     g.set_defaults(func=lambda a: __import__("groundstation.cli", fromlist=["main"]).main(a.rest))
     args = ap.parse_args(argv)
     args._argv = list(sys.argv[1:] if argv is None else argv)
-    if getattr(args, "ticks", 1) < 1:
-        ap.error("--ticks must be >= 1")
     try:
         return args.func(args)
     except ConfigError as exc:

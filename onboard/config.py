@@ -3,10 +3,18 @@
 Every error names the key path and the reason, e.g. ``obstacles[2].size_m: must be > 0``.
 Degrees exist only in the file; the objects hold radians (``sigma_rad``, ``yaw_rad``).
 Only ``yaml.safe_load`` is used: nothing in a config file is ever executed.
+
+Hostile files are refused with one ConfigError, never a traceback or a hang: only a regular
+file of at most ``MAX_FILE_BYTES`` is read (checked on the open descriptor before reading:
+/dev/zero or a FIFO are refused, not read; onboard/files.py), nesting too deep for the YAML
+reader is an error, an integer too large for a float is out of range (``float()`` would raise
+OverflowError), values are shown cut to ``SHOW_CHARS`` in messages, and the lists that size the
+filters are bounded (``MAX_TARGETS``, ``MAX_PARTICLES_TOTAL``, ...).
 """
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -15,7 +23,16 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import yaml
 
+from onboard.files import FileRefused, read_regular
+
 BUILTIN_SCENARIOS = ("paper",)
+MAX_FILE_BYTES = 1_000_000
+SHOW_CHARS = 40  # of a bad value in a message
+MAX_TARGETS = 64
+MAX_OBSTACLES = 256
+MAX_GOALS = 64
+MAX_RANGES = 16
+MAX_PARTICLES_TOTAL = 2_000_000  # targets x particles per target: ~100 MB of particles
 
 
 class ConfigError(ValueError):
@@ -210,17 +227,21 @@ class _Node:
             return _Node(default, self._child_path(key))
         return _Node(self.value[key], self._child_path(key))
 
-    def items(self, min_len: int = 0) -> list["_Node"]:
+    def items(self, min_len: int = 0, max_len: int | None = None) -> list["_Node"]:
         if not isinstance(self.value, list):
             raise self.fail(f"must be a list, got {_kind(self.value)}")
         if len(self.value) < min_len:
             raise self.fail(f"must have at least {min_len} item(s)")
+        if max_len is not None and len(self.value) > max_len:
+            raise self.fail(f"must have at most {max_len} items, got {len(self.value)}")
         return [_Node(v, self._child_path(i)) for i, v in enumerate(self.value)]
 
     def number(self, check: Callable[[float], bool] | None = None, why: str = "") -> float:
         v = self.value
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.fail(f"must be a number, got {_kind(v)}")
+        if isinstance(v, int) and abs(v) > sys.float_info.max:  # float() would raise OverflowError
+            raise self.fail(f"must be finite, got {_show(v)}")
         v = float(v)
         if not math.isfinite(v):
             raise self.fail("must be finite")
@@ -233,7 +254,7 @@ class _Node:
         if isinstance(v, bool) or not isinstance(v, int):
             raise self.fail(f"must be an integer, got {_kind(v)}")
         if not lo <= v <= hi:
-            raise self.fail(f"must be in [{lo}, {hi}], got {v}")
+            raise self.fail(f"must be in [{lo}, {hi}], got {_show(v)}")
         return v
 
     def vector(self, n: int, check: Callable[[float], bool] | None = None, why: str = "") -> tuple[float, ...]:
@@ -255,7 +276,7 @@ class _Node:
     def choice(self, options: tuple[str, ...]) -> str:
         v = self.text()
         if v not in options:
-            raise self.fail(f"must be one of {', '.join(options)}, got {v!r}")
+            raise self.fail(f"must be one of {', '.join(options)}, got {_show(v)}")
         return v
 
 
@@ -269,6 +290,15 @@ def _even(node: "_Node", lo: int, hi: int) -> int:
 
 def _kind(v: Any) -> str:
     return "nothing" if v is None else type(v).__name__
+
+
+def _show(v: Any) -> str:
+    """A value for a message, cut to SHOW_CHARS (a 400-digit integer must not fill the line)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10 ** SHOW_CHARS:
+        digits = len(str(abs(v)))
+        return f"{'-' if v < 0 else ''}{str(abs(v))[:6]}... ({digits} digits)"
+    text = repr(v)
+    return text if len(text) <= SHOW_CHARS else text[:SHOW_CHARS - 3] + "..."
 
 
 def _positive(v: float) -> bool:
@@ -323,13 +353,13 @@ def _parse(root: _Node, source: str) -> Scenario:
     )
     initial_cov_diag = root.get("initial_cov_diag").vector(6, _nonneg, "must be >= 0")
 
-    goals = tuple(_box(g, flat_ok=True) for g in root.get("goals").items(min_len=1))
+    goals = tuple(_box(g, flat_ok=True) for g in root.get("goals").items(min_len=1, max_len=MAX_GOALS))
     _unique_names(root.get("goals"), goals)
-    obstacles = tuple(_box(ob, flat_ok=False) for ob in root.get("obstacles", []).items())
+    obstacles = tuple(_box(ob, flat_ok=False) for ob in root.get("obstacles", []).items(max_len=MAX_OBSTACLES))
     _unique_names(root.get("obstacles", []), obstacles)
 
     targets = []
-    for t in root.get("targets").items(min_len=1):
+    for t in root.get("targets").items(min_len=1, max_len=MAX_TARGETS):
         t.mapping({"name", "position_m", "velocity_mps", "goal"})
         goal = t.get("goal").text()
         if goal not in {g.name for g in goals}:
@@ -408,7 +438,7 @@ def _parse(root: _Node, source: str) -> Scenario:
     d_la = Lookahead()
     ranges = la.get("ranges_m", list(d_la.ranges_m))
     lookahead = Lookahead(
-        ranges_m=ranges.vector(len(ranges.items(min_len=1)), _positive, "must be > 0"),
+        ranges_m=ranges.vector(len(ranges.items(min_len=1, max_len=MAX_RANGES)), _positive, "must be > 0"),
         n_headings=la.get("n_headings", d_la.n_headings).integer(1, 360),
         loiter_radius_m=la.get("loiter_radius_m", d_la.loiter_radius_m).number(_positive, "must be > 0"),
         objective=la.get("objective", d_la.objective).choice(("position", "trace")),
@@ -425,6 +455,9 @@ def _parse(root: _Node, source: str) -> Scenario:
         accel_max_mps2=pl.get("accel_max_mps2", 2.5).number(_positive, "must be > 0"),
         lookahead=lookahead,
     )
+    if len(targets) * tracking.particles > MAX_PARTICLES_TOTAL:
+        raise tr.get("particles").fail(f"{len(targets)} targets x {tracking.particles} particles is more than "
+                                       f"{MAX_PARTICLES_TOTAL} in all")
     if tracking.plan_sides and not tracking.plan_steering:
         raise ConfigError("tracking.plan_sides: needs tracking.plan_steering: true (the sides choose "
                           "among its reference plans)")
@@ -505,8 +538,14 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. tracking.plan_steering=true")
-        out[key] = yaml.safe_load(value)
+            raise ConfigError(f"--set {_show(item)}: expected KEY=VALUE, e.g. tracking.plan_steering=true")
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:  # a tag (!!python/...) is one: safe_load constructs none
+            raise ConfigError(f"--set {_show(item)}: VALUE is not plain YAML: "
+                              f"{str(getattr(exc, 'problem', None) or exc).splitlines()[0]}") from None
+        except RecursionError:
+            raise ConfigError(f"--set {_show(key)}=...: VALUE nested too deeply") from None
     return out
 
 
@@ -521,7 +560,10 @@ def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] 
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{source}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+        problem = str(getattr(exc, "problem", None) or exc).splitlines()[0]
+        raise ConfigError(f"{source}: not valid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: nested too deeply for a scenario") from None
     for key, value in (overrides or {}).items():
         node, *parents = data, *key.split(".")[:-1]
         for i, part in enumerate(parents):
@@ -543,11 +585,9 @@ def _read(path_or_name: str | Path) -> tuple[str, str]:
         return res.read_text(encoding="utf-8"), f"<builtin {path_or_name}>"
     path = Path(path_or_name)
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(raw) > 1_000_000:
-        raise ConfigError(f"{path}: larger than 1 MB; not a scenario file")
+        raw = read_regular(path, MAX_FILE_BYTES)
+    except FileRefused as exc:
+        raise ConfigError(f"{exc}; not a scenario file") from None
     try:
         return raw.decode("utf-8"), str(path)
     except UnicodeDecodeError as exc:

@@ -1814,32 +1814,45 @@ def _parse_home(text: str) -> tuple[float, float, float]:
     return (lat, lon, alt)
 
 
+def _parse_param(text: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    try:
+        v = float(value)
+    except ValueError:
+        v = math.nan
+    if not sep or not name or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"want NAME=VALUE with a finite number, got {text!r}")
+    return name.strip(), v
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m sim.autopilot", description=__doc__.split("\n")[0])
-    ap.add_argument("--udp", action="append", default=[], metavar="HOST:PORT",
+    from onboard.argcheck import HOST_PORT, HOST_PORT_BIND, SEED, SPEEDUP, OneLineParser, fail, number
+
+    ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n")[0])
+    ap.add_argument("--udp", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT,
                     help="send to a UDP listener (like SITL --out); repeatable")
-    ap.add_argument("--udpin", action="append", default=[], metavar="HOST:PORT",
+    ap.add_argument("--udpin", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT_BIND,
                     help="listen on UDP; replies go to the last sender; repeatable")
-    ap.add_argument("--tcp", action="append", default=[], metavar="HOST:PORT",
+    ap.add_argument("--tcp", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT_BIND,
                     help="TCP server port; repeatable")
-    ap.add_argument("--speedup", type=float, default=1.0, help="autopilot s per wall s")
+    ap.add_argument("--speedup", type=SPEEDUP, default=1.0, help="autopilot s per wall s, (0, 1000]")
     ap.add_argument("--home", type=_parse_home, default=(-35.363261, 149.165230, 584.0),
                     help="LAT,LON,ALT (deg, deg, m AMSL), written --home=LAT,... when LAT < 0; "
                     "default ArduPilot's CMAC")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+    ap.add_argument("--seed", type=SEED, default=0)
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=_parse_param,
                     help="parameter override in ArduPilot units; repeatable")
     ap.add_argument("--signing-key", metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex chars, mode 0600): sign everything, "
                     "drop unsigned or wrongly signed packets")
-    ap.add_argument("--max-lag", type=float, default=10.0, metavar="S",
+    ap.add_argument("--max-lag", type=number(0.0, 3600.0, lo_open=True), default=10.0, metavar="S",
                     help="autopilot s the model may fall behind before the clock slips "
                     "(small: run slower than --speedup on a loaded machine, like SITL)")
     args = ap.parse_args(argv)
-    endpoints = ([f"udpout:{e}" for e in args.udp] + [f"udpin:{e}" for e in args.udpin]
-                 + [f"tcpin:{e}" for e in args.tcp]) or ["tcpin:127.0.0.1:5760"]
+    endpoints = ([f"udpout:{h}:{p}" for h, p in args.udp] + [f"udpin:{h}:{p}" for h, p in args.udpin]
+                 + [f"tcpin:{h}:{p}" for h, p in args.tcp]) or ["tcpin:127.0.0.1:5760"]
     try:
-        overrides = {k: float(v) for k, v in (p.split("=", 1) for p in args.param)}
+        overrides = dict(args.param)
         key = None
         if args.signing_key:
             from onboard.app.signing import load_key
@@ -1848,9 +1861,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                              params=overrides, seed=args.seed, signing_key=key,
                              max_lag_s=args.max_lag)
         mock.start()
-    except (ValueError, KeyError, OSError) as exc:
-        print(f"sim.autopilot: {exc}", file=sys.stderr)
-        return 2
+    except KeyError as exc:  # Params: unknown parameter 'NAME'
+        return fail(ap.prog, str(exc.args[0] if exc.args else exc))
+    except (ValueError, OSError) as exc:
+        return fail(ap.prog, str(exc))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

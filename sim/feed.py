@@ -315,25 +315,54 @@ class LiveFeed:
 
 
 def read_recording(path: str | Path) -> Iterator[tuple[float, int, list[float]]]:
-    """(t, ch, bearings) from a truth JSONL (``bearings`` per channel) or a datagram JSONL."""
-    with open(path) as f:
+    """(t, ch, bearings) from a truth JSONL (``bearings`` per channel) or a datagram JSONL.
+
+    A regular file only (onboard/files.py: a FIFO or /dev/zero would hang the reader); every
+    record is checked as it is read (t a finite number >= 0, ch an integer 0..255, bearings finite
+    numbers in (-pi, pi]), a bad one is a ValueError naming its line, never another exception."""
+    from onboard.files import open_regular
+
+    with open_regular(path, text=True) as f:
         for n, line in enumerate(f, 1):
             line = line.strip()
             if not line:
                 continue
             try:
                 rec = json.loads(line)
-            except ValueError as exc:
-                raise ValueError(f"{path}:{n}: not JSON: {exc}") from None
+            except (ValueError, RecursionError) as exc:
+                raise ValueError(f"{path}:{n}: not JSON: {str(exc)[:80]}") from None
             if not isinstance(rec, dict) or "header" in rec:
                 continue
-            if "bearings" in rec:
-                for ch, b in enumerate(rec["bearings"]):
-                    yield float(rec["t"]), ch, list(b)
-            elif "bearings_rad" in rec:
-                yield float(rec["t"]), int(rec["ch"]), list(rec["bearings_rad"])
-            else:
-                raise ValueError(f"{path}:{n}: neither 'bearings' nor 'bearings_rad'")
+            try:
+                t = _finite(rec["t"], 0.0, 1e9)
+                if "bearings" in rec:
+                    if not isinstance(rec["bearings"], list) or len(rec["bearings"]) > 256:
+                        raise ValueError("bearings must be a list per channel (at most 256)")
+                    scans = list(enumerate(rec["bearings"]))
+                elif "bearings_rad" in rec:
+                    ch = rec["ch"]
+                    if isinstance(ch, bool) or not isinstance(ch, int) or not 0 <= ch <= 255:
+                        raise ValueError("ch must be an integer 0..255")
+                    scans = [(ch, rec["bearings_rad"])]
+                else:
+                    raise ValueError("neither 'bearings' nor 'bearings_rad'")
+                for ch, b in scans:
+                    if not isinstance(b, list) or len(b) > dg.MAX_BEARINGS:
+                        raise ValueError(f"bearings of ch {ch} must be a list of at most {dg.MAX_BEARINGS}")
+                    yield t, ch, [_finite(x, -math.pi, math.pi) for x in b]
+            except KeyError as exc:
+                raise ValueError(f"{path}:{n}: missing {exc.args[0]!r}") from None
+            except ValueError as exc:
+                raise ValueError(f"{path}:{n}: {exc}") from None
+
+
+def _finite(v, lo: float, hi: float) -> float:
+    """A JSON number in [lo, hi] as a float (an integer past a float's range is out of it, not an
+    OverflowError)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+        shown = repr(v) if len(repr(v)) <= 24 else repr(v)[:21] + "..."
+        raise ValueError(f"{shown} is not a number in [{lo:g}, {hi:g}]")
+    return float(v)
 
 
 class WallClock:
@@ -381,57 +410,50 @@ def replay(path: str | Path, dest: tuple[str, int], mavlink_url: str | None = No
 
 def main(argv=None) -> int:
     """``pmon feed live|replay ...`` (also ``python -m sim.feed``)."""
-    import argparse
     import signal
 
+    from onboard.argcheck import HOST_PORT, MAVLINK_URL, OUT_FILE, SEED, SPEEDUP, OneLineParser, fail, number
     from onboard.config import ConfigError, load_scenario
 
-    ap = argparse.ArgumentParser(prog="pmon feed", description="simulated DF feed to the onboard app")
+    ap = OneLineParser(prog="pmon feed", description="simulated DF feed to the onboard app")
     sub = ap.add_subparsers(dest="mode", required=True)
     lv = sub.add_parser("live", help="truth world + DF model, UAV pose from MAVLink telemetry")
-    lv.add_argument("--mavlink", required=True, help="the feed's own connection to the autopilot, "
-                    "e.g. tcp:127.0.0.1:5760 or udpin:127.0.0.1:14551")
-    lv.add_argument("--to", default="127.0.0.1:14600", help="the app's DF port HOST:PORT")
+    lv.add_argument("--mavlink", required=True, type=MAVLINK_URL, help="the feed's own connection to the "
+                    "autopilot, e.g. tcp:127.0.0.1:5760 or udpin:127.0.0.1:14551")
+    lv.add_argument("--to", default=("127.0.0.1", 14600), type=HOST_PORT, help="the app's DF port HOST:PORT")
     lv.add_argument("--scenario", default="paper")
-    lv.add_argument("--truth", help="write the truth JSONL here")
-    lv.add_argument("--seed", type=int, default=1)
-    lv.add_argument("--duration", type=float, help="scans to send (s); default: mission.duration_s")
+    lv.add_argument("--truth", type=OUT_FILE, help="write the truth JSONL here")
+    lv.add_argument("--seed", type=SEED, default=1)
+    lv.add_argument("--duration", type=number(1.0, 1e7), help="scans to send (s); default: mission.duration_s")
     lv.add_argument("--wait-armed", action="store_true", help="start the targets when the vehicle arms")
     lv.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file of the autopilot link")
     rp = sub.add_parser("replay", help="send a recorded truth/datagram JSONL")
     rp.add_argument("file")
-    rp.add_argument("--to", default="127.0.0.1:14600")
-    rp.add_argument("--mavlink", help="pace on this autopilot's clock (times rebased)")
-    rp.add_argument("--speedup", type=float, default=1.0, help="without --mavlink: wall-clock pace")
+    rp.add_argument("--to", default=("127.0.0.1", 14600), type=HOST_PORT)
+    rp.add_argument("--mavlink", type=MAVLINK_URL, help="pace on this autopilot's clock (times rebased)")
+    rp.add_argument("--speedup", type=SPEEDUP, default=1.0, help="without --mavlink: wall-clock pace")
     args = ap.parse_args(argv)
-    host, _, port = args.to.rpartition(":")
-    if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        ap.error(f"--to wants HOST:PORT, got {args.to!r}")
+    host, port = args.to
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         if args.mode == "live":
-            if args.duration is not None and not args.duration >= 1:
-                ap.error("--duration must be >= 1")
             sc = load_scenario(args.scenario)
             key = None
             if args.signing_key:
                 from onboard.app.signing import load_key
                 key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
-            feed = LiveFeed(LiveFeedConfig(args.mavlink, host, int(port), args.truth, args.seed,
+            feed = LiveFeed(LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed,
                                            args.duration, args.wait_armed, signing_key=key), sc,
                             log=lambda s: print(s, flush=True))
             feed.stop_event = stop
             return feed.run()
-        if not args.speedup > 0:
-            ap.error("--speedup must be > 0")
-        replay(args.file, (host, int(port)), args.mavlink, args.speedup, stop,
+        replay(args.file, (host, port), args.mavlink, args.speedup, stop,
                log=lambda s: print(s, flush=True))
         return 0
     except (ConfigError, ValueError, OSError) as exc:
-        print(f"pmon feed: {exc}", file=sys.stderr)
-        return 2
+        return fail(ap.prog, str(exc))
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ Used by tests/test_gcs*.py and bench/gcs_latency.py. ``pmon demo`` is the self-f
 """
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 import threading
@@ -116,13 +115,15 @@ class SitlStack:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sim.stack", description=__doc__.split("\n")[0])
-    p.add_argument("--speedup", type=float, default=1.0, help="autopilot s per wall s (default 1)")
-    p.add_argument("--gcs-udp", type=int, default=14550, metavar="PORT",
+    from onboard.argcheck import OUT_FILE, PORT, SEED, SPEEDUP, OneLineParser, fail
+
+    p = OneLineParser(prog="python -m sim.stack", description=__doc__.split("\n")[0])
+    p.add_argument("--speedup", type=SPEEDUP, default=1.0, help="autopilot s per wall s, (0, 1000] (default 1)")
+    p.add_argument("--gcs-udp", type=PORT, default=14550, metavar="PORT",
                    help="stream to a ground station listening on udp 127.0.0.1:PORT (default 14550)")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--runlog", help="the app's JSONL run log")
-    p.add_argument("--truth", help="the feed's truth JSONL")
+    p.add_argument("--seed", type=SEED, default=1)
+    p.add_argument("--runlog", type=OUT_FILE, help="the app's JSONL run log")
+    p.add_argument("--truth", type=OUT_FILE, help="the feed's truth JSONL")
     p.add_argument("--signing-key", metavar="FILE",
                    help="MAVLink 2 signing key file (mode 0600): mock, app and feed sign, and drop "
                    "unsigned packets; give the GCS the same file (pmon gcs --signing-key FILE)")
@@ -135,8 +136,9 @@ def main(argv=None) -> int:
                                    runlog_path=args.runlog, truth_path=args.truth,
                                    signing_key_path=args.signing_key)).start()
     except KeyFileError as exc:
-        print(f"python -m sim.stack: {exc}", file=sys.stderr)
-        return 2
+        return fail(p.prog, str(exc))
+    except OSError as exc:  # a log file's directory missing, a port in use ...
+        return fail(p.prog, f"cannot open {exc.filename or 'a socket'}: {exc.strerror or exc}")
     st.start_feed()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -227,10 +227,10 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (("--trials", "0"), "--trials must be >= 1"),
+    (("--trials", "0"), "argument --trials: must be in 1..1000000"),
     (("--methods", "greedy_l1,teleport"), "unknown method 'teleport'"),
     (("--duration", "0.5"), "--duration must be at least"),
-    (("--workers", "0"), "--workers must be >= 1"),
+    (("--workers", "0"), "argument --workers: must be in 1..4096"),
     (("--scheduler", "not an address"), "--scheduler"),
     (("--set", "planning.speed_max_mps"), "expected KEY=VALUE"),
     (("--set", "planning.speed_max_mps=-1"), "planning.speed_max_mps: must be > 0"),

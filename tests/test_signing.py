@@ -57,8 +57,8 @@ def test_pmon_run_refuses_unsafe_key_bad_config_and_bad_args(tmp_path):
     cases = [
         (["--signing-key", str(wide)], "readable or writable by group/others"),
         (["--scenario", str(bad_yaml)], "goals[0].center_m: inside obstacle 'O1'"),
-        (["--gcs-sysid", "0"], "--gcs-sysid must be in 1..255"),
-        (["--df", "nowhere"], "--df wants HOST:PORT"),
+        (["--gcs-sysid", "0"], "argument --gcs-sysid: must be in 1..255"),
+        (["--df", "nowhere"], "argument --df: want HOST:PORT"),
         (["--param", "PMON_NOPE=1"], "unknown parameter"),
         (["--param", "PMON_ALT=5000"], "out of range"),
     ]

@@ -70,20 +70,22 @@ class Source:
 def parse_sources(text: str) -> tuple[Source, ...]:
     """``--df-from``: comma-separated ``HOST`` or ``HOST:PORT`` (IPv4 addresses, the form the
     socket reports senders in). ValueError with a one-line message naming the bad item."""
+    if not text.strip():
+        raise ValueError("empty list")
     out = []
     for item in (s.strip() for s in text.split(",")):
         if not item:
-            raise ValueError(f"--df-from: empty item in {text!r}")
+            raise ValueError(f"empty item in {text!r}")
         host, sep, port = item.partition(":")
         try:
             host = str(ipaddress.IPv4Address(host))
         except ValueError:
-            raise ValueError(f"--df-from: {item!r}: want an IPv4 address, optionally :PORT") from None
+            raise ValueError(f"{item!r}: want an IPv4 address, optionally :PORT") from None
         if not sep:
             out.append(Source(host))
             continue
         if not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
-            raise ValueError(f"--df-from: {item!r}: port must be 1..65535")
+            raise ValueError(f"{item!r}: port must be 1..65535")
         out.append(Source(host, int(port)))
     return tuple(out)
 
