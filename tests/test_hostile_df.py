@@ -241,3 +241,24 @@ def test_watchdog_reports_a_tick_schedule_that_keeps_failing_and_a_loop_that_sto
     finally:
         df.close()
         app.stop()
+
+
+@pytest.mark.timeout(60)
+def test_a_link_that_raises_on_every_read_does_not_stop_the_schedule(monkeypatch):
+    clock = ManualClock(50.0)
+    app = _app(clock)
+    df = _sender()
+
+    def broken():
+        raise RuntimeError("injected: the link fails on every read")
+    try:
+        monkeypatch.setattr(app.link, "recv", broken)
+        for k in range(3):
+            clock.t = 51.0 + k
+            _scan(df, app, 51.0 + k)
+            assert _wait(lambda: _ticked(app)[-1:] == [51.0 + k], 5), _ticked(app)
+        assert app.errors.counts["MAVLink read: RuntimeError"] > 10
+        assert app.watchdog == {}
+    finally:
+        df.close()
+        app.stop()

@@ -434,17 +434,22 @@ class OnboardApp:
                 time.sleep(0.002)
         else:
             time.sleep(0.002)
+        if not self.errors.run("MAVLink read", self._read_mavlink):  # the link itself failing
+            with self.lock:
+                self._count("io_errors")
+        for data, addr in self.df.pop(IO_DF_MAX):
+            with self.lock:
+                self._handle("DF datagram", self._on_datagram, data, addr)
+        with self.lock:
+            self._periodic()
+
+    def _read_mavlink(self) -> None:
         for _ in range(IO_MAVLINK_MAX):  # pymavlink buffers several messages per read
             msg = self.link.recv()
             if msg is None:
                 break
             with self.lock:
                 self._handle(f"MAVLink {_msg_type(msg)}", self._on_mavlink, msg)
-        for data, addr in self.df.pop(IO_DF_MAX):
-            with self.lock:
-                self._handle("DF datagram", self._on_datagram, data, addr)
-        with self.lock:
-            self._periodic()
 
     def _handle(self, where: str, fn, *args) -> bool:
         """Run one handler contained (io thread, under the lock): an error is counted
