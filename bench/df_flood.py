@@ -14,7 +14,7 @@ the DF, a process of its own), the app accepting DF datagrams from host 127.0.0.
 
 Printed per phase: datagrams sent and the rate achieved, what the app did with them (rejected by
 reason, dropped unparsed by reason), datagrams the kernel dropped on the DF socket (its drops
-counter in /proc/net/udp), the longest gap between the setpoints the autopilot received and
+counter in /proc/net/udp), the CPU the DF reader thread used (and per datagram), the longest gap between the setpoints the autopilot received and
 between the app's heartbeats; for the whole mission: bench/latency.py's missed ticks (a scan of
 the feed not ticked, or a monitoring tick's setpoint late; 0 = every good scan used), errors
 counted by the app's contained handlers, and log records carrying a traceback. Last line: JSON.
@@ -82,6 +82,15 @@ def udp_drops(port: int) -> int:
     return 0
 
 
+def thread_cpu_s(native_id: int | None) -> float:
+    """CPU seconds (user + system) a thread of this process has used (/proc/self/task/ID/stat)."""
+    if native_id is None:
+        return float("nan")
+    with open(f"/proc/self/task/{native_id}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 class TracebackCounter(logging.Handler):
     def __init__(self):
         super().__init__(logging.DEBUG)
@@ -111,7 +120,8 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     def snapshot(app) -> dict:
         return {"rejected": dict(app.scans.rejected), "dropped": dict(app.df.dropped),
                 "kernel_drops": udp_drops(app.sensor_port), "sp_n": len(setpoints),
-                "t": app.clock.now(), "errors": app.errors.total}
+                "t": app.clock.now(), "errors": app.errors.total, "received": app.df.received,
+                "reader_cpu_s": thread_cpu_s(app.df._thread.native_id if app.df._thread else None)}
 
     def on_app(app):
         if st["done"]:
@@ -145,6 +155,9 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
             "dropped_unparsed": {k: a["dropped"][k] - b["dropped"][k] for k in a["dropped"]
                                  if a["dropped"][k] != b["dropped"][k]},
             "kernel_drops": a["kernel_drops"] - b["kernel_drops"],
+            "reader_cpu_s": round(a["reader_cpu_s"] - b["reader_cpu_s"], 2),
+            "reader_us_per_datagram": round((a["reader_cpu_s"] - b["reader_cpu_s"]) * 1e6
+                                            / max(a["received"] - b["received"], 1), 2),
             "setpoints": a["sp_n"] - b["sp_n"],
             "setpoint_gap_s_max": round(max(gaps), 3) if gaps else None,
             "heartbeat_age_s_max": round(st["hb_age"], 2),

@@ -26,6 +26,8 @@ from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before py
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from test_failsafes import _wait
+
 from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
@@ -36,15 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import df_flood  # noqa: E402
 
 M = 4
-
-
-def _wait(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
 
 
 def _sender(host: str = "127.0.0.1") -> socket.socket:

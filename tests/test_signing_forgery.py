@@ -28,6 +28,8 @@ from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from test_failsafes import _wait
+
 from groundstation.link import GcsLink
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
@@ -138,15 +140,6 @@ def _send_all(port: int, frames: list[bytes], between=lambda: time.sleep(0.01)) 
                 between()
     finally:
         s.close()
-
-
-def _wait(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 @pytest.fixture()
