@@ -121,7 +121,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
         return {"rejected": dict(app.scans.rejected), "dropped": dict(app.df.dropped),
                 "kernel_drops": udp_drops(app.sensor_port), "sp_n": len(setpoints),
                 "t": app.clock.now(), "errors": app.errors.total, "received": app.df.received,
-                "reader_cpu_s": thread_cpu_s(app.df._thread.native_id if app.df._thread else None)}
+                "reader_cpu_s": thread_cpu_s(app.df.thread_id)}
 
     def on_app(app):
         if st["done"]:

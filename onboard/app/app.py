@@ -460,7 +460,8 @@ class OnboardApp:
         return ok
 
     def _say_error(self, kind: str, exc: BaseException) -> None:
-        self.say(f"error in {kind}"[:44], mavlink.MAV_SEVERITY_ERROR)
+        with self.lock:  # the MAVLink read's handler runs without it
+            self.say(f"error in {kind}"[:44], mavlink.MAV_SEVERITY_ERROR)
 
     def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
         if not self.df.accepts(addr):  # queued before the lock to another sender

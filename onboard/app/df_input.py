@@ -152,6 +152,11 @@ class DfInput:
         return out
 
     @property
+    def thread_id(self) -> int | None:
+        """The reader thread's native id (its CPU time: /proc/self/task/ID/stat), None if not started."""
+        return self._thread.native_id if self._thread is not None else None
+
+    @property
     def dropped_total(self) -> int:
         return sum(self.dropped.values())
 
