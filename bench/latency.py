@@ -240,7 +240,7 @@ def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = Non
             feed = subprocess.Popen(
                 [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
                  "--to", f"127.0.0.1:{app.sensor_port}", "--seed", str(seed + 1), "--duration", str(int(duration)),
-                 "--wait-armed", "--truth", str(truth)], cwd=ROOT, stdout=fo)
+                 "--truth", str(truth)], cwd=ROOT, stdout=fo)
         try:
             while feed.poll() is None:
                 if on_app is not None:

@@ -19,8 +19,9 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_TIMEOUT = 0, 1, 2, 3
 COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
   watch [--count N] [--duration S] [--png FILE]   live table of every target
-  arm                         GUIDED, then arm
-  takeoff ALT [--wait]        take off to ALT m above home (--wait: until there, within --timeout)
+  arm [--wait]                GUIDED, then arm (--wait: first until the pre-arm checks pass)
+  takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
+                              bounds the time without climbing)
   start | pause | resume | stop | launch     the onboard app's monitoring
   hold                        ArduCopter BRAKE: stop and hold position (the app sees a pilot override)
   rtl | land                  return to launch / land here
@@ -60,10 +61,13 @@ def parser() -> argparse.ArgumentParser:
     w.add_argument("--count", type=int, help="stop after N updates")
     w.add_argument("--duration", type=float, help="stop after S seconds")
     w.add_argument("--png", help="also draw a top-down PNG, rewritten each second")
-    add("arm", "GUIDED, then arm the motors")
+    a = add("arm", "GUIDED, then arm the motors")
+    a.add_argument("--wait", action="store_true",
+                   help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
     t = add("takeoff", "take off to ALT m above home")
     t.add_argument("alt", type=float, metavar="ALT")
-    t.add_argument("--wait", action="store_true", help="return when at ALT (bounded by --timeout)")
+    t.add_argument("--wait", action="store_true",
+                   help="return when at ALT; fails when the climb makes no progress for --timeout s")
     for name in ("start", "pause", "resume", "stop", "launch"):
         add(name, f"onboard app: {name}")
     add("hold", "ArduCopter BRAKE: stop and hold position")
@@ -141,7 +145,7 @@ def run(args, console) -> tuple[str, dict]:
             from groundstation.watch import watch
             o = watch(gl, args.count, args.duration, args.png, args.json, console)
         elif cmd == "arm":
-            o = C.arm(gl)
+            o = C.arm(gl, args.wait)
         elif cmd == "takeoff":
             o = C.takeoff(gl, args.alt, args.wait)
         elif cmd in P.ACTIONS:

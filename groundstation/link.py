@@ -240,6 +240,12 @@ class GcsLink:
             self._command_long(self.v.sysid, self.v.autopilot_comp or 1,
                                mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mid)
 
+    def stream(self, msg_id: int, hz: float) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL on this link: what ArduPilot sends only when asked
+        (EXTENDED_SYS_STATE is in no default stream; a SITL's links start with none)."""
+        self._command_long(self.v.sysid, self.v.autopilot_comp or 1,
+                           mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / hz)
+
     def _command_long(self, sysid, comp, cmd, confirmation, *params) -> None:
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         self.send(self.link.mav.command_long_encode(sysid, comp, cmd, confirmation, *p))

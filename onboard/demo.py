@@ -2,7 +2,7 @@
 
     mock autopilot  (python -m sim.autopilot, 2 TCP ports picked by the OS, home = scenario origin)
     onboard app     (pmon run --auto-launch: GUIDED, arm, take off, monitor)
-    DF feed         (pmon feed live --wait-armed: truth world, DF scans, truth JSONL)
+    DF feed         (pmon feed live: truth world from arming, DF scans, truth JSONL)
 
 Separate processes because that is how it flies (the app knows the autopilot only through
 MAVLink, the feed only through its own MAVLink link and UDP) and because two busy Python
@@ -173,7 +173,7 @@ def run(args) -> int:
         feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",
                              "--to", f"127.0.0.1:{df_port}", "--scenario", args.scenario,
                              "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
-                             "--duration", str(duration), "--wait-armed"], out / "feed.log")
+                             "--duration", str(duration)], out / "feed.log")
         procs.append(feed)
         console.print(f"autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
                       f"speedup {speedup:g}x; logs in {out}/")

@@ -92,7 +92,7 @@ class SitlStack:
         assert self.app is not None and self.feed is None
         self.feed = LiveFeed(LiveFeedConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 1)}",
                                             app_port=self.app.sensor_port, seed=self.cfg.seed + 1,
-                                            duration_s=self.cfg.feed_duration_s, wait_armed=True,
+                                            duration_s=self.cfg.feed_duration_s, start="armed",
                                             truth_path=self.cfg.truth_path, signing_key=self.key),
                              self.sc, log=lambda s: None)
         self._feed_thread = threading.Thread(target=self.feed.run, name="sitl-feed", daemon=True)

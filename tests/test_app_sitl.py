@@ -73,7 +73,7 @@ def flight(tmp_path_factory):
         truth_path = tmp_path_factory.mktemp("sitl") / "truth.jsonl"
         feed = subprocess.Popen(
             [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
-             "--to", f"127.0.0.1:{app.sensor_port}", "--seed", "4", "--duration", "300", "--wait-armed",
+             "--to", f"127.0.0.1:{app.sensor_port}", "--seed", "4", "--duration", "300",
              "--truth", str(truth_path)], stdout=subprocess.DEVNULL)
         gcs = Gcs(ap.port("tcpin", 2))
 
