@@ -24,6 +24,7 @@ COMMANDS = """commands:
                               bounds the time without climbing)
   start | pause | resume | stop | launch     the onboard app's monitoring
   hold                        ArduCopter BRAKE: stop and hold position (the app sees a pilot override)
+  mode NAME                   any ArduCopter flight mode, e.g. LOITER (a pilot's mode switch)
   rtl | land                  return to launch / land here
   params list | get NAME | set NAME VALUE     the onboard app's parameters (PMON_*)
   record FILE [--duration S]  tlog of everything the link carries
@@ -71,6 +72,8 @@ def parser() -> argparse.ArgumentParser:
     for name in ("start", "pause", "resume", "stop", "launch"):
         add(name, f"onboard app: {name}")
     add("hold", "ArduCopter BRAKE: stop and hold position")
+    m = add("mode", "set an ArduCopter flight mode by name (LOITER, BRAKE, GUIDED, ...)")
+    m.add_argument("name", metavar="NAME")
     add("rtl", "return to launch")
     add("land", "land where it is")
     pp = add("params", "the onboard app's parameters")
@@ -116,6 +119,8 @@ def run(args, console) -> tuple[str, dict]:
                 f"{', with truth' if flight.truth else ''})",
                 {"png": str(out), "uav_points": len(flight.uav), "tracks": len(flight.tracks),
                  "truth": bool(flight.truth)})
+    if args.cmd == "mode" and P.mode_number(args.name) is None:
+        raise UsageError(f"mode: unknown ArduCopter mode {args.name!r} (one of {', '.join(P.mode_names())})")
     if args.cmd == "takeoff" and not (math.isfinite(args.alt) and 0 < args.alt <= 1000):
         raise UsageError(f"takeoff: ALT must be in (0, 1000] m, got {args.alt:g}")
     if args.cmd == "params" and args.pcmd == "set":
@@ -152,6 +157,8 @@ def run(args, console) -> tuple[str, dict]:
             o = C.app_action(gl, cmd)
         elif cmd == "hold":
             o = C.set_mode(gl, "hold", P.BRAKE)
+        elif cmd == "mode":
+            o = C.set_mode(gl, f"mode {args.name.upper()}", P.mode_number(args.name))
         elif cmd == "rtl":
             from onboard.app.link import mavlink
             o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)

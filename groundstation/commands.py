@@ -56,7 +56,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         "battery_pct": ss.battery_remaining if ss and ss.battery_remaining >= 0 else None,
     }
     link = {"url": gl.url, "heartbeat_age_s": round(hb_age, 2) if math.isfinite(hb_age) else None,
-            "packet_loss_pct": round(gl.link.conn.packet_loss(), 1), "received": gl.received,
+            "packet_loss_pct": round(gl.packet_loss_pct(), 1), "received": gl.received,
             "autopilot_drop_rate_pct": ss.drop_rate_comm / 100 if ss else None,
             "rssi": radio.rssi if radio is not None else None}
     st = v.app_status if app_heard else None
@@ -164,35 +164,45 @@ def _prearm_ok(gl: GcsLink) -> bool | None:
     return bool(ss.onboard_control_sensors_health & bit)
 
 
+ARM_RETRY_S = 2.0  # arm --wait: between attempts while the autopilot refuses
+
+
 def arm(gl: GcsLink, wait: bool = False) -> Outcome:
     """GUIDED first (ArduCopter takes off by command only in a navigating mode, and the app
-    flies GUIDED), then arm. ``wait``: first wait (within --timeout) for the autopilot's
-    pre-arm checks to pass, as ArduPilot reports them in SYS_STATUS (~40 s after boot)."""
+    flies GUIDED), then arm. ``wait``: the autopilot may not be ready yet (~40 s after boot for
+    ArduCopter): wait for its pre-arm checks (SYS_STATUS) and try again every ARM_RETRY_S while
+    it refuses, up to --timeout in all. (ArduPilot's pre-arm bit can pass before GUIDED's own
+    need for a position estimate does: measured on 4.4 SITL, so its refusals are waited out
+    too.)"""
     v = gl.v
-    steps = []
-    waited = 0.0
+    t0 = time.monotonic()
+    deadline = t0 + gl.timeout
     if wait and not v.armed:
-        t0 = time.monotonic()
         gl.stream(mavlink.MAVLINK_MSG_ID_SYS_STATUS, 2.0)
         gl.wait_for(lambda: v.get("SYS_STATUS") is not None, min(gl.timeout, 2.0))
-        if not gl.wait_for(lambda: _prearm_ok(gl) is not False, gl.timeout):
+    while True:
+        if wait and not v.armed and not gl.wait_for(lambda: _prearm_ok(gl) is not False,
+                                                     max(deadline - time.monotonic(), 0.0)):
             texts = [t for t in gl.texts_since(t0, v.autopilot_comp) if t.startswith(("PreArm", "Arm"))]
             why = f": {texts[-1]}" if texts else ""
             raise GcsError(f"arm: the autopilot's pre-arm checks still fail after {gl.timeout:g} s{why}",
                            TIMEOUT)
-        waited = time.monotonic() - t0
-    if v.mode != P.GUIDED and not v.armed:
-        steps.append(_ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
-                                                       mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
-                                                       done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
-                                  "autopilot", _vehicle_context(gl)))
-    ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
+        if v.mode != P.GUIDED and not v.armed:
+            _ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
+                                              mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
+                                              done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
+                         "autopilot", _vehicle_context(gl))
+        ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
+        if ack.ok or not wait or time.monotonic() + ARM_RETRY_S > deadline:
+            break
+        gl.wait_for(lambda: bool(v.armed), ARM_RETRY_S)  # refused: not ready yet
     out = _ack_outcome("arm", ack, "autopilot", _vehicle_context(gl))
     gl.request(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
     gl.wait_for(lambda: bool(v.armed), 1.0)
-    note = f" (pre-arm checks passed after {waited:.1f} s)" if waited > 0.5 else ""
+    waited = time.monotonic() - t0
+    note = f" (ready after {waited:.1f} s)" if wait and waited > 1.0 else ""
     return Outcome(out.text + f"; {v.mode_name}, {'armed' if v.armed else 'not armed yet'}{note}",
-                   {**out.data, "mode": v.mode_name, "armed": v.armed, "prearm_wait_s": round(waited, 2)})
+                   {**out.data, "mode": v.mode_name, "armed": v.armed, "wait_s": round(waited, 2)})
 
 
 CLIMB_PROGRESS_M = 0.5  # --wait: the take-off fails when the height gains less than this in --timeout

@@ -27,6 +27,18 @@ REASONS = {1: "vehicle not armed", 2: "vehicle not flying", 3: "no DF data in th
 # ArduCopter modes the CLI commands (HEARTBEAT.custom_mode)
 GUIDED, LOITER, RTL, LAND, BRAKE = 4, 5, 6, 9, 17
 
+
+def mode_names() -> list[str]:
+    """ArduCopter's flight mode names, as pymavlink maps them."""
+    from pymavlink import mavutil
+    return sorted(mavutil.mode_mapping_acm.values())
+
+
+def mode_number(name: str) -> int | None:
+    """ArduCopter's custom_mode for a mode name (any case), or None."""
+    from pymavlink import mavutil
+    return {v: k for k, v in mavutil.mode_mapping_acm.items()}.get(name.strip().upper())
+
 RESULTS = {k: e.name.removeprefix("MAV_RESULT_") for k, e in mavlink.enums["MAV_RESULT"].items()
            if e.name != "MAV_RESULT_ENUM_END"}
 

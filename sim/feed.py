@@ -143,9 +143,12 @@ class Telemetry:
 
 
 def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
+    """Until the clock reads ``t`` (True), or ``stop`` (False), or the clock is reset: an
+    autopilot reboot (True: the caller sees ``clock.resets`` change)."""
+    resets = getattr(clock, "resets", 0)
     while not stop.is_set():
         now = clock.now()
-        if now is not None and now >= t:
+        if (now is not None and now >= t) or getattr(clock, "resets", 0) != resets:
             return True
         time.sleep(poll)
     return False
@@ -287,12 +290,23 @@ class LiveFeed:
             if self.stop_event.is_set():
                 return 130
             T = math.floor(tel.clock.now()) + 1.0
+            resets = tel.clock.resets
             self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
             seq = 0
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
                 if states is None or not _sleep_until(tel.clock, T, self.stop_event):
                     return 130
+                if tel.clock.resets != resets:
+                    # the autopilot rebooted: its clock starts again from 0, and so do the
+                    # scan times (a DF stamps with the clock it has); the targets go on
+                    while tel.clock.now() is None and not self.stop_event.is_set():
+                        time.sleep(0.01)
+                    resets = tel.clock.resets
+                    T = math.floor(tel.clock.now() or 0.0) + 1.0
+                    self.log(f"feed: the autopilot rebooted: next scan at t={T:.0f} s")
+                    if not _sleep_until(tel.clock, T, self.stop_event):
+                        return 130
                 # a telemetry sample at or after T makes the pose an interpolation, not a guess
                 deadline = time.monotonic() + 0.5
                 while (tel.poses.latest() is None or tel.poses.latest().t < T) \

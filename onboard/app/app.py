@@ -212,8 +212,10 @@ class OnboardApp:
         if cfg.signing_key_path is not None:
             from onboard.app.signing import load_key
             key = load_key(cfg.signing_key_path)  # KeyFileError: refuse to start
+        # an autopilot still booting (TCP refused) is waited for, as after a reboot
         self.link = link or Link(cfg.mavlink_url, cfg.baud, cfg.tlog_path,
-                                 source_system=cfg.target_system or 1, signing_key=key)
+                                 source_system=cfg.target_system or 1, signing_key=key,
+                                 wait_for_peer=True)
         self.params = ParamTable(defaults_from_scenario(scenario))
         self.M = len(scenario.targets)
         self.scans = dg.ScanBuffer(self.M)
@@ -264,6 +266,8 @@ class OnboardApp:
         self._stat_local = -math.inf
         self._msg_interval_local = -math.inf
         self._launch: launch.Launch | None = None
+        self._clock_resets = 0
+        self._link_lost_local = -math.inf
         self.speed_warning: str | None = None  # the limit below plan, while it holds
         self._warnings = 0  # WARN_* bits
         self._plan_limits = (math.nan, math.nan)  # (speed m/s, accel m/s^2) the planner assumes
@@ -478,6 +482,9 @@ class OnboardApp:
         tb = getattr(msg, "time_boot_ms", None)
         if from_autopilot and tb is not None:
             self.clock.observe(tb)
+            if getattr(self.clock, "resets", 0) != self._clock_resets:
+                self._clock_resets = self.clock.resets
+                self._on_autopilot_reboot()
         if from_autopilot:
             if mtype == "GLOBAL_POSITION_INT":
                 if valid_global_position_int(msg):
@@ -555,7 +562,9 @@ class OnboardApp:
             self._link_lost = False
             self._count("link_regained")
             self._request_telemetry()  # a reconnected link starts with the default rates
-            self.say("autopilot link back" + (": send resume to fly" if self.state == State.FAULT else ""),
+            # said now: "link lost" could reach no one while the link was down
+            lost_s = self.mono() - self._link_lost_local
+            self.say(f"link back (lost {lost_s:.0f} s)" + (": send resume" if self.state == State.FAULT else ""),
                      mavlink.MAV_SEVERITY_WARNING)
         v.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         changed = msg.custom_mode != v.custom_mode
@@ -563,6 +572,19 @@ class OnboardApp:
         if changed:
             v.mode_seen_local = self.mono()
         self._check_mode()
+
+    def _on_autopilot_reboot(self) -> None:
+        """The autopilot's clock went back: it rebooted. DF scans are stamped with that clock,
+        so the scan bookkeeping starts over (else every new scan would be 'stale'); the
+        filters keep their state (the targets did not reboot) and go on from the next scan."""
+        self._count("autopilot_reboots")
+        self.scans.pending.clear()
+        self.scans.arrival.clear()
+        self.scans.consumed_until = -math.inf
+        self.scans.last_scan_t = [-math.inf] * self.M
+        self._scan_t_used = [-math.inf] * self.M
+        self.last_tick_t = None
+        self.say("autopilot rebooted: DF scan times start over", mavlink.MAV_SEVERITY_WARNING)
 
     def _check_mode(self) -> None:
         """Stop commanding the moment the vehicle leaves the mode the app put it in."""
@@ -820,8 +842,11 @@ class OnboardApp:
             self._request_telemetry()
         # link loss (local time: no heartbeat for link_timeout_s): stop commanding at once, keep
         # estimating (the clock free-runs, scans are still ticked); fly again only when told
-        if v.sysid is not None and not self._link_lost and local - v.heartbeat_local > self.cfg.link_timeout_s:
+        # (a stream link that dropped is lost at once: nothing can be sent on it)
+        if v.sysid is not None and not self._link_lost and (
+                local - v.heartbeat_local > self.cfg.link_timeout_s or not self.link.up):
             self._link_lost = True
+            self._link_lost_local = local
             self._count("link_losses")
             if self.state in (State.MONITORING, State.PAUSED):
                 self._set_state(State.FAULT)
