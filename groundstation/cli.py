@@ -19,6 +19,7 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_TIMEOUT = 0, 1, 2, 3
 COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
   watch [--count N] [--duration S] [--png FILE] [--scenario NAME]   live table of every target
+  view [--port N] [--open] [--duration S] [--scenario NAME]   the mission live in a browser
   arm                         GUIDED, then arm
   takeoff ALT [--wait]        take off to ALT m above home (--wait: until there, within --timeout)
   start | pause | resume | stop | launch     the onboard app's monitoring
@@ -63,6 +64,12 @@ def parser() -> argparse.ArgumentParser:
     w.add_argument("--duration", type=float, help="stop after S seconds")
     w.add_argument("--png", help="also draw a top-down PNG, rewritten each second")
     w.add_argument("--scenario", default="paper", help="the scene the PNG draws (default paper)")
+    vw = add("view", "the mission live in a browser (served on 127.0.0.1)")
+    vw.add_argument("--port", type=int, default=8350, help="HTTP port on 127.0.0.1 (default 8350; 0: any free)")
+    vw.add_argument("--open", action="store_true", help="open the page in the default browser")
+    vw.add_argument("--duration", type=float, help="stop after S seconds (default: until Ctrl-C)")
+    vw.add_argument("--scenario", default="paper", help="the mission's scenario: area, obstacles, goals, "
+                    "origin (name or YAML file; default paper)")
     add("arm", "GUIDED, then arm the motors")
     t = add("takeoff", "take off to ALT m above home")
     t.add_argument("alt", type=float, metavar="ALT")
@@ -114,6 +121,10 @@ def run(args, console) -> tuple[str, dict]:
     if args.cmd in ("plot", "export"):
         from groundstation.offline import from_log
         return from_log(args, sc)
+    if args.cmd == "view" and not 0 <= args.port <= 65535:
+        raise UsageError(f"view: --port must be in 0..65535, got {args.port}")
+    if args.cmd == "view" and args.duration is not None and not args.duration > 0:
+        raise UsageError("view: --duration must be > 0")
     if args.cmd == "takeoff" and not (math.isfinite(args.alt) and 0 < args.alt <= 1000):
         raise UsageError(f"takeoff: ALT must be in (0, 1000] m, got {args.alt:g}")
     if args.cmd == "params" and args.pcmd == "set":
@@ -142,6 +153,9 @@ def run(args, console) -> tuple[str, dict]:
         elif cmd == "watch":
             from groundstation.watch import watch
             o = watch(gl, args.count, args.duration, args.png, args.json, console, scenario=sc)
+        elif cmd == "view":
+            from groundstation.view import serve
+            o = serve(gl, sc, args.port, args.duration, args.json, console, open_browser=args.open)
         elif cmd == "arm":
             o = C.arm(gl)
         elif cmd == "takeoff":
