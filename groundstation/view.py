@@ -222,7 +222,9 @@ class ViewServer:
             def do_GET(self):
                 server.requests += 1
                 path = self.path.split("?", 1)[0]
-                if path in server.files:
+                if self.headers.get("Host", "") not in server.hosts:  # a rebound DNS name is not us
+                    self._send(403, b"forbidden host\n", "text/plain; charset=utf-8")
+                elif path in server.files:
                     self._send(200, *server.files[path])
                 elif path == "/scene.json":
                     self._send(200, server.scene, "application/json")
@@ -262,6 +264,7 @@ class ViewServer:
 
         self.httpd = Server((host, port), Handler)
         self.host, self.port = self.httpd.server_address[:2]
+        self.hosts = {f"{self.host}:{self.port}", f"localhost:{self.port}"}
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
                                         name="pmon-view-http", daemon=True)
 
@@ -294,7 +297,7 @@ def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, con
             console.file.write(json.dumps({"url": srv.url, "scenario": sc.name}) + "\n")
             console.file.flush()
         else:
-            console.print(f"view: {srv.url}  (scenario {sc.name}, MAVLink {gl.url}; Ctrl-C stops)")
+            console.print(f"view: {srv.url}  (scenario {sc.name}, MAVLink {gl.url}; Ctrl-C stops)", soft_wrap=True)
         if open_browser:
             import webbrowser
             webbrowser.open(srv.url)

@@ -104,6 +104,11 @@ def test_the_command_serves_the_page_and_the_snapshots(mission, capsys):
             urllib.request.urlopen(base + "nope", timeout=2)
         except urllib.error.HTTPError as exc:
             got["404"] = exc.code
+        try:  # a page of another site whose name was rebound to 127.0.0.1 gets nothing
+            urllib.request.urlopen(urllib.request.Request(base + "state.json", headers={"Host": "evil.example:80"}),
+                                   timeout=2)
+        except urllib.error.HTTPError as exc:
+            got["403"] = exc.code
     th = threading.Thread(target=client)
     th.start()
     capsys.readouterr()
@@ -113,7 +118,7 @@ def test_the_command_serves_the_page_and_the_snapshots(mission, capsys):
     assert rc == 0
     assert json.loads(out[0]) == {"url": f"http://127.0.0.1:{port}/", "scenario": "paper"}
     assert json.loads(out[-1])["ok"] is True and json.loads(out[-1])["updates"] >= 3
-    assert b"/view.js" in got["html"] and got["404"] == 404
+    assert b"/view.js" in got["html"] and got["404"] == 404 and got["403"] == 403
     sc = got["scene"]
     assert [o["name"] for o in sc["obstacles"]] == ["O1", "O2", "O3", "O4"]
     assert sc["colours"]["targets"][:4] == ["#d62728", "#1f77b4", "#9467bd", "#2ca02c"]
