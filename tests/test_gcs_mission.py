@@ -4,6 +4,7 @@ onboard app, DF feed on loopback TCP; 2x: the three share one GIL here), as an o
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -111,3 +112,9 @@ def test_the_cli_flies_a_whole_mission(stack, capsys):
     assert (stack.out / "run.png").stat().st_size > 20_000
     rc, [p], _ = gcs_json(stack, capsys, "plot", str(tlog), "--out", str(stack.out / "tlog.png"))
     assert rc == 0 and p["tracks"] == 4 and p["uav_points"] >= 1
+    # and for map tools: GeoJSON and KML from both logs
+    from test_export import assert_geojson_in_area
+    for log in (stack.out / "run.jsonl", tlog):
+        rc, [p], _ = gcs_json(stack, capsys, "export", str(log))
+        assert rc == 0 and p["tracks"] == 4 and [Path(f).suffix for f in p["files"]] == [".geojson", ".kml"]
+        assert_geojson_in_area(p["files"][0], stack.sc)

@@ -1205,6 +1205,7 @@ class OnboardApp:
             "plan_from": None if centre is None else [round(float(x), 3) for x in centre],
             "means": np.round(res.means, 3).tolist(),
             "sigmas_xy": np.round(sig[:, :2], 3).tolist(),
+            "cov_xy": np.round(res.covs[:, 0, 1], 3).tolist(),  # with sigmas_xy: the 1-sigma ellipse
             "next": None if nxt is None else [round(float(x), 3) for x in nxt],
             "sent": sent, "refused": refused, "skipped_before": job.skipped,
             "n_candidates": None if res.planning is None else int(len(res.planning.candidates)),
