@@ -41,6 +41,8 @@ from sim.autopilot import MockAutopilot  # noqa: E402  (sets MAVLINK20 first)
 from onboard.app.app import AppConfig, OnboardApp  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
+from onboard.demo import DEMO_READY_S  # noqa: E402
+from sim.autopilot import BootTimeline  # noqa: E402
 from sim.tick_account import TickAccount, scan_times  # noqa: E402
 
 
@@ -56,7 +58,7 @@ def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = Non
     with tempfile.TemporaryDirectory() as tmp, \
             MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=speedup, seed=seed,
                           endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS,
-                          max_lag_s=0.1) as ap:
+                          max_lag_s=0.1, boot=BootTimeline.scaled(DEMO_READY_S)) as ap:
         orig = ap._on_set_position_target_local_ned
 
         def spy(link, msg):

@@ -33,6 +33,9 @@ import numpy as np
 # tick need them. See docs/SITL.md.
 DEMO_VEHICLE_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20,
                        "WPNAV_SPEED_UP": 500}
+# autopilot s until the demo's mock can arm: it boots as ArduCopter does (no fix, no origin,
+# arming refused until then) but in 5 s rather than ArduCopter SITL's ~43 s
+DEMO_READY_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -156,7 +159,7 @@ def run(args) -> int:
     try:
         ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
                    f"--home={o.lat_deg},{o.lon_deg},{o.alt_m}", "--speedup", str(speedup),
-                   "--seed", str(args.seed)]
+                   "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
         ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
         if args.gcs:
             ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]

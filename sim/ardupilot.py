@@ -3,7 +3,7 @@ benches and the demo.
 
     sitl = ArduPilotSitl(find_binary(), home=(35.145, 33.411, 160.0), speedup=4).start()
     sitl.url(0)        # tcp:127.0.0.1:5860: SERIAL0 (one client per TCP port)
-    sitl.url(1)        # SERIAL1, sitl.url(2): SERIAL2 (and url(3): SERIAL5, with ports=4)
+    sitl.url(1)        # SERIAL1, sitl.url(2): SERIAL2 (url(3), url(4): SERIAL5, 6 with ports=5)
     sitl.restart()     # SIGTERM, then boot again on the same instance and parameters (eeprom kept)
     sitl.stop()
 
@@ -41,9 +41,9 @@ SHARED_BINARY = REPO.parent / "shared" / "ardupilot" / "arducopter"
 FIRST_INSTANCE = 20  # instances tried from here up: leaves 0.. to a developer's own SITL
 LAST_INSTANCE = 99
 # MAVLink ports as TCP servers: SERIAL0..2 (the app, the DF feed, a ground station) and, when
-# asked for, SERIAL5 (an observer; SERIAL3/4 are the simulated GPSs). The TCP port of
-# ``tcp:K`` on instance N is BASE + 10 N + K (ArduPilot's SITL_State).
-SERIALS = ((0, 0), (1, 2), (2, 3), (5, 5))  # (SERIALn, K)
+# asked for, SERIAL5 and SERIAL6 (more ground stations; SERIAL3/4 are the simulated GPSs). The
+# TCP port of ``tcp:K`` on instance N is BASE + 10 N + K (ArduPilot's SITL_State).
+SERIALS = ((0, 0), (1, 2), (2, 3), (5, 5), (6, 6))  # (SERIALn, K)
 BASE_PORT = 5760
 SERIAL_OFFSETS = tuple(k for _, k in SERIALS)
 SIM_PORT_IN = 5501  # its physics-model UDP port, + 10 N
@@ -107,7 +107,7 @@ class ArduPilotSitl:
     model: str = "+"
     instance: int | None = None  # None: the first free one from FIRST_INSTANCE
     workdir: Path | None = None  # None: a temporary directory, removed by stop()
-    ports: int = 3  # MAVLink TCP ports: 3 (SERIAL0..2) or 4 (and SERIAL5)
+    ports: int = 3  # MAVLink TCP ports: 3 (SERIAL0..2), 4 (and SERIAL5) or 5 (and SERIAL6)
     log_path: Path | None = None  # the firmware's stdout/stderr (None: workdir/arducopter.log)
     proc: subprocess.Popen | None = field(default=None, init=False)
     boots: int = field(default=0, init=False)
@@ -116,8 +116,8 @@ class ArduPilotSitl:
         self.binary = Path(self.binary)
         if not (self.speedup > 0 and self.speedup <= 100):
             raise SitlError(f"speedup must be in (0, 100], got {self.speedup}")
-        if self.ports not in (3, 4):
-            raise SitlError(f"ports must be 3 or 4, got {self.ports}")
+        if not 3 <= self.ports <= len(SERIALS):
+            raise SitlError(f"ports must be in 3..{len(SERIALS)}, got {self.ports}")
         self._lock = None
         self._own_dir = False
 
@@ -164,7 +164,7 @@ class ArduPilotSitl:
 
     # ----- addresses
     def port(self, serial: int) -> int:
-        """TCP port of MAVLink port ``serial``: 0, 1, 2 (SERIAL0..2), 3 (SERIAL5, ports=4)."""
+        """TCP port of MAVLink port ``serial``: 0, 1, 2 (SERIAL0..2), 3 (SERIAL5), 4 (SERIAL6)."""
         if self.instance is None:
             raise SitlError("not started")
         if not 0 <= serial < self.ports:

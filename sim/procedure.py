@@ -8,9 +8,9 @@ SITL firmware: the conformance tests (tests/test_ardupilot.py) and bench/ardupil
     figures = m.figures()
 
 What runs, each as a process, as on a vehicle:
-- ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), four MAVLink TCP
+- ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), five MAVLink TCP
   ports: SERIAL0 the app, SERIAL1 the DF feed, SERIAL2 the operator's ``pmon gcs`` commands,
-  SERIAL5 an observer;
+  SERIAL5 an observer, SERIAL6 a second ground station (``Mission.spare_url``: the live view);
 - ``pmon run`` (optionally through ``TcpProxy``, a telemetry link that a test can cut);
 - ``pmon feed live``;
 - ``pmon gcs ...`` per command (``Mission.gcs``; every call is kept: exit code, output, wall s).
@@ -25,6 +25,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import select
 import socket
 import subprocess
@@ -52,6 +53,7 @@ RECOMMENDED_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20
 
 @dataclass(frozen=True)
 class MissionConfig:
+    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | mock (python -m sim.autopilot)
     speedup: float = 2.0  # SITL --speedup (simulated s per wall s)
     params: Mapping[str, float] = field(default_factory=dict)  # autopilot params over copter.parm
     scenario: str = "paper"
@@ -131,6 +133,48 @@ class TcpProxy:
                 with self._lock:
                     if self._pair == pair:
                         self._drop()
+
+
+class MockProcess:
+    """The mock autopilot (``python -m sim.autopilot``, ArduCopter's boot by default) as a process
+    with ArduPilotSitl's interface and port layout, so a Mission flies either."""
+
+    def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
+                 ports: int, log_path: Path, seed: int = 1):
+        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
+        self.log_path, self.seed = log_path, seed
+        self.proc = None
+        self._ports: list[int] = []
+        self.boots = 0
+
+    def start(self) -> "MockProcess":
+        from onboard.demo import Proc
+
+        argv = [sys.executable, "-m", "sim.autopilot", "--speedup", f"{self.speedup:g}",
+                f"--home={self.home[0]},{self.home[1]},{self.home[2]}", "--seed", str(self.seed),
+                "--max-lag", "0.1"]
+        argv += ["--tcp", "127.0.0.1:0"] * self.ports
+        argv += [f"--param={k}={v}" for k, v in self.params.items()]
+        self.proc = Proc("mock autopilot", argv, self.log_path)
+        m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
+        self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
+        self.boots += 1
+        return self
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.p.poll() is None
+
+    def port(self, serial: int) -> int:
+        return self._ports[serial]
+
+    def url(self, serial: int) -> str:
+        return f"tcp:127.0.0.1:{self.port(serial)}"
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.stop(timeout=10)
+            self.proc = None
 
 
 class Observer:
@@ -280,8 +324,12 @@ class Mission:
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
         start = self.sc.uav.start_m
         lat, lon, alt = self.frame.geodetic_from_enu((start[0], start[1], 0.0))
-        self.sitl = ArduPilotSitl(binary or find_binary(), (lat, lon, alt, 0.0), cfg.speedup,
-                                  dict(cfg.params), ports=4, log_path=self.out / "arducopter.log")
+        home = (lat, lon, alt, 0.0)
+        if cfg.autopilot == "mock":
+            self.sitl = MockProcess(home, cfg.speedup, cfg.params, 5, self.out / "autopilot.log")
+        else:
+            self.sitl = ArduPilotSitl(binary or find_binary(), home, cfg.speedup, dict(cfg.params),
+                                      ports=5, log_path=self.out / "autopilot.log")
         self.proxy: TcpProxy | None = None
         self.app = self.feed = None
         self.observer: Observer | None = None
@@ -337,6 +385,11 @@ class Mission:
             self.proxy.close()
         self.sitl.stop()
 
+    @property
+    def spare_url(self) -> str:
+        """A MAVLink port of its own for a second ground station (one TCP client)."""
+        return self.sitl.url(4)
+
     # ----- the operator
     def gcs(self, *args: str, timeout: float = 10.0, wall_limit: float = 300.0) -> GcsCall:
         """``pmon gcs --connect SERIAL2 --timeout T ARGS...`` as a process, run once."""
@@ -364,7 +417,7 @@ class Mission:
                                        f"see {p.log.name}")
             if not self.sitl.running:
                 raise RuntimeError(f"the autopilot exited while waiting for {what}; see "
-                                   f"{self.out / 'arducopter.log'}")
+                                   f"{self.out / 'autopilot.log'}")
             time.sleep(0.05)
         return False
 
@@ -447,9 +500,11 @@ class Mission:
         return takeover_reactions(self.out / "app.tlog", modes)
 
     def autopilot_crashes(self) -> int:
-        """Floating point exceptions and other aborts the firmware printed."""
-        log = (self.out / "arducopter.log").read_text(errors="replace")
-        return sum(log.count(s) for s in ("Floating point exception", "Segmentation fault", "abort"))
+        """Floating point exceptions and other aborts the firmware printed (the mock: the
+        defects that crash ArduCopter, which it counts)."""
+        log = (self.out / "autopilot.log").read_text(errors="replace")
+        return sum(log.count(s) for s in ("Floating point exception", "Segmentation fault", "abort",
+                                          "defect that crashes"))
 
 
 def takeover_reactions(tlog: Path, modes: list[tuple]) -> list[float]:
@@ -473,3 +528,88 @@ def takeover_reactions(tlog: Path, modes: list[tuple]) -> list[float]:
             if a <= t < b:
                 last[i] = t
     return [0.0 if sp is None else sp - a for (a, _), sp in zip(episodes, last)]
+
+
+def app_view(tlog: Path) -> dict:
+    """What the app saw of its autopilot, from the app's own tlog: the comparison
+    tests/test_conformance.py makes between the mock and ArduPilot.
+
+    - ``rates_hz``: messages from the autopilot per autopilot second while the app monitored;
+    - ``unasked``: message types it sent that the app never asked for (by id or stream);
+    - ``acks``: per command the app sent, its distinct results in order (repeats collapsed);
+    - ``landed``, ``prearm``, ``modes``: distinct values in order (EXTENDED_SYS_STATE,
+      SYS_STATUS's pre-arm bit, HEARTBEAT custom_mode);
+    - ``no_fix_positions``: GLOBAL_POSITION_INTs with lat = lon = 0 (before the GPS fix);
+    - ``origin_t``, ``armed_t``: autopilot s when the EKF origin came and when it armed;
+    - ``app_said``: the app's own STATUSTEXTs without "PMON: " and any " (...)" detail, repeats
+      collapsed.
+    """
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    asked = {mavlink.MAVLINK_MSG_ID_HEARTBEAT}
+    out: dict = {"acks": {}, "landed": [], "prearm": [], "modes": [], "app_said": [],
+                 "no_fix_positions": 0, "origin_t": None, "armed_t": None, "unasked": set()}
+    timed: list[tuple[float, str]] = []  # (autopilot s, type) of every autopilot message
+    monitored: list[float] = []  # autopilot s of the app's heartbeats saying "monitoring"
+    t = None
+
+    def add(key, value):
+        seq = out[key]
+        if not seq or seq[-1] != value:
+            seq.append(value)
+    while (m := conn.recv_match()) is not None:
+        mtype = m.get_type()
+        src = (m.get_srcSystem(), m.get_srcComponent())
+        if src[1] == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:  # sent by the app
+            if mtype == "COMMAND_LONG" and m.command in (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                         mavlink.MAV_CMD_REQUEST_MESSAGE):
+                asked.add(int(m.param1))
+            elif mtype == "STATUSTEXT":
+                add("app_said", m.text.removeprefix("PMON: ").split(" (")[0].strip())
+            elif mtype == "HEARTBEAT" and m.custom_mode == 1 and t is not None:  # monitoring
+                monitored.append(t)
+            continue
+        if src != (1, 1) or mtype == "BAD_DATA":
+            continue
+        if hasattr(m, "time_boot_ms"):
+            t = m.time_boot_ms / 1000.0
+        if m.get_msgId() not in asked and mtype not in ("COMMAND_ACK", "STATUSTEXT", "PARAM_VALUE"):
+            out["unasked"].add(mtype)
+        if t is not None:
+            timed.append((t, mtype))
+        if mtype == "COMMAND_ACK":
+            seq = out["acks"].setdefault(mavlink.enums["MAV_CMD"][m.command].name, [])
+            name = mavlink.enums["MAV_RESULT"][m.result].name.removeprefix("MAV_RESULT_")
+            if not seq or seq[-1] != name:
+                seq.append(name)
+        elif mtype == "EXTENDED_SYS_STATE":
+            add("landed", mavlink.enums["MAV_LANDED_STATE"][m.landed_state].name.removeprefix("MAV_LANDED_STATE_"))
+        elif mtype == "SYS_STATUS" and m.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
+            add("prearm", bool(m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK))
+        elif mtype == "HEARTBEAT":
+            add("modes", m.custom_mode)
+            if m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and out["armed_t"] is None:
+                out["armed_t"] = t
+        elif mtype == "GLOBAL_POSITION_INT" and m.lat == 0 and m.lon == 0:
+            out["no_fix_positions"] += 1
+        elif mtype == "GPS_GLOBAL_ORIGIN" and out["origin_t"] is None:
+            out["origin_t"] = t
+    # rates over the longest stretch of monitoring (the app's heartbeats, 1 Hz of its own clock:
+    # a gap of over three of them ends a stretch)
+    gap = 3.0 * float(np.median(np.diff(monitored))) if len(monitored) > 2 else 2.0
+    best, start = (0.0, 0.0), None
+    for a, b in zip(monitored, monitored[1:] + [math.inf]):
+        start = a if start is None else start
+        if b - a > gap:
+            best = max(best, (a - start, start), key=lambda x: x[0])
+            start = None
+    span, t0 = best
+    counts: dict[str, int] = {}
+    for tm, mtype in timed:
+        if t0 <= tm <= t0 + span:
+            counts[mtype] = counts.get(mtype, 0) + 1
+    out["rates_hz"] = {k: round(v / span, 2) for k, v in sorted(counts.items())} if span > 0 else {}
+    out["monitoring_s"] = round(span, 1)
+    out["unasked"] = sorted(out["unasked"])
+    return out

@@ -21,7 +21,7 @@ import sys
 import threading
 from dataclasses import dataclass
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before pymavlink is imported
+from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before pymavlink is imported
 
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
@@ -41,6 +41,7 @@ class StackConfig:
     truth_path: str | None = None
     tlog_path: str | None = None
     signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
+    ready_s: float = BootTimeline.ready_s  # autopilot s after boot until it can arm (ArduCopter's)
 
 
 class SitlStack:
@@ -62,7 +63,7 @@ class SitlStack:
             endpoints.append("udpin:127.0.0.1:0")
         self.ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=self.cfg.speedup,
                                 seed=self.cfg.seed, endpoints=endpoints, params=DEMO_VEHICLE_PARAMS,
-                                signing_key=self.key)
+                                signing_key=self.key, boot=BootTimeline.scaled(self.cfg.ready_s))
         self.app: OnboardApp | None = None
         self.feed: LiveFeed | None = None
         self._feed_thread: threading.Thread | None = None
@@ -86,6 +87,18 @@ class SitlStack:
             self.ap.stop()
             raise
         return self
+
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Until the mock can arm (its boot is over) and the app has its position and origin:
+        where a test of something else starts from (wall s)."""
+        import time
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.ap.copter.position_ok and self.app.vehicle.ned_origin is not None \
+                    and self.app.poses.latest() is not None:
+                return True
+            time.sleep(0.05)
+        return False
 
     def start_feed(self) -> LiveFeed:
         """DF scans from the truth world, from the moment the vehicle is armed."""
@@ -121,6 +134,9 @@ def main(argv=None) -> int:
     p.add_argument("--gcs-udp", type=int, default=14550, metavar="PORT",
                    help="stream to a ground station listening on udp 127.0.0.1:PORT (default 14550)")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--ready-after", type=float, default=BootTimeline.ready_s, metavar="S",
+                   help="autopilot s after boot until the mock can arm (default "
+                   f"{BootTimeline.ready_s:g}, as ArduCopter 4.4 SITL)")
     p.add_argument("--runlog", help="the app's JSONL run log")
     p.add_argument("--truth", help="the feed's truth JSONL")
     p.add_argument("--signing-key", metavar="FILE",
@@ -133,7 +149,8 @@ def main(argv=None) -> int:
     try:
         st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
                                    runlog_path=args.runlog, truth_path=args.truth,
-                                   signing_key_path=args.signing_key)).start()
+                                   signing_key_path=args.signing_key,
+                                   ready_s=args.ready_after)).start()
     except KeyFileError as exc:
         print(f"python -m sim.stack: {exc}", file=sys.stderr)
         return 2

@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
@@ -109,7 +109,8 @@ def flight():
     o = sc.origin
     out: dict = {"rx": []}
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=5,
-                       endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS, max_lag_s=0.1)
+                       endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS, max_lag_s=0.1,
+                       boot=BootTimeline.scaled(3.0))
     orig = ap._on_set_position_target_local_ned
 
     def spy(link, msg):

@@ -11,6 +11,7 @@ import pytest
 from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
 from groundstation.cli import main
+from conftest import QUICK_BOOT_S
 
 pytestmark = pytest.mark.sitl
 
@@ -18,8 +19,9 @@ pytestmark = pytest.mark.sitl
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     out = tmp_path_factory.mktemp("mission")
-    st = SitlStack(speedup=2.0, runlog_path=str(out / "run.jsonl"), truth_path=str(out / "truth.jsonl"))
+    st = SitlStack(speedup=2.0, ready_s=QUICK_BOOT_S, runlog_path=str(out / "run.jsonl"), truth_path=str(out / "truth.jsonl"))
     st.start()
+    assert st.wait_ready()
     st.out = out
     try:
         yield st

@@ -20,6 +20,7 @@ from groundstation import commands as C
 from groundstation.cli import main
 from groundstation.link import GcsLink
 from viewcheck import browser_unavailable, check_live_view, summary
+from conftest import QUICK_BOOT_S
 
 pytestmark = pytest.mark.sitl
 
@@ -28,7 +29,7 @@ pytestmark = pytest.mark.sitl
 def mission():
     """The SITL stack flying the paper scenario, launched by the app (GUIDED, arm, take off,
     start), the feed on."""
-    with SitlStack(speedup=2.0, gcs_udpin=True) as st:
+    with SitlStack(speedup=2.0, gcs_udpin=True, ready_s=QUICK_BOOT_S) as st:
         st.start_feed()
         with GcsLink(st.gcs_url, 10.0) as gl:
             gl.connect()

@@ -906,7 +906,9 @@ class OnboardApp:
         view = launch.VehicleView(
             position=pose is not None and v.ned_origin is not None and v.lat_lon_deg is not None,
             guided=v.is_guided(), armed=v.armed, up_m=None if pose is None else float(pose.pos[2]),
-            home_up_m=home_up, prearm_ok=v.prearm_ok, prearm_text=v.prearm_text,
+            home_up_m=home_up, climbing=v.landed_state in (mavlink.MAV_LANDED_STATE_TAKEOFF,
+                                                         mavlink.MAV_LANDED_STATE_IN_AIR),
+            prearm_ok=v.prearm_ok, prearm_text=v.prearm_text,
             can_start=result == mavlink.MAV_RESULT_ACCEPTED, start_blocker=blocker)
         self._launch, actions = launch.step(self._launch, view, now)
         severity = {"info": mavlink.MAV_SEVERITY_INFO, "warning": mavlink.MAV_SEVERITY_WARNING,

@@ -21,7 +21,9 @@ from dataclasses import dataclass, replace
 
 MODE_RETRY_S = 1.0  # autopilot s between GUIDED requests
 ARM_RETRY_S = 2.0  # autopilot s between ARM commands while refused
-TAKEOFF_RETRY_S = 1.0  # autopilot s between take-off commands until the climb shows
+# autopilot s between take-off commands until the climb shows: ArduCopter spools its motors
+# ~3.3 s after accepting one before it climbs (its 4.4 SITL), so a second is not sent sooner
+TAKEOFF_RETRY_S = 5.0
 TAKEOFF_TRIES = 5  # take-off commands without a climb before the sequence gives up
 CLIMB_STARTED_M = 1.0  # m above home that show the take-off was taken
 AT_ALTITUDE_M = 1.0  # within this of h counts as there
@@ -39,6 +41,7 @@ class VehicleView:
     up_m: float | None  # the vehicle's height
     home_up_m: float | None  # home's height (vehicle height - relative altitude)
     prearm_ok: bool | None  # ArduPilot's SYS_STATUS pre-arm bit; None: not reported
+    climbing: bool = False  # the autopilot reports taking off or in the air (EXTENDED_SYS_STATE)
     prearm_text: str | None = None  # the autopilot's latest "PreArm: ..." / "Arm: ..." reason
     can_start: bool = False  # the app's start preconditions hold (flying, DF data, ...)
     start_blocker: str | None = None  # why not, when not
@@ -65,57 +68,55 @@ Action = tuple | Say
 
 
 def step(L: Launch, v: VehicleView, now: float) -> tuple[Launch | None, list[Action]]:
-    """One look at the sequence; returns it (None: ended) and what to do now."""
+    """One look at the sequence; returns it (None: ended) and what to do now. A phase ends as
+    soon as the vehicle shows it done; a retry waits for its time."""
     out: list[Action] = []
     if L.guided_seen and not v.guided and L.phase in ("arm", "takeoff", "climb", "start"):
         return None, [Say("launch aborted: the vehicle left GUIDED", "warning")]
     if L.phase in ("takeoff", "climb", "start") and not v.armed:
         return None, [Say("launch aborted: the vehicle disarmed", "warning")]
-    if v.guided and not L.guided_seen and L.phase != "ready":
-        L = replace(L, guided_seen=True)
+    # what the vehicle already shows done
+    if L.phase == "mode" and v.guided:
+        L = replace(L, phase="arm", next_t=-math.inf, tries=0, guided_seen=True)
+    if L.phase == "arm" and v.armed:
+        L = replace(L, phase="takeoff", next_t=-math.inf, tries=0)
+        out.append(Say("launch: armed"))
+    climbed = v.up_m is not None and v.home_up_m is not None and v.up_m - v.home_up_m > CLIMB_STARTED_M
+    if L.phase == "takeoff" and (v.climbing or climbed):
+        L = replace(L, phase="climb", next_t=-math.inf, tries=0)
+        out.append(Say(f"launch: climbing to {L.target_up_m:g} m"))
+    if L.phase == "climb" and v.up_m is not None and v.up_m >= L.target_up_m - AT_ALTITUDE_M:
+        L = replace(L, phase="start")
     if now < L.next_t:
         return L, out
+    # what to ask for now
     if L.phase == "ready":
         if not v.position:
-            return L, [Say("launch: waiting for the autopilot's position", once="position")]
-        if v.armed:
-            return replace(L, phase="mode", next_t=-math.inf), out
-        if v.prearm_ok is False:
+            return L, out + [Say("launch: waiting for the autopilot's position", once="position")]
+        if v.prearm_ok is False and not v.armed:
             why = f" ({v.prearm_text})" if v.prearm_text else ""
-            return L, [Say(f"launch: waiting for the autopilot's pre-arm checks{why}",
-                           once=f"prearm:{v.prearm_text}")]
-        L = replace(L, phase="mode", next_t=-math.inf)
+            return L, out + [Say(f"launch: waiting for the autopilot's pre-arm checks{why}",
+                                 once=f"prearm:{v.prearm_text}")]
+        L = replace(L, phase="arm" if v.guided else "mode", guided_seen=v.guided)
     if L.phase == "mode":
-        if v.guided:
-            return replace(L, phase="arm", next_t=-math.inf, tries=0, guided_seen=True), out
-        return replace(L, next_t=now + MODE_RETRY_S, tries=L.tries + 1), [("guided",)]
+        return replace(L, next_t=now + MODE_RETRY_S, tries=L.tries + 1), out + [("guided",)]
     if L.phase == "arm":
-        if v.armed:
-            return replace(L, phase="takeoff", next_t=-math.inf, tries=0), [Say("launch: armed")]
+        if v.prearm_ok is False:  # its pre-arm bit can pass for a moment and fail again: wait
+            return L, out
         if L.tries and v.prearm_text:
-            out.append(Say(f"launch: arming refused: {v.prearm_text}", "warning",
-                           once=f"arm:{v.prearm_text}"))
+            out.append(Say(f"launch: arming refused: {v.prearm_text}", "warning", once=f"arm:{v.prearm_text}"))
         return replace(L, next_t=now + ARM_RETRY_S, tries=L.tries + 1), out + [("arm",)]
     if L.phase == "takeoff":
-        if v.up_m is not None and v.home_up_m is not None and v.up_m - v.home_up_m > CLIMB_STARTED_M:
-            return replace(L, phase="climb", next_t=-math.inf, tries=0), \
-                [Say(f"launch: climbing to {L.target_up_m:g} m")]
         if L.tries >= TAKEOFF_TRIES:
-            return None, [Say(f"launch failed: {TAKEOFF_TRIES} take-off commands without a climb",
-                              "error")]
+            return None, out + [Say(f"launch failed: {TAKEOFF_TRIES} take-off commands without a climb",
+                                    "error")]
         if v.up_m is None or v.home_up_m is None:
             return L, out
         return replace(L, next_t=now + TAKEOFF_RETRY_S, tries=L.tries + 1), \
-            [("takeoff", L.target_up_m - v.home_up_m)]
-    if L.phase == "climb":
-        if v.up_m is not None and v.up_m >= L.target_up_m - AT_ALTITUDE_M:
-            L = replace(L, phase="start")
-        else:
-            return L, out
+            out + [("takeoff", L.target_up_m - v.home_up_m)]
     if L.phase == "start":
         if v.can_start:
-            return None, [("start",)]
+            return None, out + [("start",)]
         if v.start_blocker:
-            return L, [Say(f"launch: at altitude, waiting: {v.start_blocker}",
-                           once=f"start:{v.start_blocker}")]
+            out.append(Say(f"launch: at altitude, waiting: {v.start_blocker}", once=f"start:{v.start_blocker}"))
     return L, out
