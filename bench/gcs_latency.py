@@ -55,8 +55,9 @@ def run(repeat: int) -> dict:
             if rc not in ok:
                 failures.append(f"{name}: exit {rc}: {timed.last_error}")
 
-    with SitlStack(speedup=1.0) as st:
+    with SitlStack(speedup=1.0, ready_s=5.0) as st:  # the boot is not what is timed here
         url = st.gcs_url
+        st.wait_ready()
         st.start_feed()
         measure("status", "status", n=repeat)
         measure("params list", "params", "list", n=repeat)

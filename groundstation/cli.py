@@ -18,15 +18,20 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_TIMEOUT = 0, 1, 2, 3
 
 COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
-  watch [--count N] [--duration S] [--png FILE]   live table of every target
-  arm                         GUIDED, then arm
-  takeoff ALT [--wait]        take off to ALT m above home (--wait: until there, within --timeout)
+  watch [--count N] [--duration S] [--png FILE] [--scenario NAME]   live table of every target
+  view [--port N] [--open] [--duration S] [--scenario NAME]   the mission live in a browser
+  arm [--wait]                GUIDED, then arm (--wait: until the autopilot is ready and arms)
+  takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
+                              bounds the time without climbing)
   start | pause | resume | stop | launch     the onboard app's monitoring
   hold                        ArduCopter BRAKE: stop and hold position (the app sees a pilot override)
+  mode NAME                   any ArduCopter flight mode, e.g. LOITER (a pilot's mode switch)
   rtl | land                  return to launch / land here
   params list | get NAME | set NAME VALUE     the onboard app's parameters (PMON_*)
   record FILE [--duration S]  tlog of everything the link carries
   plot LOG [--out PNG] [--truth FILE] [--scenario NAME]   flight from a tlog or the app's JSONL run log
+  export LOG [--out BASE] [--format geojson|kml] [--at T,..] [--every S] [--truth FILE] [--scenario NAME]
+                              the flight as GeoJSON and KML for map tools
 """
 
 
@@ -60,13 +65,25 @@ def parser() -> argparse.ArgumentParser:
     w.add_argument("--count", type=int, help="stop after N updates")
     w.add_argument("--duration", type=float, help="stop after S seconds")
     w.add_argument("--png", help="also draw a top-down PNG, rewritten each second")
-    add("arm", "GUIDED, then arm the motors")
+    w.add_argument("--scenario", default="paper", help="the scene the PNG draws (default paper)")
+    vw = add("view", "the mission live in a browser (served on 127.0.0.1)")
+    vw.add_argument("--port", type=int, default=8350, help="HTTP port on 127.0.0.1 (default 8350; 0: any free)")
+    vw.add_argument("--open", action="store_true", help="open the page in the default browser")
+    vw.add_argument("--duration", type=float, help="stop after S seconds (default: until Ctrl-C)")
+    vw.add_argument("--scenario", default="paper", help="the mission's scenario: area, obstacles, goals, "
+                    "origin (name or YAML file; default paper)")
+    a = add("arm", "GUIDED, then arm the motors")
+    a.add_argument("--wait", action="store_true",
+                   help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
     t = add("takeoff", "take off to ALT m above home")
     t.add_argument("alt", type=float, metavar="ALT")
-    t.add_argument("--wait", action="store_true", help="return when at ALT (bounded by --timeout)")
+    t.add_argument("--wait", action="store_true",
+                   help="return when at ALT; fails when the climb makes no progress for --timeout s")
     for name in ("start", "pause", "resume", "stop", "launch"):
         add(name, f"onboard app: {name}")
     add("hold", "ArduCopter BRAKE: stop and hold position")
+    m = add("mode", "set an ArduCopter flight mode by name (LOITER, BRAKE, GUIDED, ...)")
+    m.add_argument("name", metavar="NAME")
     add("rtl", "return to launch")
     add("land", "land where it is")
     pp = add("params", "the onboard app's parameters")
@@ -84,7 +101,17 @@ def parser() -> argparse.ArgumentParser:
     pl.add_argument("log")
     pl.add_argument("--out", help="PNG to write (default: LOG with .png)")
     pl.add_argument("--truth", help="the feed's truth JSONL (default: truth.jsonl next to LOG, if any)")
-    pl.add_argument("--scenario", help="draw this scenario's area and obstacles (e.g. paper)")
+    pl.add_argument("--scenario", default="paper", help="the scene drawn: area, obstacles, goals (default paper)")
+    ex = add("export", "the flight as GeoJSON and KML (tlog or the app's JSONL run log)")
+    ex.add_argument("log")
+    ex.add_argument("--out", help="BASE of BASE.geojson and BASE.kml (default: LOG without its extension)")
+    ex.add_argument("--format", choices=("geojson", "kml", "both"), default="both")
+    ex.add_argument("--at", help="ellipses at these tick times, s, comma-separated (default: every --every s)")
+    ex.add_argument("--every", type=float, default=10.0, help="ellipses every S s of ticks and at the last "
+                    "(default 10; 0: the last only)")
+    ex.add_argument("--truth", help="the feed's truth JSONL (default: truth.jsonl next to LOG, if any)")
+    ex.add_argument("--scenario", default="paper", help="the mission's scenario: origin, area, obstacles, goals "
+                    "(default paper)")
     return ap
 
 
@@ -97,21 +124,16 @@ def run(args, console) -> tuple[str, dict]:
     from groundstation import protocol as P
     from groundstation.link import GcsLink
 
-    if args.cmd == "plot":
-        from groundstation.plot import LogError, draw, load
-        try:
-            flight = load(args.log, args.truth)
-        except (LogError, OSError, ValueError) as exc:
-            raise _fail(f"plot: {exc}", EXIT_FAILED)
-        sc = None
-        if args.scenario:
-            from onboard.config import load_scenario
-            sc = load_scenario(args.scenario)
-        out = draw(flight, args.out or os.path.splitext(args.log)[0] + ".png", scenario=sc)
-        return (f"plot: {out} ({len(flight.uav)} UAV positions, {len(flight.tracks)} tracks"
-                f"{', with truth' if flight.truth else ''})",
-                {"png": str(out), "uav_points": len(flight.uav), "tracks": len(flight.tracks),
-                 "truth": bool(flight.truth)})
+    sc = _scenario(args.scenario) if getattr(args, "scenario", None) else None
+    if args.cmd in ("plot", "export"):
+        from groundstation.offline import from_log
+        return from_log(args, sc)
+    if args.cmd == "view" and not 0 <= args.port <= 65535:
+        raise UsageError(f"view: --port must be in 0..65535, got {args.port}")
+    if args.cmd == "view" and args.duration is not None and not args.duration > 0:
+        raise UsageError("view: --duration must be > 0")
+    if args.cmd == "mode" and P.mode_number(args.name) is None:
+        raise UsageError(f"mode: unknown ArduCopter mode {args.name!r} (one of {', '.join(P.mode_names())})")
     if args.cmd == "takeoff" and not (math.isfinite(args.alt) and 0 < args.alt <= 1000):
         raise UsageError(f"takeoff: ALT must be in (0, 1000] m, got {args.alt:g}")
     if args.cmd == "params" and args.pcmd == "set":
@@ -139,15 +161,20 @@ def run(args, console) -> tuple[str, dict]:
             o = C.status(gl)
         elif cmd == "watch":
             from groundstation.watch import watch
-            o = watch(gl, args.count, args.duration, args.png, args.json, console)
+            o = watch(gl, args.count, args.duration, args.png, args.json, console, scenario=sc)
+        elif cmd == "view":
+            from groundstation.view import serve
+            o = serve(gl, sc, args.port, args.duration, args.json, console, open_browser=args.open)
         elif cmd == "arm":
-            o = C.arm(gl)
+            o = C.arm(gl, args.wait)
         elif cmd == "takeoff":
             o = C.takeoff(gl, args.alt, args.wait)
         elif cmd in P.ACTIONS:
             o = C.app_action(gl, cmd)
         elif cmd == "hold":
             o = C.set_mode(gl, "hold", P.BRAKE)
+        elif cmd == "mode":
+            o = C.set_mode(gl, f"mode {args.name.upper()}", P.mode_number(args.name))
         elif cmd == "rtl":
             from onboard.app.link import mavlink
             o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
@@ -162,6 +189,14 @@ def run(args, console) -> tuple[str, dict]:
         else:  # pragma: no cover (argparse has checked)
             raise UsageError(f"unknown command {cmd}")
     return o.text, o.data
+
+
+def _scenario(name):
+    from onboard.config import ConfigError, load_scenario
+    try:
+        return load_scenario(name)
+    except ConfigError as exc:
+        raise UsageError(f"--scenario {exc}")
 
 
 def _record(gl, duration, path):

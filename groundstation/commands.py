@@ -44,15 +44,19 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
               mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
               mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")
     radio = v.get("RADIO_STATUS", 68) or v.last.get(("RADIO_STATUS", 0))
+    prearm = None
+    if ss is not None and ss.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
+        prearm = bool(ss.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
     vehicle = {
         "sysid": v.sysid, "mode": v.mode_name, "armed": v.armed, "landed_state": landed,
+        "prearm_ok": prearm,
         "lat_deg": gp.lat * 1e-7 if gp else None, "lon_deg": gp.lon * 1e-7 if gp else None,
         "alt_rel_m": gp.relative_alt * 1e-3 if gp else None, "alt_amsl_m": gp.alt * 1e-3 if gp else None,
         "battery_v": ss.voltage_battery * 1e-3 if ss and ss.voltage_battery != 65535 else None,
         "battery_pct": ss.battery_remaining if ss and ss.battery_remaining >= 0 else None,
     }
     link = {"url": gl.url, "heartbeat_age_s": round(hb_age, 2) if math.isfinite(hb_age) else None,
-            "packet_loss_pct": round(gl.link.conn.packet_loss(), 1), "received": gl.received,
+            "packet_loss_pct": round(gl.packet_loss_pct(), 1), "received": gl.received,
             "autopilot_drop_rate_pct": ss.drop_rate_comm / 100 if ss else None,
             "rssi": radio.rssi if radio is not None else None}
     st = v.app_status if app_heard else None
@@ -62,12 +66,15 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
                "last_tick_time_s": st.last_tick_time_s, "tick_ms": st.tick_ms,
                "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
                "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
-               "setpoints_refused": st.setpoints_refused,
+               "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
+               "launch": st.launch_phase,
                "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
                "next_enu_m": list(st.next_enu) if st.next_enu else None,
                "params": params}
     lines = [
-        f"vehicle {v.sysid}: {vehicle['mode']}, {'ARMED' if v.armed else 'disarmed'}, {landed}",
+        f"vehicle {v.sysid}: {vehicle['mode']}, {'ARMED' if v.armed else 'disarmed'}, {landed}"
+        + ("" if prearm is None or v.armed else
+           ", pre-arm checks " + ("passing" if prearm else "FAILING (not ready to arm)")),
         f"  position  {_fmt(vehicle['lat_deg'], '.6f')}, {_fmt(vehicle['lon_deg'], '.6f')}  "
         f"alt {_fmt(vehicle['alt_rel_m'])} m above home",
         f"  battery   {_fmt(vehicle['battery_v'], '.2f')} V  {_fmt(vehicle['battery_pct'], 'd')} %",
@@ -88,6 +95,9 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
             f"setpoints refused {st.setpoints_refused}",
             f"  UAV ENU   {_enu(e)}   next {_enu(st.next_enu)}",
         ]
+        if st.launch_phase:
+            lines.append(f"  launch    {st.launch_phase}")
+        lines += [f"  WARNING   {w}" for w in st.warnings]
         if params:
             lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
     return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app})
@@ -145,50 +155,109 @@ def set_mode(gl: GcsLink, what: str, mode: int, cmd: int | None = None) -> Outco
     return Outcome(out.text + f"; mode {gl.v.mode_name}", {**out.data, "mode": gl.v.mode_name})
 
 
-def arm(gl: GcsLink) -> Outcome:
+def _prearm_ok(gl: GcsLink) -> bool | None:
+    """The autopilot's pre-arm checks from SYS_STATUS (None where it does not report them)."""
+    ss = gl.v.get("SYS_STATUS")
+    bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    if ss is None or not ss.onboard_control_sensors_present & bit:
+        return None
+    return bool(ss.onboard_control_sensors_health & bit)
+
+
+ARM_RETRY_S = 2.0  # arm --wait: between attempts while the autopilot refuses
+
+
+def arm(gl: GcsLink, wait: bool = False) -> Outcome:
     """GUIDED first (ArduCopter takes off by command only in a navigating mode, and the app
-    flies GUIDED), then arm."""
+    flies GUIDED), then arm. ``wait``: the autopilot may not be ready yet (~40 s after boot for
+    ArduCopter): wait for its pre-arm checks (SYS_STATUS) and try again every ARM_RETRY_S while
+    it refuses, up to --timeout in all. (ArduPilot's pre-arm bit can pass before GUIDED's own
+    need for a position estimate does: measured on 4.4 SITL, so its refusals are waited out
+    too.)"""
     v = gl.v
-    steps = []
-    if v.mode != P.GUIDED and not v.armed:
-        steps.append(_ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
-                                                       mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
-                                                       done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
-                                  "autopilot", _vehicle_context(gl)))
-    ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
+    t0 = time.monotonic()
+    deadline = t0 + gl.timeout
+    if wait and not v.armed:
+        gl.stream(mavlink.MAVLINK_MSG_ID_SYS_STATUS, 2.0)
+        gl.wait_for(lambda: v.get("SYS_STATUS") is not None, min(gl.timeout, 2.0))
+    while True:
+        if wait and not v.armed and not gl.wait_for(lambda: _prearm_ok(gl) is not False,
+                                                     max(deadline - time.monotonic(), 0.0)):
+            texts = [t for t in gl.texts_since(t0, v.autopilot_comp) if t.startswith(("PreArm", "Arm"))]
+            why = f": {texts[-1]}" if texts else ""
+            raise GcsError(f"arm: the autopilot's pre-arm checks still fail after {gl.timeout:g} s{why}",
+                           TIMEOUT)
+        if v.mode != P.GUIDED and not v.armed:
+            _ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
+                                              mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
+                                              done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
+                         "autopilot", _vehicle_context(gl))
+        ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
+        if ack.ok or not wait or time.monotonic() + ARM_RETRY_S > deadline:
+            break
+        gl.wait_for(lambda: bool(v.armed), ARM_RETRY_S)  # refused: not ready yet
     out = _ack_outcome("arm", ack, "autopilot", _vehicle_context(gl))
     gl.request(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
     gl.wait_for(lambda: bool(v.armed), 1.0)
-    return Outcome(out.text + f"; {v.mode_name}, {'armed' if v.armed else 'not armed yet'}",
-                   {**out.data, "mode": v.mode_name, "armed": v.armed})
+    waited = time.monotonic() - t0
+    note = f" (ready after {waited:.1f} s)" if wait and waited > 1.0 else ""
+    return Outcome(out.text + f"; {v.mode_name}, {'armed' if v.armed else 'not armed yet'}{note}",
+                   {**out.data, "mode": v.mode_name, "armed": v.armed, "wait_s": round(waited, 2)})
+
+
+CLIMB_PROGRESS_M = 0.5  # --wait: the take-off fails when the height gains less than this in --timeout
 
 
 def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
+    """MAV_CMD_NAV_TAKEOFF to ``alt`` m above home, in the form every firmware accepts
+    (onboard/app/autopilot_commands.py). ``wait``: until at ``alt`` and reported in the air; a
+    climb takes as long as it takes, so --timeout bounds the time without progress (less
+    than CLIMB_PROGRESS_M gained), not the whole climb."""
+    from onboard.app.autopilot_commands import heading_from_global_position_int, takeoff_params
+
     v = gl.v
+    gl.stream(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 4.0)
+    gl.stream(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0)  # not in any ArduPilot default stream
+    gl.request(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+    if not gl.wait_for(lambda: v.get("GLOBAL_POSITION_INT") is not None, min(gl.timeout, 2.0)):
+        raise GcsError(f"takeoff: no position from the autopilot within {min(gl.timeout, 2.0):g} s "
+                       f"(a take-off is sent with the vehicle's own position){_vehicle_context(gl)}", TIMEOUT)
+    gp = v.get("GLOBAL_POSITION_INT")
+    hb = v.get("HEARTBEAT")
+    params = takeoff_params(hb.autopilot if hb is not None else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                            gp.lat * 1e-7, gp.lon * 1e-7, heading_from_global_position_int(gp.hdg),
+                            alt, (gp.alt - gp.relative_alt) * 1e-3)
     climbing = (mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR)
-    ack = gl.command(None, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, alt,
+    ack = gl.command(None, mavlink.MAV_CMD_NAV_TAKEOFF, *params,
                      done=lambda: v.landed_state in climbing, name="takeoff")
     out = _ack_outcome(f"takeoff to {alt:g} m", ack, "autopilot", _vehicle_context(gl))
     data = {**out.data, "alt_m": alt}
-    if wait:
-        t0 = time.monotonic()
-        in_air = [0]  # consecutive IN_AIR reports
+    if not wait:
+        return Outcome(out.text, data)
+    t0 = time.monotonic()
+    in_air = [0]  # consecutive IN_AIR reports
 
-        def count(mtype, msg):
-            if mtype == "EXTENDED_SYS_STATE" and msg.get_srcComponent() == v.autopilot_comp:
-                in_air[0] = in_air[0] + 1 if msg.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR else 0
-        gl.on_message(count)
+    def count(mtype, msg):
+        if mtype == "EXTENDED_SYS_STATE" and msg.get_srcComponent() == v.autopilot_comp:
+            in_air[0] = in_air[0] + 1 if msg.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR else 0
+    gl.on_message(count)
 
-        def there():
-            # at altitude and the take-off reported complete twice: the onboard app (its own
-            # link, same 2 Hz report) then knows it is flying too, and a start is not refused
-            gp = v.get("GLOBAL_POSITION_INT")
-            return gp is not None and gp.relative_alt / 1000 >= alt - 1.0 and in_air[0] >= 2
-        if not gl.wait_for(there, gl.timeout):
-            raise GcsError(f"takeoff: not at {alt:g} m within {gl.timeout:g} s{_vehicle_context(gl)}", TIMEOUT)
-        data["climb_s"] = round(time.monotonic() - t0, 2)
-        return Outcome(out.text + f"; at {alt:g} m after {data['climb_s']:.1f} s", data)
-    return Outcome(out.text, data)
+    def height() -> float:
+        g = v.get("GLOBAL_POSITION_INT")
+        return -math.inf if g is None else g.relative_alt / 1000
+
+    def there():
+        # at altitude and the take-off reported complete twice: the onboard app (its own link,
+        # same report) then knows it is flying too, and a start is not refused
+        return height() >= alt - 1.0 and in_air[0] >= 2
+    best = height()
+    while not gl.wait_for(there, gl.timeout):
+        if height() < best + CLIMB_PROGRESS_M:
+            raise GcsError(f"takeoff: not at {alt:g} m: no climb in the last {gl.timeout:g} s"
+                           f"{_vehicle_context(gl)}", TIMEOUT)
+        best = height()
+    data["climb_s"] = round(time.monotonic() - t0, 2)
+    return Outcome(out.text + f"; at {alt:g} m after {data['climb_s']:.1f} s", data)
 
 
 # ----------------------------------------------------------------------------- parameters

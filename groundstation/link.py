@@ -121,6 +121,15 @@ class GcsLink:
         self._hb_local = -math.inf
         self._listeners: list[Callable] = []
         self.t0 = time.monotonic()
+        self._seq: int | None = None  # the autopilot's last packet sequence number
+        self.autopilot_packets = 0
+        self.autopilot_lost = 0
+
+    def packet_loss_pct(self) -> float:
+        """Packets lost from the autopilot component, by its sequence numbers. (Components it
+        routes, like the onboard app, show gaps for every message not routed to us: not loss.)"""
+        n = self.autopilot_packets + self.autopilot_lost
+        return 100.0 * self.autopilot_lost / n if n else 0.0
 
     # ----------------------------------------------------------------- plumbing
     def close(self) -> None:
@@ -176,6 +185,12 @@ class GcsLink:
             return
         if v.autopilot_comp is None and P.is_autopilot_heartbeat(msg):
             v.autopilot_comp = comp
+        if comp == v.autopilot_comp:
+            seq = msg.get_seq()
+            if self._seq is not None:
+                self.autopilot_lost += (seq - self._seq - 1) % 256
+            self._seq = seq
+            self.autopilot_packets += 1
         now = time.monotonic()
         if mtype == "DEBUG_FLOAT_ARRAY":
             if msg.name == "PMON_TGT":
@@ -239,6 +254,12 @@ class GcsLink:
         for mid in msg_ids:
             self._command_long(self.v.sysid, self.v.autopilot_comp or 1,
                                mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mid)
+
+    def stream(self, msg_id: int, hz: float) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL on this link: what ArduPilot sends only when asked
+        (EXTENDED_SYS_STATE is in no default stream; a SITL's links start with none)."""
+        self._command_long(self.v.sysid, self.v.autopilot_comp or 1,
+                           mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 1e6 / hz)
 
     def _command_long(self, sysid, comp, cmd, confirmation, *params) -> None:
         p = [float(x) for x in params] + [0.0] * (7 - len(params))

@@ -78,8 +78,9 @@ def load_runlog(path: str | Path) -> Flight:
                 uav.append(tuple(rec["uav_enu"][:2]))
             if rec.get("next"):
                 nxt = tuple(rec["next"][:2])
-            for j, (mean, sig) in enumerate(zip(rec["means"], rec["sigmas_xy"])):
-                tracks.setdefault(j, []).append(Estimate(rec["t"], mean[0], mean[1], sig[0], sig[1]))
+            cxy = rec.get("cov_xy") or [0.0] * len(rec["means"])  # older logs: axis-aligned ellipses
+            for j, (mean, sig, c) in enumerate(zip(rec["means"], rec["sigmas_xy"], cxy)):
+                tracks.setdefault(j, []).append(Estimate(rec["t"], mean[0], mean[1], sig[0], sig[1], c))
     return Flight(tuple(uav), tracks, {}, nxt, str(path))
 
 
@@ -115,61 +116,56 @@ def load(path: str | Path, truth_path: str | Path | None = None) -> Flight:
     return flight
 
 
-def _ellipse(ax, e: Estimate, color) -> None:
-    from matplotlib.patches import Ellipse
-
-    cov = np.array([[e.sigma_x ** 2, e.cov_xy], [e.cov_xy, e.sigma_y ** 2]])
-    if not np.all(np.isfinite(cov)):
-        return
-    w, vecs = np.linalg.eigh(cov)
-    w = np.sqrt(np.maximum(w, 0.0))
-    angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
-    ax.add_patch(Ellipse((e.x, e.y), 2 * w[1], 2 * w[0], angle=angle, fill=False, color=color, lw=0.8,
-                         alpha=0.7))
-
-
-def draw(flight: Flight, png: str | Path, title: str = "", scenario=None, every: int = 10) -> Path:
-    """Write the picture (atomically: a live viewer never sees half a file)."""
+def figure(flight: Flight, title: str = "", scenario=None, every: int = 10):
+    """(fig, ax): the scenario's scene when given (area, goal, obstacles), true tracks,
+    estimated tracks with their 1-sigma ellipse every ``every`` estimates and at the last, the
+    UAV path, the next waypoint; the legend beside the map, where it covers nothing."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon
 
-    fig, ax = plt.subplots(figsize=(7, 7))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    from groundstation.scene import (UAV_COLOUR, covariance_ellipse, draw_scene, legend_outside,
+                                     scene_legend_handles, target_colour)
+
+    fig, ax = plt.subplots(figsize=(9.5, 7))
     if scenario is not None:
-        from matplotlib.patches import Rectangle
-        for ob in scenario.obstacles:
-            c, s = ob.center_m, ob.size_m
-            ax.add_patch(Rectangle((c[0] - s[0] / 2, c[1] - s[1] / 2), s[0], s[1], color="silver",
-                                   angle=math.degrees(ob.yaw_rad), rotation_point="center"))
-        ax.set_xlim(scenario.area.min_m[0], scenario.area.max_m[0])
-        ax.set_ylim(scenario.area.min_m[1], scenario.area.max_m[1])
+        draw_scene(ax, scenario)
     for j, pts in sorted(flight.truth.items()):
         a = np.array(pts)
-        ax.plot(a[:, 0], a[:, 1], "-", color=colors[j % 10], lw=2, alpha=0.5, label=f"T{j + 1} true")
+        ax.plot(a[:, 0], a[:, 1], "-", color=target_colour(j), lw=2, alpha=0.5, label=f"T{j + 1} true", zorder=3)
     for j, est in sorted(flight.tracks.items()):
-        c = colors[j % 10]
-        ax.plot([e.x for e in est], [e.y for e in est], "--", color=c, lw=1, label=f"T{j + 1} est.")
+        c = target_colour(j)
+        ax.plot([e.x for e in est], [e.y for e in est], "--", color=c, lw=1, label=f"T{j + 1} estimate", zorder=4)
         for e in est[::every] + est[-1:]:
-            _ellipse(ax, e, c)
-        ax.plot(est[-1].x, est[-1].y, "o", color=c, ms=4)
+            pts = covariance_ellipse(e.x, e.y, e.sigma_x, e.sigma_y, e.cov_xy)
+            if pts is not None:
+                ax.add_patch(Polygon(pts, closed=True, fill=False, edgecolor=c, lw=0.8, alpha=0.7, zorder=4))
+        ax.plot(est[-1].x, est[-1].y, "o", color=c, ms=4, zorder=5)
     if flight.uav:
         u = np.array(flight.uav)
-        ax.plot(u[:, 0], u[:, 1], "k-", lw=1.2, label="UAV")
-        ax.plot(u[-1, 0], u[-1, 1], "k^", ms=8)
+        ax.plot(u[:, 0], u[:, 1], "-", color=UAV_COLOUR, lw=1.2, label="UAV", zorder=5)
+        ax.plot(u[-1, 0], u[-1, 1], "^", color=UAV_COLOUR, ms=8, zorder=6)
     if flight.next_wp is not None:
-        ax.plot(*flight.next_wp, "kx", ms=8, label="next waypoint")
+        ax.plot(*flight.next_wp, "x", color=UAV_COLOUR, ms=8, label="next waypoint", zorder=6)
     ax.set_aspect("equal")
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.set_title(title or f"{flight.source}: estimates with 1-sigma ellipses", fontsize=9)
-    ax.legend(fontsize=7, loc="upper right", ncol=2)
+    legend_outside(ax, scene_legend_handles(scenario) if scenario is not None else ())
     ax.grid(alpha=0.3)
-    fig.tight_layout()
+    return fig, ax
+
+
+def draw(flight: Flight, png: str | Path, title: str = "", scenario=None, every: int = 10) -> Path:
+    """Write ``figure``'s picture (atomically: a live viewer never sees half a file)."""
+    import matplotlib.pyplot as plt
+
+    fig, _ = figure(flight, title, scenario, every)
     png = Path(png)
     tmp = png.with_name(png.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
+    fig.savefig(tmp, dpi=90, bbox_inches="tight")
     plt.close(fig)
     os.replace(tmp, png)
     return png

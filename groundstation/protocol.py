@@ -27,6 +27,18 @@ REASONS = {1: "vehicle not armed", 2: "vehicle not flying", 3: "no DF data in th
 # ArduCopter modes the CLI commands (HEARTBEAT.custom_mode)
 GUIDED, LOITER, RTL, LAND, BRAKE = 4, 5, 6, 9, 17
 
+
+def mode_names() -> list[str]:
+    """ArduCopter's flight mode names, as pymavlink maps them."""
+    from pymavlink import mavutil
+    return sorted(mavutil.mode_mapping_acm.values())
+
+
+def mode_number(name: str) -> int | None:
+    """ArduCopter's custom_mode for a mode name (any case), or None."""
+    from pymavlink import mavutil
+    return {v: k for k, v in mavutil.mode_mapping_acm.items()}.get(name.strip().upper())
+
 RESULTS = {k: e.name.removeprefix("MAV_RESULT_") for k, e in mavlink.enums["MAV_RESULT"].items()
            if e.name != "MAV_RESULT_ENUM_END"}
 
@@ -68,6 +80,12 @@ class TargetEstimate:
         return f"T{self.index + 1}"
 
 
+# PMON_STAT "warnings" bits (onboard/app/app.py WARN_*) and launch phases (onboard/app/launch.py)
+WARN_SPEED, WARN_ACCEL = 1, 2
+LAUNCH_PHASES = ("waiting for the autopilot to be ready", "switching to GUIDED", "arming",
+                 "taking off", "climbing", "starting")
+
+
 @dataclass(frozen=True)
 class AppStatus:
     """One PMON_STAT: the app's state and health."""
@@ -85,14 +103,35 @@ class AppStatus:
     setpoints_refused: int
     latency_ms: float | None
     uav_enu: tuple[float, float, float] | None
+    warnings: tuple[str, ...] = ()  # conditions that hold now, in words
+    launch_phase: str | None = None  # None: no launch sequence running
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
         d = msg.data
         nxt = tuple(d[4:7]) if all(math.isfinite(v) for v in d[4:7]) else None
         uav = tuple(d[14:17]) if all(math.isfinite(v) for v in d[14:17]) else None
-        return AppStatus(app_state_name(d[0]), d[1], _num(d[2]), _num(d[3]), nxt, int(d[7]), int(d[8]),
-                         int(d[9]), int(d[10]), int(d[18]), int(d[19]), _num(d[11]), uav)
+        bits = _int(d[20])
+        warnings = []
+        if bits & WARN_SPEED:
+            warnings.append(f"autopilot speed limit {_fmt(d[21])} m/s < {_fmt(d[22])} m/s planned: "
+                            "the vehicle lags its setpoints")
+        if bits & WARN_ACCEL:
+            warnings.append(f"autopilot acceleration limit {_fmt(d[23])} m/s^2 < {_fmt(d[24])} m/s^2 planned")
+        phase = _int(d[25], -1)
+        return AppStatus(app_state_name(d[0]), d[1], _num(d[2]), _num(d[3]), nxt, _int(d[7]), _int(d[8]),
+                         _int(d[9]), _int(d[10]), _int(d[18]), _int(d[19]), _num(d[11]), uav,
+                         tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None)
+
+
+def _int(x: float, default: int = 0) -> int:
+    """A count from a float field; a non-finite or absurd value (a hostile or broken peer) is
+    ``default``, never an exception."""
+    return int(x) if math.isfinite(x) and abs(x) < 2**53 else default
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}" if math.isfinite(x) else "?"
 
 
 def is_autopilot_heartbeat(msg) -> bool:

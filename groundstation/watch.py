@@ -58,7 +58,8 @@ def table(snap: dict, n: int):
 
 
 def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | None, as_json: bool,
-          console) -> Outcome:
+          console, scenario=None) -> Outcome:
+    """``scenario``: the scene the PNG draws (area, goal, obstacles)."""
     v = gl.v
     updates = [0]
     uav_path: list = []
@@ -113,7 +114,8 @@ def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | Non
                     last_png = now
                     nxt = tuple(snap["next_enu_m"][:2]) if snap["next_enu_m"] else None
                     draw(Flight(tuple(uav_path), {k: list(h) for k, h in tracks.items()}, {}, nxt, "live"),
-                         png, title=f"pmon watch: t={_f(snap['tick_time_s'])} s, app {snap['app_state']}")
+                         png, title=f"pmon watch: t={_f(snap['tick_time_s'])} s, app {snap['app_state']}",
+                         scenario=scenario)
             elif now - last_update > gl.timeout:
                 raise GcsError(f"watch: no update from the onboard app for {gl.timeout:g} s "
                                f"({'never heard' if not shown else f'after {shown} updates'})", TIMEOUT)

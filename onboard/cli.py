@@ -98,9 +98,13 @@ def _eval(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if (sys.argv[1:] if argv is None else argv)[:1] == ["gcs"]:  # own parser: options before the command
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    if args_in[:1] == ["gcs"]:  # own parsers, --help included: options before the command
         from groundstation.cli import main as gcs_main
-        return gcs_main(list(sys.argv[2:] if argv is None else argv[1:]))
+        return gcs_main(args_in[1:])
+    if args_in[:1] == ["feed"]:
+        from sim.feed import main as feed_main
+        return feed_main(args_in[1:])
     ap = OneLineParser(prog="pmon", description="Passive Monitor")  # subparsers are OneLineParsers too
     sub = ap.add_subparsers(dest="command", required=True)
     c = sub.add_parser("check-config", help="validate a scenario file")
@@ -134,10 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("run", help="the onboard app: MAVLink to the autopilot, DF datagrams in")
     _run_mod.add_arguments(r)
     r.set_defaults(func=_run_mod.run)
-    f = sub.add_parser("feed", help="simulated DF feed (live truth world, or replay a file)",
-                       add_help=False)
-    f.add_argument("rest", nargs=argparse.REMAINDER)
-    f.set_defaults(func=lambda a: __import__("sim.feed", fromlist=["main"]).main(a.rest))
+    sub.add_parser("feed", help="simulated DF feed: live truth world, or replay a file (pmon feed --help)",
+                   add_help=False)
     d = sub.add_parser("demo", help="mock autopilot + feed + app on loopback, paper scenario")
     from onboard import demo as _demo_mod
     _demo_mod.add_arguments(d)

@@ -2,7 +2,7 @@
 
     mock autopilot  (python -m sim.autopilot, 2 TCP ports picked by the OS, home = scenario origin)
     onboard app     (pmon run --auto-launch: GUIDED, arm, take off, monitor)
-    DF feed         (pmon feed live --wait-armed: truth world, DF scans, truth JSONL)
+    DF feed         (pmon feed live: truth world from arming, DF scans, truth JSONL)
 
 Separate processes because that is how it flies (the app knows the autopilot only through
 MAVLink, the feed only through its own MAVLink link and UDP) and because two busy Python
@@ -33,6 +33,9 @@ import numpy as np
 # tick need them. See docs/SITL.md.
 DEMO_VEHICLE_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20,
                        "WPNAV_SPEED_UP": 500}
+# autopilot s until the demo's mock can arm: it boots as ArduCopter does (no fix, no origin,
+# arming refused until then) but in 5 s rather than ArduCopter SITL's ~43 s
+DEMO_READY_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -156,7 +159,7 @@ def run(args) -> int:
     try:
         ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
                    f"--home={o.lat_deg},{o.lon_deg},{o.alt_m}", "--speedup", str(speedup),
-                   "--seed", str(args.seed)]
+                   "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
         ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
         if args.gcs:
             ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]
@@ -173,7 +176,7 @@ def run(args) -> int:
         feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",
                              "--to", f"127.0.0.1:{df_port}", "--scenario", args.scenario,
                              "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
-                             "--duration", str(duration), "--wait-armed"], out / "feed.log")
+                             "--duration", str(duration)], out / "feed.log")
         procs.append(feed)
         console.print(f"autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
                       f"speedup {speedup:g}x; logs in {out}/")
@@ -211,7 +214,8 @@ def run(args) -> int:
     png = plot(out / "run.jsonl", out / "truth.jsonl", sc, out / "flight.png")
     (out / "report.json").write_text(json.dumps({**report, "speedup": speedup,
                                                  "wall_s": round(time.monotonic() - wall0, 1)}, indent=1))
-    console.print(f"flight plot: {png}   run log: {out / 'run.jsonl'}   tlog: {out / 'app.tlog'}")
+    console.print(f"flight plot: {png} (map tools: {png.with_suffix('.geojson')})   run log: {out / 'run.jsonl'}   "
+                  f"tlog: {out / 'app.tlog'}")
     console.print(f"wall time {time.monotonic() - wall0:.1f} s")
     return 0
 
@@ -298,47 +302,11 @@ def _print_report(console, rep: dict, sc) -> None:
 
 
 def plot(run_path: Path, truth_path: Path, sc, png: Path) -> Path:
-    import matplotlib
+    """flight.png, and flight.geojson beside it (groundstation/plot.py, groundstation/export.py)."""
+    from groundstation.export import write
+    from groundstation.plot import draw, load
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Polygon
-
-    ticks, truth = load_run(run_path, truth_path)
-    fig, ax = plt.subplots(figsize=(8, 8))
-    for ob in sc.obstacles:
-        c, s, yaw = np.array(ob.center_m), np.array(ob.size_m), ob.yaw_rad
-        corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * s[:2] / 2
-        rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-        blocks_uav = c[2] + s[2] / 2 >= sc.uav.altitude_m
-        ax.add_patch(Polygon(corners @ rot.T + c[:2], closed=True, color="dimgray" if blocks_uav else "silver",
-                             alpha=0.8, label=None))
-        ax.annotate(ob.name, c[:2], ha="center", va="center", fontsize=8)
-    for g in sc.goals:
-        c, s = np.array(g.center_m), np.array(g.size_m)
-        ax.add_patch(Polygon(np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * s[:2] / 2 + c[:2],
-                             closed=True, fill=False, edgecolor="green", lw=2, label=f"goal {g.name}"))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    if truth:
-        tr = np.array([r["targets"] for r in truth])  # (K, M, 6)
-        for j, t in enumerate(sc.targets):
-            ax.plot(tr[:, j, 0], tr[:, j, 1], "-", color=colors[j % 10], lw=2, label=f"{t.name} true")
-        uav = np.array([r["uav_enu"] for r in truth])
-        ax.plot(uav[:, 0], uav[:, 1], "k-", lw=1.5, label="UAV")
-        ax.plot(uav[-1, 0], uav[-1, 1], "k^")
-    if ticks:
-        est = np.array([tk["means"] for tk in ticks])
-        for j, t in enumerate(sc.targets):
-            ax.plot(est[:, j, 0], est[:, j, 1], "--", color=colors[j % 10], lw=1, label=f"{t.name} est.")
-    ax.set_xlim(sc.area.min_m[0], sc.area.max_m[0])
-    ax.set_ylim(sc.area.min_m[1], sc.area.max_m[1])
-    ax.set_aspect("equal")
-    ax.set_xlabel("east [m]")
-    ax.set_ylabel("north [m]")
-    ax.set_title("pmon demo: UAV path, true (solid) and estimated (dashed) tracks\n"
-                 "dark obstacles block the UAV at h, light ones it overflies")
-    ax.legend(fontsize=7, loc="upper right", ncol=2)
-    fig.tight_layout()
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return png
+    flight = load(run_path, truth_path)
+    write(flight, sc, png.with_suffix(""), formats=("geojson",))
+    return draw(flight, png, scenario=sc, title="pmon demo: UAV path, true (solid) and estimated (dashed) tracks, "
+                                                "1-sigma ellipses every 10 ticks")

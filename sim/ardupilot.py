@@ -3,7 +3,7 @@ benches and the demo.
 
     sitl = ArduPilotSitl(find_binary(), home=(35.145, 33.411, 160.0), speedup=4).start()
     sitl.url(0)        # tcp:127.0.0.1:5860: SERIAL0 (one client per TCP port)
-    sitl.url(1)        # SERIAL1, sitl.url(2): SERIAL2
+    sitl.url(1)        # SERIAL1, sitl.url(2): SERIAL2 (url(3), url(4): SERIAL5, 6 with ports=5)
     sitl.restart()     # SIGTERM, then boot again on the same instance and parameters (eeprom kept)
     sitl.stop()
 
@@ -40,10 +40,12 @@ REPO = Path(__file__).resolve().parent.parent
 SHARED_BINARY = REPO.parent / "shared" / "ardupilot" / "arducopter"
 FIRST_INSTANCE = 20  # instances tried from here up: leaves 0.. to a developer's own SITL
 LAST_INSTANCE = 99
-SERIALS = 3  # SERIAL0..2 as TCP servers: the app, the DF feed, a ground station
-# the serial TCP ports of instance N are BASE + 10 N + offset (ArduPilot's SITL_State)
+# MAVLink ports as TCP servers: SERIAL0..2 (the app, the DF feed, a ground station) and, when
+# asked for, SERIAL5 and SERIAL6 (more ground stations; SERIAL3/4 are the simulated GPSs). The
+# TCP port of ``tcp:K`` on instance N is BASE + 10 N + K (ArduPilot's SITL_State).
+SERIALS = ((0, 0), (1, 2), (2, 3), (5, 5), (6, 6))  # (SERIALn, K)
 BASE_PORT = 5760
-SERIAL_OFFSETS = (0, 2, 3)
+SERIAL_OFFSETS = tuple(k for _, k in SERIALS)
 SIM_PORT_IN = 5501  # its physics-model UDP port, + 10 N
 
 
@@ -105,6 +107,7 @@ class ArduPilotSitl:
     model: str = "+"
     instance: int | None = None  # None: the first free one from FIRST_INSTANCE
     workdir: Path | None = None  # None: a temporary directory, removed by stop()
+    ports: int = 3  # MAVLink TCP ports: 3 (SERIAL0..2), 4 (and SERIAL5) or 5 (and SERIAL6)
     log_path: Path | None = None  # the firmware's stdout/stderr (None: workdir/arducopter.log)
     proc: subprocess.Popen | None = field(default=None, init=False)
     boots: int = field(default=0, init=False)
@@ -113,6 +116,8 @@ class ArduPilotSitl:
         self.binary = Path(self.binary)
         if not (self.speedup > 0 and self.speedup <= 100):
             raise SitlError(f"speedup must be in (0, 100], got {self.speedup}")
+        if not 3 <= self.ports <= len(SERIALS):
+            raise SitlError(f"ports must be in 3..{len(SERIALS)}, got {self.ports}")
         self._lock = None
         self._own_dir = False
 
@@ -159,10 +164,12 @@ class ArduPilotSitl:
 
     # ----- addresses
     def port(self, serial: int) -> int:
-        """TCP port of SERIAL``serial`` (0, 1, 2)."""
+        """TCP port of MAVLink port ``serial``: 0, 1, 2 (SERIAL0..2), 3 (SERIAL5), 4 (SERIAL6)."""
         if self.instance is None:
             raise SitlError("not started")
-        return BASE_PORT + 10 * self.instance + SERIAL_OFFSETS[serial]
+        if not 0 <= serial < self.ports:
+            raise SitlError(f"no MAVLink port {serial}: this SITL has {self.ports}")
+        return BASE_PORT + 10 * self.instance + SERIALS[serial][1]
 
     def url(self, serial: int) -> str:
         return f"tcp:127.0.0.1:{self.port(serial)}"
@@ -190,9 +197,12 @@ class ArduPilotSitl:
         base = self.defaults or default_params_file(self.binary)
         if base is not None:
             files.append(str(base))
-        if self.params:
+        params = dict(self.params)
+        for n, _ in SERIALS[3:self.ports]:  # SERIAL5.. speak MAVLink 2 only when told to
+            params.setdefault(f"SERIAL{n}_PROTOCOL", 2)
+        if params:
             extra = self.workdir / "pmon.parm"
-            extra.write_text("".join(f"{k} {float(v):g}\n" for k, v in self.params.items()))
+            extra.write_text("".join(f"{k} {float(v):g}\n" for k, v in params.items()))
             files.append(str(extra))
         return ",".join(files)
 
@@ -205,8 +215,8 @@ class ArduPilotSitl:
         defaults = self._defaults_arg()
         if defaults:
             argv += ["--defaults", defaults]
-        for i in range(SERIALS):
-            argv += [f"--serial{i}", f"tcp:{SERIAL_OFFSETS[i]}"]
+        for n, k in SERIALS[:self.ports]:
+            argv += [f"--serial{n}", f"tcp:{k}"]
         log = open(self.log_path or self.workdir / "arducopter.log", "ab")
         try:
             self.proc = subprocess.Popen(argv, cwd=self.workdir, stdout=log, stderr=subprocess.STDOUT,
@@ -219,7 +229,7 @@ class ArduPilotSitl:
             if self.proc.poll() is not None:
                 raise SitlError(f"{self.binary.name} exited with {self.proc.returncode} at boot; "
                                 f"see {self.log_path or self.workdir / 'arducopter.log'}")
-            if all(_listening(self.port(i)) for i in range(SERIALS)):
+            if all(_listening(self.port(i)) for i in range(self.ports)):
                 return
             time.sleep(0.05)
         self._terminate()
@@ -237,7 +247,7 @@ class ArduPilotSitl:
             p.kill()
             p.wait(timeout=5)
         deadline = time.monotonic() + 5.0  # the kernel frees the ports with the process
-        while time.monotonic() < deadline and any(_listening(self.port(i)) for i in range(SERIALS)):
+        while time.monotonic() < deadline and any(_listening(self.port(i)) for i in range(self.ports)):
             time.sleep(0.05)
 
 

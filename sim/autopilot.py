@@ -8,8 +8,15 @@ clients (pymavlink, MAVProxy, MAVSDK) can tell:
   link that component was seen on, broadcasts go to every other link with a route,
   heartbeats to every other active link; only parseable messages are forwarded;
 - HEARTBEAT, COMMAND_LONG/COMMAND_INT with ArduPilot's COMMAND_ACK results, SET_MODE,
-  parameters, an empty mission, SET_POSITION_TARGET_* with ArduPilot's type_mask rules,
-  telemetry at per-link rates (SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM);
+  parameters, an empty mission, SET_POSITION_TARGET_* with ArduPilot's type_mask rules;
+- telemetry only as asked for, as ArduCopter does: a HEARTBEAT a second, and each link's streams
+  at the rates of its SRn_ parameters (0 by default, as in ArduCopter SITL) or as a client
+  sets them (SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM);
+- ArduCopter's boot (``BootTimeline``, measured on its 4.4 SITL): no GPS position, no EKF origin
+  and arming refused ("Arm: Need Position Estimate") until the EKF is ready, ~43 s;
+- its defects a client must not trigger: a COMMAND_LONG take-off, home or ROI whose position
+  fields are NaN aborts an armed ArduCopter 4.4 (floating point exception); the mock counts it
+  (``defects``) and goes silent like the crashed firmware;
 - modes GUIDED, LOITER, BRAKE, POSHOLD, ALT_HOLD, STABILIZE (hold), RTL, LAND;
 - its own clock: time_boot_ms runs at `speedup` x wall time and the kinematic model
   (sim.vehicle, local NED with origin = home) is stepped at a fixed rate on that clock.
@@ -92,6 +99,9 @@ FLOWN_MODES = {
 ARMABLE_MODES = {Mode.STABILIZE, Mode.ALT_HOLD, Mode.GUIDED, Mode.LOITER, Mode.POSHOLD}
 TAKEOFF_MODES = {Mode.GUIDED, Mode.LOITER, Mode.POSHOLD}  # has_user_takeoff(must_navigate)
 HOLD_MODES = {Mode.STABILIZE, Mode.ALT_HOLD, Mode.LOITER, Mode.POSHOLD, Mode.BRAKE}
+# autopilot s from an accepted take-off to the climb (landed_state ON_GROUND until then): 3.3 s
+# measured on ArduCopter 4.4 SITL (GUIDED, stock parameters: 42.2 s accepted, 45.5 s TAKEOFF)
+TAKEOFF_SPOOL_S = 3.3
 
 
 # --------------------------------------------------------------------------- parameters
@@ -156,7 +166,34 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("BATT_FS_LOW_ACT", 0, INT8),
     ParamSpec("FENCE_ENABLE", 0, INT8),
     ParamSpec("FENCE_ALT_MAX", 100),
+    # stream rates (Hz) per serial port n = the mock's endpoint index; 0 as in ArduCopter SITL
+    *(ParamSpec(f"SR{n}_{g}", 0, INT16) for n in range(4)
+      for g in ("EXT_STAT", "POSITION", "EXTRA1", "EXTRA2", "EXTRA3")),
 )
+
+
+@dataclass(frozen=True)
+class BootTimeline:
+    """When ArduCopter is ready after boot, autopilot s, as measured on ArduCopter 4.4 SITL with
+    stock parameters (the binary in ../shared/ardupilot): a GPS fix at 8.6 s (GLOBAL_POSITION_INT
+    has lat = lon = 0 before), the EKF origin at 18.6 s (GPS_GLOBAL_ORIGIN and HOME_POSITION sent
+    to every link unasked, none before), a position estimate good enough to arm at 42.6 s (an
+    ARM before is refused, MAV_RESULT_FAILED, "Arm: Need Position Estimate"; SYS_STATUS's
+    pre-arm bit unhealthy; "PreArm: Need Position Estimate" every 30 s) - except for one second
+    from 24.0 s when the pre-arm bit reads healthy while arming is still refused (seen in three
+    of three runs sampled often enough: 23-24 s, 24.0-25.0 s). ``scaled`` keeps the proportions
+    for tests that need the behaviour but not the wait."""
+
+    gps_s: float = 8.6
+    origin_s: float = 18.6
+    ready_s: float = 42.6
+    blip_s: tuple[float, float] = (24.0, 25.0)  # pre-arm bit healthy, arming still refused
+
+    @classmethod
+    def scaled(cls, ready_s: float) -> "BootTimeline":
+        k = max(ready_s, 0.0) / cls.ready_s
+        return cls(cls.gps_s * k, cls.origin_s * k, cls.ready_s * k, (24.0 * k, 25.0 * k))
+
 
 
 class Params:
@@ -235,7 +272,8 @@ class Copter:
     """
 
     def __init__(self, home: tuple[float, float, float], params: Params,
-                 rng: Optional[np.random.Generator], pos_noise: float = 0.02):
+                 rng: Optional[np.random.Generator], pos_noise: float = 0.02,
+                 boot: BootTimeline = BootTimeline()):
         self.origin = home  # local NED origin (EKF origin) = home at boot
         self.home = home
         self.home_ned: Vec3 = (0.0, 0.0, 0.0)
@@ -259,6 +297,27 @@ class Copter:
         self.rtl_loiter_start = 0.0
         self.battery_used_mah = 0.0
         self.events: list[tuple[int, str]] = []
+        self.boot = boot
+        self._prearm_said = 0.0
+        self.spool_until: Optional[float] = None  # take-off accepted, climbing from then
+
+    # ----- boot (BootTimeline)
+    @property
+    def gps_ok(self) -> bool:
+        return self.t >= self.boot.gps_s
+
+    @property
+    def origin_set(self) -> bool:
+        return self.t >= self.boot.origin_s
+
+    @property
+    def position_ok(self) -> bool:
+        return self.t >= self.boot.ready_s
+
+    @property
+    def prearm_bit(self) -> bool:
+        """SYS_STATUS's pre-arm bit: healthy when arming passes, and during the blip."""
+        return self.position_ok or self.boot.blip_s[0] <= self.t < self.boot.blip_s[1]
 
     # ----- helpers
     def text(self, severity: int, msg: str) -> None:
@@ -279,7 +338,7 @@ class Copter:
         return self.home_ned[2] - self.state.pos[2]
 
     def landed_state(self) -> int:
-        if self.land_complete:
+        if self.land_complete or self.spool_until is not None:
             return mavlink.MAV_LANDED_STATE_ON_GROUND
         if self.mode == Mode.LAND or (self.mode == Mode.RTL and self.rtl_phase == "land"):
             return mavlink.MAV_LANDED_STATE_LANDING
@@ -331,6 +390,9 @@ class Copter:
         if not force and self.mode not in ARMABLE_MODES:
             self.text(mavlink.MAV_SEVERITY_CRITICAL, "Arm: Mode not armable")
             return False
+        if not force and not self.position_ok:
+            self.text(mavlink.MAV_SEVERITY_CRITICAL, "Arm: Need Position Estimate")
+            return False
         self.armed = True
         self.landed_since = self.t
         self.text(mavlink.MAV_SEVERITY_INFO, "Arming motors")
@@ -339,6 +401,7 @@ class Copter:
     def disarm(self, force: bool, reason: str = "") -> bool:
         if not self.armed:
             return True
+        self.spool_until = None
         if not force and not self.land_complete:
             # AP_Arming_Copter::disarm refuses a GCS disarm while flying unless forced.
             return False
@@ -357,7 +420,8 @@ class Copter:
         self.hold_pos = (self.state.pos[0], self.state.pos[1], self.takeoff_z)
         if self.mode == Mode.GUIDED:
             self.guided = GuidedTarget("pos", pos=self.hold_pos, updated_s=self.t)
-        self.land_complete = False
+        if self.spool_until is None:  # a repeat during the spool-up is accepted, changes nothing
+            self.spool_until = self.t + TAKEOFF_SPOOL_S
         return True
 
     def guided_hold(self) -> None:
@@ -377,6 +441,9 @@ class Copter:
     # ----- simulation
     def tick(self, dt: float) -> None:
         self.t += dt
+        if not self.armed and not self.position_ok and self.t >= self._prearm_said + 30.0:
+            self._prearm_said = self.t  # ArduPilot reports failing pre-arm checks every 30 s
+            self.text(mavlink.MAV_SEVERITY_CRITICAL, "PreArm: Need Position Estimate")
         current_a = 0.3
         if not self.armed:
             if self.state.pos[2] < -0.01 or any(self.state.vel):
@@ -384,6 +451,11 @@ class Copter:
             if self.state.pos[2] >= self._ground_z() - 0.01 and not self.land_complete:
                 self.land_complete = True
                 self.landed_since = self.t
+        elif self.spool_until is not None:  # take-off accepted: motors spooling, still landed
+            current_a = 5.0
+            if self.t >= self.spool_until:
+                self.spool_until = None
+                self.land_complete = False
         elif self.land_complete and self.takeoff_z is None:
             current_a = 2.0  # spinning at idle on the ground
             delay = self.params["DISARM_DELAY"]
@@ -568,6 +640,7 @@ class _Link:
         self.tx_errors = 0
         self.muted_until = -math.inf  # fault injection: sim time until which the link is dead
         self.muted = False
+        self.port_index = 0  # the endpoint it belongs to (its SRn_ stream rates)
 
     def fileno(self) -> int:
         raise NotImplementedError
@@ -688,7 +761,8 @@ class _TcpLink(_Link):
 
 
 class _TcpListener:
-    def __init__(self, ep: Endpoint):
+    def __init__(self, ep: Endpoint, index: int = 0):
+        self.index = index  # the endpoint's position: its "serial port" (SRn_ rates)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -715,31 +789,21 @@ class _TcpListener:
 
 # --------------------------------------------------------------------------- telemetry
 
-# SITL-like default rates (Hz of autopilot time) for every link.
-DEFAULT_RATES_HZ: Mapping[str, float] = {
-    "HEARTBEAT": 1.0,
-    "SYS_STATUS": 2.0,
-    "GPS_RAW_INT": 2.0,
-    "EXTENDED_SYS_STATE": 2.0,
-    "GLOBAL_POSITION_INT": 4.0,
-    "LOCAL_POSITION_NED": 4.0,
-    "ATTITUDE": 4.0,
-    "VFR_HUD": 4.0,
-    "SYSTEM_TIME": 1.0,
-    "BATTERY_STATUS": 1.0,
-    "EKF_STATUS_REPORT": 1.0,
-    "HOME_POSITION": 0.2,
-}
+# Sent on every link whatever its SRn_ rates (ArduPilot's GCS_MAVLINK heartbeat): interval, sim s
+ALWAYS_INTERVALS_S: Mapping[str, float] = {"HEARTBEAT": 1.0}
 
-# REQUEST_DATA_STREAM groups (ArduCopter's STREAM_* lists, restricted to what we send).
+# REQUEST_DATA_STREAM / SRn_ groups (ArduCopter's STREAM_* lists, restricted to what we send;
+# measured on 4.4 SITL: EXTENDED_SYS_STATE is in none, it comes only when asked for).
 DATA_STREAMS: Mapping[int, tuple[str, ...]] = {
-    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE",
-                                              "POSITION_TARGET_GLOBAL_INT"),
+    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "POSITION_TARGET_GLOBAL_INT"),
     mavlink.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
     mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
     mavlink.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
     mavlink.MAV_DATA_STREAM_EXTRA3: ("SYSTEM_TIME", "BATTERY_STATUS", "EKF_STATUS_REPORT"),
 }
+SR_GROUPS = {"EXT_STAT": mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "POSITION": mavlink.MAV_DATA_STREAM_POSITION,
+             "EXTRA1": mavlink.MAV_DATA_STREAM_EXTRA1, "EXTRA2": mavlink.MAV_DATA_STREAM_EXTRA2,
+             "EXTRA3": mavlink.MAV_DATA_STREAM_EXTRA3}
 
 SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -778,6 +842,10 @@ _FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS = 1, 2
 _FTP_OPEN_OPS = {3, 4, 6, 11, 13}  # list dir, open RO, create, open WO, calc CRC
 _FTP_ACK, _FTP_NAK = 128, 129
 _FTP_ERR_INVALID_SESSION, _FTP_ERR_FILE_NOT_FOUND = 4, 10
+
+# COMMAND_LONGs ArduCopter 4.4 handles as COMMAND_INT (param5/6 as degE7 int32)
+LONG_AS_INT = frozenset({mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_HOME,
+                         mavlink.MAV_CMD_DO_SET_ROI_LOCATION})
 
 _LOCAL_FRAMES = {
     mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
@@ -838,14 +906,16 @@ class MockAutopilot:
             loopback hosts only; port 0 picks a free port (see `endpoints`).
         speedup: autopilot seconds per wall second.
         physics_hz: model step rate on the autopilot clock.
-        rates_hz: per-message default stream rates (autopilot Hz) by message name, merged
-            with DEFAULT_RATES_HZ; 0 disables a stream. Streamable: HEARTBEAT, SYS_STATUS,
-            GPS_RAW_INT, EXTENDED_SYS_STATE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED,
-            ATTITUDE, VFR_HUD, SYSTEM_TIME, BATTERY_STATUS, EKF_STATUS_REPORT,
-            HOME_POSITION, GPS_GLOBAL_ORIGIN, AUTOPILOT_VERSION, POSITION_TARGET_LOCAL_NED,
-            POSITION_TARGET_GLOBAL_INT. Clients change them per link with
-            SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM.
-        params: parameter overrides, ArduPilot units (e.g. {"WPNAV_SPEED": 500}).
+        params: parameter overrides, ArduPilot units (e.g. {"WPNAV_SPEED": 500}); the
+            stream rates of endpoint n (its "serial port") are SRn_EXT_STAT, SRn_POSITION,
+            SRn_EXTRA1..3 (Hz, 0 by default: only HEARTBEAT is sent unasked, as ArduCopter
+            SITL does). Streamable: HEARTBEAT, SYS_STATUS, GPS_RAW_INT, EXTENDED_SYS_STATE,
+            GLOBAL_POSITION_INT, LOCAL_POSITION_NED, ATTITUDE, VFR_HUD, SYSTEM_TIME,
+            BATTERY_STATUS, EKF_STATUS_REPORT, HOME_POSITION, GPS_GLOBAL_ORIGIN,
+            AUTOPILOT_VERSION, POSITION_TARGET_LOCAL_NED, POSITION_TARGET_GLOBAL_INT. Clients
+            change them per link with SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM.
+        boot: when the GPS, the EKF origin and arming become ready (``BootTimeline``: ArduCopter
+            4.4's by default; ``BootTimeline.scaled(s)`` for a shorter wait).
         seed: seed of the position-noise generator; pos_noise: m/sqrt(s), 0 disables.
         unix_time0: UNIX time (s) at boot for SYSTEM_TIME; default: wall clock at start.
         signing_key: 32-byte MAVLink 2 signing key (onboard/app/signing.py): every link signs
@@ -863,7 +933,6 @@ class MockAutopilot:
         endpoints: Iterable[str | Endpoint] = ("tcpin:127.0.0.1:5760",),
         speedup: float = 1.0,
         physics_hz: float = 50.0,
-        rates_hz: Optional[Mapping[str, float]] = None,
         params: Mapping[str, float] = {},
         seed: int = 0,
         pos_noise: float = 0.02,
@@ -872,6 +941,7 @@ class MockAutopilot:
         compid: int = mavlink.MAV_COMP_ID_AUTOPILOT1,
         signing_key: Optional[bytes] = None,
         max_lag_s: float = 10.0,
+        boot: BootTimeline = BootTimeline(),
     ):
         if not speedup > 0 or not physics_hz > 0:
             raise ValueError("speedup and physics_hz must be positive")
@@ -885,11 +955,10 @@ class MockAutopilot:
         self._endpoints = [e if isinstance(e, Endpoint) else Endpoint.parse(e) for e in endpoints]
         for ep in self._endpoints:
             _check_loopback(ep.host)
-        rates = dict(DEFAULT_RATES_HZ)
-        rates.update(rates_hz or {})
-        self._default_intervals = {k: (1.0 / v if v > 0 else 0.0) for k, v in rates.items()}
         self.params = Params(overrides=params)
-        self.copter = Copter(home, self.params, np.random.default_rng(seed), pos_noise)
+        self.copter = Copter(home, self.params, np.random.default_rng(seed), pos_noise, boot)
+        self._origin_sent = False
+        self.crashed: str | None = None  # why the mock went silent like the crashed firmware
         self._unix_time0 = unix_time0
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -920,9 +989,6 @@ class MockAutopilot:
             "POSITION_TARGET_LOCAL_NED": self._position_target_local_ned,
             "POSITION_TARGET_GLOBAL_INT": self._position_target_global_int,
         }
-        unknown = set(rates) - set(self._msg_builders)
-        if unknown:
-            raise ValueError(f"cannot stream {sorted(unknown)}")
 
     # ----- lifecycle
     def start(self) -> "MockAutopilot":
@@ -1027,14 +1093,27 @@ class MockAutopilot:
     def _count(self, key: str, n: int = 1) -> None:
         self._counters[key] = self._counters.get(key, 0) + n
 
+    def _default_intervals(self, port: int) -> dict[str, float]:
+        """Stream intervals (sim s) of a new link on endpoint ``port``: a HEARTBEAT a second,
+        and the groups its SRn_ parameters turn on (ArduPilot's stream rates per serial port)."""
+        out = dict(ALWAYS_INTERVALS_S)
+        for group, stream in SR_GROUPS.items():
+            name = f"SR{port}_{group}"
+            hz = self.params[name] if name in self.params else 0.0
+            for msg in DATA_STREAMS[stream]:
+                if hz > 0:
+                    out[msg] = 1.0 / hz
+        return out
+
     def _open_endpoints(self) -> None:
-        for ep in self._endpoints:
+        for index, ep in enumerate(self._endpoints):
             if ep.kind == "tcpin":
-                lst = _TcpListener(ep)
+                lst = _TcpListener(ep, index)
                 self._listeners.append(lst)
                 self._bound.append(Endpoint("tcpin", ep.host, lst.local[1]))
             else:
-                link = self._secure(_UdpLink(ep, self.sysid, self.compid, self._default_intervals))
+                link = self._secure(_UdpLink(ep, self.sysid, self.compid, self._default_intervals(index)))
+                link.port_index = index
                 self._links.append(link)
                 port = link.local[1] if ep.kind == "udpin" else ep.port
                 self._bound.append(Endpoint(ep.kind, ep.host, port))
@@ -1074,6 +1153,12 @@ class MockAutopilot:
             now_t = self.copter.t
             for link in self._links:
                 link.muted = now_t < link.muted_until
+            if not self._origin_sent and self.copter.origin_set:
+                self._origin_sent = True  # ArduPilot tells every link when its EKF origin is set
+                self.copter.text(mavlink.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
+                for lk in self._links:
+                    lk.send(self._gps_global_origin(lk))
+                    lk.send(self._home_position(lk))
             self._flush_events()
             self._send_streams()
             for link in self._links:
@@ -1103,8 +1188,10 @@ class MockAutopilot:
             return
         sock, addr = got
         name = f"tcpin:{lst.local[0]}:{lst.local[1]}<-{addr[0]}:{addr[1]}"
-        self._links.append(self._secure(_TcpLink(sock, name, self.sysid, self.compid,
-                                                 self._default_intervals)))
+        link = self._secure(_TcpLink(sock, name, self.sysid, self.compid,
+                                     self._default_intervals(lst.index)))
+        link.port_index = lst.index
+        self._links.append(link)
         self._count("links_opened")
 
     def _secure(self, link: _Link) -> _Link:
@@ -1114,6 +1201,17 @@ class MockAutopilot:
             configure(link.parser, self.signing_key, self._link_ids, sign_outgoing=False)
             configure(link.out, self.signing_key, self._link_ids)
         return link
+
+    def _crash(self, why: str) -> None:
+        """A defect the real firmware dies of: counted, logged, and the mock falls silent and
+        drops every link (the process of a crashed SITL is gone)."""
+        self._count("defects")
+        self.crashed = why
+        log.error("mock autopilot: defect that crashes ArduCopter 4.4: %s", why)
+        for lk in self._links:
+            lk.flush()
+            lk.close()
+        self._stop.set()
 
     # ----- fault injection (tests)
     def _links_of(self, compid: int) -> list[_Link]:
@@ -1284,6 +1382,14 @@ class MockAutopilot:
         self._run_command(link, msg, cmd)
 
     def _run_command(self, link: _Link, msg, cmd: _Command) -> None:
+        if cmd.frame is None and cmd.command in LONG_AS_INT and self.copter.armed and not (
+                math.isfinite(cmd.x) and math.isfinite(cmd.y)):
+            # ArduCopter 4.4, armed, converts these COMMAND_LONGs to COMMAND_INT, param5/6 * 1e7
+            # to int32: NaN aborts the firmware before it answers (measured on its SITL; when
+            # disarmed it answers FAILED and lives)
+            self._crash(f"floating point exception: {mavlink.enums['MAV_CMD'][cmd.command].name} "
+                        f"with latitude/longitude {cmd.x}, {cmd.y} from {cmd.sysid}/{cmd.compid}")
+            return
         # Like ArduPilot, the ACK goes out first and requested messages after it.
         self._replies = []
         try:
@@ -1447,7 +1553,7 @@ class MockAutopilot:
         if interval_us == 0:  # back to the default rate
             if name is None:
                 return mavlink.MAV_RESULT_FAILED
-            self._set_interval(link, name, self._default_intervals.get(name, 0.0))
+            self._set_interval(link, name, self._default_intervals(link.port_index).get(name, 0.0))
             return mavlink.MAV_RESULT_ACCEPTED
         if name is None:
             self.copter.text(mavlink.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})")
@@ -1503,6 +1609,11 @@ class MockAutopilot:
         if self.params.set(name, float(msg.param_value)):
             self._count("param_set")
             self.copter.params_changed()
+            if name.startswith("SR") and "_" in name:  # a port's stream rates: at once
+                for lk in self._links:
+                    if name.startswith(f"SR{lk.port_index}_"):
+                        for msg_name, iv in self._default_intervals(lk.port_index).items():
+                            self._set_interval(lk, msg_name, iv)
         self._broadcast(self._param_value(name))  # ArduPilot tells every link
 
     # ----- missions: an empty mission, fence and rally
@@ -1686,8 +1797,11 @@ class MockAutopilot:
 
     def _sys_status(self, link: _Link):
         mv, ca, pct = self._battery()
-        # GEOFENCE is reported healthy while not breached even with no fence (as ArduPilot).
+        # GEOFENCE is reported healthy while not breached even with no fence (as ArduPilot);
+        # the pre-arm bit only once arming would pass
         health = SENSORS | mavlink.MAV_SYS_STATUS_GEOFENCE
+        if not self.copter.prearm_bit:
+            health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
         return self._enc().sys_status_encode(SENSORS, SENSORS, health, 150, mv, ca, pct,
                                              0, 0, 0, 0, 0, 0)
 
@@ -1706,8 +1820,11 @@ class MockAutopilot:
         v = self.copter.state.vel
         gs = math.hypot(v[0], v[1])
         cog = int(math.degrees(math.atan2(v[1], v[0])) % 360 * 100) if gs > 0.2 else 65535
+        fix = mavlink.GPS_FIX_TYPE_3D_FIX if self.copter.gps_ok else mavlink.GPS_FIX_TYPE_NO_GPS
+        if not self.copter.gps_ok:
+            lat = lon = 0.0
         return self._enc().gps_raw_int_encode(
-            int(self.copter.t * 1e6), mavlink.GPS_FIX_TYPE_3D_FIX, int(lat * 1e7), int(lon * 1e7),
+            int(self.copter.t * 1e6), fix, int(lat * 1e7), int(lon * 1e7),
             int(alt * 1000), 121, 200, int(gs * 100), cog, 10, int(alt * 1000), 300, 500, 40, 0)
 
     def _extended_sys_state(self, link: _Link):
@@ -1715,7 +1832,7 @@ class MockAutopilot:
             mavlink.MAV_VTOL_STATE_UNDEFINED, self.copter.landed_state())
 
     def _global_position_int(self, link: _Link):
-        lat, lon, alt = self._geo()
+        lat, lon, alt = self._geo() if self.copter.gps_ok else (0.0, 0.0, self._geo()[2])
         s = self.copter.state
         hdg = int(math.degrees(s.yaw) % 360 * 100) % 36000
         return self._enc().global_position_int_encode(
@@ -1724,6 +1841,8 @@ class MockAutopilot:
             int(s.vel[2] * 100), hdg)
 
     def _local_position_ned(self, link: _Link):
+        if not self.copter.position_ok:
+            return None  # no position estimate relative to an origin yet
         s = self.copter.state
         return self._enc().local_position_ned_encode(self._time_ms(), *s.pos, *s.vel)
 
@@ -1743,12 +1862,15 @@ class MockAutopilot:
         return self._enc().system_time_encode(unix_us, self._time_ms())
 
     def _ekf_status_report(self, link: _Link):
-        flags = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_VELOCITY_VERT
-                 | mavlink.EKF_POS_HORIZ_REL | mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_POS_VERT_ABS
-                 | mavlink.EKF_PRED_POS_HORIZ_REL | mavlink.EKF_PRED_POS_HORIZ_ABS)
+        flags = mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_VERT | mavlink.EKF_POS_VERT_ABS
+        if self.copter.position_ok:
+            flags |= (mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_POS_HORIZ_REL | mavlink.EKF_POS_HORIZ_ABS
+                      | mavlink.EKF_PRED_POS_HORIZ_REL | mavlink.EKF_PRED_POS_HORIZ_ABS)
         return self._enc().ekf_status_report_encode(flags, 0.02, 0.02, 0.02, 0.01, 0.0)
 
     def _home_position(self, link: _Link):
+        if not self.copter.origin_set:
+            return None  # no home yet: a request is accepted and answered by nothing
         lat, lon, alt = self.copter.home
         x, y, z = self.copter.home_ned
         return self._enc().home_position_encode(
@@ -1756,6 +1878,8 @@ class MockAutopilot:
             0.0, 0.0, 0.0, int(self.copter.t * 1e6))
 
     def _gps_global_origin(self, link: _Link):
+        if not self.copter.origin_set:
+            return None
         lat, lon, alt = self.copter.origin
         return self._enc().gps_global_origin_encode(
             int(lat * 1e7), int(lon * 1e7), int(alt * 1000), int(self.copter.t * 1e6))
@@ -1845,6 +1969,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--signing-key", metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex chars, mode 0600): sign everything, "
                     "drop unsigned or wrongly signed packets")
+    ap.add_argument("--ready-after", type=number(0.0, 600.0), default=BootTimeline.ready_s, metavar="S",
+                    help="autopilot s after boot until it can arm (GPS and EKF origin earlier, in "
+                    f"proportion); default {BootTimeline.ready_s:g}, as ArduCopter 4.4 SITL")
     ap.add_argument("--max-lag", type=number(0.0, 3600.0, lo_open=True), default=10.0, metavar="S",
                     help="autopilot s the model may fall behind before the clock slips "
                     "(small: run slower than --speedup on a loaded machine, like SITL)")
@@ -1859,7 +1986,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             key = load_key(args.signing_key)
         mock = MockAutopilot(home=args.home, endpoints=endpoints, speedup=args.speedup,
                              params=overrides, seed=args.seed, signing_key=key,
-                             max_lag_s=args.max_lag)
+                             max_lag_s=args.max_lag, boot=BootTimeline.scaled(args.ready_after))
         mock.start()
     except KeyError as exc:  # Params: unknown parameter 'NAME'
         return fail(ap.prog, str(exc.args[0] if exc.args else exc))

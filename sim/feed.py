@@ -60,7 +60,7 @@ class Telemetry:
 
     def __init__(self, url: str, frame: Frame, tlog_path: str | None = None, signing_key: bytes | None = None):
         self.link = Link(url, tlog_path=tlog_path, source_system=FEED_SYSID, source_component=FEED_COMPID,
-                         signing_key=signing_key)
+                         signing_key=signing_key, wait_for_peer=True)
         self.frame = frame
         self.clock = AutopilotClock()
         self.poses = PoseHistory(keep_s=60.0, max_extrapolation_s=0.5)
@@ -70,6 +70,18 @@ class Telemetry:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="feed-telemetry", daemon=True)
         self._hb = 0.0
+        self._asked = -math.inf  # local s of the last rate request
+        self._pose_local = -math.inf  # local s of the last position
+
+    def _ask_rates(self) -> None:
+        """Our own link's rates: enough to interpolate the pose at a scan time. Asked again
+        while positions do not come (an autopilot that rebooted starts from its defaults)."""
+        self._asked = time.monotonic()
+        for msg_id, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
+                           (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0)):
+            self.link.send(self.link.mav.command_long_encode(
+                self.sysid, self.compid, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                msg_id, 1e6 / hz, 0, 0, 0, 0, 0))
 
     def start(self) -> "Telemetry":
         self._thread.start()
@@ -99,8 +111,11 @@ class Telemetry:
                     self._on(msg)
                 except Exception:  # one odd message must not stop the feed
                     pass
-            if self.sysid is not None and time.monotonic() - self._hb > 1.0:
-                self._hb = time.monotonic()
+            now = time.monotonic()
+            if self.sysid is not None and now - self._pose_local > 2.0 and now - self._asked > 2.0:
+                self._ask_rates()
+            if self.sysid is not None and now - self._hb > 1.0:
+                self._hb = now
                 self.link.send(self.link.mav.heartbeat_encode(
                     mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE))
 
@@ -113,12 +128,7 @@ class Telemetry:
                 return
             if self.sysid is None:
                 self.sysid, self.compid = src
-                # our own link's rates: enough to interpolate the pose at a scan time
-                for msg_id, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
-                                   (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0)):
-                    self.link.send(self.link.mav.command_long_encode(
-                        self.sysid, self.compid, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                        msg_id, 1e6 / hz, 0, 0, 0, 0, 0))
+                self._ask_rates()
             if src == (self.sysid, self.compid):
                 self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             return
@@ -129,12 +139,16 @@ class Telemetry:
             self.clock.observe(tb)
         if mtype == "GLOBAL_POSITION_INT" and valid_global_position_int(msg):
             self.poses.add(self.frame.pose_from_global_position_int(msg))
+            self._pose_local = time.monotonic()
 
 
 def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
+    """Until the clock reads ``t`` (True), or ``stop`` (False), or the clock is reset: an
+    autopilot reboot (True: the caller sees ``clock.resets`` change)."""
+    resets = getattr(clock, "resets", 0)
     while not stop.is_set():
         now = clock.now()
-        if now is not None and now >= t:
+        if (now is not None and now >= t) or getattr(clock, "resets", 0) != resets:
             return True
         time.sleep(poll)
     return False
@@ -213,7 +227,9 @@ class LiveFeedConfig:
     truth_path: str | None = None
     seed: int = 1
     duration_s: float | None = None  # None: the scenario's mission.duration_s
-    wait_armed: bool = False  # start the truth world when the vehicle arms
+    # when the first scan goes out: "armed" (the vehicle arms: the scans then last the mission,
+    # however long the autopilot takes to get ready) or "now" (the clock and a position known)
+    start: str = "armed"
     tlog_path: str | None = None
     ahead: int = 60  # truth states computed ahead of the scans (TruthAhead)
     signing_key: bytes | None = None  # MAVLink 2 signing on the feed's autopilot link
@@ -262,20 +278,35 @@ class LiveFeed:
             # second after all that, so no scan is late because the simulator was still starting
             if not ahead.wait_ready(READY_STATES, self.stop_event):
                 return 130
+            waiting_said = False
             while not self.stop_event.is_set():
                 if tel.clock.now() is not None and tel.poses.latest() is not None and \
-                        (tel.armed or not self.cfg.wait_armed):
+                        (tel.armed or self.cfg.start == "now"):
                     break
+                if not waiting_said and self.cfg.start == "armed" and tel.sysid is not None:
+                    waiting_said = True
+                    self.log("feed: waiting for the vehicle to arm (--start now: scan at once)")
                 time.sleep(0.01)
             if self.stop_event.is_set():
                 return 130
             T = math.floor(tel.clock.now()) + 1.0
+            resets = tel.clock.resets
             self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
             seq = 0
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
                 if states is None or not _sleep_until(tel.clock, T, self.stop_event):
                     return 130
+                if tel.clock.resets != resets:
+                    # the autopilot rebooted: its clock starts again from 0, and so do the
+                    # scan times (a DF stamps with the clock it has); the targets go on
+                    while tel.clock.now() is None and not self.stop_event.is_set():
+                        time.sleep(0.01)
+                    resets = tel.clock.resets
+                    T = math.floor(tel.clock.now() or 0.0) + 1.0
+                    self.log(f"feed: the autopilot rebooted: next scan at t={T:.0f} s")
+                    if not _sleep_until(tel.clock, T, self.stop_event):
+                        return 130
                 # a telemetry sample at or after T makes the pose an interpolation, not a guess
                 deadline = time.monotonic() + 0.5
                 while (tel.poses.latest() is None or tel.poses.latest().t < T) \
@@ -425,7 +456,9 @@ def main(argv=None) -> int:
     lv.add_argument("--truth", type=OUT_FILE, help="write the truth JSONL here")
     lv.add_argument("--seed", type=SEED, default=1)
     lv.add_argument("--duration", type=number(1.0, 1e7), help="scans to send (s); default: mission.duration_s")
-    lv.add_argument("--wait-armed", action="store_true", help="start the targets when the vehicle arms")
+    lv.add_argument("--start", choices=("armed", "now"), default="armed",
+                    help="first scan when the vehicle arms (default), or as soon as its clock and "
+                         "position are known")
     lv.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file of the autopilot link")
     rp = sub.add_parser("replay", help="send a recorded truth/datagram JSONL")
     rp.add_argument("file")
@@ -445,7 +478,7 @@ def main(argv=None) -> int:
                 from onboard.app.signing import load_key
                 key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
             feed = LiveFeed(LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed,
-                                           args.duration, args.wait_armed, signing_key=key), sc,
+                                           args.duration, args.start, signing_key=key), sc,
                             log=lambda s: print(s, flush=True))
             feed.stop_event = stop
             return feed.run()

@@ -16,14 +16,15 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.patches import Ellipse, Polygon  # noqa: E402
+from matplotlib.patches import Polygon  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from onboard.core.dynamics import MotionModel, predict_cov  # noqa: E402
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, plan_guidance  # noqa: E402
 from onboard.core.obstacles import Obstacles  # noqa: E402
+from groundstation.scene import GOAL_COLOUR, box_corners, covariance_ellipse, draw_scene  # noqa: E402
+from groundstation.scene import target_colour as _colour  # noqa: E402  (the one palette)
 
-TARGET_COLOURS = ("tab:red", "tab:blue", "tab:purple", "tab:green", "tab:orange", "tab:brown")
 METHOD_STYLES = {
     "greedy_l1": dict(color="black", lw=2.0),
     "greedy_l8": dict(color="black", lw=1.5, ls=":"),
@@ -34,57 +35,33 @@ METHOD_STYLES = {
 }
 
 
-def _colour(j: int) -> str:
-    return TARGET_COLOURS[j % len(TARGET_COLOURS)]
-
-
 def _style(name: str, i: int) -> dict:
     return METHOD_STYLES.get(name, dict(color=f"C{i % 10}", lw=1.2))
 
 
-def _box_corners(box) -> np.ndarray:
-    """(8, 3) corners of a config Box (centre, size, yaw)."""
-    c, h = np.asarray(box.center_m, float), 0.5 * np.asarray(box.size_m, float)
-    cy, sy = np.cos(box.yaw_rad), np.sin(box.yaw_rad)
-    R = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    signs = np.array([[sx, sy_, sz] for sz in (-1, 1) for sx, sy_ in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-    return c + (signs * h) @ R.T
-
-
-def _draw_box_2d(ax, box, **kw) -> None:
-    ax.add_patch(Polygon(_box_corners(box)[:4, :2], closed=True, **kw))
-
-
 def _draw_box_3d(ax, box, **kw) -> None:
-    p = _box_corners(box)
+    p = box_corners(box)
     faces = [p[:4], p[4:], *[[p[i], p[(i + 1) % 4], p[4 + (i + 1) % 4], p[4 + i]] for i in range(4)]]
     ax.add_collection3d(Poly3DCollection(faces, **kw))
 
 
 def _ellipse(ax, mean_xy, cov_xy, n_sigma=2.0, **kw) -> None:
-    vals, vecs = np.linalg.eigh(np.asarray(cov_xy, float))
-    vals = np.clip(vals, 0.0, None)
-    ang = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
-    ax.add_patch(Ellipse(mean_xy, 2 * n_sigma * np.sqrt(vals[1]), 2 * n_sigma * np.sqrt(vals[0]), angle=ang, **kw))
+    c = np.asarray(cov_xy, float)
+    pts = covariance_ellipse(mean_xy[0], mean_xy[1], np.sqrt(max(c[0, 0], 0.0)), np.sqrt(max(c[1, 1], 0.0)),
+                             c[0, 1], n_sigma)
+    if pts is not None:
+        ax.add_patch(Polygon(pts, closed=True, **kw))
 
 
 def _scene_2d(ax, sc) -> None:
-    for g in sc.goals:
-        _draw_box_2d(ax, g, facecolor="tab:red", alpha=0.25, edgecolor="tab:red")
-        ax.annotate(g.name, g.center_m[:2], ha="center", va="center", fontsize=8, color="tab:red")
-    for ob in sc.obstacles:
-        _draw_box_2d(ax, ob, facecolor="0.6", alpha=0.8, edgecolor="0.3")
-        ax.annotate(f"{ob.name}\n{ob.size_m[2]:g} m", ob.center_m[:2], ha="center", va="center", fontsize=7)
-    ax.set_xlim(sc.area.min_m[0], sc.area.max_m[0])
-    ax.set_ylim(sc.area.min_m[1], sc.area.max_m[1])
-    ax.set_aspect("equal")
+    draw_scene(ax, sc)
     ax.set_xlabel("x east [m]")
     ax.set_ylabel("y north [m]")
 
 
 def _scene_3d(ax, sc) -> None:
     for g in sc.goals:
-        _draw_box_3d(ax, g, facecolor="tab:red", alpha=0.3, edgecolor="tab:red")
+        _draw_box_3d(ax, g, facecolor=GOAL_COLOUR, alpha=0.3, edgecolor=GOAL_COLOUR)
     for ob in sc.obstacles:
         _draw_box_3d(ax, ob, facecolor="0.6", alpha=0.35, edgecolor="0.3")
     ax.set_xlim(sc.area.min_m[0], sc.area.max_m[0])

@@ -20,7 +20,7 @@ import sys
 import threading
 from dataclasses import dataclass
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before pymavlink is imported
+from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before pymavlink is imported
 
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
@@ -40,6 +40,7 @@ class StackConfig:
     truth_path: str | None = None
     tlog_path: str | None = None
     signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
+    ready_s: float = BootTimeline.ready_s  # autopilot s after boot until it can arm (ArduCopter's)
 
 
 class SitlStack:
@@ -61,7 +62,7 @@ class SitlStack:
             endpoints.append("udpin:127.0.0.1:0")
         self.ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=self.cfg.speedup,
                                 seed=self.cfg.seed, endpoints=endpoints, params=DEMO_VEHICLE_PARAMS,
-                                signing_key=self.key)
+                                signing_key=self.key, boot=BootTimeline.scaled(self.cfg.ready_s))
         self.app: OnboardApp | None = None
         self.feed: LiveFeed | None = None
         self._feed_thread: threading.Thread | None = None
@@ -86,12 +87,24 @@ class SitlStack:
             raise
         return self
 
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Until the mock can arm (its boot is over) and the app has its position and origin:
+        where a test of something else starts from (wall s)."""
+        import time
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.ap.copter.position_ok and self.app.vehicle.ned_origin is not None \
+                    and self.app.poses.latest() is not None:
+                return True
+            time.sleep(0.05)
+        return False
+
     def start_feed(self) -> LiveFeed:
         """DF scans from the truth world, from the moment the vehicle is armed."""
         assert self.app is not None and self.feed is None
         self.feed = LiveFeed(LiveFeedConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 1)}",
                                             app_port=self.app.sensor_port, seed=self.cfg.seed + 1,
-                                            duration_s=self.cfg.feed_duration_s, wait_armed=True,
+                                            duration_s=self.cfg.feed_duration_s, start="armed",
                                             truth_path=self.cfg.truth_path, signing_key=self.key),
                              self.sc, log=lambda s: None)
         self._feed_thread = threading.Thread(target=self.feed.run, name="sitl-feed", daemon=True)
@@ -115,13 +128,16 @@ class SitlStack:
 
 
 def main(argv=None) -> int:
-    from onboard.argcheck import OUT_FILE, PORT, SEED, SPEEDUP, OneLineParser, fail
+    from onboard.argcheck import OUT_FILE, PORT, SEED, SPEEDUP, OneLineParser, fail, number
 
     p = OneLineParser(prog="python -m sim.stack", description=__doc__.split("\n")[0])
     p.add_argument("--speedup", type=SPEEDUP, default=1.0, help="autopilot s per wall s, (0, 1000] (default 1)")
     p.add_argument("--gcs-udp", type=PORT, default=14550, metavar="PORT",
                    help="stream to a ground station listening on udp 127.0.0.1:PORT (default 14550)")
     p.add_argument("--seed", type=SEED, default=1)
+    p.add_argument("--ready-after", type=number(0.0, 600.0), default=BootTimeline.ready_s, metavar="S",
+                   help="autopilot s after boot until the mock can arm (default "
+                   f"{BootTimeline.ready_s:g}, as ArduCopter 4.4 SITL)")
     p.add_argument("--runlog", type=OUT_FILE, help="the app's JSONL run log")
     p.add_argument("--truth", type=OUT_FILE, help="the feed's truth JSONL")
     p.add_argument("--signing-key", metavar="FILE",
@@ -134,7 +150,8 @@ def main(argv=None) -> int:
     try:
         st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
                                    runlog_path=args.runlog, truth_path=args.truth,
-                                   signing_key_path=args.signing_key)).start()
+                                   signing_key_path=args.signing_key,
+                                   ready_s=args.ready_after)).start()
     except KeyFileError as exc:
         return fail(p.prog, str(exc))
     except OSError as exc:  # a log file's directory missing, a port in use ...

@@ -12,6 +12,11 @@ from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
 
 
+# autopilot s until a mock SITL stack can arm, in tests not about the boot (ArduCopter's ~43 s
+# is flown in tests/test_autopilot.py, test_conformance.py and against the firmware itself)
+QUICK_BOOT_S = 4.0
+
+
 @pytest.fixture(scope="session")
 def paper():
     return load_scenario("paper")

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from onboard.app import datagram as dg
@@ -27,12 +27,13 @@ def rig():
     sc = load_scenario("paper")
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0,
-                       endpoints=["tcpin:127.0.0.1:0"] * 2).start()
+                       endpoints=["tcpin:127.0.0.1:0"] * 2, boot=BootTimeline.scaled(2.0)).start()
     app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0), sc).start()
     gcs = Gcs(ap.port("tcpin", 1))
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     deadline = time.monotonic() + 10
-    while (app.vehicle.ned_origin is None or app.poses.latest() is None) and time.monotonic() < deadline:
+    while (app.vehicle.ned_origin is None or app.poses.latest() is None or not ap.copter.position_ok) \
+            and time.monotonic() < deadline:
         time.sleep(0.05)
     try:
         yield ap, app, gcs, sock
@@ -190,7 +191,7 @@ def test_vehicle_motion_is_checked_against_the_autopilot_speed_and_acceleration(
     sc = replace(sc, planning=replace(sc.planning, motion="vehicle", speed_max_mps=8.0, accel_max_mps2=5.0))
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0, endpoints=["tcpin:127.0.0.1:0"] * 2,
-                       params={"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 250}).start()
+                       params={"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 250}, boot=BootTimeline.scaled(2.0)).start()
     gcs = Gcs(ap.port("tcpin", 1))
     app = None
     try:

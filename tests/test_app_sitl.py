@@ -23,7 +23,7 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
@@ -55,7 +55,7 @@ def flight(tmp_path_factory):
     out = {"sc": sc, "positions": [], "setpoints_rx": []}
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=3,
                        endpoints=["tcpin:127.0.0.1:0"] * 3, params=DEMO_VEHICLE_PARAMS,
-                       max_lag_s=0.1)
+                       max_lag_s=0.1, boot=BootTimeline.scaled(4.0))
     # record every setpoint the autopilot receives, with its own clock
     orig = ap._on_set_position_target_local_ned
 
@@ -73,7 +73,7 @@ def flight(tmp_path_factory):
         truth_path = tmp_path_factory.mktemp("sitl") / "truth.jsonl"
         feed = subprocess.Popen(
             [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
-             "--to", f"127.0.0.1:{app.sensor_port}", "--seed", "4", "--duration", "300", "--wait-armed",
+             "--to", f"127.0.0.1:{app.sensor_port}", "--seed", "4", "--duration", "300",
              "--truth", str(truth_path)], stdout=subprocess.DEVNULL)
         gcs = Gcs(ap.port("tcpin", 2))
 

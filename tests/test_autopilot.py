@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from sim.autopilot import Endpoint, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, Endpoint, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -16,6 +16,7 @@ pytestmark = pytest.mark.sitl
 
 SPEEDUP = 10.0
 HOME = (-35.363261, 149.165230, 584.0)
+READY = BootTimeline.scaled(0.0)  # ready at once: these tests are not about the boot (see below)
 POS_ONLY = 0b110111111000  # 3576: x, y, z only
 POS_YAW = 0b100111111000  # 2552: x, y, z and yaw
 VEL_ONLY = 0b110111000111  # 3527
@@ -66,6 +67,13 @@ class Client:
         self.mav.command_int_send(1, 1, frame, cmd, 0, 0, p1, p2, p3, p4, x, y, z)
         return self.recv("COMMAND_ACK", timeout, lambda m: m.command == cmd).result
 
+    def streams(self, hz: float = 4.0) -> None:
+        """Every data stream at ``hz`` (what MAVProxy asks for on connecting) and
+        EXTENDED_SYS_STATE, which ArduCopter sends only when asked for by id."""
+        self.mav.request_data_stream_send(1, 1, mavlink.MAV_DATA_STREAM_ALL, int(hz), 1)
+        self.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                   mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 1e6 / hz, 0, 0, 0, 0, 0)
+
     def set_mode(self, mode: Mode) -> int:
         return self.command(mavlink.MAV_CMD_DO_SET_MODE,
                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, int(mode))
@@ -79,7 +87,7 @@ class Client:
 @pytest.fixture
 def ap():
     with MockAutopilot(home=HOME, endpoints=["tcpin:127.0.0.1:0"], speedup=SPEEDUP,
-                       seed=3) as mock:
+                       seed=3, boot=READY) as mock:
         yield mock
 
 
@@ -88,6 +96,7 @@ def gcs(ap):
     client = Client(f"tcp:127.0.0.1:{ap.port('tcpin')}")
     client.recv("HEARTBEAT")
     client.heartbeat()
+    client.streams()
     yield client
     client.close()
 
@@ -147,6 +156,7 @@ def test_telemetry_agrees_with_state(ap, gcs):
         assert sys_status.onboard_control_sensors_present & bit
         assert sys_status.onboard_control_sensors_enabled & bit
         assert sys_status.onboard_control_sensors_health & bit
+    gcs.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
     home = gcs.recv("HOME_POSITION", timeout=10)
     assert (home.latitude, home.longitude) == (round(HOME[0] * 1e7), round(HOME[1] * 1e7))
     st = gcs.recv("SYSTEM_TIME")
@@ -478,3 +488,77 @@ def test_ports_are_freed_and_endpoints_validated():
         MockAutopilot(endpoints=["tcpin:8.8.8.8:5760"])
     with pytest.raises(ValueError):
         Endpoint.parse("serial:/dev/ttyS0")
+
+
+# --------------------------------------------------------------------------- as strict as ArduCopter
+# Each of these was measured on ArduCopter 4.4 SITL (../shared/ardupilot; sim.autopilot.BootTimeline)
+# and is what tests/test_ardupilot.py's real firmware does; tests/test_conformance.py compares the
+# two as the app sees them.
+
+def _fresh(boot=BootTimeline.scaled(6.0), **kw):
+    return MockAutopilot(home=HOME, endpoints=["tcpin:127.0.0.1:0"], speedup=SPEEDUP, seed=3,
+                         boot=boot, **kw)
+
+
+@pytest.mark.timeout(30)
+def test_only_heartbeats_come_unasked_and_streams_follow_srn_and_requests():
+    with _fresh(boot=READY) as ap:
+        c = Client(f"tcp:127.0.0.1:{ap.port('tcpin')}")
+        try:
+            c.heartbeat()
+            t_end = time.monotonic() + 3.0 / SPEEDUP * 10  # 3 s of autopilot time
+            seen = set()
+            while time.monotonic() < t_end:
+                m = c.conn.recv_match(blocking=True, timeout=0.05)
+                if m is not None:
+                    seen.add(m.get_type())
+            assert seen <= {"HEARTBEAT", "STATUSTEXT"}, seen  # SRn_ are 0, as in ArduCopter SITL
+            c.mav.param_set_send(1, 1, b"SR0_POSITION", 5, mavlink.MAV_PARAM_TYPE_INT16)
+            first = c.recv("GLOBAL_POSITION_INT").time_boot_ms
+            later = [c.recv("GLOBAL_POSITION_INT").time_boot_ms for _ in range(5)]
+            assert (later[-1] - first) / 5 == pytest.approx(200, abs=30)  # 5 Hz
+            with pytest.raises(AssertionError):  # in no stream group: only when asked by id
+                c.recv("EXTENDED_SYS_STATE", timeout=0.5)
+            c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)
+            assert c.recv("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+        finally:
+            c.close()
+
+
+@pytest.mark.timeout(30)
+def test_boot_no_fix_no_origin_and_no_arming_until_the_ekf_is_ready():
+    boot = BootTimeline.scaled(6.0)
+    with _fresh(boot=boot) as ap:
+        c = Client(f"tcp:127.0.0.1:{ap.port('tcpin')}")
+        try:
+            c.heartbeat()
+            c.streams(5.0)
+            gpi = c.recv("GLOBAL_POSITION_INT")
+            assert ap.sim_time < boot.gps_s and (gpi.lat, gpi.lon) == (0, 0)  # no fix yet
+            assert c.set_mode(Mode.GUIDED) == mavlink.MAV_RESULT_ACCEPTED  # GUIDED is accepted at once
+            assert c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_FAILED
+            assert c.recv("STATUSTEXT", cond=lambda m: m.text == "Arm: Need Position Estimate")
+            ss = c.recv("SYS_STATUS")
+            assert ss.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+            assert not ss.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+            origin = c.recv("GPS_GLOBAL_ORIGIN", timeout=10)  # told unasked, once, when set
+            assert ap.sim_time >= boot.origin_s and origin.latitude == round(HOME[0] * 1e7)
+            assert c.recv("GLOBAL_POSITION_INT").lat != 0
+            assert ap.wait_until(lambda s: s.time_boot_ms >= boot.ready_s * 1000, 10)
+            assert c.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+            assert c.recv("SYS_STATUS").onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        finally:
+            c.close()
+
+
+@pytest.mark.timeout(30)
+def test_a_nan_position_in_a_take_off_kills_it_like_the_firmware(ap, gcs):
+    assert gcs.set_mode(Mode.GUIDED) == mavlink.MAV_RESULT_ACCEPTED
+    # disarmed: refused, alive (as ArduCopter 4.4)
+    assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, 10) == mavlink.MAV_RESULT_FAILED
+    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert ap.counters().get("defects", 0) == 0
+    gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, math.nan, math.nan, 10)
+    with pytest.raises(AssertionError):  # no answer: the firmware died
+        gcs.recv("COMMAND_ACK", timeout=1.0, cond=lambda m: m.command == mavlink.MAV_CMD_NAV_TAKEOFF)
+    assert ap.counters()["defects"] == 1 and "NAV_TAKEOFF" in ap.crashed

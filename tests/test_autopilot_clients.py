@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.autopilot import MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -90,7 +90,7 @@ def test_mavproxy_reports_mode_arming_and_position(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
     mock = subprocess.Popen(
         [sys.executable, "-m", "sim.autopilot", "--tcp", f"127.0.0.1:{tcp_port}",
-         "--udp", f"127.0.0.1:{cmd_port}", "--speedup", "5",
+         "--udp", f"127.0.0.1:{cmd_port}", "--speedup", "5", "--ready-after", "8",
          "--home=" + ",".join(str(v) for v in HOME)],  # '=': the value starts with '-'
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
     mavproxy = None
@@ -183,8 +183,15 @@ async def _mavsdk_flight(port: int, ap: MockAutopilot) -> dict:
         assert drone is not None, "MAVSDK found no autopilot"
         tel = TelemetryAsync(drone)
         action = ActionAsync(drone)
+        # ArduCopter streams nothing it is not asked for (SRn_ rates 0, as its SITL): a MAVSDK
+        # application asks for what it reads, as it must against a real ArduPilot
+        await tel.set_rate_position(5.0)
+        await tel.set_rate_landed_state(2.0)
+        await tel.set_rate_health(2.0)
 
-        pos = await first(tel.subscribe_position(), lambda p: not math.isnan(p.latitude_deg), 10)
+        # a fix: before it ArduCopter reports lat = lon = 0, which MAVSDK passes on as a position
+        pos = await first(tel.subscribe_position(),
+                          lambda p: not math.isnan(p.latitude_deg) and abs(p.latitude_deg) > 1e-3, 10)
         seen["start"] = pos
         seen["armed0"] = await first(tel.subscribe_armed(), lambda a: True, 5)
         seen["mode0"] = await first(tel.subscribe_flight_mode(), lambda m: True, 5)
@@ -217,7 +224,7 @@ def test_mavsdk_connects_arms_takes_off_and_goes_to_a_location():
     from mavsdk.asyncio.plugins.telemetry import FlightMode
 
     port = free_port(socket.SOCK_DGRAM)
-    with MockAutopilot(home=HOME, endpoints=[f"udpout:127.0.0.1:{port}"], speedup=5.0,
+    with MockAutopilot(home=HOME, endpoints=[f"udpout:127.0.0.1:{port}"], speedup=5.0, boot=BootTimeline.scaled(8.0),
                        seed=5) as ap:
         seen = asyncio.run(_mavsdk_flight(port, ap))
         counters = ap.counters()

@@ -27,6 +27,11 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "RMSE" in p.stdout and "T4" in p.stdout
     assert (out / "flight.png").stat().st_size > 10_000
+    from onboard.config import load_scenario
+    from test_export import assert_geojson_in_area
+    raw = assert_geojson_in_area(out / "flight.geojson", load_scenario("paper"))  # RFC 7946, in the area
+    kinds = [f["properties"]["kind"] for f in raw["features"]]
+    assert kinds.count("true_track") == 4 and kinds.count("estimate_track") == 4 and "uav_path" in kinds
     rep = json.loads((out / "report.json").read_text())
     assert rep["scored_ticks"] >= 18 and len(rep["rmse_m"]) == 4
     assert _children_gone(out)

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -47,7 +47,7 @@ def flight():
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, auto_launch=True, seed=1), sc).start()
     port = app.link.conn.port.getsockname()[1]
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=3.0, seed=5, params=DEMO_VEHICLE_PARAMS,
-                       endpoints=[f"udpout:127.0.0.1:{port}"], max_lag_s=0.1)
+                       endpoints=[f"udpout:127.0.0.1:{port}"], max_lag_s=0.1, boot=BootTimeline.scaled(3.0))
     orig = ap._on_set_position_target_local_ned
 
     def spy(link, msg):  # where the setpoint lands: home = mission origin, NED = (north, east, -up)

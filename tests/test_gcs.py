@@ -18,6 +18,7 @@ from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
 from groundstation import protocol as P
 from groundstation.cli import main
+from conftest import QUICK_BOOT_S
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -149,7 +150,8 @@ class AckDropper:
 
 @pytest.fixture(scope="module")
 def stack():
-    with SitlStack(speedup=4.0, gcs_udpin=True) as st:  # no DF feed: start lacks sensor data
+    with SitlStack(speedup=4.0, gcs_udpin=True, ready_s=QUICK_BOOT_S) as st:  # no DF feed: start lacks sensor data
+        assert st.wait_ready()
         yield st
 
 
@@ -243,3 +245,20 @@ def test_the_console_scripts_and_the_environment_variable(stack):
     p = subprocess.run([pmon, "gcs", "--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--timeout", "1",
                         "start"], capture_output=True, text=True, timeout=30, cwd=REPO)
     assert p.returncode == 3 and p.stdout == "" and len(p.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_arm_right_after_boot_is_refused_with_the_reason_and_arm_wait_arms_when_ready(capsys):
+    """As on ArduCopter (its SITL: tests/test_ardupilot.py): the mock boots with no position and
+    refuses to arm until its EKF is ready; arm says why, arm --wait waits it out by itself."""
+    with SitlStack(speedup=4.0, ready_s=8.0) as st:
+        url = ["--connect", st.gcs_url]
+        assert st.ap.wait_until(lambda s: st.app.vehicle.sysid is not None, 10)
+        rc, _, err = run(capsys, *url, "--timeout", "3", "arm")
+        assert rc == 1 and "Arm: Need Position Estimate" in one_line(err), err
+        assert st.ap.sim_time < 8.0
+        rc, out, err = run(capsys, *url, "--timeout", "20", "arm", "--wait")
+        assert rc == 0 and "armed (ready after" in out, (out, err)
+        assert st.ap.state().armed and st.ap.sim_time >= 8.0
+        assert st.ap.counters().get("defects", 0) == 0

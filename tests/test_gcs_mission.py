@@ -4,12 +4,14 @@ onboard app, DF feed on loopback TCP; 2x: the three share one GIL here), as an o
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
 from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
 from groundstation.cli import main
+from conftest import QUICK_BOOT_S
 
 pytestmark = pytest.mark.sitl
 
@@ -17,8 +19,9 @@ pytestmark = pytest.mark.sitl
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     out = tmp_path_factory.mktemp("mission")
-    st = SitlStack(speedup=2.0, runlog_path=str(out / "run.jsonl"), truth_path=str(out / "truth.jsonl"))
+    st = SitlStack(speedup=2.0, ready_s=QUICK_BOOT_S, runlog_path=str(out / "run.jsonl"), truth_path=str(out / "truth.jsonl"))
     st.start()
+    assert st.wait_ready()
     st.out = out
     try:
         yield st
@@ -111,3 +114,9 @@ def test_the_cli_flies_a_whole_mission(stack, capsys):
     assert (stack.out / "run.png").stat().st_size > 20_000
     rc, [p], _ = gcs_json(stack, capsys, "plot", str(tlog), "--out", str(stack.out / "tlog.png"))
     assert rc == 0 and p["tracks"] == 4 and p["uav_points"] >= 1
+    # and for map tools: GeoJSON and KML from both logs
+    from test_export import assert_geojson_in_area
+    for log in (stack.out / "run.jsonl", tlog):
+        rc, [p], _ = gcs_json(stack, capsys, "export", str(log))
+        assert rc == 0 and p["tracks"] == 4 and [Path(f).suffix for f in p["files"]] == [".geojson", ".kml"]
+        assert_geojson_in_area(p["files"][0], stack.sc)

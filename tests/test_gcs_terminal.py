@@ -15,7 +15,7 @@ import pytest
 
 from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
-from conftest import Gcs
+from conftest import QUICK_BOOT_S, Gcs
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from groundstation.cli import main
@@ -34,7 +34,8 @@ def _gcs_argv() -> list[str]:
 def test_watch_in_a_real_terminal(capsys):
     sock = f"pmon-gcs-test-{uuid.uuid4().hex[:8]}"  # our own tmux server, killed at the end
     tmux = ["tmux", "-L", sock]
-    with SitlStack(speedup=4.0) as st:
+    with SitlStack(speedup=4.0, ready_s=QUICK_BOOT_S) as st:
+        assert st.wait_ready()
         st.start_feed()
         # The feed's scans start when it sees the vehicle armed, after its truth world's first
         # steps (seconds on a slow machine), and an idle armed copter disarms itself after

@@ -1,13 +1,9 @@
-"""bench/latency.py's miss accounting (``TickAccount``, shared by bench/soak.py), on a scripted
-mission: every kind of miss is counted once, and nothing that was on time is."""
+"""The miss accounting (``sim.tick_account.TickAccount``: bench/latency.py, bench/soak.py and the
+ArduPilot procedure), on a scripted mission: every kind of miss is counted once, and nothing that
+was on time is."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-import latency  # noqa: E402
+from sim import tick_account as latency
 
 
 def rec(t, planned=True, sent=True, nxt=(10.0, 20.0, 40.0), arrived=None, skipped=0, channels=(0, 1)):

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -105,7 +105,7 @@ def signed_world(tmp_path):
     sc = load_scenario("paper")
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=2.0, signing_key=key,
-                       endpoints=["tcpin:127.0.0.1:0"] * 4).start()
+                       endpoints=["tcpin:127.0.0.1:0"] * 4, boot=BootTimeline.scaled(2.0)).start()
     app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
                                signing_key_path=str(key_path)), sc).start()
     clients = []
@@ -150,7 +150,8 @@ def test_app_with_the_wrong_key_hears_nothing_and_sends_nothing_accepted(tmp_pat
     signing.make_key_file(k1)
     key2 = signing.make_key_file(k2)
     sc = load_scenario("paper")
-    ap = MockAutopilot(speedup=2.0, signing_key=key2, endpoints=["tcpin:127.0.0.1:0"]).start()
+    ap = MockAutopilot(speedup=2.0, signing_key=key2, endpoints=["tcpin:127.0.0.1:0"],
+                       boot=BootTimeline.scaled(2.0)).start()
     app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
                                signing_key_path=str(k1)), sc).start()
     try:

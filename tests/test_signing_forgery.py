@@ -197,7 +197,7 @@ def test_ground_station_keeps_its_vehicle_after_forged_vehicle_packets(key_file)
         after = signing.counts(mav)
         assert all(a.result == "ACCEPTED" for a in acks), acks
         assert after["badsig"] - before["badsig"] == len(frames), "a genuine packet was rejected"
-        assert after["goodsig"] - mid["goodsig"] > 20, (mid, after)
+        assert after["goodsig"] - mid["goodsig"] >= 10, (mid, after)  # 5 ACKs, 5 AUTOPILOT_VERSIONs, heartbeats
     finally:
         gl.close()
         ap.stop()

@@ -14,6 +14,7 @@ from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
 from groundstation.cli import main
 from onboard.app import signing
+from conftest import QUICK_BOOT_S
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(90)]
 
@@ -30,8 +31,9 @@ def signed_stack(tmp_path_factory):
     d = tmp_path_factory.mktemp("signed")
     key_path = d / "pmon.key"
     signing.make_key_file(key_path)
-    with SitlStack(speedup=2.0, signing_key_path=str(key_path)) as st:
+    with SitlStack(speedup=2.0, ready_s=QUICK_BOOT_S, signing_key_path=str(key_path)) as st:
         assert st.ap.wait_until(lambda s: st.app.vehicle.sysid == 1, 20), "signed app must find the signed autopilot"
+        assert st.wait_ready()
         yield st, key_path, d
 
 

@@ -37,6 +37,8 @@ from typing import Callable
 import numpy as np
 
 from onboard.app import datagram as dg
+from onboard.app import launch
+from onboard.app.autopilot_commands import heading_from_global_position_int, takeoff_params
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
@@ -126,7 +128,12 @@ TGT_FIELDS = ("x_east_m", "y_north_m", "z_up_m", "vx_mps", "vy_mps", "vz_mps", "
 STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m", "next_n_m",
                "next_u_m", "dgram_accepted", "dgram_rejected", "ticks", "ticks_skipped",
                "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
-               "sum_trace", "ticks_late", "setpoints_refused")
+               "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
+               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase")
+# PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)
+WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
+WARN_ACCEL = 2  # ... its acceleration limit
+STALE_TELEMETRY_S = 2.0  # local s without GLOBAL_POSITION_INT while heartbeats come: ask again
 
 
 @dataclass(frozen=True)
@@ -184,6 +191,12 @@ class Vehicle:
     mode_seen_local: float = -math.inf
     speed_limit_mps: float | None = None  # horizontal, from its parameters (SPEED_ACCEL_PARAMS)
     accel_limit_mps2: float | None = None
+    lat_lon_deg: tuple[float, float] | None = None  # last valid GLOBAL_POSITION_INT
+    amsl_m: float | None = None
+    heading_deg: float | None = None
+    position_local: float = -math.inf  # local time of the last valid GLOBAL_POSITION_INT
+    prearm_ok: bool | None = None  # SYS_STATUS MAV_SYS_STATUS_PREARM_CHECK (None: not reported)
+    prearm_text: str | None = None  # its latest "PreArm: ..." / "Arm: ..." STATUSTEXT
 
     def is_guided(self) -> bool:
         if self.custom_mode is None:
@@ -210,8 +223,10 @@ class OnboardApp:
         if cfg.signing_key_path is not None:
             from onboard.app.signing import load_key
             key = load_key(cfg.signing_key_path)  # KeyFileError: refuse to start
+        # an autopilot still booting (TCP refused) is waited for, as after a reboot
         self.link = link or Link(cfg.mavlink_url, cfg.baud, cfg.tlog_path,
-                                 source_system=cfg.target_system or 1, signing_key=key)
+                                 source_system=cfg.target_system or 1, signing_key=key,
+                                 wait_for_peer=True)
         self.params = ParamTable(defaults_from_scenario(scenario))
         self.M = len(scenario.targets)
         self.scans = dg.ScanBuffer(self.M)
@@ -257,7 +272,12 @@ class OnboardApp:
         self._hb_local = -math.inf
         self._stat_local = -math.inf
         self._msg_interval_local = -math.inf
-        self._launch: dict | None = None
+        self._launch: launch.Launch | None = None
+        self._clock_resets = 0
+        self._link_lost_local = -math.inf
+        self.speed_warning: str | None = None  # the limit below plan, while it holds
+        self._warnings = 0  # WARN_* bits
+        self._plan_limits = (math.nan, math.nan)  # (speed m/s, accel m/s^2) the planner assumes
         self._said: set[str] = set()
         self.events: deque[tuple[float | None, str]] = deque(maxlen=500)
         self._tick_times: list[float] = []
@@ -391,6 +411,9 @@ class OnboardApp:
             self.vehicle.custom_mode if self.vehicle.custom_mode is not None else -1,
             float(self.vehicle.armed), *uav, tk.get("sum_trace") if tk.get("sum_trace") is not None else math.nan,
             self.counters.get("ticks_late", 0), self.counters.get("setpoints_refused", 0),
+            self._warnings, _nan(self.vehicle.speed_limit_mps), self._plan_limits[0],
+            _nan(self.vehicle.accel_limit_mps2), self._plan_limits[1],
+            -1 if self._launch is None else launch.PHASES.index(self._launch.phase),
         ]
         self._debug_array("PMON_STAT", 0, values, self.clock.now())
 
@@ -405,6 +428,7 @@ class OnboardApp:
         for msg_id, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
                            (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0),
                            (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0),
+                           (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0),  # the pre-arm bit (launch)
                            (mavlink.MAVLINK_MSG_ID_HEARTBEAT, 4.0)):
             self._command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
         if self.vehicle.ned_origin is None:
@@ -492,11 +516,27 @@ class OnboardApp:
         tb = getattr(msg, "time_boot_ms", None)
         if from_autopilot and tb is not None:
             self.clock.observe(tb)
+            if getattr(self.clock, "resets", 0) != self._clock_resets:
+                self._clock_resets = self.clock.resets
+                self._on_autopilot_reboot()
         if from_autopilot:
             if mtype == "GLOBAL_POSITION_INT":
                 if valid_global_position_int(msg):
+                    v = self.vehicle
                     self.poses.add(self.frame.pose_from_global_position_int(msg))
-                    self.vehicle.relative_alt = msg.relative_alt / 1000.0
+                    v.relative_alt = msg.relative_alt / 1000.0
+                    v.lat_lon_deg = (msg.lat * 1e-7, msg.lon * 1e-7)
+                    v.amsl_m = msg.alt * 1e-3
+                    v.heading_deg = heading_from_global_position_int(msg.hdg)
+                    v.position_local = self.mono()
+            elif mtype == "SYS_STATUS":
+                bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+                self.vehicle.prearm_ok = bool(msg.onboard_control_sensors_health & bit) \
+                    if msg.onboard_control_sensors_present & bit else None
+            elif mtype == "STATUSTEXT":
+                text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
+                if text.startswith(("PreArm:", "Arm:")):  # why the autopilot refuses to arm
+                    self.vehicle.prearm_text = text.split("\x00", 1)[0][:50]
             elif mtype == "EXTENDED_SYS_STATE":
                 self.vehicle.landed_state = msg.landed_state
             elif mtype == "GPS_GLOBAL_ORIGIN":
@@ -549,7 +589,8 @@ class OnboardApp:
         if off is None:
             if first:
                 self.vehicle.ned_origin = self.origin.value
-                self.say(f"NED origin fixed at {origin[0]:.6f} {origin[1]:.6f}")
+                log.info("autopilot NED origin: %.7f %.7f %.2f m", *origin)
+                self.say("NED origin fixed")  # the same words whatever the place (tests/test_conformance.py)
             return
         self._count("origin_changes_refused")
         if self.state == State.MONITORING:
@@ -580,7 +621,9 @@ class OnboardApp:
             self._link_lost = False
             self._count("link_regained")
             self._request_telemetry()  # a reconnected link starts with the default rates
-            self.say("autopilot link back" + (": send resume to fly" if self.state == State.FAULT else ""),
+            # said now: "link lost" could reach no one while the link was down
+            lost_s = self.mono() - self._link_lost_local
+            self.say(f"link back (lost {lost_s:.0f} s)" + (": send resume" if self.state == State.FAULT else ""),
                      mavlink.MAV_SEVERITY_WARNING)
         v.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         changed = msg.custom_mode != v.custom_mode
@@ -588,6 +631,26 @@ class OnboardApp:
         if changed:
             v.mode_seen_local = self.mono()
         self._check_mode()
+
+    def _on_autopilot_reboot(self) -> None:
+        """The autopilot's clock went back: it rebooted. DF scans are stamped with that clock,
+        so the scan bookkeeping starts over (else every new scan would be 'stale'); the
+        filters keep their state (the targets did not reboot) and go on from the next scan."""
+        self._count("autopilot_reboots")
+        self.scans.pending.clear()
+        self.scans.arrival.clear()
+        self.scans.consumed_until = -math.inf
+        self.scans.last_scan_t = [-math.inf] * self.M
+        self._scan_t_used = [-math.inf] * self.M
+        self.last_tick_t = None
+        self._tick_times = []
+        # a new boot sets its EKF origin anew: the fixed one is let go, and the vehicle is not
+        # ours to fly until the operator says so (the link was lost meanwhile, as a rule)
+        self.origin.clear()
+        self.vehicle.ned_origin = None
+        if self.state in (State.MONITORING, State.PAUSED):
+            self._set_state(State.FAULT)
+        self.say("autopilot rebooted: DF scan times start over", mavlink.MAV_SEVERITY_WARNING)
 
     def _check_mode(self) -> None:
         """Stop commanding the moment the vehicle leaves the mode the app put it in."""
@@ -602,10 +665,6 @@ class OnboardApp:
                 why = "disarmed" if not v.armed else f"mode {v.custom_mode}"
                 self._set_state(State.PILOT_OVERRIDE)
                 self.say(f"pilot override ({why}): setpoints stopped", mavlink.MAV_SEVERITY_WARNING)
-        if self._launch is not None and self._launch["phase"] in ("takeoff", "climb") \
-                and not v.is_guided():
-            self._launch = None
-            self.say("launch aborted: mode changed", mavlink.MAV_SEVERITY_WARNING)
 
     def _request_speed_limits(self) -> None:
         v = self.vehicle
@@ -629,9 +688,10 @@ class OnboardApp:
         self._check_speed_limits()
 
     def _check_speed_limits(self) -> None:
-        """Warn when the autopilot's limits are below what the planner's moves assume (the
-        vehicle would lag its setpoints; docs/MAVLINK.md): once per limit and value, so a limit
-        or PMON_REACH changed in flight is checked again without repeating itself."""
+        """Compare the autopilot's limits with what the planner's moves assume (below them the
+        vehicle lags its setpoints; docs/MAVLINK.md). The result holds until the limits or
+        PMON_REACH change: PMON_STAT carries it every second (``pmon gcs status`` shows it),
+        and it is said when it first holds and again whenever monitoring starts."""
         names = SPEED_ACCEL_PARAMS.get(self.vehicle.autopilot)
         if not names:
             return
@@ -643,18 +703,26 @@ class OnboardApp:
         else:  # the paper's jump: the largest ring asked for, per tick
             reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
             speed_need, speed_why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
-        checks = [(speed_name, self.vehicle.speed_limit_mps, speed_need, speed_why, "m/s")]
+        checks = [(WARN_SPEED, speed_name, self.vehicle.speed_limit_mps, speed_need, speed_why, "m/s")]
+        accel_need = math.nan
         if pl.motion == "vehicle":  # the jump model assumes no acceleration limit: nothing to compare
-            checks.append((accel_name, self.vehicle.accel_limit_mps2, pl.accel_max_mps2,
+            accel_need = pl.accel_max_mps2
+            checks.append((WARN_ACCEL, accel_name, self.vehicle.accel_limit_mps2, accel_need,
                            "planning.accel_max_mps2", "m/s^2"))
-        for name, have, need, why, unit in checks:
+        self._plan_limits = (speed_need, accel_need)
+        bits, texts, details = 0, [], []
+        for bit, name, have, need, why, unit in checks:
             if have is None or have >= need - 1e-6:  # not read yet (the other may be), or enough
                 continue
-            text = f"{name} {have:g} {unit} < {need:g} planned"
-            if text not in self._said:
-                log.warning("autopilot %s = %g %s is below %s = %g %s: the vehicle will lag the setpoints",
-                            name, have, unit, why, need, unit)
-                self.say(text, mavlink.MAV_SEVERITY_WARNING, once=text)
+            bits |= bit
+            texts.append(f"{name} {have:g} {unit} < {need:g} planned")
+            details.append(f"autopilot {name} = {have:g} {unit} is below {why} = {need:g} {unit}")
+        text = "; ".join(texts) or None
+        changed = text != self.speed_warning
+        self._warnings, self.speed_warning = bits, text
+        if changed and text is not None:
+            log.warning("%s: the vehicle will lag the setpoints", "; ".join(details))
+            self.say(text, mavlink.MAV_SEVERITY_WARNING)
 
     def _on_autopilot_ack(self, msg) -> None:
         if msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
@@ -715,6 +783,8 @@ class OnboardApp:
     def _enter_monitoring(self) -> None:
         self._set_state(State.MONITORING)
         self._next_sp_t = -math.inf
+        if self.speed_warning:  # said again where an operator starting the mission hears it
+            self.say(self.speed_warning, mavlink.MAV_SEVERITY_WARNING)
         if self.vehicle.is_guided():
             self._guided_deadline = None
             self.say("monitoring started")
@@ -771,13 +841,13 @@ class OnboardApp:
         if self._launch is not None or self.state == State.MONITORING:
             return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
         v = self.vehicle
-        if v.sysid is None:
+        if v.sysid is None or self._link_lost:
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT
-        if self.poses.latest() is None or v.ned_origin is None:
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_POSITION
         if v.armed and v.flying():
             return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
-        self._launch = {"phase": "mode", "next": -math.inf, "tries": 0}
+        # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
+        # checks itself (onboard/app/launch.py), so the operator never has to try again
+        self._launch = launch.Launch(target_up_m=self.params["PMON_ALT"])
         self.say("launch: GUIDED, arm, take off")
         return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
 
@@ -845,7 +915,11 @@ class OnboardApp:
             if local - self._stat_local >= 1.0:
                 self._publish_stat()
                 self._stat_local = local
-        if v.sysid is not None and v.ned_origin is None and local - self._msg_interval_local > 2.0:
+        # ask for the telemetry again while the origin is unknown or positions stop coming with
+        # heartbeats still there: an autopilot that rebooted (or a link reopened to it) starts
+        # from its default rates, which on ArduPilot send no position at all
+        stale = local - v.heartbeat_local < 1.5 and local - v.position_local > STALE_TELEMETRY_S
+        if v.sysid is not None and (v.ned_origin is None or stale) and local - self._msg_interval_local > 2.0:
             self._msg_interval_local = local
             self._request_telemetry()
 
@@ -853,14 +927,18 @@ class OnboardApp:
         v = self.vehicle
         # link loss (local time: no heartbeat for link_timeout_s): stop commanding at once, keep
         # estimating (the clock free-runs, scans are still ticked); fly again only when told
-        if v.sysid is not None and not self._link_lost and local - v.heartbeat_local > self.cfg.link_timeout_s:
+        # (a stream link that dropped is lost at once: nothing can be sent on it)
+        if v.sysid is not None and not self._link_lost and (
+                local - v.heartbeat_local > self.cfg.link_timeout_s or not self.link.up):
             self._link_lost = True
+            self._link_lost_local = local
             self._count("link_losses")
             if self.state in (State.MONITORING, State.PAUSED):
                 self._set_state(State.FAULT)
-            if self._launch is not None:
-                self._launch = None
-            self.say("autopilot link lost: setpoints stopped, estimating", mavlink.MAV_SEVERITY_CRITICAL)
+            aborted = ", launch aborted" if self._launch is not None else ""
+            self._launch = None
+            self.say(f"autopilot link lost: setpoints stopped{aborted}, estimating",
+                     mavlink.MAV_SEVERITY_CRITICAL)
 
     def _periodic_mode(self, now: float) -> None:
         if self.state == State.MONITORING and self._guided_deadline is not None \
@@ -876,9 +954,10 @@ class OnboardApp:
         self._launch_step(now)
 
     def _periodic_clock(self, now: float | None) -> None:
-        """Report the clock's jumps (clock.py): a candidate it refused, or a jump it followed; a
-        followed one restarts the tick schedule on the new timeline (no burst of coast ticks,
-        no scan of the old timeline ticked on the new one); one back in time is a reboot."""
+        """Report the clock's jumps (clock.py): a candidate it refused, or a jump it followed. A
+        followed jump ahead restarts the tick schedule on the new timeline (no burst of coast
+        ticks, no scan of the old timeline ticked on the new one); one back is a reboot, which
+        ``_on_autopilot_reboot`` handled when the clock followed it."""
         c = self.clock
         seen = (getattr(c, "jumps", 0), getattr(c, "jumps_ignored", 0))
         if seen == self._clock_seen:
@@ -892,20 +971,11 @@ class OnboardApp:
             self._count("clock_jumps", seen[0] - j0)
             self._submitted_t = now  # the watchdog's tick gap starts again on the new timeline
             jump = getattr(c, "last_jump_s", 0.0)
-            self.say(f"autopilot clock jumped {jump:+.0f} s: ticks restart", mavlink.MAV_SEVERITY_CRITICAL)
-            self.scans.pending.clear()  # stamped on the old timeline
-            self.scans.arrival.clear()
-            self._tick_times = []
-            if jump < 0:  # a reboot: new timeline, new origin, and the vehicle is not ours to fly
-                self.scans.consumed_until = -math.inf
-                self.scans.last_scan_t = [-math.inf] * self.M
-                self._scan_t_used = [-math.inf] * self.M
-                self.last_tick_t = None
-                self.origin.clear()
-                self.vehicle.ned_origin = None
-                if self.state in (State.MONITORING, State.PAUSED):
-                    self._set_state(State.FAULT)
-            elif now is not None:  # ahead: the coast grid goes on from now, not from the old time
+            if jump > 0 and now is not None:  # the coast grid goes on from now, not from the old time
+                self.say(f"autopilot clock jumped {jump:+.0f} s: ticks restart", mavlink.MAV_SEVERITY_CRITICAL)
+                self.scans.pending.clear()  # stamped on the old timeline
+                self.scans.arrival.clear()
+                self._tick_times = []
                 start = math.floor(now) - 1.0
                 self.scans.consumed_until = max(self.scans.consumed_until, start)
                 if self.last_tick_t is not None:
@@ -964,48 +1034,40 @@ class OnboardApp:
         return ok
 
     def _launch_step(self, now: float) -> None:
-        L = self._launch
-        if L is None or now < L["next"]:
+        """Advance the launch sequence (onboard/app/launch.py) and carry out its actions."""
+        if self._launch is None:
             return
         v = self.vehicle
-        h = self.params["PMON_ALT"]
-        if L["tries"] >= 10:
-            self.say(f"launch failed at {L['phase']}", mavlink.MAV_SEVERITY_ERROR)
-            self._launch = None
-            return
-        L["next"] = now + 1.0
-        L["tries"] += 1
-        phase = L["phase"]
-        if phase == "mode":
-            if v.is_guided():
-                L.update(phase="arm", tries=0, next=-math.inf)
-            else:
+        pose = self.poses.latest()
+        home_up = pose.pos[2] - v.relative_alt if pose is not None and v.relative_alt is not None else None
+        result, reason = self._preconditions()
+        blocker = None if result == mavlink.MAV_RESULT_ACCEPTED or reason == Reason.NOT_FLYING \
+            else REASON_TEXT[reason]  # NOT_FLYING: the take-off is not reported done yet
+        view = launch.VehicleView(
+            position=pose is not None and v.ned_origin is not None and v.lat_lon_deg is not None,
+            guided=v.is_guided(), armed=v.armed, up_m=None if pose is None else float(pose.pos[2]),
+            home_up_m=home_up, climbing=v.landed_state in (mavlink.MAV_LANDED_STATE_TAKEOFF,
+                                                         mavlink.MAV_LANDED_STATE_IN_AIR),
+            prearm_ok=v.prearm_ok, prearm_text=v.prearm_text,
+            can_start=result == mavlink.MAV_RESULT_ACCEPTED, start_blocker=blocker)
+        self._launch, actions = launch.step(self._launch, view, now)
+        severity = {"info": mavlink.MAV_SEVERITY_INFO, "warning": mavlink.MAV_SEVERITY_WARNING,
+                    "error": mavlink.MAV_SEVERITY_ERROR}
+        for a in actions:
+            if isinstance(a, launch.Say):
+                self.say(a.text, severity[a.level], once=None if a.once is None else f"launch:{a.once}")
+            elif a[0] == "guided":
                 self._set_guided()
-        elif phase == "arm":
-            if v.armed:
-                L.update(phase="takeoff", tries=0, next=-math.inf)
-            else:
+            elif a[0] == "arm":
+                v.prearm_text = None  # a refusal now says why afresh
                 self._command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        elif phase == "takeoff":
-            pose = self.poses.latest()
-            if pose is not None and v.relative_alt is not None and pose.pos[2] > 1.0:
-                L.update(phase="climb", tries=0, next=-math.inf)
-            elif pose is not None and v.relative_alt is not None:
-                home_up = pose.pos[2] - v.relative_alt  # ENU height of home
-                self._command_long(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan,
-                                   math.nan, h - home_up)
-        elif phase == "climb":
-            pose = self.poses.latest()
-            L["tries"] = 0  # climbing takes as long as it takes
-            if pose is not None and pose.pos[2] >= h - 1.0:
-                result, reason = self._preconditions()
-                if result == mavlink.MAV_RESULT_ACCEPTED:
-                    self._launch = None
-                    self._enter_monitoring()
-                elif reason == Reason.NO_SENSOR_DATA:
-                    self.say("launch: at altitude, waiting for DF data", once="wait_df")
-                elif reason != Reason.NOT_FLYING:  # NOT_FLYING: takeoff not reported done yet
-                    self.say(f"launch: cannot start: {REASON_TEXT[reason]}", once=f"launch{reason}")
+            elif a[0] == "takeoff":
+                self._command_long(mavlink.MAV_CMD_NAV_TAKEOFF, *takeoff_params(
+                    v.autopilot, *v.lat_lon_deg, v.heading_deg, a[1], v.amsl_m - v.relative_alt))
+            elif a[0] == "start":
+                self._enter_monitoring()
+        if self._launch is None:
+            self._said = {k for k in self._said if not k.startswith("launch:")}
 
     # ----- tick scheduling
     def _schedule_tick(self, now: float) -> None:
@@ -1275,6 +1337,7 @@ class OnboardApp:
             "plan_from": None if centre is None else [round(float(x), 3) for x in centre],
             "means": np.round(res.means, 3).tolist(),
             "sigmas_xy": np.round(sig[:, :2], 3).tolist(),
+            "cov_xy": np.round(res.covs[:, 0, 1], 3).tolist(),  # with sigmas_xy: the 1-sigma ellipse
             "next": None if nxt is None else [round(float(x), 3) for x in nxt],
             "sent": sent, "refused": refused, "skipped_before": job.skipped,
             "n_candidates": None if res.planning is None else int(len(res.planning.candidates)),
@@ -1320,6 +1383,10 @@ def _msg_type(msg) -> str:
         return str(msg.get_type())
     except Exception:
         return "?"
+
+
+def _nan(x: float | None) -> float:
+    return math.nan if x is None else float(x)
 
 
 def _with_grid(setup: MonitorSetup, grid: CandidateGrid) -> MonitorSetup:

@@ -1,0 +1,615 @@
+"""The documented procedure (docs/SITL.md), flown with the real programs against ArduPilot's own
+SITL firmware: the conformance tests (tests/test_ardupilot.py) and bench/ardupilot.py use it.
+
+    with Mission(MissionConfig(speedup=2), out_dir) as m:     # SITL boots, app and feed start
+        m.gcs("launch")                                         # as the operator types it
+        m.wait(lambda o: o.app_state == "monitoring", 120)
+        ...
+    figures = m.figures()
+
+What runs, each as a process, as on a vehicle:
+- ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), five MAVLink TCP
+  ports: SERIAL0 the app, SERIAL1 the DF feed, SERIAL2 the operator's ``pmon gcs`` commands,
+  SERIAL5 an observer, SERIAL6 a second ground station (``Mission.spare_url``: the live view);
+- ``pmon run`` (optionally through ``TcpProxy``, a telemetry link that a test can cut);
+- ``pmon feed live``;
+- ``pmon gcs ...`` per command (``Mission.gcs``; every call is kept: exit code, output, wall s).
+The observer (this process, a MAVLink client of its own on SERIAL5, like a second ground
+station) records what the autopilot says it does: its positions, the GUIDED target it holds
+(POSITION_TARGET_LOCAL_NED: the setpoint it received), its modes, and what the app says through
+ArduPilot's routing (PMON_TGT, PMON_STAT, STATUSTEXT).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import re
+import select
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from onboard.app.link import Link, mavlink
+from onboard.app.pose import Frame
+from sim.ardupilot import ArduPilotSitl, find_binary
+from sim.tick_account import TickAccount, scan_times
+
+OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
+GUIDED = 4  # ArduCopter's custom_mode
+REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
+# ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
+# paper's 20 m steps (the demo's mock uses the same: onboard/demo.py DEMO_VEHICLE_PARAMS)
+RECOMMENDED_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20, "WPNAV_SPEED_UP": 500}
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | mock (python -m sim.autopilot)
+    speedup: float = 2.0  # SITL --speedup (simulated s per wall s)
+    params: Mapping[str, float] = field(default_factory=dict)  # autopilot params over copter.parm
+    scenario: str = "paper"
+    seed: int = 1
+    feed_duration_s: float = 120.0  # scans the feed sends (from arming)
+    auto_launch: bool = False  # pmon run --auto-launch
+    link_proxy: bool = False  # the app reaches SERIAL0 through a TcpProxy (Mission.proxy)
+    app_args: tuple[str, ...] = ()
+
+
+class TcpProxy:
+    """A TCP relay standing in for a telemetry link between the companion and the autopilot:
+    ``cut(s)`` drops the connection and refuses new ones for s wall seconds (a radio or cable
+    outage), then relays again with a new upstream connection."""
+
+    def __init__(self, upstream: tuple[str, int]):
+        self.upstream = upstream
+        self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._lsock.bind(("127.0.0.1", 0))
+        self._lsock.listen(1)
+        self.port = self._lsock.getsockname()[1]
+        self._down_until = 0.0
+        self._stop = threading.Event()
+        self._pair: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self.connections = 0
+        self._thread = threading.Thread(target=self._run, name="tcp-proxy", daemon=True)
+        self._thread.start()
+
+    def cut(self, seconds: float) -> None:
+        with self._lock:
+            self._down_until = time.monotonic() + seconds
+            self._drop()
+
+    def _drop(self) -> None:
+        for s in self._pair:
+            with contextlib.suppress(OSError):
+                s.close()
+        self._pair = []
+
+    def close(self) -> None:
+        self._stop.set()
+        self.cut(0)
+        self._thread.join(timeout=5)
+        self._lsock.close()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                pair = list(self._pair)
+            if not pair:
+                r, _, _ = select.select([self._lsock], [], [], 0.05)
+                if not r:
+                    continue
+                client, _ = self._lsock.accept()
+                if time.monotonic() < self._down_until:
+                    client.close()  # the link is down: the companion's reconnect fails
+                    continue
+                try:
+                    up = socket.create_connection(self.upstream, timeout=2)
+                except OSError:
+                    client.close()
+                    continue
+                with self._lock:
+                    self._pair = [client, up]
+                    self.connections += 1
+                continue
+            try:
+                r, _, _ = select.select(pair, [], [], 0.05)
+                for s in r:
+                    data = s.recv(65536)
+                    if not data:
+                        raise OSError("closed")
+                    (pair[1] if s is pair[0] else pair[0]).sendall(data)
+            except (OSError, ValueError):  # either side closed (or cut() closed both)
+                with self._lock:
+                    if self._pair == pair:
+                        self._drop()
+
+
+class MockProcess:
+    """The mock autopilot (``python -m sim.autopilot``, ArduCopter's boot by default) as a process
+    with ArduPilotSitl's interface and port layout, so a Mission flies either."""
+
+    def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
+                 ports: int, log_path: Path, seed: int = 1):
+        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
+        self.log_path, self.seed = log_path, seed
+        self.proc = None
+        self._ports: list[int] = []
+        self.boots = 0
+
+    def start(self) -> "MockProcess":
+        from onboard.demo import Proc
+
+        argv = [sys.executable, "-m", "sim.autopilot", "--speedup", f"{self.speedup:g}",
+                f"--home={self.home[0]},{self.home[1]},{self.home[2]}", "--seed", str(self.seed),
+                "--max-lag", "0.1"]
+        argv += ["--tcp", "127.0.0.1:0"] * self.ports
+        argv += [f"--param={k}={v}" for k, v in self.params.items()]
+        self.proc = Proc("mock autopilot", argv, self.log_path)
+        m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
+        self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
+        self.boots += 1
+        return self
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.p.poll() is None
+
+    def port(self, serial: int) -> int:
+        return self._ports[serial]
+
+    def url(self, serial: int) -> str:
+        return f"tcp:127.0.0.1:{self.port(serial)}"
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.stop(timeout=10)
+            self.proc = None
+
+
+class Observer:
+    """A MAVLink client of the autopilot on its own port, recording (autopilot s since boot,
+    or the last one heard for messages without a time) what the autopilot and the app say."""
+
+    def __init__(self, url: str):
+        self.link = Link(url, source_system=OBSERVER_SYSID, source_component=mavlink.MAV_COMP_ID_MISSIONPLANNER,
+                         wait_for_peer=True)
+        self.lock = threading.Lock()
+        self.t: float | None = None  # the autopilot's clock, s
+        self.boots = 0  # autopilot (re)boots seen: its clock went back
+        self.origin: tuple[float, float, float] | None = None  # EKF origin (deg, deg, m)
+        self.positions: list[tuple] = []  # (t, lat, lon, alt_amsl, rel_alt) deg, m
+        self.targets: list[tuple] = []  # (t, x, y, z) POSITION_TARGET_LOCAL_NED, m (EKF origin)
+        self.modes: list[tuple] = []  # (t, custom_mode, armed) on every change
+        self.texts: list[tuple] = []  # (t, compid, text)
+        self.estimates: list[tuple] = []  # (t, index, x, y, sigma_x, sigma_y) PMON_TGT
+        self.stat = None  # the latest PMON_STAT
+        self.app_state: str | None = None
+        self._stop = threading.Event()
+        self._asked = -math.inf
+        self._last_pos_local = -math.inf
+        self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.link.close()
+
+    @property
+    def mode(self) -> int | None:
+        with self.lock:
+            return self.modes[-1][1] if self.modes else None
+
+    @property
+    def armed(self) -> bool:
+        with self.lock:
+            return bool(self.modes and self.modes[-1][2])
+
+    @property
+    def rel_alt(self) -> float | None:
+        with self.lock:
+            return self.positions[-1][4] if self.positions else None
+
+    def _ask(self) -> None:
+        self._asked = time.monotonic()
+        send = self.link.send
+        for mid, hz in ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
+                        (mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED, 10.0),
+                        (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, 2.0),
+                        (mavlink.MAVLINK_MSG_ID_HEARTBEAT, 4.0)):
+            send(self.link.mav.command_long_encode(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                   mid, 1e6 / hz, 0, 0, 0, 0, 0))
+        if self.origin is None:
+            send(self.link.mav.command_long_encode(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                   mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0))
+
+    def _run(self) -> None:
+        hb = -math.inf
+        while not self._stop.is_set():
+            fd = self.link.fileno()
+            if fd is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    select.select([fd], [], [], 0.01)
+            else:
+                time.sleep(0.01)
+            for _ in range(500):
+                msg = self.link.recv()
+                if msg is None:
+                    break
+                self._on(msg)
+            now = time.monotonic()
+            if now - hb > 1.0:
+                hb = now
+                self.link.send(self.link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                              0, 0, mavlink.MAV_STATE_ACTIVE))
+            if now - self._last_pos_local > 2.0 and now - self._asked > 2.0:
+                self._ask()
+
+    def _on(self, msg) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA" or msg.get_srcSystem() != 1:
+            return
+        comp = msg.get_srcComponent()
+        with self.lock:
+            tb = getattr(msg, "time_boot_ms", None)
+            if comp == 1 and tb is not None:
+                t = tb / 1000.0
+                if self.t is not None and t < self.t - 5.0:
+                    self.boots += 1
+                self.t = t
+            t = self.t
+            if comp == 1:
+                if mtype == "GLOBAL_POSITION_INT" and not (msg.lat == 0 and msg.lon == 0):
+                    self._last_pos_local = time.monotonic()
+                    self.positions.append((t, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3,
+                                           msg.relative_alt * 1e-3))
+                elif mtype == "POSITION_TARGET_LOCAL_NED":
+                    self.targets.append((t, msg.x, msg.y, msg.z))
+                elif mtype == "HEARTBEAT":
+                    armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                    if not self.modes or self.modes[-1][1:] != (msg.custom_mode, armed):
+                        self.modes.append((t, msg.custom_mode, armed))
+                elif mtype == "GPS_GLOBAL_ORIGIN":
+                    self.origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            if mtype == "STATUSTEXT":
+                self.texts.append((t, comp, msg.text))
+            elif comp == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:
+                if mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_TGT":
+                    d = msg.data
+                    self.estimates.append((d[13], msg.array_id, d[0], d[1], d[6], d[7]))
+                elif mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_STAT":
+                    self.stat = msg
+                elif mtype == "HEARTBEAT":
+                    from groundstation.protocol import app_state_name
+                    self.app_state = app_state_name(msg.custom_mode)
+
+    def app_texts(self, since_t: float = -math.inf) -> list[str]:
+        with self.lock:
+            return [x for (t, c, x) in self.texts if c == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
+                    and (t is None or t >= since_t)]
+
+
+@dataclass
+class GcsCall:
+    args: tuple[str, ...]
+    rc: int
+    stdout: str
+    stderr: str
+    wall_s: float
+    t: float | None  # autopilot s when it returned
+
+
+class Mission:
+    """SITL, app, feed and observer for one flight; ``out`` keeps every log."""
+
+    def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None):
+        from onboard.config import load_scenario
+
+        self.cfg = cfg
+        self.out = Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.sc = load_scenario(cfg.scenario)
+        o = self.sc.origin
+        self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
+        start = self.sc.uav.start_m
+        lat, lon, alt = self.frame.geodetic_from_enu((start[0], start[1], 0.0))
+        home = (lat, lon, alt, 0.0)
+        if cfg.autopilot == "mock":
+            self.sitl = MockProcess(home, cfg.speedup, cfg.params, 5, self.out / "autopilot.log")
+        else:
+            self.sitl = ArduPilotSitl(binary or find_binary(), home, cfg.speedup, dict(cfg.params),
+                                      ports=5, log_path=self.out / "autopilot.log")
+        self.proxy: TcpProxy | None = None
+        self.app = self.feed = None
+        self.observer: Observer | None = None
+        self.commands: list[GcsCall] = []
+        self.df_port: int | None = None
+
+    # ----- lifecycle
+    def __enter__(self) -> "Mission":
+        try:
+            return self.start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def start(self) -> "Mission":
+        from onboard.demo import Proc
+
+        self.sitl.start()
+        self.observer = Observer(self.sitl.url(3))
+        url = self.sitl.url(0)
+        if self.cfg.link_proxy:
+            self.proxy = TcpProxy(("127.0.0.1", self.sitl.port(0)))
+            url = f"tcp:127.0.0.1:{self.proxy.port}"
+        py = sys.executable
+        argv = [py, "-m", "onboard.cli", "run", "--mavlink", url, "--df", "127.0.0.1:0",
+                "--scenario", self.cfg.scenario, "--runlog", str(self.out / "run.jsonl"),
+                "--tlog", str(self.out / "app.tlog"), "--seed", str(self.cfg.seed), *self.cfg.app_args]
+        if self.cfg.auto_launch:
+            argv.append("--auto-launch")
+        self.app = Proc("app", argv, self.out / "app.log")
+        self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
+        self.feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", self.sitl.url(1),
+                                  "--to", f"127.0.0.1:{self.df_port}", "--scenario", self.cfg.scenario,
+                                  "--truth", str(self.out / "truth.jsonl"), "--seed", str(self.cfg.seed + 1),
+                                  "--duration", f"{self.cfg.feed_duration_s:g}"], self.out / "feed.log")
+        return self
+
+    def stop(self) -> None:
+        for p in (self.feed, self.app):
+            if p is not None:
+                p.stop(timeout=10)
+        if self.observer is not None:
+            self.observer.close()
+            with self.observer.lock, open(self.out / "observer.json", "w") as f:
+                o = self.observer
+                json.dump({"origin": o.origin, "boots": o.boots, "positions": o.positions,
+                           "targets": o.targets, "modes": o.modes, "texts": o.texts,
+                           "estimates": o.estimates}, f)
+        if self.proxy is not None:
+            self.proxy.close()
+        self.sitl.stop()
+
+    @property
+    def spare_url(self) -> str:
+        """A MAVLink port of its own for a second ground station (one TCP client)."""
+        return self.sitl.url(4)
+
+    # ----- the operator
+    def gcs(self, *args: str, timeout: float = 10.0, wall_limit: float = 300.0) -> GcsCall:
+        """``pmon gcs --connect SERIAL2 --timeout T ARGS...`` as a process, run once."""
+        argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.sitl.url(2),
+                "--timeout", f"{timeout:g}", *args]
+        t0 = time.monotonic()
+        p = subprocess.run(argv, capture_output=True, text=True, timeout=wall_limit,
+                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        call = GcsCall(tuple(args), p.returncode, p.stdout, p.stderr, time.monotonic() - t0, self.observer.t)
+        self.commands.append(call)
+        with open(self.out / "gcs.log", "a") as f:
+            f.write(f"$ pmon gcs {' '.join(args)}  [t={call.t}, {call.wall_s:.1f} s, exit {p.returncode}]\n"
+                    f"{p.stdout}{p.stderr}")
+        return call
+
+    def wait(self, pred: Callable[[Observer], bool], timeout: float, what: str = "") -> bool:
+        """Wait (wall s) until ``pred(observer)``; also fails early when a process died."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if pred(self.observer):
+                return True
+            for p in (self.app, self.feed):
+                if p is not None and p.p.poll() is not None and p is self.app:
+                    raise RuntimeError(f"the app exited ({p.p.returncode}) while waiting for {what}; "
+                                       f"see {p.log.name}")
+            if not self.sitl.running:
+                raise RuntimeError(f"the autopilot exited while waiting for {what}; see "
+                                   f"{self.out / 'autopilot.log'}")
+            time.sleep(0.05)
+        return False
+
+    def sim_sleep(self, seconds: float) -> None:
+        """Sleep ``seconds`` of autopilot time."""
+        t0 = self.observer.t or 0.0
+        self.wait(lambda o: (o.t or 0.0) >= t0 + seconds, seconds / self.cfg.speedup * 3 + 10, "time")
+
+    # ----- reading back
+    def app_log(self) -> str:
+        return (self.out / "app.log").read_text(errors="replace")
+
+    def run_log(self) -> list[dict]:
+        path = self.out / "run.jsonl"
+        return [json.loads(line) for line in open(path) if line.strip()] if path.exists() else []
+
+    def mission_ned(self, x: float, y: float, z: float) -> tuple[float, float, float]:
+        """An autopilot local NED position (at its EKF origin) as NED at the mission origin."""
+        e, n, u = self.frame.enu_from_ned((x, y, z), self.observer.origin)
+        return (float(n), float(e), float(-u))
+
+    def tick_account(self, budget_s: float = 0.9) -> dict:
+        """docs/SITL.md's misses (sim.tick_account.TickAccount) from the app's run log and the
+        GUIDED targets the autopilot reported holding (its receipt of each setpoint)."""
+        acc = TickAccount()
+        with self.observer.lock:
+            targets = list(self.observer.targets)
+        # in time order, as they happened (the account keeps only recent receipts to match)
+        events = [(t, 1, (x, y, z)) for t, x, y, z in targets if t is not None]
+        for rec in self.run_log():
+            # a setpoint sent after a pilot took over, before the app heard of it, is not taken
+            # (ArduPilot ignores it outside GUIDED) and is not the app's miss; nor one sent
+            # within a target report (0.1 s) of the takeover: its receipt cannot be seen
+            if rec["planned"] and rec["sent_t"] is not None and not (
+                    self.guided_at(rec["sent_t"]) and self.guided_at(rec["sent_t"] + REPORT_S)):
+                rec = {**rec, "planned": False}
+            events.append((rec["t"], 0, rec))
+        for t, kind, item in sorted(events, key=lambda e: (e[0], e[1])):
+            if kind == 0:
+                acc.on_tick(item, budget_s)
+            else:
+                acc.on_setpoint(t, self.mission_ned(*item))
+        return acc.finish(scan_times(self.out / "truth.jsonl"))
+
+    def guided_at(self, t: float) -> bool:
+        """The autopilot was in GUIDED at autopilot time t (the observer's heartbeats)."""
+        with self.observer.lock:
+            modes = [m for m in self.observer.modes if m[0] is not None and m[0] <= t]
+        return bool(modes) and modes[-1][1] == GUIDED
+
+    def containment(self) -> dict:
+        """The vehicle's reported positions against the area and the obstacles (3D: the UAV may
+        overfly the low ones)."""
+        from onboard.core.obstacles import Obstacles
+
+        with self.observer.lock:
+            pos = list(self.observer.positions)
+        if not pos:
+            return {"samples": 0, "outside_area": 0, "in_obstacle": 0}
+        enu = np.array([self.frame.enu_from_geodetic(lat, lon, alt) for _, lat, lon, alt, _ in pos])
+        lo, hi = np.asarray(self.sc.area.min_m), np.asarray(self.sc.area.max_m)
+        outside = np.any((enu[:, :2] < lo[:2]) | (enu[:, :2] > hi[:2]), axis=1)
+        obs = Obstacles.from_boxes(self.sc.obstacles)
+        inside = obs.contains(enu).any(axis=1) if len(obs) else np.zeros(len(enu), bool)
+        return {"samples": len(enu), "outside_area": int(outside.sum()), "in_obstacle": int(inside.sum()),
+                "min_xy_m": enu[:, :2].min(axis=0).round(1).tolist(),
+                "max_xy_m": enu[:, :2].max(axis=0).round(1).tolist()}
+
+    def estimate_errors(self) -> dict:
+        """The app's estimates against the feed's truth at the same scan times (onboard.demo)."""
+        from onboard.demo import score
+        return score(self.out / "run.jsonl", self.out / "truth.jsonl", self.sc)
+
+    def takeover_reactions(self) -> list[float]:
+        """For each time the vehicle left GUIDED (the observer's heartbeats): autopilot s from
+        the mode change to the last setpoint the app sent before it came back (0 when it sent
+        none), from the app's own tlog (its setpoints carry its autopilot clock)."""
+        with self.observer.lock:
+            modes = list(self.observer.modes)
+        return takeover_reactions(self.out / "app.tlog", modes)
+
+    def autopilot_crashes(self) -> int:
+        """Floating point exceptions and other aborts the firmware printed (the mock: the
+        defects that crash ArduCopter, which it counts)."""
+        log = (self.out / "autopilot.log").read_text(errors="replace")
+        return sum(log.count(s) for s in ("Floating point exception", "Segmentation fault", "abort",
+                                          "defect that crashes"))
+
+
+def takeover_reactions(tlog: Path, modes: list[tuple]) -> list[float]:
+    """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes."""
+    from pymavlink import mavutil
+
+    episodes = []  # (left GUIDED, back in GUIDED or inf), autopilot s
+    for i, (t0, mode, _) in enumerate(modes):
+        if t0 is None or mode == GUIDED or i == 0 or modes[i - 1][1] != GUIDED:
+            continue
+        back = next((t for t, m, _ in modes[i + 1:] if m == GUIDED and t is not None), math.inf)
+        episodes.append((t0, back))
+    last = [None] * len(episodes)
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    while True:
+        m = conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")
+        if m is None:
+            break
+        t = m.time_boot_ms / 1000.0
+        for i, (a, b) in enumerate(episodes):
+            if a <= t < b:
+                last[i] = t
+    return [0.0 if sp is None else sp - a for (a, _), sp in zip(episodes, last)]
+
+
+def app_view(tlog: Path) -> dict:
+    """What the app saw of its autopilot, from the app's own tlog: the comparison
+    tests/test_conformance.py makes between the mock and ArduPilot.
+
+    - ``rates_hz``: messages from the autopilot per autopilot second while the app monitored;
+    - ``unasked``: message types it sent that the app never asked for (by id or stream);
+    - ``acks``: per command the app sent, its distinct results in order (repeats collapsed);
+    - ``landed``, ``prearm``, ``modes``: distinct values in order (EXTENDED_SYS_STATE,
+      SYS_STATUS's pre-arm bit, HEARTBEAT custom_mode);
+    - ``no_fix_positions``: GLOBAL_POSITION_INTs with lat = lon = 0 (before the GPS fix);
+    - ``origin_t``, ``armed_t``: autopilot s when the EKF origin came and when it armed;
+    - ``app_said``: the app's own STATUSTEXTs without "PMON: " and any " (...)" detail, repeats
+      collapsed.
+    """
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    asked = {mavlink.MAVLINK_MSG_ID_HEARTBEAT}
+    out: dict = {"acks": {}, "landed": [], "prearm": [], "modes": [], "app_said": [],
+                 "no_fix_positions": 0, "origin_t": None, "armed_t": None, "unasked": set()}
+    timed: list[tuple[float, str]] = []  # (autopilot s, type) of every autopilot message
+    monitored: list[float] = []  # autopilot s of the app's heartbeats saying "monitoring"
+    t = None
+
+    def add(key, value):
+        seq = out[key]
+        if not seq or seq[-1] != value:
+            seq.append(value)
+    while (m := conn.recv_match()) is not None:
+        mtype = m.get_type()
+        src = (m.get_srcSystem(), m.get_srcComponent())
+        if src[1] == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:  # sent by the app
+            if mtype == "COMMAND_LONG" and m.command in (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                         mavlink.MAV_CMD_REQUEST_MESSAGE):
+                asked.add(int(m.param1))
+            elif mtype == "STATUSTEXT":
+                add("app_said", m.text.removeprefix("PMON: ").split(" (")[0].strip())
+            elif mtype == "HEARTBEAT" and m.custom_mode == 1 and t is not None:  # monitoring
+                monitored.append(t)
+            continue
+        if src != (1, 1) or mtype == "BAD_DATA":
+            continue
+        if hasattr(m, "time_boot_ms"):
+            t = m.time_boot_ms / 1000.0
+        if m.get_msgId() not in asked and mtype not in ("COMMAND_ACK", "STATUSTEXT", "PARAM_VALUE"):
+            out["unasked"].add(mtype)
+        if t is not None:
+            timed.append((t, mtype))
+        if mtype == "COMMAND_ACK":
+            seq = out["acks"].setdefault(mavlink.enums["MAV_CMD"][m.command].name, [])
+            name = mavlink.enums["MAV_RESULT"][m.result].name.removeprefix("MAV_RESULT_")
+            if not seq or seq[-1] != name:
+                seq.append(name)
+        elif mtype == "EXTENDED_SYS_STATE":
+            add("landed", mavlink.enums["MAV_LANDED_STATE"][m.landed_state].name.removeprefix("MAV_LANDED_STATE_"))
+        elif mtype == "SYS_STATUS" and m.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
+            add("prearm", bool(m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK))
+        elif mtype == "HEARTBEAT":
+            add("modes", m.custom_mode)
+            if m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and out["armed_t"] is None:
+                out["armed_t"] = t
+        elif mtype == "GLOBAL_POSITION_INT" and m.lat == 0 and m.lon == 0:
+            out["no_fix_positions"] += 1
+        elif mtype == "GPS_GLOBAL_ORIGIN" and out["origin_t"] is None:
+            out["origin_t"] = t
+    # rates over the longest stretch of monitoring (the app's heartbeats, 1 Hz of its own clock:
+    # a gap of over three of them ends a stretch)
+    gap = 3.0 * float(np.median(np.diff(monitored))) if len(monitored) > 2 else 2.0
+    best, start = (0.0, 0.0), None
+    for a, b in zip(monitored, monitored[1:] + [math.inf]):
+        start = a if start is None else start
+        if b - a > gap:
+            best = max(best, (a - start, start), key=lambda x: x[0])
+            start = None
+    span, t0 = best
+    counts: dict[str, int] = {}
+    for tm, mtype in timed:
+        if t0 <= tm <= t0 + span:
+            counts[mtype] = counts.get(mtype, 0) + 1
+    out["rates_hz"] = {k: round(v / span, 2) for k, v in sorted(counts.items())} if span > 0 else {}
+    out["monitoring_s"] = round(span, 1)
+    out["unasked"] = sorted(out["unasked"])
+    return out
