@@ -20,7 +20,7 @@ tens of microseconds (JSON, checks, the app lock); reading one costs a few. So t
 * **Drained at line rate.** The reader blocks in ``select`` and then reads until the socket is
   empty, with a receive buffer as large as the kernel allows (``RCVBUF_BYTES``, capped by
   ``net.core.rmem_max``). Reading, filtering and queueing a datagram costs ~4 us of one core
-  (3.8 us at 20 000 foreign datagrams/s, bench/df_flood.py), so such a flood takes ~8 % of a
+  (3.8-4.0 us at 20 000 foreign datagrams/s, bench/df_flood.py), so such a flood takes ~8 % of a
   core and never reaches the parser: the kernel buffer does not fill (0 kernel drops measured),
   the DF's datagrams are not lost. The queue to the io thread is bounded (``queue_max``; beyond it
   ``dropped["queue_full"]``): the io thread parses at most a budget per loop iteration, so its
