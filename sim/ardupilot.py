@@ -73,6 +73,17 @@ def skip_reason() -> str | None:
     return None
 
 
+def home_of(scenario) -> tuple[float, float, float, float]:
+    """Where the copter stands at boot: the scenario's UAV start on the ground, geodetic
+    (deg, deg, m AMSL, heading deg), as SITL's --home takes it."""
+    from onboard.app.pose import Frame
+
+    o = scenario.origin
+    lat, lon, alt = Frame(o.lat_deg, o.lon_deg, o.alt_m).geodetic_from_enu(
+        (scenario.uav.start_m[0], scenario.uav.start_m[1], 0.0))
+    return (lat, lon, alt, 0.0)
+
+
 def default_params_file(binary: Path) -> Path | None:
     """The ``copter.parm`` beside the binary (the test harness's defaults), if there is one."""
     p = Path(binary).with_name("copter.parm")
@@ -265,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
                                  "scenario's origin and print its MAVLink URLs.")
     ap.add_argument("--binary", help=f"arducopter SITL binary (default ${ENV_VAR}, else "
                     f"../shared/ardupilot/arducopter)")
-    ap.add_argument("--scenario", default="paper", help="home = this scenario's origin (default paper)")
+    ap.add_argument("--scenario", default="paper", help="home = this scenario's UAV start (default paper)")
     ap.add_argument("--speedup", type=float, default=1.0, help="simulated s per wall s (default 1)")
     ap.add_argument("--instance", type=int, help="SITL -I (default: the first free from "
                     f"{FIRST_INSTANCE})")
@@ -295,9 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
         return 2
-    o = sc.origin
-    sitl = ArduPilotSitl(binary, (o.lat_deg, o.lon_deg, o.alt_m), args.speedup, params,
-                         instance=args.instance)
+    home = home_of(sc)
+    sitl = ArduPilotSitl(binary, home, args.speedup, params, instance=args.instance)
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(1))
@@ -307,8 +317,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
         return 1
     try:
-        print(f"ArduCopter SITL -I {sitl.instance} at {o.lat_deg}, {o.lon_deg}, {o.alt_m} m, "
-              f"{args.speedup:g}x; log {sitl.workdir / 'arducopter.log'}", flush=True)
+        print(f"ArduCopter SITL -I {sitl.instance} at {home[0]:.6f}, {home[1]:.6f}, {home[2]:.1f} m "
+              f"({sc.name}'s UAV start), {args.speedup:g}x; log {sitl.workdir / 'arducopter.log'}",
+              flush=True)
         for i, who in enumerate(("the onboard app", "the DF feed", "a ground station")):
             print(f"  SERIAL{i}: {sitl.url(i)}   ({who})", flush=True)
         while not stop and sitl.running:
