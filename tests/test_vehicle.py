@@ -275,3 +275,37 @@ def test_sqrt_controller_shape():
     assert big == pytest.approx(math.sqrt(2 * 1.25 * (100.0 - 1.25 / 2)))
     assert sqrt_controller(-100.0, 1.0, 1.25, 0.0) == pytest.approx(-big)
     assert sqrt_controller(0.01, 1.0, 1.25, 0.02) <= 0.01 / 0.02
+
+
+# --------------------------------------------------------------------------- the real SITL, live
+
+@pytest.mark.ardupilot
+@pytest.mark.timeout(120)
+def test_live_sitl_flies_a_short_route_as_the_model():
+    """Boots the ArduCopter SITL, takes off, and flies the first 12 s of the stock 70 % route sent
+    as the plan's state (position, velocity, acceleration) each second; the model, given the
+    same setpoints at the same firmware times, flies within RMS_MAX_M of it, and the copter is
+    within 1.5 m of the plan's point when each next setpoint is due."""
+    from bench.sitl_response import HOME, SitlFlight, fly_route
+    from sim.ardupilot import ArduPilotSitl, find_binary, skip_reason
+
+    reason = skip_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    P, V = planner_route(7.0, 2.5)
+    sitl = ArduPilotSitl(find_binary(), HOME, speedup=5.0).start()
+    try:
+        f = SitlFlight(sitl.url(0), 5.0)
+        try:
+            f.take_off()
+            params = f.read_params(("WPNAV_SPEED", "WPNAV_ACCEL", "WPNAV_SPEED_UP", "PSC_JERK_XY",
+                                    "PSC_POSXY_P", "PSC_VELXY_P", "PSC_VELXY_I", "PSC_VELXY_D",
+                                    "ATC_ACCEL_R_MAX", "ANGLE_MAX"))
+            tr = fly_route(f, "pva", P[:13], V[:13]).as_dict()
+        finally:
+            f.conn.close()
+    finally:
+        sitl.stop()
+    assert all(s[1] == MASK_PVA for s in tr["sends"])
+    assert rms_error(tr, limits_for(params)) < RMS_MAX_M
+    assert np.max(distance_at_ticks(tr)) < 1.5
