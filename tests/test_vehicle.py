@@ -197,8 +197,9 @@ def test_fly_stops_after_guid_timeout_and_brakes_to_a_position_only_setpoint():
 @pytest.mark.parametrize("speed", [10.0, 5.0, 2.0])
 def test_speed_limits_on_position_targets(speed):
     """Towards a position-only setpoint the shaped path never asks for more than the speed limit;
-    the vehicle following it overshoots by a little (the SITL: 4.08 m/s at WPNAV_SPEED 400, the
-    model 4.11) and never flies past the airframe's top speed. The lean stays within its limit."""
+    the vehicle following it overshoots by a little (the SITL: 4.08 and 4.12 m/s in two runs at
+    WPNAV_SPEED 400, the model 4.11) and never flies past the airframe's top speed. The lean stays
+    within its limit."""
     limits = VehicleLimits(speed_xy=speed)
     rng = np.random.default_rng(1)
     state = VehicleState()
@@ -214,8 +215,9 @@ def test_speed_limits_on_position_targets(speed):
 
 @pytest.mark.timeout(20)
 def test_velocity_commands_are_not_capped_at_wpnav_speed():
-    """As ArduCopter (the SITL flew 9.99 m/s for a 10 m/s command at WPNAV_SPEED 400): a velocity
-    command is flown up to the airframe's top speed; the climb rate is capped."""
+    """As ArduCopter (the SITL flew 10.08 m/s for a 12 m/s command at WPNAV_SPEED 400: python
+    bench/sitl_response.py --limits stock --param WPNAV_SPEED=400 --cases top): a velocity command
+    is flown up to the airframe's top speed; the climb rate is capped."""
     limits = VehicleLimits(speed_xy=4.0)
     state = HOVER
     for _ in range(round(20.0 / DT)):
