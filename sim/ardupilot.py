@@ -270,6 +270,17 @@ def _listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def param_item(text: str) -> tuple[str, float]:
+    """``NAME=VALUE`` (an argparse type): a parameter set at boot, the name upper-cased."""
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"wants NAME=VALUE, got {text!r}")
+    try:
+        return name.strip().upper(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"wants NAME=VALUE with a number, got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sim.ardupilot",
                                  description="Start ArduPilot's ArduCopter SITL on loopback at a "
@@ -280,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speedup", type=float, default=1.0, help="simulated s per wall s (default 1)")
     ap.add_argument("--instance", type=int, help="SITL -I (default: the first free from "
                     f"{FIRST_INSTANCE})")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=param_item,
                     help="parameter over copter.parm at boot; repeatable (e.g. WPNAV_SPEED=2000)")
     args = ap.parse_args(argv)
     from onboard.config import ConfigError, load_scenario
@@ -292,15 +303,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--speedup must be in (0, 100], got {args.speedup}")
     if args.instance is not None and not 0 <= args.instance <= LAST_INSTANCE:
         ap.error(f"--instance must be in 0..{LAST_INSTANCE}, got {args.instance}")
-    params = {}
-    for item in args.param:
-        name, sep, value = item.partition("=")
-        try:
-            params[name.strip().upper()] = float(value)
-        except ValueError:
-            ap.error(f"--param wants NAME=VALUE with a number, got {item!r}")
-        if not sep or not name.strip():
-            ap.error(f"--param wants NAME=VALUE, got {item!r}")
+    params = dict(args.param)
     try:
         sc = load_scenario(args.scenario)
     except ConfigError as exc:

@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
 
 from sim import vehicle  # noqa: E402
-from sim.vehicle import Setpoint, Vec3, VehicleLimits, VehicleState  # noqa: E402
+from sim.vehicle import Setpoint, Vec3, VehicleState, limits_from_params  # noqa: E402
 
 log = logging.getLogger("sim.autopilot")
 
@@ -235,20 +235,6 @@ class Params:
         return True
 
 
-def limits_from_params(params: Params, pos_noise: float) -> VehicleLimits:
-    """Vehicle limits in SI from ArduPilot-unit parameters."""
-    return VehicleLimits(
-        speed_xy=max(params["WPNAV_SPEED"], 20.0) / 100.0,  # AC_WPNav's minimum 20 cm/s
-        speed_up=max(params["WPNAV_SPEED_UP"], 10.0) / 100.0,
-        speed_down=max(abs(params["WPNAV_SPEED_DN"]), 10.0) / 100.0,
-        accel_xy=max(params["WPNAV_ACCEL"], 50.0) / 100.0,
-        accel_z=max(params["WPNAV_ACCEL_Z"], 50.0) / 100.0,
-        jerk_xy=max(params["PSC_JERK_XY"], 0.5),
-        jerk_z=max(params["PSC_JERK_Z"], 0.5),
-        pos_noise=pos_noise,
-    )
-
-
 # --------------------------------------------------------------------------- flight logic
 
 @dataclass(frozen=True)
@@ -364,6 +350,7 @@ class Copter:
             self.text(mavlink.MAV_SEVERITY_WARNING, f"Flight mode change failed: {mode.name}")
             return False
         self.mode = mode
+        self.state = replace(self.state, xy=None)  # each mode's init restarts the controller
         self.speed = {}
         self.fixed_yaw = None
         self.guided = None
@@ -430,6 +417,8 @@ class Copter:
         self.takeoff_z = None
 
     def set_guided(self, target: GuidedTarget) -> None:
+        if self.guided is None or self.guided.kind != target.kind:
+            self.state = replace(self.state, xy=None)  # a new sub-mode restarts the controller
         self.guided = replace(target, updated_s=self.t)
         self.takeoff_z = None
 
@@ -519,11 +508,11 @@ class Copter:
             return Setpoint(pos=g.pos, yaw=yaw, yaw_rate=yaw_rate, **speeds)
         if g.kind == "posvel":
             vel = (0.0, 0.0, 0.0) if timed_out else g.vel
-            acc = (0.0, 0.0, 0.0) if timed_out or g.acc is None else g.acc
-            # The position target moves with the commanded velocity (update_pos_vel_accel).
-            pos = tuple(p + v * dt for p, v in zip(g.pos, vel))
-            self.guided = replace(g, pos=pos)
-            return Setpoint(pos=pos, vel=vel, acc=acc, yaw=yaw, yaw_rate=yaw_rate, **speeds)
+            acc = None if timed_out else g.acc
+            # The firmware moves the target on between messages (input_pos_vel_accel_xy).
+            pos, moved = vehicle.advance_input(g.pos, vel, acc, dt)
+            self.guided = replace(g, pos=pos, vel=g.vel if timed_out else moved)
+            return Setpoint(pos=g.pos, vel=vel, acc=acc, yaw=yaw, yaw_rate=yaw_rate, **speeds)
         if g.kind == "vel":
             vel = (0.0, 0.0, 0.0) if timed_out else g.vel
             acc = None if timed_out else g.acc
