@@ -114,6 +114,19 @@ MAVLINK_URL = checked(mavlink_url)
 SPEEDUP = number(0.0, 1000.0, lo_open=True)
 
 
+def param_item(text: str) -> tuple[str, float]:
+    """``NAME=VALUE`` (an argparse type): an autopilot parameter set at boot (mock or SITL), the
+    name upper-cased, the value a finite number (a NaN would reach the firmware's parameter)."""
+    name, sep, value = text.partition("=")
+    try:
+        v = float(value)
+    except ValueError:
+        v = math.nan
+    if not sep or not name.strip() or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"want NAME=VALUE with a finite number, got {text!r}")
+    return name.strip().upper(), v
+
+
 def writable_path(text: str) -> str:
     """A file to write: its directory exists and is writable, it is not a directory itself
     (checked before anything starts: a thread that opens it later would die with a traceback)."""

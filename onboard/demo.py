@@ -153,20 +153,22 @@ def run(args) -> int:
         if not 0.1 <= speedup <= 50:
             console.print(f"pmon demo: --speedup must be 'auto' or a number in [0.1, 50], got {args.speedup!r}")
             return 2
-    o = sc.origin
+    from sim.ardupilot import home_of
+
+    home = home_of(sc)  # the copter stands at the scenario's UAV start
     py = sys.executable
     procs: list[Proc] = []
     try:
         ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
-                   f"--home={o.lat_deg},{o.lon_deg},{o.alt_m}", "--speedup", str(speedup),
+                   f"--home={home[0]},{home[1]},{home[2]}", "--speedup", str(speedup),
                    "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
         ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
         if args.gcs:
             ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]
         ap = Proc("autopilot", ap_argv, out / "autopilot.log")
         procs.append(ap)
-        m = ap.wait_line(r"mock autopilot up: tcpin:127\.0\.0\.1:(\d+) tcpin:127\.0\.0\.1:(\d+)", 20)
-        port_app, port_feed = m.group(1), m.group(2)
+        up = ap.wait_line(r"mock autopilot up: (.*)", 20).group(1)  # udpout (--gcs) comes first
+        port_app, port_feed = re.findall(r"tcpin:127\.0\.0\.1:(\d+)", up)[:2]
         app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
                            "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
                            "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
@@ -199,7 +201,11 @@ def run(args) -> int:
             prog.update(task, completed=duration)
         if feed.p.returncode != 0:
             raise RuntimeError(f"feed failed (code {feed.p.returncode}); see {feed.log.name}")
-        time.sleep(max(1.5 / speedup, 0.3))  # the app's last tick
+        # the app's tick of the last scan, and no longer: then it would coast on no data
+        last = _last_json(truth_path)
+        deadline = time.monotonic() + 5.0
+        while last and time.monotonic() < deadline and ((_last_json(run_path) or {}).get("t", -1) < last["t"]):
+            time.sleep(0.05)
     except KeyboardInterrupt:
         console.print("interrupted: stopping every process")
         return 130

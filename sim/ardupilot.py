@@ -35,6 +35,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from onboard.argcheck import param_item  # NAME=VALUE, finite (bench/sitl_response.py imports it from here)
+
 ENV_VAR = "PMON_ARDUPILOT_SITL"
 REPO = Path(__file__).resolve().parent.parent
 SHARED_BINARY = REPO.parent / "shared" / "ardupilot" / "arducopter"
@@ -71,6 +73,17 @@ def skip_reason() -> str | None:
     if not (b.is_file() and os.access(b, os.X_OK)):
         return f"{ENV_VAR}={b}: not an executable file"
     return None
+
+
+def home_of(scenario) -> tuple[float, float, float, float]:
+    """Where the copter stands at boot: the scenario's UAV start on the ground, geodetic
+    (deg, deg, m AMSL, heading deg), as SITL's --home takes it."""
+    from onboard.app.pose import Frame
+
+    o = scenario.origin
+    lat, lon, alt = Frame(o.lat_deg, o.lon_deg, o.alt_m).geodetic_from_enu(
+        (scenario.uav.start_m[0], scenario.uav.start_m[1], 0.0))
+    return (lat, lon, alt, 0.0)
 
 
 def default_params_file(binary: Path) -> Path | None:
@@ -265,11 +278,11 @@ def main(argv: list[str] | None = None) -> int:
                                  "scenario's origin and print its MAVLink URLs.")
     ap.add_argument("--binary", help=f"arducopter SITL binary (default ${ENV_VAR}, else "
                     f"../shared/ardupilot/arducopter)")
-    ap.add_argument("--scenario", default="paper", help="home = this scenario's origin (default paper)")
+    ap.add_argument("--scenario", default="paper", help="home = this scenario's UAV start (default paper)")
     ap.add_argument("--speedup", type=float, default=1.0, help="simulated s per wall s (default 1)")
     ap.add_argument("--instance", type=int, help="SITL -I (default: the first free from "
                     f"{FIRST_INSTANCE})")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=param_item,
                     help="parameter over copter.parm at boot; repeatable (e.g. WPNAV_SPEED=2000)")
     args = ap.parse_args(argv)
     from onboard.config import ConfigError, load_scenario
@@ -281,23 +294,14 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--speedup must be in (0, 100], got {args.speedup}")
     if args.instance is not None and not 0 <= args.instance <= LAST_INSTANCE:
         ap.error(f"--instance must be in 0..{LAST_INSTANCE}, got {args.instance}")
-    params = {}
-    for item in args.param:
-        name, sep, value = item.partition("=")
-        try:
-            params[name.strip().upper()] = float(value)
-        except ValueError:
-            ap.error(f"--param wants NAME=VALUE with a number, got {item!r}")
-        if not sep or not name.strip():
-            ap.error(f"--param wants NAME=VALUE, got {item!r}")
+    params = dict(args.param)
     try:
         sc = load_scenario(args.scenario)
     except ConfigError as exc:
         print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
         return 2
-    o = sc.origin
-    sitl = ArduPilotSitl(binary, (o.lat_deg, o.lon_deg, o.alt_m), args.speedup, params,
-                         instance=args.instance)
+    home = home_of(sc)
+    sitl = ArduPilotSitl(binary, home, args.speedup, params, instance=args.instance)
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(1))
@@ -307,8 +311,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m sim.ardupilot: {exc}", file=sys.stderr)
         return 1
     try:
-        print(f"ArduCopter SITL -I {sitl.instance} at {o.lat_deg}, {o.lon_deg}, {o.alt_m} m, "
-              f"{args.speedup:g}x; log {sitl.workdir / 'arducopter.log'}", flush=True)
+        print(f"ArduCopter SITL -I {sitl.instance} at {home[0]:.6f}, {home[1]:.6f}, {home[2]:.1f} m "
+              f"({sc.name}'s UAV start), {args.speedup:g}x; log {sitl.workdir / 'arducopter.log'}",
+              flush=True)
         for i, who in enumerate(("the onboard app", "the DF feed", "a ground station")):
             print(f"  SERIAL{i}: {sitl.url(i)}   ({who})", flush=True)
         while not stop and sitl.running:

@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
 
 from sim import vehicle  # noqa: E402
-from sim.vehicle import Setpoint, Vec3, VehicleLimits, VehicleState  # noqa: E402
+from sim.vehicle import Setpoint, Vec3, VehicleState, limits_from_params  # noqa: E402
 
 log = logging.getLogger("sim.autopilot")
 
@@ -235,20 +235,6 @@ class Params:
         return True
 
 
-def limits_from_params(params: Params, pos_noise: float) -> VehicleLimits:
-    """Vehicle limits in SI from ArduPilot-unit parameters."""
-    return VehicleLimits(
-        speed_xy=max(params["WPNAV_SPEED"], 20.0) / 100.0,  # AC_WPNav's minimum 20 cm/s
-        speed_up=max(params["WPNAV_SPEED_UP"], 10.0) / 100.0,
-        speed_down=max(abs(params["WPNAV_SPEED_DN"]), 10.0) / 100.0,
-        accel_xy=max(params["WPNAV_ACCEL"], 50.0) / 100.0,
-        accel_z=max(params["WPNAV_ACCEL_Z"], 50.0) / 100.0,
-        jerk_xy=max(params["PSC_JERK_XY"], 0.5),
-        jerk_z=max(params["PSC_JERK_Z"], 0.5),
-        pos_noise=pos_noise,
-    )
-
-
 # --------------------------------------------------------------------------- flight logic
 
 @dataclass(frozen=True)
@@ -364,6 +350,7 @@ class Copter:
             self.text(mavlink.MAV_SEVERITY_WARNING, f"Flight mode change failed: {mode.name}")
             return False
         self.mode = mode
+        self.state = replace(self.state, xy=None)  # each mode's init restarts the controller
         self.speed = {}
         self.fixed_yaw = None
         self.guided = None
@@ -430,6 +417,8 @@ class Copter:
         self.takeoff_z = None
 
     def set_guided(self, target: GuidedTarget) -> None:
+        if self.guided is None or self.guided.kind != target.kind:
+            self.state = replace(self.state, xy=None)  # a new sub-mode restarts the controller
         self.guided = replace(target, updated_s=self.t)
         self.takeoff_z = None
 
@@ -519,11 +508,11 @@ class Copter:
             return Setpoint(pos=g.pos, yaw=yaw, yaw_rate=yaw_rate, **speeds)
         if g.kind == "posvel":
             vel = (0.0, 0.0, 0.0) if timed_out else g.vel
-            acc = (0.0, 0.0, 0.0) if timed_out or g.acc is None else g.acc
-            # The position target moves with the commanded velocity (update_pos_vel_accel).
-            pos = tuple(p + v * dt for p, v in zip(g.pos, vel))
-            self.guided = replace(g, pos=pos)
-            return Setpoint(pos=pos, vel=vel, acc=acc, yaw=yaw, yaw_rate=yaw_rate, **speeds)
+            acc = None if timed_out else g.acc
+            # The firmware moves the target on between messages (input_pos_vel_accel_xy).
+            pos, moved = vehicle.advance_input(g.pos, vel, acc, dt)
+            self.guided = replace(g, pos=pos, vel=g.vel if timed_out else moved)
+            return Setpoint(pos=g.pos, vel=vel, acc=acc, yaw=yaw, yaw_rate=yaw_rate, **speeds)
         if g.kind == "vel":
             vel = (0.0, 0.0, 0.0) if timed_out else g.vel
             acc = None if timed_out else g.acc
@@ -1938,19 +1927,8 @@ def _parse_home(text: str) -> tuple[float, float, float]:
     return (lat, lon, alt)
 
 
-def _parse_param(text: str) -> tuple[str, float]:
-    name, sep, value = text.partition("=")
-    try:
-        v = float(value)
-    except ValueError:
-        v = math.nan
-    if not sep or not name or not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"want NAME=VALUE with a finite number, got {text!r}")
-    return name.strip(), v
-
-
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from onboard.argcheck import HOST_PORT, HOST_PORT_BIND, SEED, SPEEDUP, OneLineParser, fail, number
+    from onboard.argcheck import HOST_PORT, HOST_PORT_BIND, SEED, SPEEDUP, OneLineParser, fail, number, param_item
 
     ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n")[0])
     ap.add_argument("--udp", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT,
@@ -1964,7 +1942,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="LAT,LON,ALT (deg, deg, m AMSL), written --home=LAT,... when LAT < 0; "
                     "default ArduPilot's CMAC")
     ap.add_argument("--seed", type=SEED, default=0)
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=_parse_param,
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=param_item,
                     help="parameter override in ArduPilot units; repeatable")
     ap.add_argument("--signing-key", metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex chars, mode 0600): sign everything, "

@@ -40,7 +40,7 @@ import numpy as np
 
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame
-from sim.ardupilot import ArduPilotSitl, find_binary
+from sim.ardupilot import ArduPilotSitl, find_binary, home_of
 from sim.tick_account import TickAccount, scan_times
 
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
@@ -322,9 +322,7 @@ class Mission:
         self.sc = load_scenario(cfg.scenario)
         o = self.sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
-        start = self.sc.uav.start_m
-        lat, lon, alt = self.frame.geodetic_from_enu((start[0], start[1], 0.0))
-        home = (lat, lon, alt, 0.0)
+        home = home_of(self.sc)
         if cfg.autopilot == "mock":
             self.sitl = MockProcess(home, cfg.speedup, cfg.params, 5, self.out / "autopilot.log")
         else:
@@ -613,3 +611,48 @@ def app_view(tlog: Path) -> dict:
     out["monitoring_s"] = round(span, 1)
     out["unasked"] = sorted(out["unasked"])
     return out
+
+
+def fly_launch_procedure(m: Mission, monitor_s: float, during: Callable[[Mission, dict], None] | None = None,
+                         takeovers: tuple[tuple[str, ...], ...] = (("mode", "LOITER"), ("hold",))) -> dict:
+    """docs/SITL.md's procedure from the autopilot's boot, as tests/test_ardupilot.py (flight A)
+    and bench/ardupilot.py fly it: ``pmon gcs launch`` at once; ``monitor_s`` autopilot s of
+    monitoring (``during(m, rec)`` runs at its start, inside that time); then each takeover (a
+    pilot's mode change), 3 s, ``pmon gcs resume``, 6 s. Returns each command's GcsCall and the
+    app's state after it, keyed by what it was."""
+    rec: dict = {"boot_t": m.observer.t}
+    rec["launch"] = m.gcs("launch")  # at once: the autopilot is still booting
+    if not m.wait(lambda o: o.app_state == "monitoring", 150 + 60 / m.cfg.speedup, "monitoring"):
+        raise RuntimeError(f"not monitoring; the app said {m.observer.app_texts()}")
+    rec["start_t"] = t0 = m.observer.t
+    if during is not None:
+        during(m, rec)
+    m.sim_sleep(monitor_s - ((m.observer.t or t0) - t0))
+    for cmd in takeovers:
+        key = cmd[-1]
+        rec[key] = m.gcs(*cmd)
+        m.wait(lambda o: o.app_state == "pilot override", 10, "pilot override")
+        rec[f"{key}_app"] = m.observer.app_state
+        m.sim_sleep(3.0)
+        rec[f"{key}_resume"] = m.gcs("resume")
+        m.sim_sleep(6.0)
+    rec["end_state"] = m.observer.app_state
+    return rec
+
+
+def figures(m: Mission) -> dict:
+    """The procedure's figures (docs/SITL.md): misses, receipts, takeovers, error, containment."""
+    acc = m.tick_account()
+    err = m.estimate_errors()
+    reactions = m.takeover_reactions()
+    calls = [c for c in m.commands]
+    return {
+        "autopilot": m.cfg.autopilot, "params": dict(m.cfg.params), "speedup": m.cfg.speedup,
+        "scans": acc["scans"], "ticks": acc["ticks"], "monitoring_ticks": acc["monitoring_ticks"],
+        "ticks_skipped": acc["ticks_skipped"], "scans_unticked": acc["scans_unticked"],
+        "ticks_late": acc["ticks_late"], "setpoint_delay_s_median": acc["setpoint_delay_s_median"],
+        "setpoint_delay_s_max": acc["setpoint_delay_s_max"], "latency_ms_median": acc["latency_ms_median"],
+        "takeover_reaction_s": [round(r, 3) for r in reactions],
+        "rmse_m": err["rmse_m"], "containment": m.containment(), "autopilot_crashes": m.autopilot_crashes(),
+        "gcs_commands": [" ".join(c.args) + f" -> {c.rc}" for c in calls],
+    }

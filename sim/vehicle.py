@@ -1,17 +1,29 @@
-"""Pure kinematic multicopter model for the mock autopilot.
+"""Pure multicopter model for the mock autopilot and the evaluation: ArduCopter's position
+controller and the airframe it flies.
 
 Frame: local NED (x north, y east, z down), metres, seconds, radians; yaw is the
 heading, 0 = north, positive clockwise (towards east). No sockets, threads or clocks:
 `step` maps (state, setpoint, dt) to the next state; randomness only via the
 `numpy.random.Generator` the caller passes.
 
-The shaping follows ArduPilot's AC_PosControl (`shape_pos_vel_accel`): a square-root
-controller turns the position error into a velocity demand that can still stop within
-the acceleration limit, a second square-root controller turns the velocity error into
-an acceleration demand, and that demand is reached under a jerk limit. With ArduCopter's
-stock limits (WPNAV_SPEED 10 m/s, WPNAV_ACCEL 2.5 m/s^2, PSC_JERK_XY 5 m/s^3) this
-reproduces what a stock ArduCopter SITL does in GUIDED with position targets
-(see tests/test_vehicle.py for the three calibration figures).
+Horizontally the model is ArduCopter 4.4's AC_PosControl in two layers, as the firmware runs it:
+
+1. the kinematic target (``input_pos_xyz``, ``input_pos_vel_accel_xy``, ``input_vel_accel_xy``):
+   a jerk-limited path from the target's position, velocity and acceleration to the setpoint.
+   ``shape_pos_vel_accel_xy`` turns the position error into a velocity (square-root controller
+   that can stop within half the acceleration limit), adds the setpoint's velocity, and
+   ``shape_vel_accel_xy`` reaches it with an acceleration that changes at most at the jerk limit.
+   Position-only setpoints are approached with zero velocity at the point: the copter brakes
+   to each one. Position + velocity setpoints are flown through at that velocity.
+2. the vehicle following that target (``update_xy_controller``): position P (PSC_POSXY_P) and
+   velocity PID (PSC_VELXY_P/I/D, 5 Hz filters) around the target's velocity and acceleration
+   (feed-forward), the result limited by the lean angle (ANGLE_MAX), flown through the attitude
+   loop (a first-order lag) by an airframe with drag.
+
+The airframe terms (lean lag and drag) are fitted to ArduPilot's SITL '+' copter
+(bench/sitl_response.py, tests/data/sitl_response.json.gz, tests/test_vehicle.py): its drag at
+ANGLE_MAX 30 deg caps level speed at 10.1 m/s whatever WPNAV_SPEED says. Vertically the vehicle
+flies the shaped kinematic target itself (altitude changes are slow and not what is measured).
 """
 
 from __future__ import annotations
@@ -23,13 +35,15 @@ from typing import Optional
 import numpy as np
 
 Vec3 = tuple[float, float, float]
+Vec2 = tuple[float, float]
 
 GRAVITY = 9.80665  # m/s^2
 
 
 @dataclass(frozen=True)
 class VehicleLimits:
-    """Kinematic limits; defaults are ArduCopter stock parameters converted to SI."""
+    """Limits, controller gains and airframe; defaults are ArduCopter 4.4's stock parameters in
+    SI and the terms fitted to ArduPilot's SITL copter (see the module's docstring)."""
 
     speed_xy: float = 10.0  # WPNAV_SPEED 1000 cm/s
     speed_up: float = 2.5  # WPNAV_SPEED_UP 250 cm/s
@@ -40,23 +54,85 @@ class VehicleLimits:
     jerk_z: float = 5.0  # PSC_JERK_Z 5 m/s^3
     yaw_rate: float = math.radians(90.0)  # rad/s, yaw slew used for heading targets
     pos_noise: float = 0.02  # m/sqrt(s): random-walk disturbance (wind, EKF noise)
+    angle_max: float = math.radians(30.0)  # ANGLE_MAX 3000 cdeg: lean limit, g tan(angle) m/s^2
+    lean_accel_max: float = math.radians(1100.0)  # ATC_ACCEL_R_MAX 110000 cdeg/s^2: caps the jerk
+    pos_p: float = 1.0  # PSC_POSXY_P, 1/s
+    vel_p: float = 2.0  # PSC_VELXY_P, 1/s
+    vel_i: float = 1.0  # PSC_VELXY_I, 1/s^2
+    vel_d: float = 0.5  # PSC_VELXY_D
+    vel_imax: float = 10.0  # PSC_VELXY_IMAX 1000 cm/s^2
+    vel_filt_hz: float = 5.0  # PSC_VELXY_FLTE and _FLTD
+    lean_tc: float = 0.354  # s: the lean flown lags the lean asked for (attitude loop), fitted
+    drag: float = 0.056  # 1/m: airframe drag, a = -drag |v| v, fitted
+
+    def jerk_xy_max(self) -> float:
+        """The horizontal jerk the shaper uses: PSC_JERK_XY, capped as set_max_speed_accel_xy
+        does by the average jerk the attitude loop can give, 0.5 sqrt(accel * g * lean accel)."""
+        cap = 0.5 * math.sqrt(self.accel_xy * GRAVITY * self.lean_accel_max)
+        return min(self.jerk_xy, cap) if self.lean_accel_max > 0.0 else self.jerk_xy
+
+
+def limits_from_params(params, pos_noise: float = VehicleLimits.pos_noise) -> VehicleLimits:
+    """VehicleLimits from ArduCopter parameters in its units (cm, cm/s, cdeg): any mapping that
+    answers ``name in params`` and ``params[name]`` (the mock's Params, a dict of the values a
+    vehicle reported); a parameter missing keeps ArduCopter's default."""
+    def get(name: str, default: float) -> float:
+        return float(params[name]) if name in params else default
+
+    return VehicleLimits(
+        speed_xy=max(get("WPNAV_SPEED", 1000.0), 20.0) / 100.0,  # AC_WPNav's minimum 20 cm/s
+        speed_up=max(get("WPNAV_SPEED_UP", 250.0), 10.0) / 100.0,
+        speed_down=max(abs(get("WPNAV_SPEED_DN", 150.0)), 10.0) / 100.0,
+        accel_xy=max(get("WPNAV_ACCEL", 250.0), 50.0) / 100.0,
+        accel_z=max(get("WPNAV_ACCEL_Z", 100.0), 50.0) / 100.0,
+        jerk_xy=max(get("PSC_JERK_XY", 5.0), 0.5),
+        jerk_z=max(get("PSC_JERK_Z", 5.0), 0.5),
+        angle_max=math.radians(get("ANGLE_MAX", 3000.0) / 100.0),
+        lean_accel_max=math.radians(min(get("ATC_ACCEL_R_MAX", 110000.0), get("ATC_ACCEL_P_MAX", 110000.0)) / 100.0),
+        pos_p=get("PSC_POSXY_P", 1.0),
+        vel_p=get("PSC_VELXY_P", 2.0),
+        vel_i=get("PSC_VELXY_I", 1.0),
+        vel_d=get("PSC_VELXY_D", 0.5),
+        pos_noise=pos_noise,
+    )
+
+
+@dataclass(frozen=True)
+class XyController:
+    """AC_PosControl's horizontal state (local NED x, y): the kinematic target and the loops."""
+
+    pos: Vec2  # target position, m
+    vel: Vec2  # target (desired) velocity, m/s
+    acc: Vec2  # target (desired) acceleration, m/s^2
+    integrator: Vec2  # velocity PID's I term, m/s^2
+    error: Vec2  # velocity error after the 5 Hz filter, m/s
+    error_rate: Vec2  # its filtered derivative, m/s^2
+    lean_acc: Vec2  # horizontal acceleration of the thrust the vehicle is leaning into, m/s^2
+    limit: Vec2  # direction the acceleration was limited in last step (zero: not limited)
 
 
 @dataclass(frozen=True)
 class VehicleState:
-    """Kinematic state in local NED (m, m/s, m/s^2, rad)."""
+    """Vehicle in local NED (m, m/s, m/s^2, rad) and its position controller.
+
+    ``xy`` None: the controller starts from the vehicle at the next step (init_xy_controller);
+    set it to None where ArduCopter re-initialises it (a new mode or GUIDED sub-mode).
+    """
 
     pos: Vec3 = (0.0, 0.0, 0.0)
     vel: Vec3 = (0.0, 0.0, 0.0)
     acc: Vec3 = (0.0, 0.0, 0.0)
     yaw: float = 0.0
+    xy: Optional[XyController] = None
 
 
 @dataclass(frozen=True)
 class Setpoint:
     """What the position controller is asked to do; None means "not commanded".
 
-    - pos set: go to pos (vel/acc, if set, are feed-forward terms);
+    - pos set, vel None: go to pos and stop there (input_pos_xyz);
+    - pos and vel set: fly through pos at vel, acc (if set) as feed-forward
+      (input_pos_vel_accel_xy; the caller moves pos and vel on with advance_input);
     - pos None, vel set: fly that velocity (acc is feed-forward);
     - only acc set: fly that acceleration;
     - nothing set: brake to a stop.
@@ -99,48 +175,203 @@ def sqrt_controller(error: float, p: float, second_ord_lim: float, dt: float) ->
     return out
 
 
-def _limit_norm(v: np.ndarray, limit: float) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    if n > limit > 0.0:
-        return v * (limit / n)
-    if limit <= 0.0:
-        return np.zeros_like(v)
-    return v
+def inv_sqrt_controller(output: float, p: float, d_max: float) -> float:
+    """The error for which sqrt_controller gives ``output`` (ArduPilot's inv_sqrt_controller)."""
+    if d_max > 0.0 and p == 0.0:
+        return output * output / (2.0 * d_max)
+    if d_max <= 0.0:
+        return output / p if p != 0.0 else 0.0
+    if abs(output) < d_max / p:
+        return output / p
+    dist = d_max / (p * p) * 0.5 + output * output / (2.0 * d_max)
+    return math.copysign(dist, output)
 
 
-def _shape_xy(
-    pos_err: Optional[np.ndarray],
-    vel_cmd: Optional[np.ndarray],
-    acc_ff: np.ndarray,
-    vel: np.ndarray,
-    acc: np.ndarray,
-    vmax: float,
-    amax: float,
-    jmax: float,
-    dt: float,
-) -> np.ndarray:
-    """New horizontal acceleration (2-vector) after one jerk-limited step."""
-    # Gains as AC_PosControl derives them from the jerk and acceleration limits; the
-    # position loop keeps half the acceleration in reserve for velocity corrections.
-    kp_vel = 0.5 * jmax / amax
-    kp_acc = jmax / amax
-    vel_target = np.zeros(2) if vel_cmd is None else vel_cmd.copy()
-    if pos_err is not None:
-        dist = float(np.linalg.norm(pos_err))
-        if dist > 1e-9:
-            speed = sqrt_controller(dist, kp_vel, 0.5 * amax, dt)
-            vel_target = vel_target + pos_err / dist * min(speed, vmax)
-    if pos_err is None and vel_cmd is None and np.any(acc_ff):
-        acc_target = acc_ff  # acceleration-only command
+# ----- 2-vectors as (x, y) tuples: the model steps at 50-400 Hz, plain floats keep it cheap
+
+def _len(x: float, y: float) -> float:
+    return math.sqrt(x * x + y * y)
+
+
+def _limit(x: float, y: float, lim: float) -> Vec2:
+    n = math.sqrt(x * x + y * y)
+    if n > lim and n > 0.0:
+        k = lim / n
+        return x * k, y * k
+    return x, y
+
+
+def _sqrt_2d(ex: float, ey: float, p: float, lim: float, dt: float) -> Vec2:
+    n = math.sqrt(ex * ex + ey * ey)
+    if n <= 0.0:
+        return 0.0, 0.0
+    k = sqrt_controller(n, p, lim, dt) / n
+    return ex * k, ey * k
+
+
+def _shape_vel_accel_xy(vin: Vec2, ain: Vec2, vel: Vec2, acc: Vec2, amax: float, jmax: float,
+                        dt: float) -> Vec2:
+    """shape_vel_accel_xy (limit_total false): the target's next acceleration."""
+    ax, ay = _sqrt_2d(vin[0] - vel[0], vin[1] - vel[1], jmax / amax, jmax, dt)
+    vn = _len(*vin)
+    if vn <= 0.0:
+        ax, ay = _limit(ax, ay, amax)
     else:
-        vel_target = _limit_norm(vel_target, vmax)
-        verr = vel_target - vel
-        n = float(np.linalg.norm(verr))
-        acc_target = acc_ff.copy()
-        if n > 1e-9:
-            acc_target = acc_target + verr / n * sqrt_controller(n, kp_acc, jmax, dt)
-    acc_target = _limit_norm(acc_target, amax)
-    return acc + _limit_norm(acc_target - acc, jmax * dt)
+        # keep 1/sqrt(2) of the limit for the component across the input velocity (corners)
+        ux, uy = vin[0] / vn, vin[1] / vn
+        along = ux * ax + uy * ay
+        cx, cy = ax - ux * along, ay - uy * along
+        if along * along <= cx * cx + cy * cy:
+            ax, ay = _limit(ax, ay, amax)
+        else:
+            cx, cy = _limit(cx, cy, amax / math.sqrt(2.0))
+            amax_along = math.sqrt(max(0.0, amax * amax - cx * cx - cy * cy))
+            along = max(-amax_along, min(amax_along, along))
+            ax, ay = cx + ux * along, cy + uy * along
+    ax, ay = ax + ain[0], ay + ain[1]
+    dx, dy = _limit(ax - acc[0], ay - acc[1], jmax * dt)  # shape_accel_xy: the jerk limit
+    return acc[0] + dx, acc[1] + dy
+
+
+def _shape_pos_vel_accel_xy(pin: Vec2, vin: Vec2, ain: Vec2, pos: Vec2, vel: Vec2, acc: Vec2,
+                            vmax: float, amax: float, jmax: float, dt: float) -> Vec2:
+    """shape_pos_vel_accel_xy (limit_total false): the target's next acceleration."""
+    cx, cy = _sqrt_2d(pin[0] - pos[0], pin[1] - pos[1], 0.5 * jmax / amax, 0.5 * amax, dt)
+    if vmax > 0.0:
+        cx, cy = _limit(cx, cy, vmax)
+    return _shape_vel_accel_xy((cx + vin[0], cy + vin[1]), ain, vel, acc, amax, jmax, dt)
+
+
+def _limit_accel_xy(vel: Vec2, acc: Vec2, amax: float) -> tuple[Vec2, bool]:
+    """limit_accel_xy: cap |acc| at amax, keeping the part across vel first."""
+    if acc[0] * acc[0] + acc[1] * acc[1] <= amax * amax:
+        return acc, False
+    vn = _len(*vel)
+    if vn <= 0.0:
+        return _limit(acc[0], acc[1], amax), True
+    ux, uy = vel[0] / vn, vel[1] / vn
+    along = ux * acc[0] + uy * acc[1]
+    cx, cy = acc[0] - ux * along, acc[1] - uy * along
+    if cx * cx + cy * cy >= amax * amax:
+        cx, cy = _limit(cx, cy, amax)
+        along = 0.0
+    else:
+        m = math.sqrt(amax * amax - cx * cx - cy * cy)
+        along = max(-m, min(m, along))
+    return (cx + ux * along, cy + uy * along), True
+
+
+def _advance(pos: Vec2, vel: Vec2, acc: Vec2, dt: float, limit: Vec2, pos_err: Vec2,
+             vel_err: Vec2) -> tuple[Vec2, Vec2]:
+    """update_pos_vel_accel_xy: move the target on by dt, not further into a limit."""
+    dpx = vel[0] * dt + 0.5 * acc[0] * dt * dt
+    dpy = vel[1] * dt + 0.5 * acc[1] * dt * dt
+    dvx, dvy = acc[0] * dt, acc[1] * dt
+    if limit[0] or limit[1]:
+        if dpx * limit[0] + dpy * limit[1] > 0.0 and pos_err[0] * limit[0] + pos_err[1] * limit[1] > 0.0:
+            dpx = dpy = 0.0
+        if (dvx * limit[0] + dvy * limit[1] > 0.0 and vel_err[0] * limit[0] + vel_err[1] * limit[1] > 0.0
+                and vel[0] * limit[0] + vel[1] * limit[1] >= 0.0):
+            dvx = dvy = 0.0
+    return (pos[0] + dpx, pos[1] + dpy), (vel[0] + dvx, vel[1] + dvy)
+
+
+def advance_input(pos: Vec3, vel: Vec3, acc: Optional[Vec3], dt: float) -> tuple[Vec3, Vec3]:
+    """A GUIDED position + velocity (+ acceleration) setpoint moved on by dt, as ArduCopter moves
+    it between messages (input_pos_vel_accel_xy projects the input it is given)."""
+    a = acc or (0.0, 0.0, 0.0)
+    p = tuple(pos[i] + vel[i] * dt + 0.5 * a[i] * dt * dt for i in range(3))
+    v = tuple(vel[i] + a[i] * dt for i in range(3))
+    return p, v  # type: ignore[return-value]
+
+
+def _init_xy(state: VehicleState) -> XyController:
+    """init_xy_controller: the target at the vehicle, its velocity, no acceleration; the I term
+    holds the lean the vehicle already has."""
+    lean = state.xy.lean_acc if state.xy is not None else (state.acc[0], state.acc[1])
+    return XyController(pos=(state.pos[0], state.pos[1]), vel=(state.vel[0], state.vel[1]),
+                        acc=(0.0, 0.0), integrator=lean, error=(0.0, 0.0), error_rate=(0.0, 0.0),
+                        lean_acc=lean, limit=(0.0, 0.0))
+
+
+def _kinematic_limit(d: tuple[float, float, float], max_xy: float, max_up: float, max_down: float) -> float:
+    """kinematic_limit: the speed allowed along direction d (NED, z down)."""
+    n = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    if n <= 0.0 or max_xy <= 0.0 or max_up <= 0.0 or max_down <= 0.0:
+        return 0.0
+    x, y, z = d[0] / n, d[1] / n, -d[2] / n  # z up
+    xy = math.sqrt(x * x + y * y)
+    if xy <= 0.0:
+        return max_up if z > 0.0 else max_down
+    if z == 0.0:
+        return max_xy
+    slope = z / xy
+    lim_z = max_up if slope > 0.0 else max_down
+    if abs(slope) < lim_z / max_xy:
+        return max_xy / xy
+    return abs(lim_z / z)
+
+
+def _step_xy(state: VehicleState, sp: Setpoint, dt: float, lim: VehicleLimits,
+             vmax: float, v_up: float, v_down: float) -> tuple[XyController, Vec2]:
+    """One step of AC_PosControl's horizontal axis; returns the controller and the
+    horizontal acceleration the airframe gets (lean minus drag)."""
+    c = state.xy if state.xy is not None else _init_xy(state)
+    amax, jmax = lim.accel_xy, lim.jerk_xy_max()
+    pos, vel = (state.pos[0], state.pos[1]), (state.vel[0], state.vel[1])
+    pos_err = (c.pos[0] - pos[0], c.pos[1] - pos[1])
+    vel_err = c.error
+    tpos, tvel = _advance(c.pos, c.vel, c.acc, dt, c.limit, pos_err, vel_err)
+    acc_in = (0.0, 0.0) if sp.acc is None else (sp.acc[0], sp.acc[1])
+    if sp.pos is not None and sp.vel is None:  # input_pos_xyz: to the point, zero velocity there
+        d = (sp.pos[0] - tpos[0], sp.pos[1] - tpos[1], sp.pos[2] - state.pos[2])
+        dn = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        v_xy = _kinematic_limit(d, vmax, v_up, v_down) * _len(d[0], d[1]) / dn if dn > 0.0 else 0.0
+        tacc = _shape_pos_vel_accel_xy((sp.pos[0], sp.pos[1]), (0.0, 0.0), (0.0, 0.0), tpos, tvel,
+                                       c.acc, v_xy, amax, jmax, dt)
+    elif sp.pos is not None:  # input_pos_vel_accel_xy
+        tacc = _shape_pos_vel_accel_xy((sp.pos[0], sp.pos[1]), (sp.vel[0], sp.vel[1]), acc_in, tpos,
+                                       tvel, c.acc, vmax, amax, jmax, dt)
+    elif sp.vel is not None:  # input_vel_accel_xy
+        tacc = _shape_vel_accel_xy((sp.vel[0], sp.vel[1]), acc_in, tvel, c.acc, amax, jmax, dt)
+    elif sp.acc is not None:  # input_accel_xy
+        dx, dy = _limit(acc_in[0] - c.acc[0], acc_in[1] - c.acc[1], jmax * dt)
+        tacc = (c.acc[0] + dx, c.acc[1] + dy)
+    else:  # nothing commanded: brake
+        tacc = _shape_vel_accel_xy((0.0, 0.0), (0.0, 0.0), tvel, c.acc, amax, jmax, dt)
+
+    # update_xy_controller: position P (its error capped, dragging the target), velocity PID
+    ex, ey = tpos[0] - pos[0], tpos[1] - pos[1]
+    err_max = inv_sqrt_controller(vmax, lim.pos_p, amax) if lim.pos_p > 0.0 else 0.0
+    if err_max > 0.0 and _len(ex, ey) > err_max:
+        ex, ey = _limit(ex, ey, err_max)
+        tpos = (pos[0] + ex, pos[1] + ey)
+    cvx, cvy = _sqrt_2d(ex, ey, lim.pos_p, amax, 0.0)
+    vtx, vty = cvx + tvel[0], cvy + tvel[1]
+    alpha = dt / (dt + 1.0 / (2.0 * math.pi * lim.vel_filt_hz)) if lim.vel_filt_hz > 0.0 else 1.0
+    raw = (vtx - vel[0], vty - vel[1])
+    err = (c.error[0] + (raw[0] - c.error[0]) * alpha, c.error[1] + (raw[1] - c.error[1]) * alpha)
+    der = ((err[0] - c.error[0]) / dt, (err[1] - c.error[1]) / dt)
+    rate = (c.error_rate[0] + (der[0] - c.error_rate[0]) * alpha,
+            c.error_rate[1] + (der[1] - c.error_rate[1]) * alpha)
+    # AC_PID_2D::update_i: the I term does not grow towards a limited output
+    dix, diy = err[0] * lim.vel_i * dt, err[1] * lim.vel_i * dt
+    ix, iy = c.integrator[0] + dix, c.integrator[1] + diy
+    if dix * c.limit[0] + diy * c.limit[1] > 0.0:
+        ix, iy = _limit(ix, iy, _len(*c.integrator))
+    ix, iy = _limit(ix, iy, lim.vel_imax)
+    ax = lim.vel_p * err[0] + ix + lim.vel_d * rate[0] + tacc[0]
+    ay = lim.vel_p * err[1] + iy + lim.vel_d * rate[1] + tacc[1]
+    (ax, ay), limited = _limit_accel_xy(tvel, (ax, ay), GRAVITY * math.tan(lim.angle_max))
+    limit = (ax, ay) if limited else (0.0, 0.0)
+
+    # the airframe: the lean follows the demand with a lag; drag opposes the velocity
+    k = dt / (lim.lean_tc + dt) if lim.lean_tc > 0.0 else 1.0
+    lean = (c.lean_acc[0] + (ax - c.lean_acc[0]) * k, c.lean_acc[1] + (ay - c.lean_acc[1]) * k)
+    drag = lim.drag * _len(*vel)
+    acc = (lean[0] - drag * vel[0], lean[1] - drag * vel[1])
+    return XyController(pos=tpos, vel=tvel, acc=tacc, integrator=(ix, iy), error=err, error_rate=rate,
+                        lean_acc=lean, limit=limit), acc
 
 
 def _shape_z(
@@ -187,8 +418,10 @@ def step(
 ) -> VehicleState:
     """Advance the powered vehicle by dt seconds towards the setpoint (local NED).
 
-    Speed limits are hard: the returned horizontal speed never exceeds
-    setpoint.speed_xy or limits.speed_xy, the climb/descent rates never exceed
+    Horizontally the shaped target never asks for more than setpoint.speed_xy or
+    limits.speed_xy towards a position-only setpoint (a position + velocity or velocity setpoint
+    adds its own velocity, which ArduCopter does not cap), and the airframe's drag at the lean
+    limit caps the speed flown. Vertically the climb/descent rates never exceed
     speed_up/speed_down. With rng given, a small random-walk position disturbance of
     limits.pos_noise m/sqrt(s) is added (the controller then corrects it).
     """
@@ -197,44 +430,20 @@ def step(
     vmax = setpoint.speed_xy if setpoint.speed_xy else limits.speed_xy
     v_up = setpoint.speed_up if setpoint.speed_up else limits.speed_up
     v_down = setpoint.speed_down if setpoint.speed_down else limits.speed_down
-    pos = np.asarray(state.pos, dtype=float)
-    vel = np.asarray(state.vel, dtype=float)
-    acc = np.asarray(state.acc, dtype=float)
-    acc_ff = np.zeros(3) if setpoint.acc is None else np.asarray(setpoint.acc, dtype=float)
-    vel_cmd = None if setpoint.vel is None else np.asarray(setpoint.vel, dtype=float)
-    pos_err = None if setpoint.pos is None else np.asarray(setpoint.pos, dtype=float) - pos
-
-    acc_xy = _shape_xy(
-        None if pos_err is None else pos_err[:2],
-        None if vel_cmd is None else vel_cmd[:2],
-        acc_ff[:2],
-        vel[:2],
-        acc[:2],
-        vmax,
-        limits.accel_xy,
-        limits.jerk_xy,
-        dt,
-    )
-    acc_z = _shape_z(
-        None if pos_err is None else float(pos_err[2]),
-        None if vel_cmd is None else float(vel_cmd[2]),
-        float(acc_ff[2]),
-        float(vel[2]),
-        float(acc[2]),
-        v_up,
-        v_down,
-        limits.accel_z,
-        limits.jerk_z,
-        dt,
-    )
-    new_acc = np.array([acc_xy[0], acc_xy[1], acc_z])
-    new_vel = vel + new_acc * dt
-    # Hard limits: the airframe never flies faster than the configured speeds.
-    new_vel[:2] = _limit_norm(new_vel[:2], vmax)
-    new_vel[2] = max(-v_up, min(v_down, new_vel[2]))
-    new_pos = pos + 0.5 * (vel + new_vel) * dt
+    xy, (ax, ay) = _step_xy(state, setpoint, dt, limits, vmax, v_up, v_down)
+    az = _shape_z(
+        None if setpoint.pos is None else setpoint.pos[2] - state.pos[2],
+        None if setpoint.vel is None else setpoint.vel[2],
+        0.0 if setpoint.acc is None else setpoint.acc[2],
+        state.vel[2], state.acc[2], v_up, v_down, limits.accel_z, limits.jerk_z, dt)
+    vx, vy = state.vel[0] + ax * dt, state.vel[1] + ay * dt
+    vz = max(-v_up, min(v_down, state.vel[2] + az * dt))
+    px = state.pos[0] + 0.5 * (state.vel[0] + vx) * dt
+    py = state.pos[1] + 0.5 * (state.vel[1] + vy) * dt
+    pz = state.pos[2] + 0.5 * (state.vel[2] + vz) * dt
     if rng is not None and limits.pos_noise > 0.0:
-        new_pos = new_pos + rng.normal(0.0, limits.pos_noise * math.sqrt(dt), 3)
+        nx, ny, nz = rng.normal(0.0, limits.pos_noise * math.sqrt(dt), 3)
+        px, py, pz = px + float(nx), py + float(ny), pz + float(nz)
 
     yaw = state.yaw
     max_turn = limits.yaw_rate * dt
@@ -242,9 +451,7 @@ def step(
         yaw += max(-max_turn, min(max_turn, wrap_pi(setpoint.yaw - yaw)))
     elif setpoint.yaw_rate is not None:
         yaw += max(-max_turn, min(max_turn, setpoint.yaw_rate * dt))
-    return VehicleState(
-        pos=_vec(new_pos), vel=_vec(new_vel), acc=_vec(new_acc), yaw=wrap_pi(yaw)
-    )
+    return VehicleState(pos=(px, py, pz), vel=(vx, vy, vz), acc=(ax, ay, az), yaw=wrap_pi(yaw), xy=xy)
 
 
 def fall(state: VehicleState, dt: float, ground_z: float = 0.0) -> VehicleState:
@@ -258,11 +465,12 @@ def fall(state: VehicleState, dt: float, ground_z: float = 0.0) -> VehicleState:
         pos[2] = ground_z
         vel = np.zeros(3)
         acc = np.zeros(3)
-    return replace(state, pos=_vec(pos), vel=_vec(vel), acc=_vec(acc))
+    return replace(state, pos=_vec(pos), vel=_vec(vel), acc=_vec(acc), xy=None)
 
 
 def on_ground(state: VehicleState, ground_z: float = 0.0) -> VehicleState:
-    """Clamp the state to the ground plane z = ground_z (NED, so below means z > ground_z)."""
+    """Clamp the state to the ground plane z = ground_z (NED, so below means z > ground_z).
+    On the ground the horizontal controller is relaxed: it starts again from the vehicle."""
     if state.pos[2] < ground_z:
         return state
     vz = min(state.vel[2], 0.0)
@@ -272,6 +480,7 @@ def on_ground(state: VehicleState, ground_z: float = 0.0) -> VehicleState:
         pos=(state.pos[0], state.pos[1], ground_z),
         vel=(state.vel[0], state.vel[1], vz),
         acc=(state.acc[0], state.acc[1], az),
+        xy=None,
     )
 
 
@@ -291,8 +500,8 @@ def stopping_point(state: VehicleState, limits: VehicleLimits = VehicleLimits(),
 
 
 def attitude(state: VehicleState) -> Vec3:
-    """(roll, pitch, yaw) in rad that produce the state's horizontal acceleration."""
-    an, ae = state.acc[0], state.acc[1]
+    """(roll, pitch, yaw) in rad: the lean into the thrust's horizontal acceleration."""
+    an, ae = state.xy.lean_acc if state.xy is not None else state.acc[:2]
     c, s = math.cos(state.yaw), math.sin(state.yaw)
     forward = an * c + ae * s
     right = -an * s + ae * c

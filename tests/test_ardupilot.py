@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from sim.ardupilot import skip_reason
-from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig
+from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -62,31 +62,17 @@ def _ran_once(m: Mission) -> None:
 @pytest.fixture(scope="module")
 def flight_a(tmp_path_factory):
     out = tmp_path_factory.mktemp("ardupilot_a")
-    rec: dict = {"out": out}
-    with Mission(MissionConfig(speedup=2.0, feed_duration_s=MONITOR_S + 60, seed=1), out) as m:
-        rec["m"] = m
-        boot_t = m.observer.t
-        rec["launch"] = m.gcs("launch")  # at once: the autopilot is still booting
-        rec["launch_t"] = (boot_t, m.observer.t)
-        assert m.wait(lambda o: o.app_state == "monitoring", 150, "monitoring"), \
-            f"not monitoring; app said {m.observer.app_texts()}"
-        rec["start_t"] = m.observer.t
+
+    def during(m, rec):  # the operator looks and tunes while it monitors (~20 s of mission)
         rec["status"] = m.gcs("status")
-        t_view = m.observer.t
-        rec["view"] = _view(m, out)  # the operator's browser, on a port of its own (~20 s of mission)
-        m.sim_sleep(MONITOR_S - (m.observer.t - t_view))
+        rec["view"] = _view(m, out)  # the operator's browser, on a port of its own
         rec["param_get"] = m.gcs("params", "get", "PMON_CLUTTER")
         rec["param_set"] = m.gcs("params", "set", "PMON_CLUTTER", "1.5")
         rec["param_bad"] = m.gcs("params", "set", "PMON_PD", "1.5")
         rec["param_after"] = m.gcs("params", "get", "PMON_CLUTTER")
-        for mode in ("LOITER", "BRAKE"):
-            rec[mode] = m.gcs(*(("hold",) if mode == "BRAKE" else ("mode", mode)))
-            m.wait(lambda o: o.app_state == "pilot override", 10, "pilot override")
-            rec[f"{mode}_app"] = m.observer.app_state
-            m.sim_sleep(3.0)
-            rec[f"{mode}_resume"] = m.gcs("resume")
-            m.sim_sleep(6.0)
-        rec["end_state"] = m.observer.app_state
+    with Mission(MissionConfig(speedup=2.0, feed_duration_s=MONITOR_S + 60, seed=1), out) as m:
+        rec = fly_launch_procedure(m, MONITOR_S, during)
+        rec["m"] = m
         rec["gcs_saw_estimates"] = sorted({e[1] for e in m.observer.estimates})
     yield rec
 
@@ -147,10 +133,10 @@ def test_live_view_in_a_browser_draws_every_estimate_where_it_is(flight_a):
 
 def test_pilot_takeover_stops_setpoints_within_a_tick_and_resume_flies_again(flight_a):
     m = flight_a["m"]
-    for mode in ("LOITER", "BRAKE"):
-        _ok(flight_a[mode], "accepted by the autopilot")
-        assert flight_a[f"{mode}_app"] == "pilot override"
-        _ok(flight_a[f"{mode}_resume"], "app monitoring")
+    for key in ("LOITER", "hold"):
+        _ok(flight_a[key], "accepted by the autopilot")
+        assert flight_a[f"{key}_app"] == "pilot override"
+        _ok(flight_a[f"{key}_resume"], "app monitoring")
     reactions = m.takeover_reactions()
     assert len(reactions) == 2 and max(reactions) <= TICK_S, reactions
     assert flight_a["end_state"] == "monitoring"

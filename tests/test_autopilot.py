@@ -207,9 +207,12 @@ def test_rejected_type_mask_or_frame_makes_it_hold(ap, gcs):
     assert ap.wait_until(lambda s: s.vel_ned[0] > 5.0, 4.0)
     gcs.local_target(POS_ACCEL, 200.0, 0.0, -10.0)  # pos+accel: ArduCopter stops
     assert ap.wait_until(lambda s: math.hypot(*s.vel_ned) < 0.05, 4.0)
-    held = ap.state().pos_ned
+    stopped = ap.state().pos_ned
     time.sleep(0.5)
-    assert math.dist(ap.state().pos_ned, held) < 0.3 and held[0] < 100.0
+    # it stops: braking from 5 m/s it overshoots its stopping point by ~0.5 m and comes back,
+    # as ArduPilot's SITL does (0.6-0.9 m after a step, bench/sitl_response.py)
+    assert math.dist(ap.state().pos_ned, stopped) < 1.0 and stopped[0] < 100.0
+    held = ap.state().pos_ned
     assert ap.counters()["setpoint_rejected"] == 1
 
     gcs.local_target(POS_ONLY, held[0] + 50, 0.0, -10.0, frame=mavlink.MAV_FRAME_GLOBAL)
@@ -342,7 +345,10 @@ def test_parameters_list_read_set(ap, gcs):
     while time.monotonic() < deadline:
         top = max(top, math.hypot(*ap.state().vel_ned[:2]))
         time.sleep(0.01)
-    assert 3.5 < top <= 4.0 + 1e-6
+    # the shaped path asks for 4 m/s at most; the copter following it overshoots a little, as
+    # ArduPilot's SITL does (4.08 and 4.12 m/s in two runs of python bench/sitl_response.py
+    # --limits stock --param WPNAV_SPEED=400 --cases step60)
+    assert 3.5 < top <= 4.15
 
 
 @pytest.mark.timeout(20)

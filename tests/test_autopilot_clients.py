@@ -198,7 +198,15 @@ async def _mavsdk_flight(port: int, ap: MockAutopilot) -> dict:
         seen["health"] = await first(tel.subscribe_health(), lambda h: h.is_armable, 10)
 
         await action.set_takeoff_altitude(10.0)
-        await action.arm()
+        # ArduCopter's pre-arm bit (MAVSDK's is_armable) can read healthy a moment before arming
+        # passes (its SITL at ~24 s; the mock's BootTimeline.blip_s): a client tries again
+        for attempt in range(10):
+            try:
+                await action.arm()
+                break
+            except Exception as exc:  # mavsdk's ActionError: "Command denied"
+                seen.setdefault("arm_refused", []).append(str(exc))
+                await asyncio.sleep(1.0)
         seen["armed"] = await first(tel.subscribe_armed(), lambda a: a, 5)
         await action.takeoff()  # MAVSDK switches ArduPilot to GUIDED itself
         seen["mode"] = await first(tel.subscribe_flight_mode(),

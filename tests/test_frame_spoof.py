@@ -98,9 +98,11 @@ def flight():
 
         # 3. a conversion origin other than the fixed one, injected into the app
         refused0 = app.counters.get("setpoints_refused_at_send", 0)
-        n_rx = len(out["rx"])
         real = app.vehicle.ned_origin
-        app.vehicle.ned_origin = (lat, lon, alt)
+        with app.lock:  # between two sends
+            app.vehicle.ned_origin = (lat, lon, alt)
+        time.sleep(0.05)  # a setpoint sent just before may still be on its way
+        n_rx = len(out["rx"])
         _wait_ap(ap, 3.0)
         app.vehicle.ned_origin = real
         out["refused_at_send"] = app.counters.get("setpoints_refused_at_send", 0) - refused0

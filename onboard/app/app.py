@@ -134,6 +134,7 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
 WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
 WARN_ACCEL = 2  # ... its acceleration limit
 STALE_TELEMETRY_S = 2.0  # local s without GLOBAL_POSITION_INT while heartbeats come: ask again
+FALLBACK_SAY_TICKS = 3  # a target's guidance on a fallback this many ticks in a row is said
 
 
 @dataclass(frozen=True)
@@ -284,7 +285,7 @@ class OnboardApp:
         # failsafes
         self._link_lost = False
         self._silent = False  # DF silence episode (coasting) in progress
-        self._fallback = [False] * self.M  # target j's guidance is on a fallback plan
+        self._fallback = [0] * self.M  # consecutive ticks target j's guidance was on a fallback
         self._scan_t_used = [-math.inf] * self.M
         self._last_good: list[tuple[np.ndarray, np.ndarray] | None] = [None] * self.M
         self._io_beat = self.mono()
@@ -1308,20 +1309,25 @@ class OnboardApp:
         return out
 
     def _report_guidance(self, res) -> None:
-        """Guidance time-outs and fallbacks: counted every tick, said when a target enters or
-        leaves a fallback (not every tick). Under the lock."""
+        """Guidance time-outs and fallbacks: counted every tick (PMON_STAT, the run log); said
+        when a target's guidance stays on a fallback FALLBACK_SAY_TICKS ticks in a row, and when
+        it is back after that. A single tick on the previous plan (the time ran out around an
+        obstacle) is the designed degradation, not news for the pilot. Under the lock."""
         if any(p.status == "timeout" for p in res.plans):
             self._count("guidance_timeouts")
         for j, plan in enumerate(res.plans):
             fb = plan.status.startswith("fallback")
             if fb:
                 self._count(plan.status)
-            if fb and not self._fallback[j]:
-                how = "previous plan shifted" if plan.status == "fallback_previous" else "coasting"
-                self.say(f"T{j + 1} guidance failed: {how}", mavlink.MAV_SEVERITY_WARNING)
-            elif not fb and self._fallback[j]:
-                self.say(f"T{j + 1} guidance back")
-            self._fallback[j] = fb
+                self._fallback[j] += 1
+                if self._fallback[j] == FALLBACK_SAY_TICKS:
+                    how = "previous plan shifted" if plan.status == "fallback_previous" else "coasting"
+                    self.say(f"T{j + 1} guidance failed {FALLBACK_SAY_TICKS} ticks: {how}",
+                             mavlink.MAV_SEVERITY_WARNING)
+            else:
+                if self._fallback[j] >= FALLBACK_SAY_TICKS:
+                    self.say(f"T{j + 1} guidance back")
+                self._fallback[j] = 0
 
     def _record(self, job, res, sensor_pos, centre, nxt, sent, refused, t_start, t_sent, ap_sent) -> dict:
         sig = np.sqrt(np.maximum(np.diagonal(res.covs, axis1=1, axis2=2), 0.0))

@@ -1,0 +1,28 @@
+"""Flight policies: how the app decides where to fly, as overrides of a scenario's settings
+(``onboard.config.load_scenario(..., overrides)``).
+
+- ``flight`` (the default of ``pmon run`` and ``pmon demo``): the best measured; each value's
+  measurement is in docs/PLANNING.md.
+- ``paper``: the scenario as written: the paper's one-step greedy rule on the jump model (what
+  ``pmon eval paper`` evaluates as greedy_l1).
+
+The vehicle's speed and acceleration limits are the autopilot's own, read by the app at
+connection (WPNAV_SPEED / WPNAV_ACCEL on ArduPilot), capped by ``planning.speed_max_mps`` and
+``planning.accel_max_mps2`` (what the airframe can fly).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+POLICIES: dict[str, dict[str, Any]] = {
+    "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle"},
+    "paper": {},
+}
+DEFAULT = "flight"
+
+
+def overrides(policy: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The scenario overrides of ``policy``, then ``extra`` on top (a user's own win)."""
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}: one of {', '.join(POLICIES)}")
+    return {**POLICIES[policy], **(extra or {})}
