@@ -140,7 +140,21 @@ def writable_path(text: str) -> str:
     return text
 
 
+def writable_dir(text: str) -> str:
+    """A directory to write into (made if missing, parents too): not a file, and the nearest
+    existing directory on its path writable (checked before a long run, not after it)."""
+    if os.path.exists(text) and not os.path.isdir(text):
+        raise ValueError(f"{text}: exists and is not a directory")
+    probe = os.path.abspath(text)
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe) or not os.access(probe, os.W_OK):
+        raise ValueError(f"{text}: {probe} is not a writable directory")
+    return text
+
+
 OUT_FILE = checked(writable_path)
+OUT_DIR = checked(writable_dir)
 
 
 def fail(prog: str, message: str) -> int:

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from onboard.argcheck import SEED, OneLineParser, integer
+from onboard.argcheck import OUT_DIR, SEED, OneLineParser, integer
 from onboard.config import ConfigError, load_scenario, parse_overrides
 
 
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--methods", default="greedy_l1,greedy_l8,fixed3,hover,orbit,random",
                    help="comma-separated method names (default: the paper's six; also lookahead, "
                         "lookahead_vehicle, greedy_vehicle: docs/PLANNING.md)")
-    e.add_argument("--out", default="eval_out", help="output directory (default eval_out)")
+    e.add_argument("--out", default="eval_out", type=OUT_DIR, help="output directory (default eval_out)")
     e.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
     e.add_argument("--particles", type=integer(10, 1_000_000), default=None,
                    help="particles per target (default: the scenario's)")

@@ -79,6 +79,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
         (run + ["--runlog", "/nonexistent/run.jsonl"], "no directory /nonexistent"),
         (pmon + ["eval", "--set", "name=" + "[" * 3000], "--set"),
         (pmon + ["eval", "--trials", "0"], "argument --trials: must be in 1..1000000"),
+        (pmon + ["eval", "--out", "/dev/null"], "argument --out: /dev/null: exists and is not a directory"),
         (pmon + ["simulate", "--seed", "-1"], "argument --seed: must be >= 0"),
         (pmon + ["simulate", "--ticks", "0"], "argument --ticks: must be in 1..100000"),
         (pmon + ["feed", "live", "--mavlink", "nonsense://x"], "argument --mavlink: want udpin|"),
