@@ -108,7 +108,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     (``{"name", "kind", "rate_hz", "seconds", "src"}``) one after the other from a sender
     process; returns the figures (see the module doc)."""
     import latency
-    from onboard.app.app import State
+    from onboard.app.contract import State
     from onboard.app.df_input import Source
 
     tb = TracebackCounter()

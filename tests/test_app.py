@@ -13,7 +13,8 @@ from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 be
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from onboard.app import datagram as dg
-from onboard.app.app import AppConfig, OnboardApp, Reason, State
+from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.contract import Reason, State
 from onboard.app.params import SPECS
 from onboard.config import load_scenario
 from tests.test_app_sitl import Gcs

@@ -28,7 +28,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
 
-from onboard.app.app import AppConfig, OnboardApp, State
+from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
 from onboard.demo import DEMO_VEHICLE_PARAMS

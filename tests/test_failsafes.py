@@ -31,9 +31,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
 
-import onboard.app.app as app_mod
+import onboard.app.worker as app_mod  # the tick the worker calls (fault injection)
 from onboard.app import datagram as dg
-from onboard.app.app import AppConfig, OnboardApp, State
+from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.tracking import ParticleSet
 from onboard.demo import DEMO_VEHICLE_PARAMS

@@ -28,7 +28,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from test_failsafes import ScriptedDf, _wait, _wait_ap
 
-from onboard.app.app import AppConfig, OnboardApp, State
+from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.contract import State
 from onboard.app.pose import Frame
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles

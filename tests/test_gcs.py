@@ -79,7 +79,7 @@ def test_plot_of_a_missing_or_foreign_file_exits_1(capsys, tmp_path):
 
 
 def test_wire_constants_match_the_onboard_app():
-    from onboard.app.app import MAV_CMD_PMON, REASON_TEXT, Action, State
+    from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, State
     from onboard.app.link import COMP_ID
 
     assert P.APP_COMPID == COMP_ID and P.APP_COMMAND == MAV_CMD_PMON

@@ -7,8 +7,16 @@ import signal
 import sys
 import threading
 
-from onboard.argcheck import HOST_PORT_BIND, MAVLINK_URL, OUT_FILE, SEED, checked, integer, number
 from onboard.app.df_input import DEFAULT_RATE_HZ, parse_sources
+from onboard.argcheck import (
+    HOST_PORT_BIND,
+    MAVLINK_URL,
+    OUT_FILE,
+    SEED,
+    checked,
+    integer,
+    number,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

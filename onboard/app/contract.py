@@ -1,0 +1,75 @@
+"""The onboard app's wire contract: its states, the actions it is commanded with, the reasons
+it refuses, and the layout of what it publishes (docs/MAVLINK.md). groundstation/protocol.py
+repeats the numbers a ground station needs (tests/test_gcs.py checks they agree)."""
+from __future__ import annotations
+
+from enum import IntEnum
+
+from onboard.app.link import mavlink
+
+# MAVLink command sent to component 191; param1 = action
+MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010
+
+
+class State(IntEnum):
+    IDLE = 0
+    MONITORING = 1
+    PAUSED = 2
+    PILOT_OVERRIDE = 3
+    FAULT = 4
+
+
+class Action(IntEnum):
+    START = 1
+    PAUSE = 2
+    RESUME = 3
+    STOP = 4
+    LAUNCH = 5  # GUIDED, arm, take off to h, then START
+
+
+class Reason(IntEnum):
+    """COMMAND_ACK.result_param2 when a command is refused (docs/MAVLINK.md)."""
+
+    NONE = 0
+    NOT_ARMED = 1
+    NOT_FLYING = 2
+    NO_SENSOR_DATA = 3
+    NO_POSITION = 4
+    NO_AUTOPILOT = 5
+    UNKNOWN_ACTION = 6
+    WRONG_STATE = 7
+    ALREADY_FLYING = 8
+    BUSY = 9
+
+
+REASON_TEXT = {
+    Reason.NOT_ARMED: "vehicle not armed",
+    Reason.NOT_FLYING: "vehicle not flying",
+    Reason.NO_SENSOR_DATA: "no DF data in the last 3 s",
+    Reason.NO_POSITION: "no valid position or local origin yet",
+    Reason.NO_AUTOPILOT: "no autopilot heartbeat",
+    Reason.UNKNOWN_ACTION: "unknown action",
+    Reason.WRONG_STATE: "not possible in this state",
+    Reason.ALREADY_FLYING: "already flying: use start",
+    Reason.BUSY: "launch in progress",
+}
+
+STATUS = {  # HEARTBEAT.system_status per app state
+    State.IDLE: mavlink.MAV_STATE_STANDBY,
+    State.MONITORING: mavlink.MAV_STATE_ACTIVE,
+    State.PAUSED: mavlink.MAV_STATE_STANDBY,
+    State.PILOT_OVERRIDE: mavlink.MAV_STATE_STANDBY,
+    State.FAULT: mavlink.MAV_STATE_CRITICAL,
+}
+
+TGT_FIELDS = ("x_east_m", "y_north_m", "z_up_m", "vx_mps", "vy_mps", "vz_mps", "sigma_x_m",
+              "sigma_y_m", "since_scan_s", "cov_xy_m2", "sigma_vx_mps", "sigma_vy_mps",
+              "degenerate", "tick_time_s")
+STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m", "next_n_m",
+               "next_u_m", "dgram_accepted", "dgram_rejected", "ticks", "ticks_skipped",
+               "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
+               "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
+               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase")
+# PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)
+WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
+WARN_ACCEL = 2  # ... its acceleration limit
