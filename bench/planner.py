@@ -31,7 +31,7 @@ from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
-from sim.evaluation import numerics_description  # noqa: E402
+from sim.numerics import numerics_description  # noqa: E402
 
 CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("lookahead", "vehicle"))
 

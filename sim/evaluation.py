@@ -62,6 +62,7 @@ from onboard.core.planning import UavMotion, admissible, candidate_positions
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
+from sim.numerics import numerics_description, pin_kernels
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
 from sim.vehicle import VehicleLimits, VehicleState, limits_from_params
@@ -556,6 +557,7 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
             # (this process's numpy may have them), and the plan-steering filter amplifies last-bit
             # differences, so only workers with one BLAS thread each give the same trials whatever K
             _one_blas_thread()  # inherited by the spawned workers' environment
+            pin_kernels()  # the AVX2 kernels on every x86-64 that has them: the same figures there (sim/numerics.py)
             ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
             # stopped for any reason, the workers go at once: none computes trials nobody reads
             try:
@@ -811,36 +813,6 @@ def write_per_trial_csv(summary: Summary, path) -> None:
 def machine_description() -> str:
     return f"{platform.node() or 'host'}: {platform.machine()}, {os.cpu_count()} cores, {platform.system()} " \
            f"{platform.release()}, Python {platform.python_version()}"
-
-
-def _cpu_model() -> str:
-    with contextlib.suppress(OSError):
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
-
-
-def numerics_description() -> str:
-    """The CPU and the numerical packages a run's figures depend on to the last bit.
-
-    The guidance's knife edges (which side of an obstacle a target takes) turn last-bit
-    differences into other trials, so figures reproduce exactly only where these match."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    def ver(pkg):
-        try:
-            return version(pkg)
-        except PackageNotFoundError:
-            return "absent"
-
-    blas = "unknown BLAS"
-    with contextlib.suppress(Exception):
-        b = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
-        blas = f"{b['name']} {b['version']}"
-    pkgs = ", ".join(f"{p} {ver(p)}" for p in ("numpy", "scipy", "daqp", "osqp"))
-    return f"{_cpu_model()}; {pkgs}; {blas}"
 
 
 def results_markdown(summary: Summary, command: str) -> str:

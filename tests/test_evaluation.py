@@ -103,10 +103,16 @@ def test_all_methods_share_the_truth_and_the_uav_start(tiny_serial, tiny):
 
 
 def test_dask_cluster_gives_the_same_trials(tiny, tiny_serial):
+    """A worker process started as docs/RESULTS.md says (one BLAS thread, the pinned kernels of
+    sim/numerics.py in its environment) over TCP on loopback, the comms a remote scheduler uses."""
     distributed = pytest.importorskip("distributed")
-    # threads in this process, but over TCP on loopback: the same comms a remote scheduler uses
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
-                                  host="127.0.0.1", scheduler_port=0, dashboard_address=None) as cluster:
+    import dask
+
+    from sim.numerics import PINNED, can_pin
+    env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", **(PINNED if can_pin() else {})}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}), \
+            distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp://",
+                                     host="127.0.0.1", scheduler_port=0, dashboard_address=None) as cluster:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
         got = ev.run_trials(tiny, scheduler=cluster.scheduler_address, progress=False)
     assert _same(tiny_serial, got)
@@ -236,6 +242,56 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         ev.make_config(sc, 1, 5, ["flight@x"])
 
 
+def test_workers_load_the_avx2_kernels_where_the_cpu_has_them():
+    """sim.numerics: OpenBLAS's and numpy's AVX-512 kernels round differently from their AVX2
+    ones, so the evaluation's workers load the AVX2 ones on every x86-64 that has them (a
+    variable the user set stays); a process started with them has no AVX-512 dispatch."""
+    from sim import numerics
+
+    env: dict = {}
+    if not numerics.pin_kernels(env):
+        assert env == {} and not numerics.can_pin()
+        pytest.skip("no AVX2 and FMA here: nothing is pinned")
+    assert env == numerics.PINNED and numerics.kernels_description(env).startswith("kernels pinned to AVX2")
+    own = {"OPENBLAS_CORETYPE": "Zen"}
+    numerics.pin_kernels(own)
+    assert own["OPENBLAS_CORETYPE"] == "Zen" and "OPENBLAS_CORETYPE=Zen" in numerics.kernels_description(own)
+    probe = ("import numpy\ntry:\n from numpy._core._multiarray_umath import __cpu_features__ as f\n"
+             "except ImportError:\n from numpy.core._multiarray_umath import __cpu_features__ as f\n"
+             "print(bool(f.get('X86_V4') or f.get('AVX512_SKX')), bool(f.get('AVX2')))")
+    clean = {k: v for k, v in os.environ.items() if k not in numerics.PINNED}
+    got = subprocess.run([sys.executable, "-c", probe], env={**clean, **env}, capture_output=True, text=True,
+                         timeout=60)
+    assert got.stdout.split() == ["False", "True"], got.stderr
+
+
+def _pinned_packages() -> bool:
+    from importlib.metadata import version
+    pins = dict(line.split("==") for line in (Path(__file__).parents[1] / "constraints.txt").read_text().split()
+                if "==" in line)
+    return all(version(p) == pins[p] for p in ("numpy", "scipy", "daqp", "osqp"))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_docs_results_trial_0_reproduces_here(tmp_path):
+    """README's claim: with the packages of constraints.txt, on any x86-64 with AVX2 and FMA,
+    `pmon eval paper` gives docs/results/ to the last digit. Trial 0 is one that an AVX-512 CPU
+    gave otherwise before the kernels were pinned (fixed3 8.2485 m, greedy_l1 29.1447 m)."""
+    from sim import numerics
+
+    if not (numerics.can_pin() and _pinned_packages()):
+        pytest.skip("needs the packages of constraints.txt on an x86-64 with AVX2 and FMA")
+    out = tmp_path / "ev"
+    res = run_cli("eval", "paper", "--trials", "1", "--seed", "2024", "--methods", "greedy_l1,fixed3",
+                  "--workers", "1", "--no-figures", "--quiet", "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    docs = Path(__file__).parents[1] / "docs" / "results" / "per_trial.csv"
+    want = {ln for ln in docs.read_text().splitlines() if ln.startswith(("0,greedy_l1,", "0,fixed3,"))}
+    got = {ln for ln in (out / "per_trial.csv").read_text().splitlines() if ln.startswith("0,")}
+    assert got == want and len(got) == 2
+
+
 def test_orbit_converges_to_its_circle(quick):
     cfg = ev.make_config(quick, 1, 3, ["orbit"], duration_s=60, particles=100)
     tr = ev.run_trial(cfg, 0)
@@ -276,6 +332,8 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     assert "| greedy_l1 |" in md
     # the figures depend on the numerical stack to the last bit: a reader must be able to match it
     assert f"numpy {np.__version__}, scipy {scipy.__version__}" in md
+    from sim.numerics import can_pin
+    assert ("kernels pinned to AVX2" in md) == can_pin()
 
 
 @pytest.mark.parametrize("args, message", [
