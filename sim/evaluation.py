@@ -654,6 +654,15 @@ class Summary:
     wall_s: float
     n_trials: int
     target_speed_10s: tuple[float, ...] = ()  # the true targets' mean speed per 10 s of mission, m/s
+    # the flight default (a method named flight, flight@..., flight~...) against every other method
+    # of the run: {(flight method, other): ((ratio, lo, hi) of RMSEs, (mean, lo, hi) of per-trial
+    # differences)}, paired over the trials
+    pairs: dict = field(default_factory=dict)
+
+
+def is_flight(name: str) -> bool:
+    """The flight default, with its autopilot (``@``) or a variant of it (``~``)."""
+    return name.partition("@")[0].partition("~")[0] == "flight"
 
 
 def _paired_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[float, float, float]:
@@ -764,7 +773,10 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
     per10 = int(round(10.0 / cfg.dt_s))
     speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s)
+    pairs = {(a, b): (_paired_ratio(errs[a], errs[b], w0, cfg.seed),
+                      t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
+             for a in cfg.method_names if is_flight(a) for b in cfg.method_names if b != a}
+    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs)
 
 
 def headline(summary: Summary) -> dict:
@@ -781,6 +793,8 @@ def headline(summary: Summary) -> dict:
                     for n, s in summary.methods.items()},
         "uav_vs_fixed_ratio": r(summary.ratio),
         "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
+        **({} if not summary.pairs else {"flight_over": {f"{a} / {b}": [r(v) for v in ratio]
+                                                          for (a, b), (ratio, _) in summary.pairs.items()}}),
     }
 
 
@@ -892,6 +906,16 @@ def results_markdown(summary: Summary, command: str) -> str:
         if summary.target_speed_10s:
             L += ["The targets' mean true speed per 10 s of the mission [m/s]: "
                   + ", ".join(f"{v:.1f}" for v in summary.target_speed_10s) + ".", ""]
+    if summary.pairs:
+        L += ["## The flight default against each method", "",
+              "Paired over the same trials: the ratio of time-averaged RMSEs (flight / other; 95 % paired "
+              f"percentile bootstrap CI, {BOOTSTRAP_RESAMPLES} resamples) and the mean per-trial difference of "
+              "window RMSE (flight minus other; 95 % t-interval).", "",
+              "| flight method | other | flight / other (95 % CI) | other / flight | flight minus other [m] (95 % CI) |",
+              "|---|---|---|---:|---|"]
+        for (a, b), ((v, lo, hi), (d, dlo, dhi)) in summary.pairs.items():
+            L.append(f"| {a} | {b} | {v:.2f} ({lo:.2f}, {hi:.2f}) | {1 / v:.2f} | {d:+.1f} ({dlo:+.1f}, {dhi:+.1f}) |")
+        L.append("")
     flown = {n: s.flown for n, s in summary.methods.items() if s.flown}
     if flown:
         L += ["## How the vehicle flew its plans", "",

@@ -234,6 +234,13 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     s = ev.summarise(cfg, [tr])
     md = ev.results_markdown(s, "x")
     assert "| lookahead_vehicle@demo | demo: 20 m/s, 5 m/s² | 20 m/s, 5 m/s² |" in md
+    # the flight default against every other method of the run, paired (both flight methods)
+    assert set(s.pairs) == {(a, b) for a in ("flight", "flight@demo") for b in names if b != a}
+    (ratio, _, _), (diff, _, _) = s.pairs[("flight", "lookahead_vehicle@demo")]
+    assert ratio == pytest.approx(s.methods["flight"].rmse_mean_m / s.methods["lookahead_vehicle@demo"].rmse_mean_m)
+    assert diff == pytest.approx(s.methods["flight"].per_trial_rmse[0] - s.methods["lookahead_vehicle@demo"].per_trial_rmse[0])
+    assert f"| flight | lookahead_vehicle@demo | {ratio:.2f} (" in md
+    assert ev.headline(s)["flight_over"]["flight / lookahead_vehicle@demo"][0] == pytest.approx(ratio, abs=1e-4)
     assert ev.headline(s)["methods"]["flight"]["speed_peak_mps"] == pytest.approx(
         s.methods["flight"].flown["speed_peak_mps"], abs=1e-4)
     with pytest.raises(ValueError, match="greedy_l1 flies no vehicle"):
