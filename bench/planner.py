@@ -1,6 +1,7 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
     python bench/planner.py [--ticks 60] [--seed 1] [--figure bench/planner_tick.png]
+                            [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight]
                             [--set tracking.plan_steering=true ...]
 
 Closed loop on the core alone (as bench/tick.py): the targets follow their own plans, the DF
@@ -9,7 +10,9 @@ the velocity it says). One BLAS thread unless OPENBLAS_NUM_THREADS says otherwis
 numpy loads), so the figures are one core's; the header says the count and the CPU and packages.
 Prints a table per planner x motion (medians and p95 over ticks after the first, which includes
 the guidance's exploratory face search), writes a figure of the tick-time distributions, and
-ends with one JSON line.
+ends with one JSON line. The case ``flight`` is the flight default (onboard/policy.py
+POLICIES["flight"], with ArduCopter's stock WPNAV_SPEED / WPNAV_ACCEL as the app reads them,
+capped as the policy says), the scenario's ``--set`` on top.
 """
 from __future__ import annotations
 
@@ -28,12 +31,24 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import load_scenario, with_overrides  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
-from sim.evaluation import numerics_description  # noqa: E402
+from onboard.policy import POLICIES, vehicle_motion  # noqa: E402
+from sim.numerics import numerics_description  # noqa: E402
+from sim.vehicle import VehicleLimits  # noqa: E402
 
-CASES = (("greedy", "jump"), ("lookahead", "jump"), ("greedy", "vehicle"), ("lookahead", "vehicle"))
+CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
+
+
+def setup_for(sc, case: str) -> MonitorSetup:
+    if case == "flight":
+        fl = with_overrides(sc, POLICIES["flight"])
+        stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
+        return MonitorSetup.from_scenario(fl, motion=vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy))
+    planner, motion = case.split("/")
+    return MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
+        motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
 
 
 def main() -> None:
@@ -42,16 +57,20 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
                     help="where to write the figure ('' for none)")
+    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     add_set_option(ap)
     args = ap.parse_args()
+    cases = [c for c in args.cases.split(",") if c]
+    bad = [c for c in cases if c not in CASES]
+    if bad or not cases:
+        ap.error(f"--cases: unknown case {bad[0]!r}" if bad else "--cases is empty")
     sc = load_scenario("paper", set_overrides(ap, args))
     results = {}
-    for planner, motion in CASES:
-        setup = MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
-            motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
-        results[f"{planner}/{motion}"] = tick_timings(setup, args.ticks, args.seed)
+    for case in cases:
+        results[case] = tick_timings(setup_for(sc, case), args.ticks, args.seed)
     print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
-          f"{sc.planning.lookahead_steps} ticks, BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
+          f"{sc.planning.lookahead_steps} ticks (flight: {with_overrides(sc, POLICIES['flight']).planning.lookahead_steps}), "
+          f"BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
     print(f"numerics: {numerics_description()}")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")
     for name, r in results.items():
@@ -72,6 +91,7 @@ def main() -> None:
             ax.set_title(f"{key} per tick (paper scenario, one core)")
             if key == "tick":
                 ax.axhline(250.0, color="tab:red", ls="--", lw=1, label="budget 250 ms")
+                ax.axhline(150.0, color="tab:orange", ls=":", lw=1, label="flight default target 150 ms")
                 ax.legend()
             ax.grid(alpha=0.3)
         fig.tight_layout()

@@ -24,7 +24,8 @@ ended (its coordinates are relative to that point, local NED, metres):
   ``ramp``: p[k] + d c with c = (p[k+1] - p[k]) / T (a target that reaches p[k+1] when the
   next setpoint is due);
   ``pva``: the plan's state at k + d: p[k] + d v[k] + d^2 a / 2, v[k] + d a, and a =
-  (v[k+1] - v[k]) / T as acceleration (the firmware integrates it to p[k+1], v[k+1]).
+  (v[k+1] - v[k]) / T as acceleration (the firmware integrates it to p[k+1], v[k+1]); what the
+  app sends, computed by the same function (onboard.core.setpoint.plan_setpoint).
 
 Limits: ``stock`` is what the binary boots with (copter.parm over the firmware's defaults: read
 back and printed), ``demo`` is onboard/demo.py's DEMO_VEHICLE_PARAMS. The copter's
@@ -61,6 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from onboard.core.setpoint import plan_setpoint  # noqa: E402
 from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
 from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
 
@@ -381,10 +383,8 @@ def route_setpoint(kind: str, P: np.ndarray, V: np.ndarray, k: int, latency: flo
         v = (P[nxt] - P[k]) / TICK_S
         p = P[k] + v * latency
         return MASK_POSVEL, (*p, 0.0), (*v, 0.0), None
-    if kind == "pva":
-        a = (V[nxt] - V[k]) / TICK_S if nxt > k else np.zeros(2)
-        p = P[k] + V[k] * latency + 0.5 * a * latency ** 2
-        v = V[k] + a * latency
+    if kind == "pva":  # the app's setpoint (onboard.core.setpoint); the last tick: no acceleration
+        p, v, a = plan_setpoint(P[k], V[k], V[nxt], TICK_S, min(latency, TICK_S))
         return MASK_PVA, (*p, 0.0), (*v, 0.0), (*a, 0.0)
     raise ValueError(kind)
 

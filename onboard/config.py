@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -185,6 +185,9 @@ class Scenario:
     planning: Planning
     mission: Mission
     source: str = field(default="<memory>", compare=False)
+    # the YAML tree as read (before ``overrides``) and the overrides applied, for ``with_overrides``
+    tree: Any = field(default=None, compare=False, repr=False)
+    overrides: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     def goal_of(self, target: Target) -> Box:
         return next(g for g in self.goals if g.name == target.goal)
@@ -556,7 +559,7 @@ def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] 
     whose parent is missing is an error naming it."""
     text, source = _read(path_or_name)
     try:
-        data = yaml.safe_load(text)
+        tree = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -564,7 +567,29 @@ def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] 
         raise ConfigError(f"{source}: not valid YAML{where}: {problem}") from None
     except RecursionError:
         raise ConfigError(f"{source}: nested too deeply for a scenario") from None
-    for key, value in (overrides or {}).items():
+    return _with_tree(tree, source, dict(overrides or {}))
+
+
+def with_overrides(sc: Scenario, overrides: dict[str, Any]) -> Scenario:
+    """The scenario re-read from its file with ``overrides`` under the ones it was loaded with
+    (those win: a user's ``--set`` over a policy's settings); validated as ``load_scenario`` does.
+    A scenario not from ``load_scenario`` (no tree) is an error."""
+    if sc.tree is None:
+        raise ConfigError(f"{sc.source}: not loaded from a file: cannot apply {', '.join(overrides)}")
+    if _with_tree(sc.tree, sc.source, dict(sc.overrides)) != sc:  # a change made after loading would be lost
+        raise ConfigError(f"{sc.source}: changed after loading (dataclasses.replace): load it with those "
+                          f"changes as overrides to apply {', '.join(overrides)}")
+    return _with_tree(sc.tree, sc.source, {**overrides, **dict(sc.overrides)})
+
+
+def _with_tree(tree: Any, source: str, overrides: dict[str, Any]) -> Scenario:
+    import copy
+
+    try:
+        data = copy.deepcopy(tree)
+    except RecursionError:  # yaml read it; a copy of that depth is not a scenario either
+        raise ConfigError(f"{source}: nested too deeply for a scenario") from None
+    for key, value in overrides.items():
         node, *parents = data, *key.split(".")[:-1]
         for i, part in enumerate(parents):
             if not isinstance(node, dict) or part not in node:
@@ -572,11 +597,12 @@ def load_scenario(path_or_name: str | Path = "paper", overrides: dict[str, Any] 
             node = node[part]
         if not isinstance(node, dict):
             raise ConfigError(f"{source}: {key}: its parent is not a mapping")
-        node[key.split(".")[-1]] = value
+        node[key.split(".")[-1]] = copy.deepcopy(value)
     try:
-        return parse_scenario(data, source)
+        sc = parse_scenario(data, source)
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
+    return replace(sc, tree=tree, overrides=tuple(overrides.items()))
 
 
 def _read(path_or_name: str | Path) -> tuple[str, str]:

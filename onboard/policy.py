@@ -14,8 +14,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from onboard.core.planning import UavMotion
+
 POLICIES: dict[str, dict[str, Any]] = {
-    "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle"},
+    "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
+               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5},
     "paper": {},
 }
 DEFAULT = "flight"
@@ -26,3 +29,11 @@ def overrides(policy: str, extra: dict[str, Any] | None = None) -> dict[str, Any
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}: one of {', '.join(POLICIES)}")
     return {**POLICIES[policy], **(extra or {})}
+
+
+def vehicle_motion(planning, speed_mps: float, accel_mps2: float) -> UavMotion:
+    """The vehicle motion the planner plans with: the autopilot's own limits (``speed_mps``,
+    ``accel_mps2``: WPNAV_SPEED, WPNAV_ACCEL in SI), capped by what the airframe flies
+    (``planning.speed_max_mps``, ``planning.accel_max_mps2`` of the scenario with its policy)."""
+    return UavMotion("vehicle", min(float(speed_mps), planning.speed_max_mps),
+                     min(float(accel_mps2), planning.accel_max_mps2))

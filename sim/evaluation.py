@@ -47,25 +47,34 @@ import platform
 import signal
 import time
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy import stats
 
+from onboard.config import with_overrides
 from onboard.core import tracking
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import PLANAR, bearing_information, information_reduction_factor, pcrb, planar_model
 from onboard.core.monitor import MonitorSetup, MonitorState, Scan, TickResult, initial_state, tick
 from onboard.core.planning import UavMotion, admissible, candidate_positions
+from onboard.demo import DEMO_VEHICLE_PARAMS
+from onboard.policy import POLICIES, vehicle_motion
+from sim.guided import enu, fly_plan, ned
+from sim.numerics import numerics_description, pin_kernels
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
+from sim.vehicle import VehicleLimits, VehicleState, limits_from_params
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
 ORBIT_RADIUS_M = 150.0  # radius of the "orbit" baseline around the targets' initial centroid
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
 BOOTSTRAP_RESAMPLES = 2000
+# the ArduCopter parameters a vehicle method's copter flies with (sim.vehicle.limits_from_params):
+# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: onboard/demo.py's)
+AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS)}
 
 
 # --------------------------------------------------------------------------- methods
@@ -100,8 +109,19 @@ class Method:
     setup: MonitorSetup field overrides for this method only (applied after the config's).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
     ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
+    A UAV that the monitor's tick plans on the vehicle motion is *flown*: at each tick the app's
+    setpoint (the plan's position, velocity and acceleration) is given to the vehicle model
+    fitted to ArduCopter (sim.guided.fly_plan), and the next scan is taken where it is a tick
+    later, with the velocity it has then (not at the planned point).
     jump_twin: for a vehicle method, the method with the same planner and the jump model; when
     both run, the summary reports this method's RMSE over the twin's, paired, with its CI.
+    scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
+    the run's own ``--set`` (``onboard.config.with_overrides``).
+    autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
+    (None: stock). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
+    WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
+    airframe flies; ``onboard.policy.vehicle_motion``), as the app does; else with the
+    scenario's values.
     """
 
     name: str
@@ -113,6 +133,9 @@ class Method:
     setup: tuple[tuple[str, Any], ...] = ()
     motion: str | None = None
     jump_twin: str | None = None
+    scenario_overrides: tuple[tuple[str, Any], ...] = ()
+    autopilot: str | None = None
+    autopilot_limits: bool = False
 
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed"):
@@ -121,6 +144,8 @@ class Method:
             raise ValueError(f"method {self.name}: a UAV method needs greedy=True or a policy")
         if self.motion not in (None, "jump", "vehicle"):
             raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
+        if self.autopilot is not None and self.autopilot not in AUTOPILOTS:
+            raise ValueError(f"method {self.name}: autopilot must be one of {', '.join(AUTOPILOTS)}")
 
 
 def hover_policy(ctx: PolicyContext) -> np.ndarray:
@@ -191,6 +216,10 @@ for _m in (
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
            "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle",
            jump_twin="greedy_l1"),
+    Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
+           "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
+           "flies, Lambda = 1", greedy=True, clutter_rate=1.0, motion="vehicle",
+           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", greedy=True, clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
     Method("hover", "single UAV hovering at its start, Lambda = 1", policy=hover_policy, clutter_rate=1.0),
@@ -241,11 +270,13 @@ def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_M
     names = list(methods)
     if not names:
         raise ValueError("--methods is empty")
-    unknown = [m for m in names if m not in METHODS]
+    unknown = [m for m in names if m.partition("@")[0] not in METHODS]
     if unknown:
-        raise ValueError(f"unknown method {unknown[0]!r} (known: {', '.join(METHODS)})")
+        raise ValueError(f"unknown method {unknown[0]!r} (known: {', '.join(METHODS)}; a vehicle method "
+                         f"takes @{'|@'.join(AUTOPILOTS)})")
     if len(set(names)) != len(names):
         raise ValueError("--methods names a method twice")
+    chosen = tuple(method_named(m, sc) for m in names)
     dt = sc.dynamics.dt_s
     duration = sc.mission.duration_s if duration_s is None else float(duration_s)
     if not (math.isfinite(duration) and duration >= 2 * dt):
@@ -258,8 +289,23 @@ def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_M
         if particles < 10:
             raise ValueError(f"--particles must be >= 10, got {particles}")
         overrides = (("n_particles", int(particles)),)
-    return EvalConfig(sc, int(n_trials), int(seed), tuple(METHODS[m] for m in names), n_ticks, window_start,
-                      overrides=overrides)
+    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start, overrides=overrides)
+
+
+def method_named(name: str, sc=None) -> Method:
+    """A registered method by name; ``NAME@LABEL`` is that method flown with the autopilot
+    parameters ``AUTOPILOTS[LABEL]`` (a method of its own name, seeds and all). ValueError for
+    a label on a method that flies no vehicle (under the scenario ``sc``, when given)."""
+    base, at, label = name.partition("@")
+    m = METHODS[base]
+    if not at:
+        return m
+    if label not in AUTOPILOTS:
+        raise ValueError(f"method {name!r}: unknown autopilot parameters {label!r} (one of {', '.join(AUTOPILOTS)})")
+    motion = m.motion or (None if sc is None else sc.planning.motion)
+    if m.sensing != "uav" or not m.greedy or motion == "jump":
+        raise ValueError(f"method {name!r}: {base} flies no vehicle (only vehicle-motion methods take @{label})")
+    return replace(m, name=name, autopilot=label, description=f"{m.description}; autopilot: {label}")
 
 
 # --------------------------------------------------------------------------- one trial
@@ -276,6 +322,11 @@ class MethodTrace:
     degenerate: int  # updates that left no finite weight (prior kept)
     tick_s: float  # mean wall time of a tick
     bound_m2: np.ndarray | None = None  # (K, M) PCRB of the position (trace, m^2) along this path
+    # a flown method (Method's docstring): per tick k < K-1, the flown position at k+1 from the
+    # planned one (m), the plan's speed at k+1 (m/s); per tick, the vehicle's speed (m/s)
+    plan_miss_m: np.ndarray | None = None
+    plan_speed_mps: np.ndarray | None = None
+    speed_mps: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -307,8 +358,12 @@ def draw_start(cfg: EvalConfig, rng: np.random.Generator) -> np.ndarray:
     raise RuntimeError("could not draw a UAV start outside the obstacles in 1000 tries")
 
 
-def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None]:
+def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None, VehicleLimits | None]:
+    """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
+    limits from its autopilot's parameters."""
     sc = cfg.scenario
+    if method.scenario_overrides:
+        sc = with_overrides(sc, dict(method.scenario_overrides))
     sigma = sc.sensor.sigma_rad
     if method.sensing == "fixed":
         # the baseline's sensors: no clutter, every target seen; the filter must know it
@@ -318,16 +373,21 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
         sensor = tracking.SensorModel(sigma, sc.sensor.p_detect, lam)
         df = DirectionFinder(sigma, sc.sensor.p_detect, lam)
     fields = {**dict(cfg.overrides), **dict(method.setup)}
-    if method.motion is not None:
+    motion = method.motion or sc.planning.motion
+    flown = method.sensing == "uav" and method.greedy and motion == "vehicle"
+    limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
+    if limits is not None and method.autopilot_limits:
+        fields["motion"] = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
+    elif method.motion is not None:
         fields["motion"] = replace(UavMotion.from_config(sc.planning), kind=method.motion)
-    return MonitorSetup.from_scenario(sc, **fields, sensor=sensor), df
+    return MonitorSetup.from_scenario(sc, **fields, sensor=sensor), df, limits
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
                gains: np.ndarray | None = None) -> MethodTrace:
     """Closed loop of one method on one trial's truth (K, M, 6); with the truth's closed-loop
     gains (K-1, M, 3, 6), also the PCRB along the flown path."""
-    setup, df = _setup_for(cfg, method)
+    setup, df, limits = _setup_for(cfg, method)
     ss = np.random.SeedSequence(cfg.seed, spawn_key=(trial, 2, _method_key(method.name)))
     sensor_rng, filter_rng, policy_rng = (np.random.default_rng(s) for s in ss.spawn(3))
     K, M = truth.shape[0], truth.shape[1]
@@ -338,6 +398,9 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     err, nees, est = np.zeros((K, M)), np.zeros((K, M)), np.zeros((K, M, 2))
     uav_track = None if uav is None else np.zeros((K, 3))
     degenerate, tick_time = 0, 0.0
+    if limits is not None:  # flown: a copter hovering at the start, in GUIDED
+        vehicle = VehicleState(pos=ned(uav))
+        miss, plan_speed, speed = np.zeros(K - 1), np.zeros(K - 1), np.zeros(K)
     for k in range(K):
         if uav is None:
             scans = fixed_scans(truth[k], FIXED_SENSORS_M, setup.sensor.sigma_rad, sensor_rng)
@@ -354,7 +417,17 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         P = res.covs[:, :2, :2]
         nees[k] = np.einsum("mi,mi->m", e, np.linalg.solve(P, e[..., None])[..., 0])
         degenerate += int(res.degenerate.sum())
-        if uav is not None and k < K - 1:
+        if uav is not None and k < K - 1 and limits is not None:
+            p = res.planning
+            ok = p is not None and p.index is not None
+            v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
+            planned = p.position[:2] if ok else uav[:2]
+            vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=k == 0)
+            uav, uav_vel = enu(vehicle.pos), enu(vehicle.vel)[:2]
+            miss[k] = float(np.linalg.norm(uav[:2] - planned))
+            plan_speed[k] = 0.0 if v_next is None else float(np.linalg.norm(v_next))
+            speed[k + 1] = float(np.linalg.norm(uav_vel))
+        elif uav is not None and k < K - 1:
             if method.greedy:
                 nxt = res.next_position
                 p = res.planning
@@ -374,7 +447,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             sensors = uav_track[:, None, :2]
             q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
         bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, sensors, setup.sensor.sigma_rad, q)
-    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound)
+    flown = {} if limits is None else dict(plan_miss_m=miss, plan_speed_mps=plan_speed, speed_mps=speed)
+    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown)
 
 
 def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
@@ -483,6 +557,7 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
             # (this process's numpy may have them), and the plan-steering filter amplifies last-bit
             # differences, so only workers with one BLAS thread each give the same trials whatever K
             _one_blas_thread()  # inherited by the spawned workers' environment
+            pin_kernels()  # the AVX2 kernels on every x86-64 that has them: the same figures there (sim/numerics.py)
             ctx = mp.get_context("spawn")  # no fork of a process with threads (the progress bar)
             # stopped for any reason, the workers go at once: none computes trials nobody reads
             try:
@@ -562,6 +637,7 @@ class MethodSummary:
     bound_t_mean: np.ndarray | None = None  # (K,) the bound per step, averaged over targets
     # vehicle method whose jump twin ran: (twin, rmse_mean_m / twin's with its 95 % paired CI)
     vs_jump: tuple[str, tuple[float, float, float]] | None = None
+    flown: dict = field(default_factory=dict)  # a flown method: how the vehicle flew its plans (_flown_stats)
 
     @property
     def rmse_over_bound(self) -> float:
@@ -578,6 +654,15 @@ class Summary:
     wall_s: float
     n_trials: int
     target_speed_10s: tuple[float, ...] = ()  # the true targets' mean speed per 10 s of mission, m/s
+    # the flight default (a method named flight, flight@..., flight~...) against every other method
+    # of the run: {(flight method, other): ((ratio, lo, hi) of RMSEs, (mean, lo, hi) of per-trial
+    # differences)}, paired over the trials
+    pairs: dict = field(default_factory=dict)
+
+
+def is_flight(name: str) -> bool:
+    """The flight default, with its autopilot (``@``) or a variant of it (``~``)."""
+    return name.partition("@")[0].partition("~")[0] == "flight"
 
 
 def _paired_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[float, float, float]:
@@ -621,6 +706,25 @@ def _motion_stats(trace: MethodTrace, truth: np.ndarray) -> dict:
                 range_m=np.linalg.norm(truth[:, :, :2] - u[:, None, :], axis=2).mean(axis=1))
 
 
+def _flown_stats(cfg: EvalConfig, method: Method, traces: Sequence[MethodTrace]) -> dict:
+    """How a flown method's vehicle followed its plans: the flown position's distance from the
+    planned one at the next tick (median, p95, max over all ticks and trials), the plan's and
+    the vehicle's speeds (mean over ticks, max), and the limits it planned and flew with."""
+    if traces[0].plan_miss_m is None:
+        return {}
+    miss = np.concatenate([t.plan_miss_m for t in traces])
+    plan_v = np.concatenate([t.plan_speed_mps for t in traces])
+    v = np.concatenate([t.speed_mps for t in traces])
+    setup, _, limits = _setup_for(cfg, method)
+    return dict(autopilot=method.autopilot or "stock", wpnav_speed_mps=limits.speed_xy,
+                wpnav_accel_mps2=limits.accel_xy, plan_speed_max_mps=setup.motion.speed_max_mps,
+                plan_accel_max_mps2=setup.motion.accel_max_mps2,
+                miss_median_m=float(np.median(miss)), miss_p95_m=float(np.percentile(miss, 95)),
+                miss_max_m=float(miss.max()), planned_speed_mean_mps=float(plan_v.mean()),
+                planned_speed_peak_mps=float(plan_v.max()), speed_mean_mps=float(v.mean()),
+                speed_peak_mps=float(v.max()))
+
+
 def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = float("nan")) -> Summary:
     N, w0 = len(trials), cfg.window_start
     band = nees_band(N)
@@ -659,7 +763,8 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             int(sum(t.traces[m.name].degenerate for t in trials)),
             *_bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
             vs_jump=None if m.jump_twin not in errs else (m.jump_twin, _paired_ratio(err, errs[m.jump_twin], w0,
-                                                                                       cfg.seed)))
+                                                                                       cfg.seed)),
+            flown=_flown_stats(cfg, m, [t.traces[m.name] for t in trials]))
     ratio = ratio_ci = None
     if REFERENCE in out and FIXED in out:
         # the headline is the table's fixed3 row, so the two print one CI
@@ -668,7 +773,10 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
     per10 = int(round(10.0 / cfg.dt_s))
     speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s)
+    pairs = {(a, b): (_paired_ratio(errs[a], errs[b], w0, cfg.seed),
+                      t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
+             for a in cfg.method_names if is_flight(a) for b in cfg.method_names if b != a}
+    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs)
 
 
 def headline(summary: Summary) -> dict:
@@ -679,10 +787,14 @@ def headline(summary: Summary) -> dict:
         "methods": {n: {"rmse_mean_m": r(s.rmse_mean_m), "nees_mean": r(s.nees_mean),
                         "bound_m": r(s.bound_mean_m), "rmse_over_bound": r(s.rmse_over_bound),
                         "ratio_vs_ref": None if s.ratio_vs_ref is None else [r(v) for v in s.ratio_vs_ref],
-                        **({} if s.vs_jump is None else {"ratio_vs_jump": [r(v) for v in s.vs_jump[1]]})}
+                        **({} if s.vs_jump is None else {"ratio_vs_jump": [r(v) for v in s.vs_jump[1]]}),
+                        **({} if not s.flown else {"from_plan_median_m": r(s.flown["miss_median_m"]),
+                                                   "speed_peak_mps": r(s.flown["speed_peak_mps"])})}
                     for n, s in summary.methods.items()},
         "uav_vs_fixed_ratio": r(summary.ratio),
         "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
+        **({} if not summary.pairs else {"flight_over": {f"{a} / {b}": [r(v) for v in ratio]
+                                                          for (a, b), (ratio, _) in summary.pairs.items()}}),
     }
 
 
@@ -715,36 +827,6 @@ def write_per_trial_csv(summary: Summary, path) -> None:
 def machine_description() -> str:
     return f"{platform.node() or 'host'}: {platform.machine()}, {os.cpu_count()} cores, {platform.system()} " \
            f"{platform.release()}, Python {platform.python_version()}"
-
-
-def _cpu_model() -> str:
-    with contextlib.suppress(OSError):
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
-
-
-def numerics_description() -> str:
-    """The CPU and the numerical packages a run's figures depend on to the last bit.
-
-    The guidance's knife edges (which side of an obstacle a target takes) turn last-bit
-    differences into other trials, so figures reproduce exactly only where these match."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    def ver(pkg):
-        try:
-            return version(pkg)
-        except PackageNotFoundError:
-            return "absent"
-
-    blas = "unknown BLAS"
-    with contextlib.suppress(Exception):
-        b = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
-        blas = f"{b['name']} {b['version']}"
-    pkgs = ", ".join(f"{p} {ver(p)}" for p in ("numpy", "scipy", "daqp", "osqp"))
-    return f"{_cpu_model()}; {pkgs}; {blas}"
 
 
 def results_markdown(summary: Summary, command: str) -> str:
@@ -824,6 +906,34 @@ def results_markdown(summary: Summary, command: str) -> str:
         if summary.target_speed_10s:
             L += ["The targets' mean true speed per 10 s of the mission [m/s]: "
                   + ", ".join(f"{v:.1f}" for v in summary.target_speed_10s) + ".", ""]
+    if summary.pairs:
+        L += ["## The flight default against each method", "",
+              "Paired over the same trials: the ratio of time-averaged RMSEs (flight / other; 95 % paired "
+              f"percentile bootstrap CI, {BOOTSTRAP_RESAMPLES} resamples) and the mean per-trial difference of "
+              "window RMSE (flight minus other; 95 % t-interval).", "",
+              "| flight method | other | flight / other (95 % CI) | other / flight | flight minus other [m] (95 % CI) |",
+              "|---|---|---|---:|---|"]
+        for (a, b), ((v, lo, hi), (d, dlo, dhi)) in summary.pairs.items():
+            L.append(f"| {a} | {b} | {v:.2f} ({lo:.2f}, {hi:.2f}) | {1 / v:.2f} | {d:+.1f} ({dlo:+.1f}, {dhi:+.1f}) |")
+        L.append("")
+    flown = {n: s.flown for n, s in summary.methods.items() if s.flown}
+    if flown:
+        L += ["## How the vehicle flew its plans", "",
+              "Flown methods: at each tick the plan's position, velocity and acceleration are sent to the "
+              "vehicle model fitted to ArduCopter SITL (sim/guided.py), which flies with its autopilot's "
+              "parameters; the next scan is where it is a tick later. Autopilot: WPNAV_SPEED, WPNAV_ACCEL "
+              "of its parameter set; planned with: the planner's speed and acceleration limits; from the plan: "
+              "the flown position's distance from the planned one at the next tick (median, p95, max over "
+              "ticks and trials); speeds: mean over ticks / peak.", "",
+              "| method | autopilot | planned with | from the plan [m] | planned speed [m/s] | flown speed [m/s] |",
+              "|---|---|---|---|---|---|"]
+        for n, f in flown.items():
+            L.append(f"| {n} | {f['autopilot']}: {f['wpnav_speed_mps']:g} m/s, {f['wpnav_accel_mps2']:g} m/s² | "
+                     f"{f['plan_speed_max_mps']:g} m/s, {f['plan_accel_max_mps2']:g} m/s² | "
+                     f"{f['miss_median_m']:.2f} / {f['miss_p95_m']:.2f} / {f['miss_max_m']:.2f} | "
+                     f"{f['planned_speed_mean_mps']:.1f} / {f['planned_speed_peak_mps']:.1f} | "
+                     f"{f['speed_mean_mps']:.1f} / {f['speed_peak_mps']:.1f} |")
+        L.append("")
     L += ["## Methods", ""] + [f"- `{m.name}`: {m.description}" for m in cfg.methods]
     L += ["", f"Orbit: radius {cfg.orbit_radius_m:g} m around the targets' initial centroid "
               f"({cfg.orbit_center[0]:.0f}, {cfg.orbit_center[1]:.0f}) m, counter-clockwise.",

@@ -14,15 +14,20 @@ GUIDED sub-mode from which fields the type_mask keeps:
 Entering a sub-mode re-initialises the position controller at the vehicle (pva_control_start);
 a message of the same sub-mode only replaces the target.
 
-``fly`` is one tick of that for the evaluation; ``fly_timeline`` replays a timed sequence of
-setpoints (tests/test_vehicle.py replays the real SITL's with it). Frames: local NED, as sent;
-the mission frame's ENU point (x east, y north, z up) is NED (y, x, -z).
+``fly`` is one tick of that; ``fly_plan`` is one tick of the evaluation's vehicle following
+its plan with the app's setpoint (onboard.core.setpoint); ``fly_timeline`` replays a timed
+sequence of setpoints (tests/test_vehicle.py replays the real SITL's with it). Frames: local
+NED, as sent; the mission frame's ENU point (x east, y north, z up) is NED (y, x, -z) (``ned``,
+``enu``).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from typing import Iterable, Optional, Sequence
 
+import numpy as np
+
+from onboard.core.setpoint import plan_setpoint
 from sim.vehicle import Setpoint, Vec3, VehicleLimits, VehicleState, advance_input, step
 
 FIRMWARE_HZ = 400.0  # ArduCopter's main loop (SCHED_LOOP_RATE) runs the position controller
@@ -117,3 +122,34 @@ def fly_timeline(state: VehicleState, sends: Sequence[tuple[float, GuidedSetpoin
             t = n * dt
         out.append(state)
     return out
+
+
+def ned(p_enu) -> Vec3:
+    """A mission-frame ENU vector (x east, y north, z up) in local NED."""
+    return (float(p_enu[1]), float(p_enu[0]), -float(p_enu[2]))
+
+
+def enu(p_ned) -> np.ndarray:
+    """A local NED vector in the mission frame's ENU."""
+    return np.array([p_ned[1], p_ned[0], -p_ned[2]], dtype=float)
+
+
+def fly_plan(state: VehicleState, v_next: Optional[Sequence[float]], altitude_m: float, tick_s: float,
+             limits: VehicleLimits = VehicleLimits(), first: bool = False,
+             rate_hz: float = FIRMWARE_HZ) -> VehicleState:
+    """The vehicle one tick after the app sends the plan's setpoint at the tick (no latency).
+
+    The plan starts where the vehicle is, at its velocity (what the app's telemetry says), and
+    asks for the planar velocity ``v_next`` (ENU, m/s) one tick later: the setpoint is the
+    plan's position + velocity + acceleration (onboard.core.setpoint.plan_setpoint) at
+    ``altitude_m``. ``v_next`` None (no admissible move): the same kind of setpoint at rest
+    where the vehicle is, which it brakes back to. ``first``: the first setpoint in GUIDED (the
+    controller starts at the vehicle); every later one is of the same sub-mode."""
+    here = enu(state.pos)
+    if v_next is None:
+        pos, vel, acc = here[:2], np.zeros(2), np.zeros(2)
+    else:
+        pos, vel, acc = plan_setpoint(here[:2], enu(state.vel)[:2], np.asarray(v_next, float)[:2], tick_s)
+    sp = GuidedSetpoint(pos=ned((pos[0], pos[1], altitude_m)), vel=ned((vel[0], vel[1], 0.0)),
+                        acc=ned((acc[0], acc[1], 0.0)))
+    return fly(state, sp, tick_s, limits, rate_hz, new_submode=first)

@@ -100,3 +100,22 @@ def test_bench_set_items_become_overrides():
     assert sc.tracking.plan_steering and sc.tracking.plan_trust_sigma == 1.5
     with pytest.raises(ConfigError, match="'tracking.plan_steering': expected KEY=VALUE"):
         parse_overrides(["tracking.plan_steering"])
+
+
+def test_with_overrides_puts_a_policy_under_the_users_own_settings():
+    """A method's policy (onboard.policy) re-reads the scenario with its settings; the run's own
+    overrides (pmon eval --set) win over the policy's; the result is validated like a load."""
+    from dataclasses import replace
+
+    from onboard.config import with_overrides
+    user = load_scenario("paper", {"tracking.control_mix": 0.05})
+    sc = with_overrides(user, {"tracking.control_mix": 0.2, "planning.planner": "lookahead"})
+    assert sc.tracking.control_mix == 0.05 and sc.planning.planner == "lookahead"
+    assert user.planning.planner == "greedy"  # the scenario it came from is untouched
+    assert with_overrides(sc, {"planning.motion": "vehicle"}).planning.planner == "lookahead"
+    with pytest.raises(ConfigError, match="planning.lookahead_steps: must be <= guidance.horizon"):
+        with_overrides(user, {"planning.planner": "lookahead", "planning.lookahead_steps": 60})
+    # a change made with dataclasses.replace is not in the file: refused rather than lost
+    edited = replace(user, guidance=replace(user.guidance, horizon=20))
+    with pytest.raises(ConfigError, match="changed after loading"):
+        with_overrides(edited, {"planning.planner": "lookahead"})
