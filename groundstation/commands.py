@@ -67,7 +67,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
                "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
                "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
                "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
-               "launch": st.launch_phase,
+               "launch": st.launch_phase, "limits": st.limits,
                "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
                "next_enu_m": list(st.next_enu) if st.next_enu else None,
                "params": params}
@@ -97,6 +97,8 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         ]
         if st.launch_phase:
             lines.append(f"  launch    {st.launch_phase}")
+        if st.limits:
+            lines.append(f"  speed     {st.limits}")
         lines += [f"  WARNING   {w}" for w in st.warnings]
         if params:
             lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))

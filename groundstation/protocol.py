@@ -105,6 +105,7 @@ class AppStatus:
     uav_enu: tuple[float, float, float] | None
     warnings: tuple[str, ...] = ()  # conditions that hold now, in words
     launch_phase: str | None = None  # None: no launch sequence running
+    limits: str | None = None  # the planner's speed and acceleration and the autopilot's, in words
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
@@ -119,9 +120,15 @@ class AppStatus:
         if bits & WARN_ACCEL:
             warnings.append(f"autopilot acceleration limit {_fmt(d[23])} m/s^2 < {_fmt(d[24])} m/s^2 planned")
         phase = _int(d[25], -1)
+        limits = None
+        if math.isfinite(d[22]):
+            accel = f", {_fmt(d[24])} m/s^2" if math.isfinite(d[24]) else ""
+            limits = (f"planned at {_fmt(d[22])} m/s{accel} (autopilot {_fmt(d[21])} m/s, "
+                      f"{_fmt(d[23])} m/s^2)")
         return AppStatus(app_state_name(d[0]), d[1], _num(d[2]), _num(d[3]), nxt, _int(d[7]), _int(d[8]),
                          _int(d[9]), _int(d[10]), _int(d[18]), _int(d[19]), _num(d[11]), uav,
-                         tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None)
+                         tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None,
+                         limits)
 
 
 def _int(x: float, default: int = 0) -> int:

@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds of mission (DF scans); default: the scenario's (100 s)")
     p.add_argument("--scenario", default="paper")
     p.add_argument("--seed", type=int, default=1)
+    from onboard.policy import DEFAULT, POLICIES
+    p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
+                   help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--gcs", metavar="PORT", type=int,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
 
@@ -172,7 +175,7 @@ def run(args) -> int:
         app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
                            "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
                            "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
-                           "--seed", str(args.seed)], out / "app.log")
+                           "--seed", str(args.seed), "--policy", args.policy], out / "app.log")
         procs.append(app)
         df_port = app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1)
         feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",

@@ -466,6 +466,16 @@ class Mission:
             modes = [m for m in self.observer.modes if m[0] is not None and m[0] <= t]
         return bool(modes) and modes[-1][1] == GUIDED
 
+    def follow_errors_m(self) -> list[float]:
+        """How well the vehicle flies the plan: for each monitoring tick that sent a setpoint,
+        the distance (m, horizontal) from its planned point to where the vehicle was at the next
+        tick's scan (the run log's own telemetry; ticks a pilot or a link loss interrupted are
+        left out: the next record must also be a monitoring tick one second on)."""
+        recs = self.run_log()
+        return [math.hypot(b["uav_enu"][0] - a["next"][0], b["uav_enu"][1] - a["next"][1])
+                for a, b in zip(recs, recs[1:])
+                if a["sent"] and a["next"] and b["planned"] and b["uav_enu"] and abs(b["t"] - a["t"] - 1.0) < 1e-6]
+
     def containment(self) -> dict:
         """The vehicle's reported positions against the area and the obstacles (3D: the UAV may
         overfly the low ones)."""
@@ -644,6 +654,7 @@ def figures(m: Mission) -> dict:
     """The procedure's figures (docs/SITL.md): misses, receipts, takeovers, error, containment."""
     acc = m.tick_account()
     err = m.estimate_errors()
+    follow = m.follow_errors_m()
     reactions = m.takeover_reactions()
     calls = [c for c in m.commands]
     return {
@@ -653,6 +664,8 @@ def figures(m: Mission) -> dict:
         "ticks_late": acc["ticks_late"], "setpoint_delay_s_median": acc["setpoint_delay_s_median"],
         "setpoint_delay_s_max": acc["setpoint_delay_s_max"], "latency_ms_median": acc["latency_ms_median"],
         "takeover_reaction_s": [round(r, 3) for r in reactions],
+        "from_plan_at_next_tick_m_median": round(float(np.median(follow)), 2) if follow else None,
+        "from_plan_at_next_tick_m_p95": round(float(np.percentile(follow, 95)), 2) if follow else None,
         "rmse_m": err["rmse_m"], "containment": m.containment(), "autopilot_crashes": m.autopilot_crashes(),
         "gcs_commands": [" ".join(c.args) + f" -> {c.rc}" for c in calls],
     }

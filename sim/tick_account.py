@@ -12,6 +12,13 @@ from typing import Iterator
 
 import numpy as np
 
+from onboard.core.setpoint import plan_setpoint
+
+# a planned segment's setpoint at time t, against one received or reported then: the sender's
+# and the autopilot's clocks differ by the link's delay (~10 m/s x 20 ms), the firmware advances
+# the target between messages itself
+SEGMENT_TOL_M = 0.5
+
 
 class Dist:
     """Count, max and quantiles of a stream in constant memory: a fixed histogram of ``step``
@@ -79,8 +86,17 @@ class TickAccount:
 
     @staticmethod
     def _matches(r, p: dict) -> bool:
-        return r[0] >= p["t"] and abs(r[1] - p["n"]) < 0.01 and abs(r[2] - p["e"]) < 0.01 \
-            and abs(r[3] + p["u"]) < 0.01
+        """A received setpoint (or a target the autopilot reports holding) is the tick's: its
+        point exactly, or, for a planned segment (position + velocity + acceleration, moved on
+        by the autopilot itself), the segment's position at that moment within SEGMENT_TOL_M."""
+        if r[0] < p["t"]:
+            return False
+        seg = p.get("segment")
+        if seg is None:
+            return abs(r[1] - p["n"]) < 0.01 and abs(r[2] - p["e"]) < 0.01 and abs(r[3] + p["u"]) < 0.01
+        d = min(max(r[0] - seg["t0"], 0.0), seg["tick_s"])
+        pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d)
+        return math.hypot(r[1] - pos[1], r[2] - pos[0]) < SEGMENT_TOL_M and abs(r[3] + seg["p0"][2]) < 0.05
 
     def _resolve(self, p: dict, t_rx: float) -> None:
         d = t_rx - p["start"]
@@ -130,7 +146,8 @@ class TickAccount:
                 self._late(t)
                 return
             e, n, u = rec["next"]
-            p = {"t": t, "start": start, "budget": budget, "e": e, "n": n, "u": u}
+            p = {"t": t, "start": start, "budget": budget, "e": e, "n": n, "u": u,
+                 "segment": rec.get("segment")}
             hit = next((r for r in self._rx if self._matches(r, p)), None)
             if hit is not None:
                 self._resolve(p, hit[0])

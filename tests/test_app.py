@@ -182,10 +182,12 @@ def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
 
 
 @pytest.mark.timeout(60)
-def test_vehicle_motion_is_checked_against_the_autopilot_speed_and_acceleration():
-    """planning.motion: vehicle at 8 m/s and 5 m/s^2 against an autopilot with 20 m/s and
-    2.5 m/s^2: the acceleration is reported (to a ground station on the autopilot's other link,
-    connected before the app), the speed is not."""
+def test_vehicle_motion_plans_at_the_autopilots_limits_capped_by_the_airframes():
+    """planning.motion: vehicle capped at 8 m/s and 5 m/s^2 (what the airframe flies) against an
+    autopilot set to 20 m/s and 2.5 m/s^2: the planner flies at 8 m/s and 2.5 m/s^2, says so to
+    a ground station (on the autopilot's other link, connected before the app), warns of
+    nothing (no plan is faster than the autopilot flies), and follows a limit a ground station
+    changes in flight."""
     from dataclasses import replace
 
     sc = load_scenario("paper")
@@ -198,10 +200,21 @@ def test_vehicle_motion_is_checked_against_the_autopilot_speed_and_acceleration(
     try:
         assert gcs.wait(lambda m: m.get_type() == "HEARTBEAT", 5) is not None
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0), sc).start()
-        told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "WPNAV_ACCEL" in m.text, 10)
-        assert told is not None and told.text == "PMON: WPNAV_ACCEL 2.5 m/s^2 < 5 planned"
-        assert told.severity == mavlink.MAV_SEVERITY_WARNING
-        assert app.vehicle.speed_limit_mps == pytest.approx(20.0) and not _warned(app, "WPNAV_SPEED")
+        told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "planning at" in m.text
+                        and "2.5 m/s^2" in m.text, 10)
+        assert told is not None and told.text == "PMON: planning at 8 m/s, 2.5 m/s^2", told
+        assert app._limits == (8.0, 2.5) and app.speed_warning is None and app._warnings == 0
+        with app.lock:
+            app._build_setup()
+            assert (app.setup.motion.speed_max_mps, app.setup.motion.accel_max_mps2) == (8.0, 2.5)
+        since = len(gcs.msgs)
+        assert gcs.param_set("WPNAV_SPEED", 500, comp=1) is not None  # the autopilot tells every link
+        assert gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and m.text == "PMON: planning at 5 m/s, 2.5 m/s^2",
+                        10, since) is not None
+        with app.lock:
+            app._build_setup()
+            assert app.setup.motion.speed_max_mps == 5.0
+        assert not any("WPNAV" in t for t in gcs.texts())  # no warning: plans never outrun the autopilot
         assert app.counters.get("io_errors", 0) == 0  # one limit known before the other: no handler error
     finally:
         gcs.close()

@@ -23,6 +23,7 @@ import pytest
 
 from sim.ardupilot import skip_reason
 from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
+from sim.tick_account import TickAccount
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -51,6 +52,12 @@ def _view(m: Mission, out):
         return exc
 
 
+def _expected(rec: dict) -> dict:
+    """A tick record as sim.tick_account.TickAccount matches the autopilot's targets to it."""
+    e, n, u = rec["next"]
+    return {"t": rec["t"], "e": e, "n": n, "u": u, "segment": rec.get("segment")}
+
+
 def _ran_once(m: Mission) -> None:
     """0 operator retries: no command of the procedure was given twice in a row."""
     names = [c.args for c in m.commands if c.args[:1] not in (("status",), ("params",))]
@@ -70,7 +77,9 @@ def flight_a(tmp_path_factory):
         rec["param_set"] = m.gcs("params", "set", "PMON_CLUTTER", "1.5")
         rec["param_bad"] = m.gcs("params", "set", "PMON_PD", "1.5")
         rec["param_after"] = m.gcs("params", "get", "PMON_CLUTTER")
-    with Mission(MissionConfig(speedup=2.0, feed_duration_s=MONITOR_S + 60, seed=1), out) as m:
+    # 1.5x: the 0.9 s tick budget is 0.6 s of wall time; a lookahead plan on a loaded 2-core
+    # machine took 0.52 s once (at 2x it was late)
+    with Mission(MissionConfig(speedup=1.5, feed_duration_s=MONITOR_S + 60, seed=1), out) as m:
         rec = fly_launch_procedure(m, MONITOR_S, during)
         rec["m"] = m
         rec["gcs_saw_estimates"] = sorted({e[1] for e in m.observer.estimates})
@@ -98,6 +107,15 @@ def test_every_scan_is_ticked_and_every_setpoint_reaches_the_autopilot(flight_a)
     assert acc["ticks_late"] == 0, acc  # every monitoring tick's setpoint held by the autopilot in time
 
 
+def test_the_copter_flies_the_plan_instead_of_braking_to_each_point(flight_a):
+    """issue 24: the plan's position + velocity + acceleration, carried on by ArduCopter between
+    messages: at the next tick the copter is where the plan said (position-only setpoints, which
+    it brakes to, left it a median 14 m short)."""
+    d = np.array(flight_a["m"].follow_errors_m())
+    assert len(d) >= MONITOR_S * 0.9
+    assert np.median(d) <= 3.0 and np.percentile(d, 95) <= 6.0, (np.median(d), np.percentile(d, 95))
+
+
 def test_the_copter_stays_in_the_area_and_out_of_the_obstacles(flight_a):
     c = flight_a["m"].containment()
     assert c["samples"] > 10 * MONITOR_S, c
@@ -110,10 +128,11 @@ def test_estimates_are_within_the_stated_error(flight_a):
     assert max(e["rmse_m"]) <= RMSE_MAX_M, e["rmse_m"]
 
 
-def test_ground_station_on_another_port_sees_estimates_params_and_warning(flight_a):
+def test_ground_station_on_another_port_sees_estimates_params_and_limits(flight_a):
     st = _ok(flight_a["status"], "onboard app: monitoring")
-    # stock WPNAV_SPEED is below the paper's 20 m steps: the operator is told while it holds
-    assert "WARNING   autopilot speed limit 10 m/s < 20 m/s planned" in st.stdout, st.stdout
+    # the flight policy plans at the autopilot's stock limits, capped at what the airframe flies
+    assert "speed     planned at" in st.stdout and "(autopilot 10 m/s, 2.5 m/s^2)" in st.stdout, st.stdout
+    assert "WARNING" not in st.stdout, st.stdout
     assert flight_a["gcs_saw_estimates"] == [0, 1, 2, 3]
     _ok(flight_a["param_get"], "PMON_CLUTTER = 1")
     _ok(flight_a["param_set"], "PMON_CLUTTER = 1.5")
@@ -191,7 +210,7 @@ def test_arm_wait_takeoff_wait_and_start_each_succeed_once(flight_b):
     _ok(flight_b["takeoff"], "at 40 m after")
     _ok(flight_b["start"], "app monitoring")
     st = _ok(flight_b["status"], "onboard app: monitoring")
-    assert "WARNING" not in st.stdout  # recommended parameters: nothing to warn of
+    assert "WARNING" not in st.stdout and "(autopilot 20 m/s, 5 m/s^2)" in st.stdout, st.stdout
     _ran_once(m)
 
 
@@ -232,7 +251,7 @@ def test_autopilot_restart_is_survived_and_the_app_flies_again_only_when_told(fl
         held = [(t, x, y, z) for t, x, y, z in m.observer.targets if t is not None and t > again + 2]
     sent = [r for r in m.run_log() if r["sent"] and r["t"] > again + 2]
     assert sent and held
-    got = {tuple(np.round(m.mission_ned(x, y, z), 1)) for _, x, y, z in held}
-    want = [tuple(np.round((r["next"][1], r["next"][0], -r["next"][2]), 1)) for r in sent]
-    assert sum(w in got for w in want) >= len(want) - 1, (want[:5], sorted(got)[:5])
+    got = [(t, *m.mission_ned(x, y, z)) for t, x, y, z in held]
+    taken = [r for r in sent if any(TickAccount._matches(g, _expected(r)) for g in got)]
+    assert len(taken) >= len(sent) - 1, (len(taken), len(sent))
     assert m.autopilot_crashes() == 0

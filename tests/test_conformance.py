@@ -21,12 +21,16 @@ ASKED = ("GLOBAL_POSITION_INT", "SYSTEM_TIME", "EXTENDED_SYS_STATE", "SYS_STATUS
 
 
 def _fly(kind: str, out) -> dict:
-    cfg = MissionConfig(autopilot=kind, speedup=3.0, auto_launch=True, feed_duration_s=MONITOR_S + 20, seed=3)
+    # the paper's policy at ArduCopter's stock limits: its 20 m steps are faster than WPNAV_SPEED
+    cfg = MissionConfig(autopilot=kind, speedup=3.0, auto_launch=True, feed_duration_s=MONITOR_S + 20, seed=3,
+                        app_args=("--policy", "paper"))
     with Mission(cfg, out / kind) as m:
         assert m.wait(lambda o: o.app_state == "monitoring", 120, "monitoring"), m.app_log()[-2000:]
         m.sim_sleep(MONITOR_S)
+        status = m.gcs("status")
     view = app_view(m.out / "app.tlog")
     view["crashes"] = m.autopilot_crashes()
+    view["status"] = status
     return view
 
 
@@ -65,6 +69,12 @@ def test_the_boot_and_the_take_off_look_alike(views):
         assert v["modes"][:2] == [0, 4] and v["modes"][-1] == 4, v["modes"]  # STABILIZE, GUIDED
     assert mock["origin_t"] == pytest.approx(real["origin_t"], abs=2.0)
     assert mock["armed_t"] == pytest.approx(real["armed_t"], abs=3.0)
+
+
+def test_the_speed_warning_reaches_a_ground_station_while_it_holds(views):
+    for kind in ("ardupilot", "mock"):
+        st = views[kind]["status"]
+        assert st.rc == 0 and "WARNING   autopilot speed limit 10 m/s < 20 m/s planned" in st.stdout, st.stdout
 
 
 def test_the_app_says_the_same_things_and_launches_in_the_same_steps(views):

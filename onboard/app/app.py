@@ -28,7 +28,7 @@ import select
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -46,6 +46,8 @@ from onboard.app.link import Link, mavlink
 from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
 from onboard.app.pose import FixedOrigin, Frame, PoseHistory
 from onboard.app.schedule import COAST_AFTER_S, TickRecord
+from onboard.app.setpoints import PlannedSegment, enu_to_ned_vector
+from onboard.app.setpoints import message as setpoint_message
 from onboard.app.vehicle import Vehicle
 from onboard.app.watchdog import Watchdog
 from onboard.app.worker import TickWorker, _malloc_trim
@@ -58,7 +60,6 @@ log = logging.getLogger("pmon.app")
 
 IO_MAVLINK_MAX = 500  # MAVLink messages handled per io iteration, then the periodic jobs
 IO_DF_MAX = 200  # DF datagrams parsed per io iteration (the reader's rate limit bounds the rest)
-POSITION_ONLY = 3576  # type_mask: ignore velocity, acceleration, yaw, yaw rate
 
 
 
@@ -125,7 +126,10 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self._runlog = open(cfg.runlog_path, "w", buffering=1) if cfg.runlog_path else None
         self.rng = np.random.default_rng(cfg.seed)
         # core state, touched by the worker only (and by stop() after the join)
-        self._setup_version = -1
+        # vehicle motion: (speed m/s, accel m/s^2) the planner flies at, the autopilot's limits
+        # capped by the scenario's (None until the autopilot's are read)
+        self._limits: tuple[float, float] | None = None
+        self._setup_version: tuple | int = -1
         self.setup: MonitorSetup | None = None
         self.core_state = None
         self.workspace = GuidanceWorkspace()
@@ -136,7 +140,8 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self._worker_busy = False
         self.last_tick_t: float | None = None
         self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
-        self.setpoint: np.ndarray | None = None  # ENU, m, checked safe
+        self.setpoint: np.ndarray | None = None  # ENU, m, checked safe: the planned next point
+        self.segment: PlannedSegment | None = None  # vehicle motion: the plan to it (setpoints.py)
         self._next_sp_t = -math.inf
         self._guided_deadline: float | None = None  # waiting for GUIDED after start/resume
         self.counters: dict[str, int] = {}
@@ -219,10 +224,15 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
 
     # ------------------------------------------------------------------ core setup
     def _build_setup(self) -> None:
-        """(Re)build the core setup from the parameters; called by the worker before a tick."""
-        if self._setup_version == self.params.version:
+        """(Re)build the core setup from the parameters and the autopilot's speed limits (vehicle
+        motion: ``_limits``, autopilot_in.py); called by the worker before a tick."""
+        version = (self.params.version, self._limits)
+        if self._setup_version == version:
             return
         sc = self.params.apply(self.base_scenario)
+        if sc.planning.motion == "vehicle" and self._limits is not None:
+            speed, accel = self._limits
+            sc = replace(sc, planning=replace(sc.planning, speed_max_mps=speed, accel_max_mps2=accel))
         old = self.setup
         self.setup = MonitorSetup.from_scenario(sc)
         self.scenario = sc
@@ -241,7 +251,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
                 plans = (None,) * self.M  # warm starts of another horizon do not fit
                 self.workspace = GuidanceWorkspace()
             self.core_state = type(self.core_state)(tuple(beliefs), plans, self.core_state.step)
-        self._setup_version = self.params.version
+        self._setup_version = version
 
     def _grid_within_reach(self) -> CandidateGrid:
         """The candidate grid without the rings the vehicle cannot fly in one tick."""
@@ -495,18 +505,23 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
             self._send_setpoint(self.setpoint, now)
 
     def _send_setpoint(self, enu: np.ndarray, now: float, centre=None) -> bool:
-        """Send the setpoint ``enu`` (checked when planned) in LOCAL_NED at the fixed origin,
-        after checking the message itself against the fence (fence.outgoing_violation: its
-        position read back to ENU). A message that fails is not sent: counted, said, and the
-        setpoint dropped (the stream stops; the vehicle holds its last good one). ``centre``:
-        where the vehicle was when the tick planned it (path rule, first send only)."""
+        """Send the setpoint in LOCAL_NED at the fixed origin: with a planned segment (vehicle
+        motion) the plan's position, velocity and acceleration at ``now``, else the point
+        ``enu`` alone (onboard/app/setpoints.py); both checked when planned. The message itself
+        is checked against the fence before it goes (fence.outgoing_violation: its position
+        read back to ENU). A message that fails is not sent: counted, said, and the setpoint
+        dropped (the stream stops; the vehicle holds its last good one). ``centre``: where the
+        vehicle was when the tick planned it (path rule, first send only)."""
         v = self.vehicle
         if v.ned_origin is None:
             return False
-        ned = self.frame.ned_from_enu(enu, v.ned_origin)
-        msg = self.link.mav.set_position_target_local_ned_encode(
-            int(now * 1000) & 0xFFFFFFFF, v.sysid, v.compid, mavlink.MAV_FRAME_LOCAL_NED,
-            POSITION_ONLY, float(ned[0]), float(ned[1]), float(ned[2]), 0, 0, 0, 0, 0, 0, 0, 0)
+        if self.segment is not None:
+            pos, vel, acc = self.segment.at(now)
+            msg = setpoint_message(self.link.mav, now, v.sysid, v.compid, self.frame.ned_from_enu(pos, v.ned_origin),
+                                   enu_to_ned_vector(vel), enu_to_ned_vector(acc))
+        else:
+            pos = np.asarray(enu, float)
+            msg = setpoint_message(self.link.mav, now, v.sysid, v.compid, self.frame.ned_from_enu(pos, v.ned_origin))
         self._next_sp_t = now + 1.0 / self.params["PMON_SP_HZ"]
         refused = outgoing_violation(msg, self.frame, self.origin.value, Fence.of(self.setup, self.params, at_h=False),
                                      centre)
@@ -518,7 +533,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
             return False
         ok = self.link.send(msg)
         if ok:
-            self.sent_setpoints.append((now, self.mono(), np.array(enu, float)))
+            self.sent_setpoints.append((now, self.mono(), np.array(pos, float)))
         return ok
 
     # ----- tick scheduling

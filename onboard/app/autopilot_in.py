@@ -8,7 +8,7 @@ import logging
 import math
 
 from onboard.app.autopilot_commands import heading_from_global_position_int
-from onboard.app.contract import WARN_ACCEL, WARN_SPEED, Reason, State
+from onboard.app.contract import WARN_SPEED, Reason, State
 from onboard.app.link import COMP_ID, mavlink
 from onboard.app.pose import origin_of, valid_global_position_int
 from onboard.app.vehicle import SPEED_ACCEL_PARAMS
@@ -219,28 +219,37 @@ class AutopilotIn:
         self._check_speed_limits()
 
     def _check_speed_limits(self) -> None:
-        """Compare the autopilot's limits with what the planner's moves assume (below them the
-        vehicle lags its setpoints; docs/MAVLINK.md). The result holds until the limits or
-        PMON_REACH change: PMON_STAT carries it every second (``pmon gcs status`` shows it),
-        and it is said when it first holds and again whenever monitoring starts."""
+        """The planner's speed and acceleration against the autopilot's limits (docs/MAVLINK.md).
+
+        Vehicle motion (the flight policy): the planner flies at the autopilot's limits, capped
+        by the scenario's ``planning.speed_max_mps`` / ``accel_max_mps2`` (what the airframe can
+        fly): a change of either rebuilds the core setup (``_limits``), and no plan is faster
+        than the autopilot flies. The jump model (the paper's policy) asks for its grid's rings
+        each tick whatever the autopilot's limit: below it the vehicle lags its setpoints, a
+        warning that holds until the limits or PMON_REACH change: PMON_STAT carries it every
+        second (``pmon gcs status`` shows it), and it is said when it first holds and again
+        whenever monitoring starts."""
         names = SPEED_ACCEL_PARAMS.get(self.vehicle.autopilot)
         if not names:
             return
         (speed_name, _), (accel_name, _) = names
         sc = self.base_scenario
         pl = sc.planning
+        v = self.vehicle
         if pl.motion == "vehicle":
-            speed_need, speed_why = pl.speed_max_mps, "planning.speed_max_mps"
-        else:  # the paper's jump: the largest ring asked for, per tick
-            reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
-            speed_need, speed_why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
-        checks = [(WARN_SPEED, speed_name, self.vehicle.speed_limit_mps, speed_need, speed_why, "m/s")]
-        accel_need = math.nan
-        if pl.motion == "vehicle":  # the jump model assumes no acceleration limit: nothing to compare
-            accel_need = pl.accel_max_mps2
-            checks.append((WARN_ACCEL, accel_name, self.vehicle.accel_limit_mps2, accel_need,
-                           "planning.accel_max_mps2", "m/s^2"))
-        self._plan_limits = (speed_need, accel_need)
+            speed = min(pl.speed_max_mps, v.speed_limit_mps or math.inf)
+            accel = min(pl.accel_max_mps2, v.accel_limit_mps2 or math.inf)
+            if (speed, accel) != self._limits:
+                self._limits = (speed, accel)
+                self._plan_limits = (speed, accel)
+                self.say(f"planning at {speed:g} m/s, {accel:g} m/s^2")
+            self._warnings, self.speed_warning = 0, None
+            return
+        # the paper's jump: the largest ring asked for, per tick (no acceleration assumed)
+        reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
+        speed_need, speed_why = reach / sc.dynamics.dt_s, "the planner's steps (PMON_REACH)"
+        checks = [(WARN_SPEED, speed_name, v.speed_limit_mps, speed_need, speed_why, "m/s")]
+        self._plan_limits = (speed_need, math.nan)
         bits, texts, details = 0, [], []
         for bit, name, have, need, why, unit in checks:
             if have is None or have >= need - 1e-6:  # not read yet (the other may be), or enough

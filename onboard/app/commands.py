@@ -21,6 +21,7 @@ class Commands:
     def _set_state(self, new: State) -> None:
         if new != State.MONITORING:
             self.setpoint = None
+            self.segment = None
             self.generation += 1  # results of ticks already running are not sent
             self._guided_deadline = None
         self.state = new

@@ -34,6 +34,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--df-rate", type=number(1.0, 1e6), default=DEFAULT_RATE_HZ, metavar="N",
                    help="DF datagrams/s accepted per sender; the excess is dropped unparsed (default 1000)")
     p.add_argument("--scenario", default="paper", help="YAML file or built-in name (default paper)")
+    from onboard.policy import DEFAULT, POLICIES
+    p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
+                   help="how to decide where to fly: flight (default: the best measured, lookahead on "
+                   "the vehicle's motion, at the autopilot's speed limits) or paper (the paper's "
+                   "one-step rule on its jump model); onboard/policy.py")
     p.add_argument("--sysid", type=integer(1, 255), help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--auto-launch", action="store_true",
                    help="by itself: GUIDED, arm, take off to h, start monitoring (SITL/demo only)")
@@ -54,14 +59,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
     from onboard.app.signing import KeyFileError
-    from onboard.config import ConfigError, load_scenario
+    from onboard.config import ConfigError, load_scenario, with_overrides
+    from onboard.policy import POLICIES
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s", stream=sys.stdout)
     host, port = args.df  # every argument is checked by its type= (onboard/argcheck.py)
     gcs = tuple(args.gcs_sysid or (255,))
     try:  # a bad scenario refuses to start, with one error naming the field
-        sc = load_scenario(args.scenario)
+        sc = with_overrides(load_scenario(args.scenario), POLICIES[args.policy])
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
@@ -90,7 +96,8 @@ def run(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"pmon run: mavlink {args.mavlink}, DF datagrams on udp {host}:{app.sensor_port}", flush=True)
+    print(f"pmon run: mavlink {args.mavlink}, DF datagrams on udp {host}:{app.sensor_port}, "
+          f"policy {args.policy} ({sc.planning.planner}, {sc.planning.motion} motion)", flush=True)
     app.start()
     try:
         while not stop.wait(0.2):

@@ -47,6 +47,13 @@ class Vehicle:
             return (self.custom_mode >> 16) & 0xFF == PX4_MAIN_MODE_OFFBOARD
         return self.custom_mode == ARDUCOPTER_GUIDED
 
+    def airborne(self) -> bool:
+        """Off the ground: taking off, flying or landing (``flying`` waits for the take-off to
+        be reported done)."""
+        if self.landed_state not in (None, mavlink.MAV_LANDED_STATE_UNDEFINED):
+            return self.landed_state != mavlink.MAV_LANDED_STATE_ON_GROUND
+        return self.relative_alt is not None and self.relative_alt > 2.0
+
     def flying(self) -> bool:
         if self.landed_state not in (None, mavlink.MAV_LANDED_STATE_UNDEFINED):
             return self.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
