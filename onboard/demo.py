@@ -51,6 +51,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--gcs", metavar="PORT", type=int,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
+    p.add_argument("--autopilot", choices=("mock", "ardupilot"), default="mock",
+                   help="mock (default: sim/autopilot.py, booting in 5 s) or ardupilot: ArduPilot's own "
+                   "ArduCopter SITL ($PMON_ARDUPILOT_SITL or ../shared/ardupilot/arducopter; ~43 s of "
+                   "simulated boot before it can arm)")
 
 
 class Proc:
@@ -129,7 +133,8 @@ def run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from onboard.config import load_scenario
+    from onboard.config import load_scenario, with_overrides
+    from onboard.policy import POLICIES
 
     console = Console()
     wall0 = time.monotonic()
@@ -144,8 +149,17 @@ def run(args) -> int:
         return 2
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    if args.autopilot == "ardupilot":
+        from sim.ardupilot import skip_reason
+        if (why := skip_reason()):
+            console.print(f"pmon demo: --autopilot ardupilot: {why}")
+            return 2
+        if args.gcs:
+            console.print("pmon demo: --gcs streams from the mock; with ArduPilot connect to its SERIAL2 "
+                          "(the URL printed at start)")
+            return 2
     if args.speedup == "auto":
-        tick_s = measure_tick_s(sc)
+        tick_s = measure_tick_s(with_overrides(sc, POLICIES[args.policy]))  # the tick the app will run
         speedup = choose_speedup(tick_s)
         console.print(f"core tick measured {tick_s * 1e3:.0f} ms -> speedup {speedup:g}x")
     else:
@@ -161,17 +175,27 @@ def run(args) -> int:
     home = home_of(sc)  # the copter stands at the scenario's UAV start
     py = sys.executable
     procs: list[Proc] = []
+    sitl = None
     try:
-        ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
-                   f"--home={home[0]},{home[1]},{home[2]}", "--speedup", str(speedup),
-                   "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
-        ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
-        if args.gcs:
-            ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]
-        ap = Proc("autopilot", ap_argv, out / "autopilot.log")
-        procs.append(ap)
-        up = ap.wait_line(r"mock autopilot up: (.*)", 20).group(1)  # udpout (--gcs) comes first
-        port_app, port_feed = re.findall(r"tcpin:127\.0\.0\.1:(\d+)", up)[:2]
+        if args.autopilot == "ardupilot":
+            from sim.ardupilot import ArduPilotSitl, find_binary
+            sitl = ArduPilotSitl(find_binary(), home, speedup, dict(DEMO_VEHICLE_PARAMS),
+                                 log_path=out / "autopilot.log").start()
+            ap = None
+            port_app, port_feed = sitl.port(0), sitl.port(1)
+            console.print(f"ArduCopter SITL -I {sitl.instance}; a ground station: {sitl.url(2)} "
+                          f"(e.g. pmon gcs --connect {sitl.url(2)} view)")
+        else:
+            ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
+                       f"--home={home[0]},{home[1]},{home[2]}", "--speedup", str(speedup),
+                       "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
+            ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
+            if args.gcs:
+                ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]
+            ap = Proc("autopilot", ap_argv, out / "autopilot.log")
+            procs.append(ap)
+            up = ap.wait_line(r"mock autopilot up: (.*)", 20).group(1)  # udpout (--gcs) comes first
+            port_app, port_feed = re.findall(r"tcpin:127\.0\.0\.1:(\d+)", up)[:2]
         app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
                            "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
                            "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
@@ -183,8 +207,8 @@ def run(args) -> int:
                              "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
                              "--duration", str(duration)], out / "feed.log")
         procs.append(feed)
-        console.print(f"autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
-                      f"speedup {speedup:g}x; logs in {out}/")
+        console.print(f"{args.autopilot} autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
+                      f"speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                       TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console) as prog:
             task = prog.add_task("mission", total=duration, info="taking off")
@@ -192,8 +216,10 @@ def run(args) -> int:
             while feed.p.poll() is None:
                 time.sleep(0.25)
                 for p in (ap, app):
-                    if p.p.poll() is not None:
+                    if p is not None and p.p.poll() is not None:
                         raise RuntimeError(f"{p.name} exited early (code {p.p.returncode}); see {p.log.name}")
+                if sitl is not None and not sitl.running:
+                    raise RuntimeError(f"ArduCopter SITL exited early; see {out / 'autopilot.log'}")
                 n = max(_count_lines(truth_path) - 1, 0)
                 last = _last_json(run_path)
                 info = ""
@@ -218,6 +244,8 @@ def run(args) -> int:
     finally:
         for p in reversed(procs):
             p.stop()
+        if sitl is not None:
+            sitl.stop()
     report = score(out / "run.jsonl", out / "truth.jsonl", sc)
     _print_report(console, report, sc)
     png = plot(out / "run.jsonl", out / "truth.jsonl", sc, out / "flight.png")
