@@ -23,7 +23,7 @@ from bench.sitl_response import (
     MASK_POS, MASK_PVA, TICK_S, distance_at_ticks, in_envelope, limits_for, load, planner_route,
     replay, rms_error, route_setpoint,
 )
-from sim.autopilot import Copter, GuidedTarget, Mode, Params
+from sim.copter import Copter, GuidedTarget, Mode, Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
 from sim.vehicle import (
     Setpoint,
