@@ -23,7 +23,10 @@ from dataclasses import dataclass
 from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before pymavlink is imported
 
 from onboard.app.app import AppConfig, OnboardApp
-from onboard.config import load_scenario
+from onboard.config import load_scenario, with_overrides
+from onboard.policy import DEFAULT as DEFAULT_POLICY
+from onboard.policy import POLICIES
+from sim.ardupilot import home_of
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from sim.feed import LiveFeed, LiveFeedConfig
 
@@ -41,6 +44,7 @@ class StackConfig:
     tlog_path: str | None = None
     signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
     ready_s: float = BootTimeline.ready_s  # autopilot s after boot until it can arm (ArduCopter's)
+    policy: str = DEFAULT_POLICY  # the app's flight policy (onboard/policy.py), as pmon run's
 
 
 class SitlStack:
@@ -49,18 +53,18 @@ class SitlStack:
     def __init__(self, cfg: StackConfig = StackConfig(), **overrides):
         from dataclasses import replace
         self.cfg = replace(cfg, **overrides)
-        self.sc = load_scenario(self.cfg.scenario)
+        self.sc = with_overrides(load_scenario(self.cfg.scenario), POLICIES[self.cfg.policy])
         self.key = None
         if self.cfg.signing_key_path is not None:
             from onboard.app.signing import load_key
             self.key = load_key(self.cfg.signing_key_path)
-        o = self.sc.origin
+        home = home_of(self.sc)  # the copter stands at the scenario's UAV start
         endpoints = ["tcpin:127.0.0.1:0"] * 3
         if self.cfg.gcs_udp_port:
             endpoints.append(f"udpout:127.0.0.1:{self.cfg.gcs_udp_port}")
         if self.cfg.gcs_udpin:
             endpoints.append("udpin:127.0.0.1:0")
-        self.ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=self.cfg.speedup,
+        self.ap = MockAutopilot(home=home[:3], speedup=self.cfg.speedup,
                                 seed=self.cfg.seed, endpoints=endpoints, params=DEMO_VEHICLE_PARAMS,
                                 signing_key=self.key, boot=BootTimeline.scaled(self.cfg.ready_s))
         self.app: OnboardApp | None = None
@@ -138,6 +142,8 @@ def main(argv=None) -> int:
     p.add_argument("--ready-after", type=number(0.0, 600.0), default=BootTimeline.ready_s, metavar="S",
                    help="autopilot s after boot until the mock can arm (default "
                    f"{BootTimeline.ready_s:g}, as ArduCopter 4.4 SITL)")
+    p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT_POLICY,
+                   help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--runlog", type=OUT_FILE, help="the app's JSONL run log")
     p.add_argument("--truth", type=OUT_FILE, help="the feed's truth JSONL")
     p.add_argument("--signing-key", metavar="FILE",
@@ -151,7 +157,7 @@ def main(argv=None) -> int:
         st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
                                    runlog_path=args.runlog, truth_path=args.truth,
                                    signing_key_path=args.signing_key,
-                                   ready_s=args.ready_after)).start()
+                                   ready_s=args.ready_after, policy=args.policy)).start()
     except KeyFileError as exc:
         return fail(p.prog, str(exc))
     except OSError as exc:  # a log file's directory missing, a port in use ...

@@ -48,7 +48,7 @@ def test_the_cli_flies_a_whole_mission(stack, capsys):
     # before anything: idle app, disarmed vehicle; start is refused with the reason
     rc, [s], _ = gcs_json(stack, capsys, "status")
     assert rc == 0 and s["vehicle"]["armed"] is False and s["app"]["state"] == "idle"
-    assert s["vehicle"]["battery_pct"] == 100 and abs(s["vehicle"]["lat_deg"] - 35.145) < 1e-3
+    assert s["vehicle"]["battery_pct"] == 100 and abs(s["vehicle"]["lat_deg"] - 35.1468) < 1e-3  # home: the UAV start
     assert s["app"]["params"]["PMON_ALT"] == 40
     rc, out, err = gcs(stack, capsys, "start")
     assert rc == 1 and err.strip() == "pmon gcs: start refused by the onboard app (DENIED): vehicle not armed"
