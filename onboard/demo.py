@@ -16,17 +16,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import queue
-import re
 import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
+
+from sim.processes import MockProcess, Proc
 
 # The mock vehicle's limits for the demo: ArduCopter parameters a fast multicopter is set up
 # with (20 m/s, 5 m/s^2, jerk 20 m/s^3, climb 5 m/s); steps of up to N_r * Delta_r = 20 m per
@@ -57,48 +54,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "simulated boot before it can arm)")
 
 
-class Proc:
-    """A child process whose stdout lines are collected on a thread."""
-
-    def __init__(self, name: str, argv: list[str], log_path: Path):
-        self.name = name
-        self.lines: "queue.Queue[str]" = queue.Queue()
-        self.log = open(log_path, "w", buffering=1)
-        env = dict(os.environ, PYTHONUNBUFFERED="1", MAVLINK20="1")
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-        self._t = threading.Thread(target=self._pump, daemon=True)
-        self._t.start()
-
-    def _pump(self) -> None:
-        for line in self.p.stdout:
-            self.log.write(line)
-            self.lines.put(line.rstrip("\n"))
-
-    def wait_line(self, pattern: str, timeout: float) -> re.Match:
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                line = self.lines.get(timeout=0.1)
-            except queue.Empty:
-                if self.p.poll() is not None:
-                    break
-                continue
-            if m := rx.search(line):
-                return m
-        raise RuntimeError(f"{self.name} did not print /{pattern}/ within {timeout:.0f} s "
-                           f"(exit code {self.p.poll()}); see {self.log.name}")
-
-    def stop(self, timeout: float = 5.0) -> None:
-        if self.p.poll() is None:
-            self.p.send_signal(signal.SIGINT)
-            try:
-                self.p.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait(timeout=5)
-        self._t.join(timeout=2)
-        self.log.close()
 
 
 def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
@@ -181,21 +136,13 @@ def run(args) -> int:
             from sim.ardupilot import ArduPilotSitl, find_binary
             sitl = ArduPilotSitl(find_binary(), home, speedup, dict(DEMO_VEHICLE_PARAMS),
                                  log_path=out / "autopilot.log").start()
-            ap = None
             port_app, port_feed = sitl.port(0), sitl.port(1)
             console.print(f"ArduCopter SITL -I {sitl.instance}; a ground station: {sitl.url(2)} "
                           f"(e.g. pmon gcs --connect {sitl.url(2)} view)")
         else:
-            ap_argv = [py, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0", "--tcp", "127.0.0.1:0",
-                       f"--home={home[0]},{home[1]},{home[2]}", "--speedup", str(speedup),
-                       "--seed", str(args.seed), "--ready-after", str(DEMO_READY_S)]
-            ap_argv += [f"--param={k}={v}" for k, v in DEMO_VEHICLE_PARAMS.items()]
-            if args.gcs:
-                ap_argv += ["--udp", f"127.0.0.1:{args.gcs}"]
-            ap = Proc("autopilot", ap_argv, out / "autopilot.log")
-            procs.append(ap)
-            up = ap.wait_line(r"mock autopilot up: (.*)", 20).group(1)  # udpout (--gcs) comes first
-            port_app, port_feed = re.findall(r"tcpin:127\.0\.0\.1:(\d+)", up)[:2]
+            sitl = MockProcess(home, speedup, DEMO_VEHICLE_PARAMS, 2, out / "autopilot.log", args.seed,
+                               ready_s=DEMO_READY_S, udp_out=args.gcs).start()
+            port_app, port_feed = sitl.port(0), sitl.port(1)
         app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
                            "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
                            "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
@@ -215,11 +162,10 @@ def run(args) -> int:
             truth_path, run_path = out / "truth.jsonl", out / "run.jsonl"
             while feed.p.poll() is None:
                 time.sleep(0.25)
-                for p in (ap, app):
-                    if p is not None and p.p.poll() is not None:
-                        raise RuntimeError(f"{p.name} exited early (code {p.p.returncode}); see {p.log.name}")
-                if sitl is not None and not sitl.running:
-                    raise RuntimeError(f"ArduCopter SITL exited early; see {out / 'autopilot.log'}")
+                if app.p.poll() is not None:
+                    raise RuntimeError(f"the app exited early (code {app.p.returncode}); see {app.log.name}")
+                if not sitl.running:
+                    raise RuntimeError(f"the autopilot exited early; see {out / 'autopilot.log'}")
                 n = max(_count_lines(truth_path) - 1, 0)
                 last = _last_json(run_path)
                 info = ""

@@ -25,7 +25,6 @@ import contextlib
 import json
 import math
 import os
-import re
 import select
 import socket
 import subprocess
@@ -41,6 +40,7 @@ import numpy as np
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame
 from sim.ardupilot import ArduPilotSitl, find_binary, home_of
+from sim.processes import MockProcess, Proc
 from sim.tick_account import TickAccount, scan_times
 
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
@@ -135,46 +135,6 @@ class TcpProxy:
                         self._drop()
 
 
-class MockProcess:
-    """The mock autopilot (``python -m sim.autopilot``, ArduCopter's boot by default) as a process
-    with ArduPilotSitl's interface and port layout, so a Mission flies either."""
-
-    def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
-                 ports: int, log_path: Path, seed: int = 1):
-        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
-        self.log_path, self.seed = log_path, seed
-        self.proc = None
-        self._ports: list[int] = []
-        self.boots = 0
-
-    def start(self) -> "MockProcess":
-        from onboard.demo import Proc
-
-        argv = [sys.executable, "-m", "sim.autopilot", "--speedup", f"{self.speedup:g}",
-                f"--home={self.home[0]},{self.home[1]},{self.home[2]}", "--seed", str(self.seed),
-                "--max-lag", "0.1"]
-        argv += ["--tcp", "127.0.0.1:0"] * self.ports
-        argv += [f"--param={k}={v}" for k, v in self.params.items()]
-        self.proc = Proc("mock autopilot", argv, self.log_path)
-        m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
-        self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
-        self.boots += 1
-        return self
-
-    @property
-    def running(self) -> bool:
-        return self.proc is not None and self.proc.p.poll() is None
-
-    def port(self, serial: int) -> int:
-        return self._ports[serial]
-
-    def url(self, serial: int) -> str:
-        return f"tcp:127.0.0.1:{self.port(serial)}"
-
-    def stop(self) -> None:
-        if self.proc is not None:
-            self.proc.stop(timeout=10)
-            self.proc = None
 
 
 class Observer:
@@ -346,8 +306,6 @@ class Mission:
         self.stop()
 
     def start(self) -> "Mission":
-        from onboard.demo import Proc
-
         self.sitl.start()
         self.observer = Observer(self.sitl.url(3))
         url = self.sitl.url(0)

@@ -50,3 +50,32 @@ def test_demo_ctrl_c_stops_every_process(tmp_path):
     p.wait(timeout=20)
     assert p.returncode in (130, 1)
     assert _children_gone(out)
+
+
+@pytest.mark.timeout(90)
+def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
+    """pmon demo --gcs PORT: the mock streams to a ground station listening on that port (its
+    first endpoint is then that UDP one: the demo must still find its two TCP ports)."""
+    import os
+    import socket
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "demo", "--duration", "5", "--gcs", str(port),
+                          "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=30)
+        assert hb is not None and hb.get_srcSystem() == 1
+        stdout, _ = p.communicate(timeout=70)
+        assert p.returncode == 0, stdout[-2000:]
+        assert "RMSE" in stdout
+    finally:
+        if p.poll() is None:
+            p.kill()
+        gcs.close()
+    assert _children_gone(out)

@@ -1,0 +1,107 @@
+"""The programs of a SITL flight as child processes: ``Proc`` (any program, its output collected
+and logged), ``MockProcess`` (the mock autopilot, ``python -m sim.autopilot``, with the interface
+and port layout of sim.ardupilot.ArduPilotSitl, so a flight starts either the same way). Used by
+``pmon demo`` and sim/procedure.py."""
+from __future__ import annotations
+
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Mapping
+
+
+class Proc:
+    """A child process whose stdout lines are collected on a thread."""
+
+    def __init__(self, name: str, argv: list[str], log_path: Path):
+        self.name = name
+        self.lines: "queue.Queue[str]" = queue.Queue()
+        self.log = open(log_path, "w", buffering=1)
+        env = dict(os.environ, PYTHONUNBUFFERED="1", MAVLINK20="1")
+        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self._t = threading.Thread(target=self._pump, daemon=True)
+        self._t.start()
+
+    def _pump(self) -> None:
+        for line in self.p.stdout:
+            self.log.write(line)
+            self.lines.put(line.rstrip("\n"))
+
+    def wait_line(self, pattern: str, timeout: float) -> re.Match:
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                if self.p.poll() is not None:
+                    break
+                continue
+            if m := rx.search(line):
+                return m
+        raise RuntimeError(f"{self.name} did not print /{pattern}/ within {timeout:.0f} s "
+                           f"(exit code {self.p.poll()}); see {self.log.name}")
+
+    def stop(self, timeout: float = 5.0) -> None:
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGINT)
+            try:
+                self.p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait(timeout=5)
+        self._t.join(timeout=2)
+        self.log.close()
+
+
+class MockProcess:
+    """The mock autopilot (``python -m sim.autopilot``, ArduCopter's boot by default) as a process
+    with ArduPilotSitl's interface and port layout, so a Mission flies either."""
+
+    def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
+                 ports: int, log_path: Path, seed: int = 1, ready_s: float | None = None,
+                 udp_out: int | None = None):
+        """``ready_s``: autopilot s until it can arm (None: ArduCopter's); ``udp_out``: also stream
+        to a ground station listening on udp 127.0.0.1:PORT (not counted in ``ports``)."""
+        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
+        self.log_path, self.seed, self.ready_s, self.udp_out = log_path, seed, ready_s, udp_out
+        self.proc = None
+        self._ports: list[int] = []
+        self.boots = 0
+
+    def start(self) -> "MockProcess":
+        argv = [sys.executable, "-m", "sim.autopilot", "--speedup", f"{self.speedup:g}",
+                f"--home={self.home[0]},{self.home[1]},{self.home[2]}", "--seed", str(self.seed),
+                "--max-lag", "0.1"]
+        argv += ["--tcp", "127.0.0.1:0"] * self.ports
+        argv += [f"--param={k}={v}" for k, v in self.params.items()]
+        if self.ready_s is not None:
+            argv += ["--ready-after", f"{self.ready_s:g}"]
+        if self.udp_out is not None:
+            argv += ["--udp", f"127.0.0.1:{self.udp_out}"]
+        self.proc = Proc("mock autopilot", argv, self.log_path)
+        m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
+        self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
+        self.boots += 1
+        return self
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.p.poll() is None
+
+    def port(self, serial: int) -> int:
+        return self._ports[serial]
+
+    def url(self, serial: int) -> str:
+        return f"tcp:127.0.0.1:{self.port(serial)}"
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.stop(timeout=10)
+            self.proc = None
