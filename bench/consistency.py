@@ -80,7 +80,7 @@ def main() -> int:
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--workers", type=int, default=None, help="local processes (default: one per core)")
-    add_set_option(ap, "tracking.free_steering=false")
+    add_set_option(ap, "tracking.regularise_bandwidth=0")
     args = ap.parse_args()
     overrides = set_overrides(ap, args)
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,

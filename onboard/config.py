@@ -119,9 +119,7 @@ class Tracking:
     particles: int
     resample_ess_fraction: float
     control_mix: float = 0.1  # fraction of particles predicted with a random control (docs/TRACKING.md)
-    control_mix_when: str = "always"  # always | obstacle (only while the plan rounds an obstacle)
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (0: plain resampling)
-    free_steering: bool = False  # particles whose own plan is P1's free optimum steer by it
     plan_steering: bool = False  # particles steer by the law of the nearest reference plan (docs/TRACKING.md)
     plan_references: int = 2  # reference plans besides the mean's (even: pairs either side of it)
     plan_spread_sigma: float = 1.5  # the others at +-this many sigma along the cloud's major axis
@@ -139,10 +137,8 @@ class Lookahead:
     ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
     n_headings: int = 16
     loiter_radius_m: float = 40.0
-    objective: str = "position"  # position | trace
     corner_clearance_m: float = 3.0
     spacing_m: float = 2.0
-    discount: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -412,8 +408,8 @@ def _parse(root: _Node, source: str) -> Scenario:
         obstacle_margin_m=u.get("obstacle_margin_m", 10.0).number(_nonneg, "must be >= 0"),
     )
 
-    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix", "control_mix_when",
-                                         "regularise_bandwidth", "free_steering", "plan_steering",
+    tr = root.get("tracking").mapping({"particles", "resample_ess_fraction", "control_mix",
+                                         "regularise_bandwidth", "plan_steering",
                                          "plan_references", "plan_spread_sigma", "plan_steered_share",
                                          "plan_trust_sigma", "plan_max_qp_solves", "plan_sides",
                                          "plan_side_temperature"})
@@ -422,9 +418,7 @@ def _parse(root: _Node, source: str) -> Scenario:
         resample_ess_fraction=tr.get("resample_ess_fraction", 0.5).number(
             lambda v: 0 <= v <= 1, "must be in [0, 1]"),
         control_mix=tr.get("control_mix", 0.1).number(lambda v: 0 <= v < 1, "must be in [0, 1)"),
-        control_mix_when=tr.get("control_mix_when", "always").choice(("always", "obstacle")),
         regularise_bandwidth=tr.get("regularise_bandwidth", 0.0).number(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
-        free_steering=tr.get("free_steering", False).boolean(),
         plan_steering=tr.get("plan_steering", False).boolean(),
         plan_references=_even(tr.get("plan_references", 2), 0, 8),
         plan_spread_sigma=tr.get("plan_spread_sigma", 1.5).number(lambda v: 0 < v <= 5, "must be in (0, 5]"),
@@ -436,18 +430,16 @@ def _parse(root: _Node, source: str) -> Scenario:
     )
     pl = root.get("planning").mapping({"objective", "planner", "lookahead_steps", "motion",
                                        "speed_max_mps", "accel_max_mps2", "lookahead"})
-    la = pl.get("lookahead", {}).mapping({"ranges_m", "n_headings", "loiter_radius_m", "objective",
-                                          "corner_clearance_m", "spacing_m", "discount"})
+    la = pl.get("lookahead", {}).mapping({"ranges_m", "n_headings", "loiter_radius_m",
+                                          "corner_clearance_m", "spacing_m"})
     d_la = Lookahead()
     ranges = la.get("ranges_m", list(d_la.ranges_m))
     lookahead = Lookahead(
         ranges_m=ranges.vector(len(ranges.items(min_len=1, max_len=MAX_RANGES)), _positive, "must be > 0"),
         n_headings=la.get("n_headings", d_la.n_headings).integer(1, 360),
         loiter_radius_m=la.get("loiter_radius_m", d_la.loiter_radius_m).number(_positive, "must be > 0"),
-        objective=la.get("objective", d_la.objective).choice(("position", "trace")),
         corner_clearance_m=la.get("corner_clearance_m", d_la.corner_clearance_m).number(_nonneg, "must be >= 0"),
         spacing_m=la.get("spacing_m", d_la.spacing_m).number(lambda v: 0.1 <= v <= 50, "must be in [0.1, 50]"),
-        discount=la.get("discount", d_la.discount).number(lambda v: 0 < v <= 1, "must be in (0, 1]"),
     )
     planning = Planning(
         objective=pl.get("objective", "trace").choice(("trace", "position_trace")),

@@ -176,13 +176,12 @@ def test_free_law_is_the_guidance_wherever_it_says_so(paper, model):
 
 
 def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model, rng):
-    """tracking.free_steering: a particle whose own plan is the free optimum gets its control;
+    """The free steering: a particle whose own plan is the free optimum gets its control;
     the others get the plan's u, and only they can draw the random control of the mixture."""
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import _Active
     from onboard.core.monitor import MonitorSetup, _particle_controls
-    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, free_steering=True, control_mix=0.5,
-                                               control_mix_when="always"))
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5))
     setup = MonitorSetup.from_scenario(sc)
     goal = setup.goals[0]
     T, K = setup.guidance.horizon, len(setup.obstacles)
@@ -196,8 +195,6 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     assert np.all(out[:500, 0] < 0) and np.all(out[:500, 1] > 0)  # back toward the goal
     n_plan = int(np.all(out[500:] == u, axis=1).sum())
     assert 150 < n_plan < 350  # the rest: half the plan's u, half random
-    off = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, free_steering=False)))
-    assert off.free_steering is None
 
 
 def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
@@ -235,8 +232,8 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import LocalLaw, _Active
     from onboard.core.monitor import MonitorSetup, _particle_controls
-    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, free_steering=True, control_mix=0.0,
-                                               plan_steering=True, plan_steered_share=0.7))
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.0, plan_steering=True,
+                                               plan_steered_share=0.7))
     setup = MonitorSetup.from_scenario(sc)
     assert setup.plan_steering is not None and setup.plan_steering.steered_share == 0.7
     goal = setup.goals[0]
@@ -360,29 +357,6 @@ def test_target_that_cannot_keep_the_margin_keeps_clear_of_the_obstacle(paper, m
     assert plan_guidance(model, params, obs, x_far, goal).margin_m == params.obstacle_margin_m
 
 
-def test_control_mixture_only_while_the_plan_rounds_an_obstacle(paper, rng):
-    """control_mix_when: obstacle: random controls only for a plan with an obstacle row active
-    (or unknown: a fallback); a plan in open ground moves every particle by its control."""
-    from dataclasses import replace as dc_replace
-    from onboard.core.guidance import _Active
-    from onboard.core.monitor import MonitorSetup, _particle_controls
-    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5, control_mix_when="obstacle"))
-    setup = MonitorSetup.from_scenario(sc)
-    T, K = setup.guidance.horizon, len(setup.obstacles)
-    u = np.array([100.0, -50.0, 0.0])
-    particles = np.zeros((1000, 6))
-
-    def plan(active):
-        return Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int), active)
-    free = _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool))
-    pressed = _Active(np.zeros(10, bool), free.obstacles.copy())
-    pressed.obstacles[0, 3, 1] = True
-    n_random = lambda p: int(np.sum(np.any(_particle_controls(p, particles, setup.goals[0], setup, rng) != u, axis=1)))  # noqa: E731
-    assert n_random(plan(free)) == 0
-    assert 400 < n_random(plan(pressed)) < 600
-    assert 400 < n_random(plan(None)) < 600
-
-
 def _one_box(paper, **tracking):
     """The paper's setup with one 100 m box at the origin and T2's goal 300 m south of it."""
     from dataclasses import replace as dc_replace
@@ -429,7 +403,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     from onboard.core import tracking
     from onboard.core.guidance import GuidanceWorkspace, winding
     from onboard.core.monitor import _particle_controls, _side_modes
-    setup = _one_box(paper, plan_steering=True, plan_sides=True, free_steering=True, control_mix=0.0)
+    setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
     ws = GuidanceWorkspace()
     goal = setup.goals[0]
     mean = np.array([0.0, 300.0, 0.0, 0.0, -10.0, 0.0])

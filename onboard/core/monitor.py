@@ -90,7 +90,6 @@ class MonitorSetup:
     resample_fraction: float
     objective: str
     control_mix: float = 0.0  # fraction of particles predicted with a random control
-    control_mix_when: str = "always"  # always | obstacle: only while the plan rounds an obstacle
     regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
     free_steering: FreeLaw | None = None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None = None  # the others, while the plan is constrained, by reference plans
@@ -118,10 +117,8 @@ class MonitorSetup:
             n_particles=sc.tracking.particles,
             resample_fraction=sc.tracking.resample_ess_fraction,
             control_mix=sc.tracking.control_mix,
-            control_mix_when=sc.tracking.control_mix_when,
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
-            free_steering=(free_law(model, GuidanceParams.from_config(sc.guidance))
-                           if sc.tracking.free_steering else None),
+            free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
             plan_steering=PlanSteering.from_config(sc.tracking),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
@@ -189,8 +186,7 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
       metric of ``_side_modes``) a particle uses the nearest law of its own side mode, and outside
       the trust radius or the steered share that mode's plan's control, not the mean plan's.
     * a fraction ``control_mix`` of the particles not on the free law gets a control uniform in
-      the input box (u_z = 0): the target may take another way around an obstacle (with
-      ``control_mix_when: obstacle`` only while the plan rounds one).
+      the input box (u_z = 0): the target may take another way around an obstacle.
     docs/TRACKING.md has the measurements."""
     n = len(particles)
     out = np.broadcast_to(np.asarray(plan.next_control, float), (n, 3)).copy()
@@ -222,7 +218,7 @@ def _particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setu
             u[:, :2] = np.clip(u[:, :2], -setup.guidance.u_max_n, setup.guidance.u_max_n)
             u[:, 2] = 0.0
             out[rest[sel]] = u
-    if setup.control_mix > 0.0 and (setup.control_mix_when == "always" or plan.touches_obstacle):
+    if setup.control_mix > 0.0:
         u_max = setup.guidance.u_max_n
         other = (rng.random(n) < setup.control_mix) & ~free
         out[other, :2] = rng.uniform(-u_max, u_max, (int(other.sum()), 2))

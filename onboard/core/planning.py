@@ -210,23 +210,21 @@ class LookaheadParams:
     positions (and their centroid) half-way and at the end of the horizon are waypoints too.
     Each route flies the shortest obstacle-free polyline to its waypoint at the motion's speed
     limit, then circles (left or right) through it with radius loiter_radius_m: a route always
-    keeps moving, so the line of sight keeps turning. objective: ``position`` (sum over the
-    horizon and targets of tr P_pos) or ``trace`` (all four planar states).
+    keeps moving, so the line of sight keeps turning. A route's score is the sum over the
+    horizon and the targets of tr P_pos (docs/PLANNING.md: the all-state trace and a discount
+    per tick were measured and not adopted).
     """
 
     ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
     n_headings: int = 16
     loiter_radius_m: float = 40.0
-    objective: str = "position"
     corner_clearance_m: float = 3.0
     spacing_m: float = 2.0  # arc-length resolution of the sampled routes
-    discount: float = 1.0  # weight discount**k on tick k of the horizon
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
         """From ``onboard.config.Lookahead`` (the scenario's ``planning.lookahead``)."""
-        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.objective, c.corner_clearance_m,
-                   c.spacing_m, c.discount)
+        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
 LOOKAHEAD_DEFAULT = LookaheadParams()
@@ -395,11 +393,11 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     and acceleration limits from the current velocity). Along each route the planar covariance
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
-    reduction factor q). Score: sum over ticks and targets of tr P_pos (``params.objective``).
+    reduction factor q). Score: sum over ticks and targets of tr P_pos.
     The first step of the best route is the next position (receding horizon): jump, the
     admissible point of S_(t+1) nearest to it; vehicle, the route's own first step, which is in
     the reachable set by construction. ``objective`` (the paper's trace setting) is ignored:
-    the route objective is ``params.objective``.
+    routes are scored on the position.
     """
     params = params or LOOKAHEAD_DEFAULT
     H = target_paths.shape[1]
@@ -456,7 +454,6 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     mean = np.einsum("mn,mnd->md", w, x)
     dev = x - mean[:, None]
     P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)  # (M, 4, 4) predicted covariance at t+1
-    dims = slice(0, 2) if params.objective == "position" else slice(0, 4)
     M = len(P0)
     P = np.broadcast_to(P0, (C, M, 4, 4)).copy()
     total = np.zeros((C, M))
@@ -464,7 +461,7 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
         if i:
             P = A @ P @ A.T + Q
         P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
-        total += params.discount ** i * np.trace(P[..., dims, dims], axis1=-2, axis2=-1)
+        total += np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
     scores = np.where(ok, total.sum(axis=1), np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
     return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
