@@ -3,7 +3,7 @@ real programs, and its figures: every scan ticked, every setpoint held by the au
 takeover reactions, the estimates' error, where the copter flew, the firmware's crashes.
 
     python bench/ardupilot.py [--params stock|recommended] [--monitor 100] [--speedup 2]
-                              [--autopilot ardupilot|mock] [--out DIR]
+                              [--autopilot ardupilot|mock] [--policy flight|paper] [--out DIR]
 
 The flight is tests/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
 launch` as the autopilot boots, --monitor s of monitoring, a pilot's LOITER and BRAKE each
@@ -35,6 +35,8 @@ def main() -> int:
     ap.add_argument("--speedup", type=float, default=2.0, help="SITL speedup (default 2)")
     ap.add_argument("--autopilot", choices=("ardupilot", "mock"), default="ardupilot")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--policy", choices=("flight", "paper"), default="flight",
+                    help="the app's flight policy (pmon run --policy; default flight)")
     ap.add_argument("--out", help="keep the logs here (default: a temporary directory)")
     args = ap.parse_args()
     if not 0 < args.speedup <= 10 or not 10 <= args.monitor <= 3600:
@@ -44,21 +46,23 @@ def main() -> int:
         return 2
     cfg = MissionConfig(autopilot=args.autopilot, speedup=args.speedup, seed=args.seed,
                         params=RECOMMENDED_PARAMS if args.params == "recommended" else {},
-                        feed_duration_s=args.monitor + 60)
+                        feed_duration_s=args.monitor + 60, app_args=("--policy", args.policy))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
         wall0 = time.monotonic()
         with Mission(cfg, out) as m:
             rec = fly_launch_procedure(m, args.monitor)
         f = figures(m)
-        f.update(wall_s=round(time.monotonic() - wall0, 1), params_set=args.params,
+        f.update(wall_s=round(time.monotonic() - wall0, 1), params_set=args.params, policy=args.policy,
                  launch_to_monitoring_s=round(rec["start_t"] - (rec["boot_t"] or 0.0), 1),
                  load_avg_1m_end=round(os.getloadavg()[0], 2))
     c = f["containment"]
-    print(f"{f['autopilot']} ({args.params} parameters) at {args.speedup:g}x, {f['wall_s']} s wall: "
+    print(f"{f['autopilot']} ({args.params} parameters, {args.policy} policy) at {args.speedup:g}x, {f['wall_s']} s wall: "
           f"boot to monitoring {f['launch_to_monitoring_s']} s; {f['scans']} scans, {f['ticks']} ticked, "
           f"{f['ticks_skipped']} skipped, {f['ticks_late']} late of {f['monitoring_ticks']} monitoring ticks "
           f"(setpoint held by the autopilot median {f['setpoint_delay_s_median']} s after the scan); "
+          f"copter from the planned point at the next tick median {f['from_plan_at_next_tick_m_median']} m, "
+          f"p95 {f['from_plan_at_next_tick_m_p95']} m; "
           f"takeover reactions {f['takeover_reaction_s']} s; RMSE {f['rmse_m']} m; "
           f"{c['outside_area']} of {c['samples']} positions outside the area, {c['in_obstacle']} in an "
           f"obstacle; autopilot crashes {f['autopilot_crashes']}")

@@ -121,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--seed", type=SEED, default=2024, help="master seed (default 2024)")
     e.add_argument("--methods", default="greedy_l1,greedy_l8,fixed3,hover,orbit,random",
                    help="comma-separated method names (default: the paper's six; also lookahead, "
-                        "lookahead_vehicle, greedy_vehicle: docs/PLANNING.md)")
+                        "lookahead_vehicle, greedy_vehicle, and flight, the flight default; a flown "
+                        "method takes its autopilot as @stock or @demo: docs/RESULTS.md)")
     e.add_argument("--out", default="eval_out", type=OUT_DIR, help="output directory (default eval_out)")
     e.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
     e.add_argument("--particles", type=integer(10, 1_000_000), default=None,
