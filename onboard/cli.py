@@ -25,6 +25,7 @@ def _check(args) -> int:
 
 def _simulate(args) -> int:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from onboard.core.guidance import GuidanceWorkspace
@@ -49,7 +50,7 @@ def _simulate(args) -> int:
         state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
         err = np.linalg.norm(res.means[:, :2] - truth[:, :2], axis=1)
         errors.append(err)
-        console.print(f"t={k:3d}s  uav=({uav[0]:6.1f}, {uav[1]:6.1f})  error per target [m]: "
+        console.print(f"t={k:3d}s  uav=({uav[0]:6.1f}, {uav[1]:6.1f})  error per target \\[m]: "
                       + " ".join(f"{e:6.1f}" for e in err)
                       + f"   tick {res.timings_s['tick'] * 1e3:6.1f} ms")
         truth = world.step()  # each target follows its own guidance from its true state, noise Q
@@ -58,7 +59,7 @@ def _simulate(args) -> int:
     errors = np.array(errors)
     table = Table(title=f"position error after {args.ticks} ticks (seed {args.seed})")
     for col in ("target", "final [m]", "mean over run [m]"):
-        table.add_column(col, justify="right")
+        table.add_column(escape(col), justify="right")  # "[m]" is rich markup otherwise
     for j, t in enumerate(sc.targets):
         table.add_row(t.name, f"{errors[-1, j]:.1f}", f"{errors[:, j].mean():.1f}")
     console.print(table)

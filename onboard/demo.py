@@ -268,11 +268,12 @@ def score(run_path: Path, truth_path: Path, sc) -> dict:
 
 
 def _print_report(console, rep: dict, sc) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table(title=f"position error of the estimates, {rep['scored_ticks']} scored ticks")
     for col in ("target", "final [m]", "RMSE [m]", "RMSE 2nd half [m]"):
-        table.add_column(col, justify="right")
+        table.add_column(escape(col), justify="right")  # else rich reads "[m]" as markup and drops it
     for j, name in enumerate(rep["targets"]):
         if rep["final_m"]:
             table.add_row(name, f"{rep['final_m'][j]:.1f}", f"{rep['rmse_m'][j]:.1f}",

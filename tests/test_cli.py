@@ -19,6 +19,7 @@ def test_simulate_runs_a_short_mission():
     res = run("simulate", "--ticks", "3")
     assert res.returncode == 0, res.stderr
     assert "position error after 3 ticks" in res.stdout
+    assert "error per target [m]" in res.stdout and "final [m]" in res.stdout  # units, not eaten as markup
 
 
 def test_bad_arguments_exit_nonzero():

@@ -26,6 +26,7 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
                        cwd=REPO, capture_output=True, text=True, timeout=80)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "RMSE" in p.stdout and "T4" in p.stdout
+    assert "RMSE [m]" in p.stdout and "final [m]" in p.stdout, p.stdout[-1500:]  # units shown
     assert (out / "flight.png").stat().st_size > 10_000
     from onboard.config import load_scenario
     from test_export import assert_geojson_in_area
