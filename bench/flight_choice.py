@@ -22,8 +22,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
@@ -40,15 +38,6 @@ def variant(name: str, items: list[str], autopilot: str) -> ev.Method:
     return replace(base, name=f"{BASE}~{name}@{autopilot}", autopilot=autopilot,
                    scenario_overrides=tuple({**dict(base.scenario_overrides), **extra}.items()),
                    description=f"{base.description}; with {', '.join(items) or 'nothing more'}; autopilot: {autopilot}")
-
-
-def compare(summary: ev.Summary, errs: dict, name: str, base: str) -> dict:
-    """The variant against the base on the same trials: paired difference and ratio with CIs."""
-    cfg = summary.config
-    a, b = summary.methods[name], summary.methods[base]
-    diff = ev.t_interval(a.per_trial_rmse - b.per_trial_rmse)
-    ratio = ev._paired_ratio(errs[name], errs[base], cfg.window_start, cfg.seed)
-    return {"rmse_m": a.rmse_mean_m, "minus_base_m": diff, "over_base": ratio, "ms_per_tick": a.tick_ms}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,7 +68,6 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     trials = ev.run_trials(cfg, workers=args.workers, progress=not args.quiet)
     summary = ev.summarise(cfg, trials, wall_s=time.perf_counter() - t0)
-    errs = {m.name: np.stack([t.traces[m.name].error_m for t in trials]) for m in cfg.methods}
     print(f"paper scenario{set_label(args)}, {args.trials} trials, seed {args.seed}, autopilot {args.autopilot}, "
           f"wall {summary.wall_s:.0f} s")
     print(f"{'method':34s} {'RMSE':>6s} {'minus base (95 % CI)':>24s} {'over base (95 % CI)':>22s} "
@@ -90,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         f = s.flown
         plan = f"{f['miss_median_m']:.2f} / {f['miss_p95_m']:.2f}" if f else ""
         if m in variants:
-            c = compare(summary, errs, m.name, base.name)
-            d, r = c["minus_base_m"], c["over_base"]
+            r, d = summary.pairs[(m.name, base.name)]  # paired on the same trials by summarise
+            c = {"rmse_m": s.rmse_mean_m, "minus_base_m": d, "over_base": r, "ms_per_tick": s.tick_ms}
             print(f"{m.name:34s} {s.rmse_mean_m:6.1f} {d[0]:+7.2f} ({d[1]:+6.2f}, {d[2]:+6.2f}) "
                   f"{r[0]:6.3f} ({r[1]:.3f}, {r[2]:.3f}) {s.tick_ms:8.0f} {plan:>18s}")
             out[m.name] = {k: (round(v, 4) if isinstance(v, float) else [round(x, 4) for x in v])

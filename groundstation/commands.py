@@ -44,9 +44,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
               mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
               mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")
     radio = v.get("RADIO_STATUS", 68) or v.last.get(("RADIO_STATUS", 0))
-    prearm = None
-    if ss is not None and ss.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
-        prearm = bool(ss.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+    prearm = _prearm_ok(gl)
     vehicle = {
         "sysid": v.sysid, "mode": v.mode_name, "armed": v.armed, "landed_state": landed,
         "prearm_ok": prearm,
@@ -159,11 +157,8 @@ def set_mode(gl: GcsLink, what: str, mode: int, cmd: int | None = None) -> Outco
 
 def _prearm_ok(gl: GcsLink) -> bool | None:
     """The autopilot's pre-arm checks from SYS_STATUS (None where it does not report them)."""
-    ss = gl.v.get("SYS_STATUS")
-    bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
-    if ss is None or not ss.onboard_control_sensors_present & bit:
-        return None
-    return bool(ss.onboard_control_sensors_health & bit)
+    from onboard.app.autopilot_commands import prearm_ok
+    return prearm_ok(gl.v.get("SYS_STATUS"))
 
 
 ARM_RETRY_S = 2.0  # arm --wait: between attempts while the autopilot refuses

@@ -24,13 +24,6 @@ POLICIES: dict[str, dict[str, Any]] = {
 DEFAULT = "flight"
 
 
-def overrides(policy: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The scenario overrides of ``policy``, then ``extra`` on top (a user's own win)."""
-    if policy not in POLICIES:
-        raise ValueError(f"unknown policy {policy!r}: one of {', '.join(POLICIES)}")
-    return {**POLICIES[policy], **(extra or {})}
-
-
 def vehicle_motion(planning, speed_mps: float, accel_mps2: float) -> UavMotion:
     """The vehicle motion the planner plans with: the autopilot's own limits (``speed_mps``,
     ``accel_mps2``: WPNAV_SPEED, WPNAV_ACCEL in SI), capped by what the airframe flies

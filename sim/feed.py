@@ -145,10 +145,10 @@ class Telemetry:
 def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
     """Until the clock reads ``t`` (True), or ``stop`` (False), or the clock is reset: an
     autopilot reboot (True: the caller sees ``clock.resets`` change)."""
-    resets = getattr(clock, "resets", 0)
+    resets = clock.resets
     while not stop.is_set():
         now = clock.now()
-        if (now is not None and now >= t) or getattr(clock, "resets", 0) != resets:
+        if (now is not None and now >= t) or clock.resets != resets:
             return True
         time.sleep(poll)
     return False
@@ -397,6 +397,8 @@ def _finite(v, lo: float, hi: float) -> float:
 
 
 class WallClock:
+    resets = 0  # never: a replay's clock is the wall's (the autopilot clock counts reboots)
+
     def __init__(self, speedup: float = 1.0, t0: float = 0.0):
         self.speedup, self.t0, self.start = speedup, t0, time.monotonic()
 

@@ -39,6 +39,7 @@ import numpy as np
 
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame
+from onboard.demo import DEMO_VEHICLE_PARAMS
 from sim.ardupilot import ArduPilotSitl, find_binary, home_of
 from sim.processes import MockProcess, Proc
 from sim.tick_account import TickAccount, scan_times
@@ -47,8 +48,8 @@ OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
 GUIDED = 4  # ArduCopter's custom_mode
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
 # ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
-# paper's 20 m steps (the demo's mock uses the same: onboard/demo.py DEMO_VEHICLE_PARAMS)
-RECOMMENDED_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20, "WPNAV_SPEED_UP": 500}
+# paper's 20 m steps: the demo's vehicle's
+RECOMMENDED_PARAMS = DEMO_VEHICLE_PARAMS
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,6 @@ class Observer:
         self.modes: list[tuple] = []  # (t, custom_mode, armed) on every change
         self.texts: list[tuple] = []  # (t, compid, text)
         self.estimates: list[tuple] = []  # (t, index, x, y, sigma_x, sigma_y) PMON_TGT
-        self.stat = None  # the latest PMON_STAT
         self.app_state: str | None = None
         self._stop = threading.Event()
         self._asked = -math.inf
@@ -165,21 +165,6 @@ class Observer:
         self._stop.set()
         self._thread.join(timeout=5)
         self.link.close()
-
-    @property
-    def mode(self) -> int | None:
-        with self.lock:
-            return self.modes[-1][1] if self.modes else None
-
-    @property
-    def armed(self) -> bool:
-        with self.lock:
-            return bool(self.modes and self.modes[-1][2])
-
-    @property
-    def rel_alt(self) -> float | None:
-        with self.lock:
-            return self.positions[-1][4] if self.positions else None
 
     def _ask(self) -> None:
         self._asked = time.monotonic()
@@ -248,8 +233,6 @@ class Observer:
                 if mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_TGT":
                     d = msg.data
                     self.estimates.append((d[13], msg.array_id, d[0], d[1], d[6], d[7]))
-                elif mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_STAT":
-                    self.stat = msg
                 elif mtype == "HEARTBEAT":
                     from groundstation.protocol import app_state_name
                     self.app_state = app_state_name(msg.custom_mode)
@@ -367,10 +350,9 @@ class Mission:
         while time.monotonic() < deadline:
             if pred(self.observer):
                 return True
-            for p in (self.app, self.feed):
-                if p is not None and p.p.poll() is not None and p is self.app:
-                    raise RuntimeError(f"the app exited ({p.p.returncode}) while waiting for {what}; "
-                                       f"see {p.log.name}")
+            if self.app is not None and self.app.p.poll() is not None:  # the feed may end: its scans ran out
+                raise RuntimeError(f"the app exited ({self.app.p.returncode}) while waiting for {what}; "
+                                   f"see {self.app.log.name}")
             if not self.sitl.running:
                 raise RuntimeError(f"the autopilot exited while waiting for {what}; see "
                                    f"{self.out / 'autopilot.log'}")
@@ -614,7 +596,6 @@ def figures(m: Mission) -> dict:
     err = m.estimate_errors()
     follow = m.follow_errors_m()
     reactions = m.takeover_reactions()
-    calls = [c for c in m.commands]
     return {
         "autopilot": m.cfg.autopilot, "params": dict(m.cfg.params), "speedup": m.cfg.speedup,
         "scans": acc["scans"], "ticks": acc["ticks"], "monitoring_ticks": acc["monitoring_ticks"],
@@ -625,5 +606,5 @@ def figures(m: Mission) -> dict:
         "from_plan_at_next_tick_m_median": round(float(np.median(follow)), 2) if follow else None,
         "from_plan_at_next_tick_m_p95": round(float(np.percentile(follow, 95)), 2) if follow else None,
         "rmse_m": err["rmse_m"], "containment": m.containment(), "autopilot_crashes": m.autopilot_crashes(),
-        "gcs_commands": [" ".join(c.args) + f" -> {c.rc}" for c in calls],
+        "gcs_commands": [" ".join(c.args) + f" -> {c.rc}" for c in m.commands],
     }

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before pymavlink is imported
 
 from onboard.app.app import AppConfig, OnboardApp
-from onboard.config import load_scenario, with_overrides
+from onboard.config import load_scenario
 from onboard.policy import DEFAULT as DEFAULT_POLICY
 from onboard.policy import POLICIES
 from sim.ardupilot import home_of
@@ -53,7 +53,7 @@ class SitlStack:
     def __init__(self, cfg: StackConfig = StackConfig(), **overrides):
         from dataclasses import replace
         self.cfg = replace(cfg, **overrides)
-        self.sc = with_overrides(load_scenario(self.cfg.scenario), POLICIES[self.cfg.policy])
+        self.sc = load_scenario(self.cfg.scenario, POLICIES[self.cfg.policy])
         self.key = None
         if self.cfg.signing_key_path is not None:
             from onboard.app.signing import load_key

@@ -62,8 +62,6 @@ IO_MAVLINK_MAX = 500  # MAVLink messages handled per io iteration, then the peri
 IO_DF_MAX = 200  # DF datagrams parsed per io iteration (the reader's rate limit bounds the rest)
 
 
-
-
 @dataclass(frozen=True)
 class AppConfig:
     mavlink_url: str
@@ -378,14 +376,6 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         if self.df.lock(addr):
             self.say(f"DF source {addr[0]}:{addr[1]}; others ignored")
 
-    # ----- MAVLink in
-
-    # ----- state
-
-    # ----- commands
-
-    # ----- parameters
-
     # ----- periodic jobs (io thread, under the lock)
     def _periodic(self) -> None:
         """Every job on its own: one that raises is counted and the others still run (the
@@ -528,7 +518,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         if refused is not None:
             self._count("setpoints_refused")
             self._count("setpoints_refused_at_send")
-            self.setpoint = None
+            self.setpoint = self.segment = None
             self.say(f"setpoint refused as sent: {refused}", mavlink.MAV_SEVERITY_ERROR)
             return False
         ok = self.link.send(msg)
@@ -582,18 +572,6 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self._job = rec
         self._job_event.set()
 
-    # ------------------------------------------------------------------ watchdog thread
-
-    # ------------------------------------------------------------------ worker thread
-
-
-
-
-
-
-
-
-
 
 def _msg_type(msg) -> str:
     try:
@@ -604,10 +582,6 @@ def _msg_type(msg) -> str:
 
 def _nan(x: float | None) -> float:
     return math.nan if x is None else float(x)
-
-
-
-
 
 
 __all__ = ["AppConfig", "OnboardApp", "State", "Action", "Reason", "TGT_FIELDS", "STAT_FIELDS",

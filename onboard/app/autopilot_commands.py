@@ -33,3 +33,12 @@ def takeoff_params(autopilot: int, lat_deg: float, lon_deg: float, heading_deg: 
 def heading_from_global_position_int(hdg_cdeg: int) -> float | None:
     """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535)."""
     return None if hdg_cdeg == 65535 else hdg_cdeg / 100.0
+
+
+def prearm_ok(sys_status) -> bool | None:
+    """The autopilot's pre-arm checks from a SYS_STATUS message (None where it does not report
+    them: the bit absent from onboard_control_sensors_present, as PX4 leaves it)."""
+    bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    if sys_status is None or not sys_status.onboard_control_sensors_present & bit:
+        return None
+    return bool(sys_status.onboard_control_sensors_health & bit)

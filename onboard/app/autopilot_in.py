@@ -7,11 +7,12 @@ from __future__ import annotations
 import logging
 import math
 
-from onboard.app.autopilot_commands import heading_from_global_position_int
+from onboard.app.autopilot_commands import heading_from_global_position_int, prearm_ok
 from onboard.app.contract import WARN_SPEED, Reason, State
 from onboard.app.link import COMP_ID, mavlink
 from onboard.app.pose import origin_of, valid_global_position_int
 from onboard.app.vehicle import SPEED_ACCEL_PARAMS
+from onboard.policy import vehicle_motion
 
 log = logging.getLogger("pmon.app")
 STALE_TELEMETRY_S = 2.0  # local s without GLOBAL_POSITION_INT while heartbeats come: ask again
@@ -61,9 +62,7 @@ class AutopilotIn:
                     v.heading_deg = heading_from_global_position_int(msg.hdg)
                     v.position_local = self.mono()
             elif mtype == "SYS_STATUS":
-                bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
-                self.vehicle.prearm_ok = bool(msg.onboard_control_sensors_health & bit) \
-                    if msg.onboard_control_sensors_present & bit else None
+                self.vehicle.prearm_ok = prearm_ok(msg)
             elif mtype == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
                 if text.startswith(("PreArm:", "Arm:")):  # why the autopilot refuses to arm
@@ -237,8 +236,8 @@ class AutopilotIn:
         pl = sc.planning
         v = self.vehicle
         if pl.motion == "vehicle":
-            speed = min(pl.speed_max_mps, v.speed_limit_mps or math.inf)
-            accel = min(pl.accel_max_mps2, v.accel_limit_mps2 or math.inf)
+            m = vehicle_motion(pl, v.speed_limit_mps or math.inf, v.accel_limit_mps2 or math.inf)
+            speed, accel = m.speed_max_mps, m.accel_max_mps2
             if (speed, accel) != self._limits:
                 self._limits = (speed, accel)
                 self._plan_limits = (speed, accel)

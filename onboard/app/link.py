@@ -11,8 +11,8 @@ raise AttributeError from inside pymavlink: the app's watchdog died of it when a
 SITL restarted). So here the link is marked down on the first error, every send and receive
 returns at once while it is down (sends are counted, not queued: a setpoint is only good when
 fresh), and a daemon thread opens a new connection once a second and swaps it in under the
-lock. Users learn of it from ``reconnects`` (and, for the autopilot, from its heartbeats
-stopping and coming back); they re-request their message rates then.
+lock. Users learn of it from ``up`` and, for the autopilot, from its heartbeats stopping and
+coming back; they re-request their message rates then.
 """
 from __future__ import annotations
 
@@ -64,18 +64,15 @@ class Link:
         self.sent = 0
         self.received = 0
         self.send_errors = 0
-        self.reconnects = 0  # stream link reopened after a drop (not counting the first open)
-        self.drops = 0
-        self.last_error: str | None = None
         self._closed = False
         self._reconnector: threading.Thread | None = None
         self.conn = None
         try:
             self.conn = self._open()
-        except ConnectionRefusedError as exc:
+        except ConnectionRefusedError:
             if not (wait_for_peer and _is_stream(url)):
                 raise
-            self._mark_down(exc)
+            self._mark_down()
         self._mav = self.conn.mav if self.conn is not None else self._encoder()
 
     # ----- opening
@@ -134,12 +131,9 @@ class Link:
             self._mav.srcSystem = sysid
 
     # ----- dropping and reopening
-    def _mark_down(self, exc: BaseException | None) -> None:
+    def _mark_down(self) -> None:
         """Close a dropped stream link and start reopening it (caller holds the lock, or is
         the constructor)."""
-        self.drops += 1
-        self.last_error = "peer closed the connection" if isinstance(exc, _PeerGone) or exc is None \
-            else (getattr(exc, "strerror", None) or type(exc).__name__)
         conn, self.conn = self.conn, None
         if conn is not None:
             with contextlib.suppress(Exception):
@@ -154,8 +148,7 @@ class Link:
             time.sleep(RECONNECT_S)
             try:
                 new = self._open()
-            except Exception as exc:  # refused, reset, device absent: try again later
-                self.last_error = getattr(exc, "strerror", None) or type(exc).__name__
+            except Exception:  # refused, reset, device absent: try again later
                 continue
             with self._lock:
                 if self._closed:
@@ -163,7 +156,6 @@ class Link:
                         new.close()
                     return
                 self._adopt(new)
-                self.reconnects += 1
                 self._reconnector = None
             return
 
@@ -179,10 +171,10 @@ class Link:
                 return False
             try:
                 self.conn.mav.send(msg)
-            except (_PeerGone, OSError) as exc:
+            except (_PeerGone, OSError):
                 self.send_errors += 1
                 if _is_stream(self.url):
-                    self._mark_down(exc)
+                    self._mark_down()
                 return False
             except (ValueError, struct.error):
                 self.send_errors += 1
@@ -220,9 +212,9 @@ class Link:
                         msg = conn.recv_msg()
                 else:
                     msg = conn.recv_msg()
-            except (_PeerGone, OSError) as exc:
+            except (_PeerGone, OSError):
                 if _is_stream(self.url):
-                    self._mark_down(exc)
+                    self._mark_down()
                 return None
             except (ValueError, struct.error):
                 return None

@@ -59,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
     from onboard.app.signing import KeyFileError
-    from onboard.config import ConfigError, load_scenario, with_overrides
+    from onboard.config import ConfigError, load_scenario
     from onboard.policy import POLICIES
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
@@ -67,7 +67,7 @@ def run(args) -> int:
     host, port = args.df  # every argument is checked by its type= (onboard/argcheck.py)
     gcs = tuple(args.gcs_sysid or (255,))
     try:  # a bad scenario refuses to start, with one error naming the field
-        sc = with_overrides(load_scenario(args.scenario), POLICIES[args.policy])
+        sc = load_scenario(args.scenario, POLICIES[args.policy])
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2

@@ -44,11 +44,6 @@ class PlannedSegment:
         return (np.array([pos[0], pos[1], self.p0[2]]), np.array([vel[0], vel[1], 0.0]),
                 np.array([acc[0], acc[1], 0.0]))
 
-    @property
-    def end(self) -> np.ndarray:
-        """The planned point one tick on (ENU m)."""
-        return self.at(self.t0 + self.tick_s)[0]
-
 
 def enu_to_ned_vector(v) -> np.ndarray:
     return np.array([v[1], v[0], -v[2]], dtype=float)
