@@ -165,6 +165,39 @@ class Origin:
 
 
 @dataclass(frozen=True)
+class KrakenVfo:
+    target: str  # a target's name: the VFO's bearings are that target's channel
+    freq_hz: float  # the VFO's frequency, as KrakenSDR writes it in each line
+
+
+@dataclass(frozen=True)
+class Kraken:
+    """KrakenSDR's DoA output as the DF (``pmon run --kraken``; onboard/app/kraken.py,
+    docs/KRAKENSDR.md has each setting's reason). One section, every setting declared here
+    with its default; ``_kraken`` reads it."""
+
+    vfos: tuple[KrakenVfo, ...]
+    url: str = "http://127.0.0.1:8081/DOA_value.html"  # its "Kraken App" CSV: http:// or a file path
+    status_url: str = "auto"  # its status.json (ADC overdrive, DAQ sync): auto = beside url; "" = none
+    freq_tol_hz: float = 2000.0  # a line within this of a VFO's frequency is that VFO's
+    mount_offset_rad: float = 0.0  # KrakenSDR's 0 (antenna 0), clockwise from the vehicle's nose
+    convention: str = "auto"  # the main DoA's: auto (read off the spectrum) | unit_circle | compass
+    measurements: str = "peaks"  # peaks (the spectrum's, the set) | main (the main DoA alone)
+    peak_floor_db: float = 12.0  # peaks within this of the highest
+    peak_prominence_db: float = 3.0  # ... standing this far above their valleys
+    max_peaks: int = 8
+    min_confidence: float = 0.0  # gate: a line below this confidence (dB) is an empty set
+    min_power_db: float = -100.0  # gate: ... below this power (KrakenSDR floors it at -100)
+    reject_overdrive: bool = True  # gate: frames its status.json flags (ADC overdrive, DAQ not ok)
+    clutter: str = "adaptive"  # adaptive (the rate the peaks show) | fixed (sensor.clutter_rate)
+    clutter_min: float = 0.1  # adaptive rate's bounds (per scan)
+    clutter_max: float = 10.0
+    clutter_window: int = 20  # scans per channel the adaptive rate is averaged over
+    time_source: str = "autopilot"  # its Unix stamps to autopilot time: autopilot (SYSTEM_TIME) | host
+    poll_s: float = 0.05  # wall s between reads of url
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     origin: Origin
@@ -180,6 +213,7 @@ class Scenario:
     tracking: Tracking
     planning: Planning
     mission: Mission
+    kraken: Kraken | None = None  # KrakenSDR as the DF (optional section)
     source: str = field(default="<memory>", compare=False)
     # the YAML tree as read (before ``overrides``) and the overrides applied, for ``with_overrides``
     tree: Any = field(default=None, compare=False, repr=False)
@@ -327,7 +361,7 @@ def _box(n: _Node, flat_ok: bool) -> Box:
 def _parse(root: _Node, source: str) -> Scenario:
     root.mapping({
         "name", "origin", "area", "dynamics", "initial_cov_diag", "targets", "goals", "obstacles",
-        "guidance", "sensor", "uav", "tracking", "planning", "mission",
+        "guidance", "sensor", "uav", "tracking", "planning", "mission", "kraken",
     })
 
     o = root.get("origin").mapping({"lat_deg", "lon_deg", "alt_m"})
@@ -469,9 +503,66 @@ def _parse(root: _Node, source: str) -> Scenario:
         initial_cov_diag=initial_cov_diag, targets=tuple(targets), goals=goals,
         obstacles=obstacles, guidance=guidance, sensor=sensor, uav=uav, tracking=tracking,
         planning=planning, mission=mission, source=source,
+        kraken=_kraken(root.get("kraken"), targets) if "kraken" in root.value else None,
     )
     _check_geometry(root, scenario)
     return scenario
+
+
+def _kraken(k: _Node, targets) -> Kraken:
+    d = Kraken(vfos=())
+    keys = {f for f in Kraken.__dataclass_fields__ if f != "mount_offset_rad"} | {"mount_offset_deg"}
+    k.mapping(keys)
+    names = {t.name for t in targets}
+    vfos = []
+    for v in k.get("vfos").items(min_len=1, max_len=MAX_TARGETS):
+        v.mapping({"target", "freq_hz"})
+        name = v.get("target").text()
+        if name not in names:
+            raise v.get("target").fail(f"no target named {name!r} in targets")
+        vfos.append(KrakenVfo(name, v.get("freq_hz").number(lambda x: 1e6 <= x <= 1e11, "must be in [1e6, 1e11] Hz")))
+    tol = k.get("freq_tol_hz", d.freq_tol_hz).number(lambda x: 0 < x <= 1e6, "must be in (0, 1e6] Hz")
+    for i, a in enumerate(vfos):
+        for b in vfos[i + 1:]:
+            if a.target == b.target or abs(a.freq_hz - b.freq_hz) <= 2 * tol:
+                what = "target" if a.target == b.target else f"frequency (within 2 x freq_tol_hz of {a.freq_hz:g})"
+                raise k.get("vfos").fail(f"two VFOs with the same {what}")
+
+    def url(key: str, default: str, extra: tuple[str, ...] = ()) -> str:
+        node = k.get(key, default)
+        if node.value == "" and "" in extra:
+            return ""
+        v = node.text()
+        if len(v) > 512 or not (v.startswith(("http://", "file://", "/")) or v in extra):
+            raise node.fail("must be http://HOST:PORT/PATH, file:///PATH or an absolute path"
+                            + (f" (or {', '.join(repr(e) for e in extra)})" if extra else ""))
+        return v
+
+    lo = k.get("clutter_min", d.clutter_min).number(lambda x: 0 <= x <= 1000, "must be in [0, 1000]")
+    hi = k.get("clutter_max", d.clutter_max).number(lambda x: lo <= x <= 1000, f"must be in [clutter_min={lo:g}, 1000]")
+    return Kraken(
+        vfos=tuple(vfos),
+        url=url("url", d.url),
+        status_url=url("status_url", d.status_url, ("auto", "")),
+        freq_tol_hz=tol,
+        mount_offset_rad=math.radians(k.get("mount_offset_deg", 0.0).number(lambda x: -360 <= x <= 360,
+                                                                             "must be in [-360, 360] degrees")),
+        convention=k.get("convention", d.convention).choice(("auto", "unit_circle", "compass")),
+        measurements=k.get("measurements", d.measurements).choice(("peaks", "main")),
+        peak_floor_db=k.get("peak_floor_db", d.peak_floor_db).number(lambda x: 0 < x <= 100, "must be in (0, 100] dB"),
+        peak_prominence_db=k.get("peak_prominence_db", d.peak_prominence_db).number(
+            lambda x: 0 <= x <= 100, "must be in [0, 100] dB"),
+        max_peaks=k.get("max_peaks", d.max_peaks).integer(1, 64),
+        min_confidence=k.get("min_confidence", d.min_confidence).number(lambda x: 0 <= x <= 1000, "must be in [0, 1000]"),
+        min_power_db=k.get("min_power_db", d.min_power_db).number(lambda x: -300 <= x <= 100, "must be in [-300, 100] dB"),
+        reject_overdrive=k.get("reject_overdrive", d.reject_overdrive).boolean(),
+        clutter=k.get("clutter", d.clutter).choice(("adaptive", "fixed")),
+        clutter_min=lo,
+        clutter_max=hi,
+        clutter_window=k.get("clutter_window", d.clutter_window).integer(1, 10_000),
+        time_source=k.get("time_source", d.time_source).choice(("autopilot", "host")),
+        poll_s=k.get("poll_s", d.poll_s).number(lambda x: 0.005 <= x <= 10, "must be in [0.005, 10] s"),
+    )
 
 
 def _unique_names(node: _Node, things) -> None:

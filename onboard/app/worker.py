@@ -17,7 +17,8 @@ from onboard.app.link import mavlink
 from onboard.app.schedule import PLAN_RESERVE_S, TickRecord
 from onboard.app.setpoints import PlannedSegment
 from onboard.core import tracking
-from onboard.core.monitor import MonitorSetup, Scan, tick
+from onboard.app.pairing import scans_for_tick
+from onboard.core.monitor import MonitorSetup, tick
 from onboard.core.planning import CandidateGrid
 
 log = logging.getLogger("pmon.app")
@@ -84,14 +85,12 @@ class TickWorker:
             centre = self.poses.at(now) if plan else None  # where the vehicle is now
             pose = self.poses.latest()
             velocity = pose.vel[:2].copy() if plan and pose is not None else np.zeros(2)
-        bearings = tuple(job.scans[ch].bearings if ch in job.scans else np.empty(0)
-                         for ch in range(self.M))
         for ch in job.scans:  # newest scan time <= this tick per channel (PMON_TGT[8])
             self._scan_t_used[ch] = max(self._scan_t_used[ch], job.t)
-        scans = []
-        if sensor_pos is not None and job.scans:
-            scans = [Scan(sensor_pos, bearings)]
-        elif job.scans:
+        # each channel paired with where the DF was when it measured (onboard/app/pairing.py)
+        scans, unpaired = scans_for_tick(job.scans, job.t, self.M,
+                                         lambda tm: sensor_pos if tm == job.t else self.poses.at(tm))
+        if unpaired:
             with self.lock:
                 self._count("scans_without_pose")
                 self.say("DF scan without a vehicle position: dropped",

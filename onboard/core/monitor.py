@@ -147,10 +147,14 @@ class MonitorState:
 
 @dataclass(frozen=True, eq=False)
 class Scan:
-    """Bearings (rad, per target channel) taken from one sensor position (ENU, m)."""
+    """Bearings (rad, per target channel) taken from one sensor position (ENU, m).
+
+    ``clutter_rates``: per channel, the clutter rate Lambda of this scan's likelihood (a DF that
+    measures its clutter, onboard/core/doa.py), None (or an entry None) for the setup's."""
 
     sensor_position: np.ndarray
     bearings: tuple[np.ndarray, ...]
+    clutter_rates: tuple[float | None, ...] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -416,7 +420,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     posts, degenerate = [], np.zeros(M, dtype=bool)
     means, covs = np.zeros((M, 6)), np.zeros((M, 6, 6))
     for j in range(M):
-        j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j]) for s in scans]
+        j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
+                    None if s.clutter_rates is None else s.clutter_rates[j]) for s in scans]
         upd = tracking.update(state.beliefs[j], j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
         means[j], covs[j] = tracking.estimate(upd.particles)
