@@ -44,6 +44,7 @@ import numpy as np
 
 from onboard.app import datagram as dg
 from onboard.app.clock import AutopilotClock
+from onboard.app.kraken import UtcMap
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
 
@@ -64,6 +65,7 @@ class Telemetry:
         self.frame = frame
         self.clock = AutopilotClock()
         self.poses = PoseHistory(keep_s=60.0, max_extrapolation_s=0.5)
+        self.utc = UtcMap()  # the autopilot's UTC (SYSTEM_TIME): a simulated KrakenSDR's stamps
         self.sysid: int | None = None
         self.compid: int | None = None
         self.armed = False
@@ -140,6 +142,8 @@ class Telemetry:
         if mtype == "GLOBAL_POSITION_INT" and valid_global_position_int(msg):
             self.poses.add(self.frame.pose_from_global_position_int(msg))
             self._pose_local = time.monotonic()
+        elif mtype == "SYSTEM_TIME":
+            self.utc.observe(msg.time_unix_usec, msg.time_boot_ms)
 
 
 def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
@@ -253,12 +257,11 @@ class LiveFeed:
         self.late_scans = 0  # scans sent more than LATE_S (autopilot) after their time
         self.max_send_lag_s = 0.0
         self.stop_event = threading.Event()
+        self.seq = 0  # datagrams sent
         self.last_record: dict | None = None  # the truth of the last scan (all of them: truth_path)
         self.step_ms: deque[float] = deque(maxlen=3600)  # truth step times (wall ms), the last hour
 
     def run(self) -> int:
-        from sim.sensors import df_scan
-
         ahead = TruthAhead(self.truth, self.cfg.ahead).start()  # warms up while we wait
         self.step_ms = ahead.step_ms
         tel = Telemetry(self.cfg.mavlink_url, self.frame, self.cfg.tlog_path, self.cfg.signing_key).start()
@@ -292,7 +295,6 @@ class LiveFeed:
             T = math.floor(tel.clock.now()) + 1.0
             resets = tel.clock.resets
             self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
-            seq = 0
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
                 if states is None or not _sleep_until(tel.clock, T, self.stop_event):
@@ -317,12 +319,9 @@ class LiveFeed:
                     self.log(f"feed: no UAV position at t={T:.1f}: scan skipped")
                     T += 1.0
                     continue
-                bearings = df_scan(states[:, :2], uav[:2], self.df, self.rng)
+                bearings = self.scan(T, states, uav, tel)
                 lag = (tel.clock.now() or T) - T
-                for ch, b in enumerate(bearings):
-                    sock.sendto(dg.encode(T, ch, b, seq), dest)
-                    seq += 1
-                    self.sent += 1
+                self.deliver(T, bearings, sock, dest)
                 self.max_send_lag_s = max(self.max_send_lag_s, lag)
                 self.late_scans += lag > LATE_S
                 rec = {"t": T, "k": k, "uav_enu": [round(float(x), 3) for x in uav],
@@ -343,6 +342,20 @@ class LiveFeed:
             sock.close()
             if out is not None:
                 out.close()
+
+
+    def scan(self, T: float, states: np.ndarray, uav: np.ndarray, tel: Telemetry) -> tuple[np.ndarray, ...]:
+        """The DF's bearings of the truth at T from ``uav`` (per channel): the DF model's."""
+        from sim.sensors import df_scan
+        return df_scan(states[:, :2], uav[:2], self.df, self.rng)
+
+    def deliver(self, T: float, bearings, sock: socket.socket, dest: tuple[str, int]) -> None:
+        """Send a scan: one datagram per channel (docs/DATAGRAM.md). sim/kraken.py writes
+        KrakenSDR's output instead."""
+        for ch, b in enumerate(bearings):
+            sock.sendto(dg.encode(T, ch, b, self.seq), dest)
+            self.seq += 1
+            self.sent += 1
 
 
 def read_recording(path: str | Path) -> Iterator[tuple[float, int, list[float]]]:

@@ -42,6 +42,7 @@ from onboard.app.contain import Contained
 from onboard.app.contract import STAT_FIELDS, STATUS, TGT_FIELDS, Action, Reason, State
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
 from onboard.app.fence import Fence, outgoing_violation
+from onboard.app.kraken import KrakenInput, UtcMap
 from onboard.app.link import Link, mavlink
 from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
 from onboard.app.pose import FixedOrigin, Frame, PoseHistory
@@ -86,6 +87,9 @@ class AppConfig:
     # DF senders accepted (onboard/app/df_input.py); empty: the first peer whose datagram is valid
     df_sources: tuple[Source, ...] = ()
     df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
+    # KrakenSDR's DoA output as a DF input too (onboard/app/kraken.py): None off, "" the scenario's
+    # kraken.url, else this URL or path
+    kraken_url: str | None = None
 
 
 class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
@@ -110,6 +114,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self.M = len(scenario.targets)
         self.scans = dg.ScanBuffer(self.M)
         self.poses = PoseHistory()
+        self.utc = UtcMap()  # the autopilot's UTC (SYSTEM_TIME): KrakenSDR's Unix stamps to its clock
         self.vehicle = Vehicle()
         self.state = State.IDLE
         self.lock = threading.RLock()
@@ -118,6 +123,12 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         try:
             self.df = DfInput(cfg.sensor_host, cfg.sensor_port, cfg.df_sources, cfg.df_rate_hz)
         except BaseException:
+            self.link.close()
+            raise
+        try:
+            self.kraken = None if cfg.kraken_url is None else KrakenInput(self, cfg.kraken_url or None)
+        except BaseException:
+            self.df.stop()
             self.link.close()
             raise
         self.sensor_port = self.df.port
@@ -187,6 +198,8 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "OnboardApp":
         self.df.start()
+        if self.kraken is not None:
+            self.kraken.start()
         for name, fn in (("pmon-io", self._io_loop), ("pmon-worker", self._worker_loop),
                          ("pmon-watchdog", self._watchdog_loop)):
             th = threading.Thread(target=fn, name=name, daemon=True)
@@ -201,6 +214,8 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
             th.join(timeout=10.0)
         self._threads = []
         self.df.stop()
+        if self.kraken is not None:
+            self.kraken.stop()
         self.link.close()
         if self._runlog is not None:
             self._runlog.close()
@@ -340,6 +355,9 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         for data, addr in self.df.pop(IO_DF_MAX):
             with self.lock:
                 self._handle("DF datagram", self._on_datagram, data, addr)
+        if self.kraken is not None:
+            with self.lock:
+                self._handle("KrakenSDR input", self.kraken.drain)
         with self.lock:
             self._periodic()
 
@@ -386,6 +404,8 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self._handle("periodic link", self._periodic_link, local)
         self._handle("periodic clock", self._periodic_clock, now)
         self._handle("periodic DF input", self._periodic_df_input)
+        if self.kraken is not None:
+            self._handle("periodic KrakenSDR", self.kraken.periodic, now)
         if now is None:
             self._sched_beat = self.mono()  # nothing to schedule before the first clock sample
             return

@@ -63,6 +63,8 @@ class AutopilotIn:
                     v.position_local = self.mono()
             elif mtype == "SYS_STATUS":
                 self.vehicle.prearm_ok = prearm_ok(msg)
+            elif mtype == "SYSTEM_TIME":
+                self.utc.observe(msg.time_unix_usec, msg.time_boot_ms)
             elif mtype == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
                 if text.startswith(("PreArm:", "Arm:")):  # why the autopilot refuses to arm

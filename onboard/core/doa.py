@@ -56,15 +56,16 @@ def circular_distance_deg(a, b) -> np.ndarray:
 def detect_convention(doa_deg: float, spectrum: np.ndarray, tol_deg: float = 2.0) -> str | None:
     """Which convention a line's main DoA is written in, from its spectrum (always unit-circle):
     KrakenSDR's main DoA is the spectrum's argmax, written as theta (``unit_circle``) or as
-    ``360 - theta`` (``compass``) depending on the software version. None when it is neither
-    (within ``tol_deg``: the spectrum is rounded to 0.01 dB, so neighbouring bins can tie).
-    At 0 and 180 degrees both agree and ``unit_circle`` is returned (the bearing is the same)."""
+    ``360 - theta`` (``compass``) depending on the software version. The nearer of the two
+    within ``tol_deg`` (the spectrum is rounded to 0.01 dB, so neighbouring bins can tie); None
+    when neither is, or both are equally near (near 0 and 180 degrees the two agree to within
+    twice the distance: nothing is learnt there)."""
     k = float(np.argmax(spectrum))
-    if circular_distance_deg(doa_deg, k) <= tol_deg:
-        return "unit_circle"
-    if circular_distance_deg(doa_deg, 360.0 - k) <= tol_deg:
-        return "compass"
-    return None
+    du = float(circular_distance_deg(doa_deg, k))
+    dc = float(circular_distance_deg(doa_deg, 360.0 - k))
+    if min(du, dc) > tol_deg or du == dc:
+        return None
+    return "unit_circle" if du < dc else "compass"
 
 
 def spectrum_peaks(spectrum_db: np.ndarray, floor_db: float, prominence_db: float,
