@@ -45,11 +45,12 @@ LATE_S = 1.0  # a frame arriving this long (autopilot s) after its time is repor
 SILENT_S = 3.0  # autopilot s without a new frame: reported (KrakenSDR writes nothing below squelch)
 SEEN_FRAMES = 64  # frame time stamps remembered (a re-read of the same frame is not used twice)
 STATUS_FRAMES = 64  # status.json entries remembered (frame time stamp -> flags)
-DOCS_PER_CALL = 4  # documents parsed per io-loop iteration
+MAIN_TOL_DEG = 2.0  # the main DoA and its spectrum's peak (1-degree grid, 0.01 dB rounding)
+DOCS_PER_CALL = 4  # documents (parsed by the poller) handled per io-loop iteration
 
 REASONS = kl.REASONS + (
     "unknown_vfo", "duplicate_vfo", "future_time", "stale_time", "no_time_reference", "no_heading",
-    "convention_unknown", "status_invalid", "late_for_tick",
+    "convention_unknown", "doa_spectrum_mismatch", "status_invalid", "late_for_tick",
 )
 GATES = ("confidence", "power", "overdrive")
 
@@ -139,7 +140,7 @@ class KrakenSource:
             self.report(reason, f"bad KrakenSDR data: {reason}: {detail}")
 
     # ----------------------------------------------------------------- documents
-    def offer(self, kind: str, doc: bytes) -> None:
+    def offer(self, kind: str, doc) -> None:
         if kind == "status":
             self._on_status(doc)
         else:
@@ -163,26 +164,15 @@ class KrakenSource:
         while len(self._status) > STATUS_FRAMES:
             self._status.popitem(last=False)
 
-    def _on_doa(self, doc: bytes) -> None:
-        other = kl.format_of(doc)
-        if other is not None:
-            self.reject("format_version", other)
-            return
-        raws, tail = kl.split_document(doc)
-        if tail is not None:
-            self.reject("truncated", f"a line of {len(tail)} bytes without its end (newline)")
-        if len(raws) > kl.MAX_LINES * 4:
-            self.reject("too_many_lines", f"{len(raws)} lines in one document; read the first "
-                                          f"{kl.MAX_LINES * 4}", len(raws) - kl.MAX_LINES * 4)
-            raws = raws[:kl.MAX_LINES * 4]
+    def _on_doa(self, doc) -> None:
+        """A document: its bytes, or already parsed (``kraken_line.parse_document``, which the
+        poller's thread runs)."""
+        parsed = doc if isinstance(doc, kl.ParsedDocument) else kl.parse_document(doc)
+        for reason, detail, n in parsed.errors:
+            self.reject(reason, detail, n)
+        self.lines += len(parsed.lines)
         frames: dict[int, list] = {}
-        for raw in raws:
-            try:
-                line = kl.parse_line(raw)
-            except kl.LineError as err:
-                self.reject(err.reason, err.detail)
-                continue
-            self.lines += 1
+        for line in parsed.lines:
             frames.setdefault(line.epoch_ms, []).append(line)
         for epoch, lines in frames.items():
             self._on_frame(epoch, lines)
@@ -323,11 +313,23 @@ class KrakenSource:
         if cfg.measurements == "peaks" and line.spectrum is not None:
             self._track_convention(line)  # the spectrum's bins are unit-circle whatever the main DoA's
             angles, _ = doa.spectrum_peaks(line.spectrum, cfg.peak_floor_db, cfg.peak_prominence_db, cfg.max_peaks)
+            if not self._main_among(line.doa_deg, angles):
+                self.reject("doa_spectrum_mismatch", f"main DoA {line.doa_deg:g} is none of its spectrum's peaks "
+                                                     "(a line mixing two frames?)")
+                return np.empty(0), None
         else:
             theta = self._main_theta(line)
             angles = np.empty(0) if theta is None else np.array([theta])
         bearings = doa.bearing_from_array(angles, yaw, cfg.mount_offset_rad).reshape(-1)
         return bearings, self._rate(ch, len(bearings))
+
+    def _main_among(self, doa_deg: float, angles: np.ndarray) -> bool:
+        """Is the main DoA one of the peaks (in its convention, or either while unknown)? It is
+        the estimator's maximum (or, ROOT-MUSIC, one of its roots): a line whose spectrum has no
+        peak there mixes two frames (a read torn across KrakenSDR's rewrite) or two writers."""
+        convs = (self.convention,) if self.convention else doa.CONVENTIONS
+        return any(bool((doa.circular_distance_deg(angles, doa.unit_circle_deg(doa_deg, c)) <= MAIN_TOL_DEG).any())
+                   for c in convs)
 
     def _rate(self, ch: int, n: int) -> float | None:
         """``clutter: adaptive``: the rate the last ``clutter_window`` sets of ``ch`` show, with
@@ -349,12 +351,14 @@ class KrakenInput:
             raise ValueError("the scenario has no kraken section (the VFO of each target: docs/KRAKENSDR.md)")
         url = url or cfg.url
         self.url = url
-        self.poller = DocumentPoller(url, status_url_for(url, cfg.status_url), cfg.poll_s)
+        self.poller = DocumentPoller(url, status_url_for(url, cfg.status_url), cfg.poll_s,
+                                     prepare={"doa": kl.parse_document})
         time_map = app.utc if cfg.time_source == "autopilot" else HostTime(app.clock)
         self.app = app
         self.source = KrakenSource(cfg, tuple(t.name for t in app.base_scenario.targets), app.clock, app.poses,
                                    time_map, app.scans.add, lambda: app.params["PMON_PD"], self._report)
         self._down_said = False
+        self.handled = 0  # documents the io thread has handled
 
     def start(self) -> "KrakenInput":
         self.poller.start()
@@ -365,7 +369,10 @@ class KrakenInput:
 
     def drain(self) -> None:
         for kind, doc, _local in self.poller.pop(DOCS_PER_CALL):
-            self.source.offer(kind, doc)
+            try:
+                self.source.offer(kind, doc)
+            finally:
+                self.handled += 1
 
     def periodic(self, now: float | None) -> None:
         self.source.tick(now)

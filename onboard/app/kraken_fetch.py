@@ -8,8 +8,8 @@ end, lines that parse but mix two frames. So a document is taken only when two r
 return the same bytes (``stable``): a torn read differs from the next read.
 
 ``DocumentPoller`` reads every ``poll_s`` (wall s), on thread ``pmon-kraken``, and queues each
-new stable document (``queue``, bounded: ``queue_full`` counts what did not fit) for the io
-thread, which parses it (onboard/app/kraken.py). Nothing it reads can block the app: HTTP has a
+new stable document (``queue``, bounded: ``queue_full`` counts what did not fit), parsed on
+this thread (``prepare``), for the io thread (onboard/app/kraken.py). Nothing it reads can block the app: HTTP has a
 total deadline per read (``timeout_s``: a server trickling bytes is cut off), documents are
 capped at ``MAX_DOC_BYTES`` (``too_large``), a file must be a regular file (onboard/files.py: a
 FIFO or /dev/zero is refused, not read). A failing source is retried with a back-off doubling up
@@ -33,7 +33,7 @@ MAX_STATUS_BYTES = 16384  # status.json is ~600 bytes
 QUEUE_MAX = 64  # documents waiting for the io thread (~3 s of KrakenSDR's frames)
 MAX_BACKOFF_S = 1.0
 STABLE_TRIES = 4  # reads to get two equal ones in a row before giving up this poll
-STABLE_GAP_S = 0.002  # between them (KrakenSDR's seek-write-truncate takes microseconds)
+STABLE_GAP_S = 0.01  # between them (KrakenSDR's seek-write-truncate takes microseconds, a loaded host ms)
 
 
 class FetchError(Exception):
@@ -91,7 +91,7 @@ class HttpSource:
             while True:
                 if self._mono() > deadline:
                     raise FetchError("timeout", f"{self.url}: not read within {self.timeout_s:g} s")
-                b = resp.read(min(16384, self.cap + 1 - total))
+                b = resp.read1(min(16384, self.cap + 1 - total))  # what has come: the deadline is checked between
                 if not b:
                     break
                 chunks.append(b)
@@ -150,7 +150,8 @@ class DocumentPoller:
     as ``(kind, bytes, local_s)`` with kind ``doa`` or ``status``."""
 
     def __init__(self, url: str, status_url: str | None, poll_s: float, queue_max: int = QUEUE_MAX,
-                 timeout_s: float = 1.0, monotonic: Callable[[], float] = time.monotonic):
+                 timeout_s: float = 1.0, monotonic: Callable[[], float] = time.monotonic,
+                 prepare: dict[str, Callable[[bytes], object]] | None = None):
         self.sources = {"doa": source_for(url, MAX_DOC_BYTES, timeout_s)}
         if status_url:
             self.sources["status"] = source_for(status_url, MAX_STATUS_BYTES, timeout_s)
@@ -158,7 +159,8 @@ class DocumentPoller:
         self.poll_s = float(poll_s)
         self.queue_max = queue_max
         self._mono = monotonic
-        self.queue: deque[tuple[str, bytes, float]] = deque()
+        self.prepare = dict(prepare or {})  # kind -> what this thread makes of a new document (parse it)
+        self.queue: deque[tuple[str, object, float]] = deque()
         self._last: dict[str, bytes | None] = {k: None for k in self.sources}
         self.reads = 0
         self.documents = 0  # new stable documents queued
@@ -167,7 +169,6 @@ class DocumentPoller:
         self.errors: dict[str, int] = {}  # "doa connection_refused" -> count
         self.last_error: str | None = None
         self.down = {k: False for k in self.sources}  # in an episode of failures
-        self._failures = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -184,19 +185,26 @@ class DocumentPoller:
         for s in self.sources.values():
             s.close()
 
-    def pop(self, n: int) -> list[tuple[str, bytes, float]]:
+    def pop(self, n: int) -> list[tuple[str, object, float]]:
         out = []
         while self.queue and len(out) < n:
             out.append(self.queue.popleft())
         return out
 
     def _run(self) -> None:
+        """Each source on its own schedule: every ``poll_s``, or after failures a back-off
+        doubling up to ``MAX_BACKOFF_S`` (a missing status.json never slows the DoA's reads)."""
+        due = {kind: self._mono() for kind in self.sources}
+        failures = dict.fromkeys(self.sources, 0)
         while not self._stop.is_set():
-            t0 = self._mono()
-            ok = all([self.poll(kind) for kind in self.sources])
-            self._failures = 0 if ok else self._failures + 1
-            wait = self.poll_s if ok else min(self.poll_s * 2 ** self._failures, max(MAX_BACKOFF_S, self.poll_s))
-            self._stop.wait(max(wait - (self._mono() - t0), 0.0))
+            for kind in self.sources:
+                if self._mono() < due[kind]:
+                    continue
+                ok = self.poll(kind)
+                failures[kind] = 0 if ok else failures[kind] + 1
+                wait = self.poll_s if ok else min(self.poll_s * 2 ** failures[kind], max(MAX_BACKOFF_S, self.poll_s))
+                due[kind] = self._mono() + wait
+            self._stop.wait(max(min(due.values()) - self._mono(), 0.0))
 
     def poll(self, kind: str) -> bool:
         """One read of ``kind``'s source; False when it failed."""
@@ -226,7 +234,8 @@ class DocumentPoller:
         if len(self.queue) >= self.queue_max:
             self.queue_full += 1
             return True
-        self.queue.append((kind, a, self._mono()))
+        fn = self.prepare.get(kind)
+        self.queue.append((kind, a if fn is None else fn(a), self._mono()))
         self.documents += 1
         return True
 

@@ -23,7 +23,7 @@ writes. Nothing here touches sockets, clocks or the vehicle.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -188,3 +188,36 @@ def parse_line(raw: bytes) -> KrakenLine:
     return KrakenLine(epoch, doa, conf, power, int(round(freq)), array, latency, station, lat, lon, heading,
                       spectrum)
 
+
+
+@dataclass(frozen=True, eq=False)
+class ParsedDocument:
+    """A document's good lines and, for each bad one, (reason, detail, count)."""
+
+    lines: tuple[KrakenLine, ...] = ()
+    errors: tuple[tuple[str, str, int], ...] = field(default_factory=tuple)
+
+
+def parse_document(doc: bytes, max_lines: int = MAX_LINES * 4) -> ParsedDocument:
+    """Every line of a document (KrakenSDR writes one per VFO; at most ``max_lines`` are parsed,
+    the rest counted ``too_many_lines``), an unterminated tail is ``truncated``, another of
+    KrakenSDR's output formats is ``format_version``. Pure: the poller's thread runs it, so a
+    hostile document costs the io thread nothing but its result."""
+    other = format_of(doc)
+    if other is not None:
+        return ParsedDocument((), (("format_version", other, 1),))
+    raws, tail = split_document(doc)
+    errors = []
+    if tail is not None:
+        errors.append(("truncated", f"a line of {len(tail)} bytes without its end (newline)", 1))
+    if len(raws) > max_lines:
+        errors.append(("too_many_lines", f"{len(raws)} lines in one document; read the first {max_lines}",
+                       len(raws) - max_lines))
+        raws = raws[:max_lines]
+    lines = []
+    for raw in raws:
+        try:
+            lines.append(parse_line(raw))
+        except LineError as err:
+            errors.append((err.reason, err.detail, 1))
+    return ParsedDocument(tuple(lines), tuple(errors))
