@@ -475,6 +475,8 @@ def main(argv=None) -> int:
                     help="first scan when the vehicle arms (default), or as soon as its clock and "
                          "position are known")
     lv.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file of the autopilot link")
+    from sim.kraken import add_feed_arguments
+    add_feed_arguments(lv)
     rp = sub.add_parser("replay", help="send a recorded truth/datagram JSONL")
     rp.add_argument("file")
     rp.add_argument("--to", default=("127.0.0.1", 14600), type=HOST_PORT)
@@ -492,11 +494,21 @@ def main(argv=None) -> int:
             if args.signing_key:
                 from onboard.app.signing import load_key
                 key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
-            feed = LiveFeed(LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed,
-                                           args.duration, args.start, signing_key=key), sc,
-                            log=lambda s: print(s, flush=True))
+            cfg = LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed, args.duration, args.start,
+                                 signing_key=key)
+            log = lambda s: print(s, flush=True)  # noqa: E731
+            writer = None
+            if args.df == "kraken":
+                from sim.kraken import feed_from_args
+                feed, writer = feed_from_args(args, sc, cfg, log)
+            else:
+                feed = LiveFeed(cfg, sc, log=log)
             feed.stop_event = stop
-            return feed.run()
+            try:
+                return feed.run()
+            finally:
+                if writer is not None:
+                    writer.close()
         replay(args.file, (host, port), args.mavlink, args.speedup, stop,
                log=lambda s: print(s, flush=True))
         return 0

@@ -246,3 +246,36 @@ class KrakenFeed(LiveFeed):
         over = bool(every) and (self.writer.frames + 1) % every == 0
         self.writer.write(doc, status_json(epoch, overdrive=over))
         self.sent += doc.count("\n")
+
+
+# ----------------------------------------------------------------------------- pmon feed live --df kraken
+def add_feed_arguments(p) -> None:
+    """``pmon feed live`` options of the KrakenSDR mode (sim/feed.py)."""
+    from onboard.argcheck import HOST_PORT_BIND
+
+    p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
+                   help="datagram (default: DF datagrams to --to) or kraken: write KrakenSDR's output "
+                        "(DOA_value.html, status.json) and serve it over HTTP (docs/KRAKENSDR.md)")
+    p.add_argument("--kraken-dir", metavar="DIR", help="kraken: the folder written (default: a temporary one)")
+    p.add_argument("--kraken-http", type=HOST_PORT_BIND, default=("127.0.0.1", 0), metavar="HOST:PORT",
+                   help="kraken: serve the folder here (default 127.0.0.1:0, a free port; the URL is printed)")
+    p.add_argument("--multipath", choices=("on", "off"), default="on",
+                   help="kraken: the DF model's clutter written as multipath peaks (on) or only the target's "
+                        "peak (off)")
+
+
+def feed_from_args(args, sc, cfg: LiveFeedConfig, log=print) -> tuple[KrakenFeed, KrakenWriter]:
+    """The KrakenSDR feed ``pmon feed live --df kraken`` runs; the writer to close after it."""
+    import tempfile
+
+    folder = args.kraken_dir or tempfile.mkdtemp(prefix="pmon-kraken-")
+    writer = KrakenWriter(folder, serve=tuple(args.kraken_http))
+    try:
+        model = KrakenModel(multipath=args.multipath == "on",
+                            mount_offset_rad=sc.kraken.mount_offset_rad if sc.kraken else 0.0)
+        feed = KrakenFeed(cfg, sc, writer, model, log=log)
+    except BaseException:
+        writer.close()
+        raise
+    log(f"feed: KrakenSDR output at {writer.url}")
+    return feed, writer

@@ -45,6 +45,12 @@ class StackConfig:
     signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
     ready_s: float = BootTimeline.ready_s  # autopilot s after boot until it can arm (ArduCopter's)
     policy: str = DEFAULT_POLICY  # the app's flight policy (onboard/policy.py), as pmon run's
+    # the DF: datagram (the feed's UDP datagrams) or kraken (a simulated KrakenSDR's output over
+    # HTTP, sim/kraken.py, which the app reads with --kraken); multipath: its clutter drawn as peaks
+    df: str = "datagram"
+    multipath: bool = True
+    auto_launch: bool = False  # the app launches itself (pmon run --auto-launch), as the demo's
+    scenario_overrides: tuple = ()  # (dotted key, value) set on the scenario for app and feed alike
 
 
 class SitlStack:
@@ -53,7 +59,7 @@ class SitlStack:
     def __init__(self, cfg: StackConfig = StackConfig(), **overrides):
         from dataclasses import replace
         self.cfg = replace(cfg, **overrides)
-        self.sc = load_scenario(self.cfg.scenario, POLICIES[self.cfg.policy])
+        self.sc = load_scenario(self.cfg.scenario, {**POLICIES[self.cfg.policy], **dict(self.cfg.scenario_overrides)})
         self.key = None
         if self.cfg.signing_key_path is not None:
             from onboard.app.signing import load_key
@@ -70,6 +76,7 @@ class SitlStack:
         self.app: OnboardApp | None = None
         self.feed: LiveFeed | None = None
         self._feed_thread: threading.Thread | None = None
+        self.kraken_writer = None  # df == "kraken": sim.kraken.KrakenWriter, serving from start()
 
     @property
     def gcs_url(self) -> str:
@@ -82,12 +89,22 @@ class SitlStack:
     def start(self) -> "SitlStack":
         self.ap.start()
         try:
+            kraken_url = None
+            if self.cfg.df == "kraken":
+                import tempfile
+
+                from sim.kraken import KrakenWriter
+                self.kraken_writer = KrakenWriter(tempfile.mkdtemp(prefix="pmon-kraken-"), serve=("127.0.0.1", 0))
+                kraken_url = self.kraken_writer.url
             self.app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 0)}", sensor_port=0,
                                             seed=self.cfg.seed, runlog_path=self.cfg.runlog_path,
-                                            tlog_path=self.cfg.tlog_path,
-                                            signing_key_path=self.cfg.signing_key_path), self.sc).start()
+                                            tlog_path=self.cfg.tlog_path, auto_launch=self.cfg.auto_launch,
+                                            signing_key_path=self.cfg.signing_key_path,
+                                            kraken_url=kraken_url), self.sc).start()
         except Exception:
             self.ap.stop()
+            if self.kraken_writer is not None:
+                self.kraken_writer.close()
             raise
         return self
 
@@ -106,11 +123,15 @@ class SitlStack:
     def start_feed(self) -> LiveFeed:
         """DF scans from the truth world, from the moment the vehicle is armed."""
         assert self.app is not None and self.feed is None
-        self.feed = LiveFeed(LiveFeedConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 1)}",
-                                            app_port=self.app.sensor_port, seed=self.cfg.seed + 1,
-                                            duration_s=self.cfg.feed_duration_s, start="armed",
-                                            truth_path=self.cfg.truth_path, signing_key=self.key),
-                             self.sc, log=lambda s: None)
+        cfg = LiveFeedConfig(f"tcp:127.0.0.1:{self.ap.port('tcpin', 1)}", app_port=self.app.sensor_port,
+                             seed=self.cfg.seed + 1, duration_s=self.cfg.feed_duration_s, start="armed",
+                             truth_path=self.cfg.truth_path, signing_key=self.key)
+        if self.kraken_writer is not None:
+            from sim.kraken import KrakenFeed, KrakenModel
+            model = KrakenModel(multipath=self.cfg.multipath, mount_offset_rad=self.sc.kraken.mount_offset_rad)
+            self.feed = KrakenFeed(cfg, self.sc, self.kraken_writer, model, log=lambda s: None)
+        else:
+            self.feed = LiveFeed(cfg, self.sc, log=lambda s: None)
         self._feed_thread = threading.Thread(target=self.feed.run, name="sitl-feed", daemon=True)
         self._feed_thread.start()
         return self.feed
@@ -122,6 +143,8 @@ class SitlStack:
                 self._feed_thread.join(timeout=5)
         if self.app is not None:
             self.app.stop()
+        if self.kraken_writer is not None:
+            self.kraken_writer.close()
         self.ap.stop()
 
     def __enter__(self) -> "SitlStack":

@@ -1,0 +1,78 @@
+"""The whole stack with a simulated KrakenSDR (issue 32): mock ArduCopter, the onboard app
+reading KrakenSDR's output over HTTP (``--kraken``), the simulated KrakenSDR writing it from the
+truth world and the vehicle's telemetry (heading, UTC), on loopback. The app launches itself.
+Every scan the KrakenSDR wrote is ticked with every target's set, nothing it wrote is refused,
+and the bearings are the ones it drew. (Accuracy against the datagram feed: bench/kraken.py.)"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from onboard.core.bearings import wrap
+
+from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
+
+from conftest import QUICK_BOOT_S
+
+pytestmark = pytest.mark.sitl
+
+
+def _fly(tmp_path, df: str, duration: float, **cfg) -> tuple[SitlStack, list, list]:
+    run, truth = tmp_path / f"run_{df}.jsonl", tmp_path / f"truth_{df}.jsonl"
+    st = SitlStack(speedup=3.0, ready_s=QUICK_BOOT_S, seed=7, df=df, auto_launch=True, feed_duration_s=duration,
+                   runlog_path=str(run), truth_path=str(truth), **cfg).start()
+    st.kraken_scans = []
+    if st.app.kraken is not None:  # every scan the KrakenSDR input makes, as it makes it
+        src = st.app.kraken.source
+        sink = src.sink
+        src.sink = lambda d, now: (st.kraken_scans.append(d), sink(d, now))
+    try:
+        assert st.wait_ready()
+        st.start_feed()
+        st._feed_thread.join(timeout=duration / 3.0 + 90)
+        assert not st._feed_thread.is_alive(), "the feed finished"
+        last = st.feed.last_record["t"]
+        import time
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not any(tk["t"] >= last for tk in list(st.app.ticks)):
+            time.sleep(0.05)
+    finally:
+        st.stop()
+    ticks = [json.loads(line) for line in open(run)]
+    scans = [json.loads(line) for line in open(truth)][1:]
+    return st, ticks, scans
+
+
+@pytest.mark.timeout(300)
+def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
+    st, ticks, scans = _fly(tmp_path, "kraken", 30.0)
+    src = st.app.kraken.source
+    by_t = {tk["t"]: tk for tk in ticks}
+    assert len(scans) == 30 and st.feed.skipped_no_time == 0
+    missing = [s["t"] for s in scans if s["t"] not in by_t or by_t[s["t"]]["channels"] != [0, 1, 2, 3]]
+    assert not missing, missing
+    assert {r: n for r, n in src.rejected.items() if n} == {}, src.last_error
+    assert src.frames == src.scans // 4 == st.kraken_writer.frames and src.decimated == 0
+    assert st.app.counters.get("io_errors", 0) == 0 and st.app.counters.get("tick_errors", 0) == 0
+    # each scan's sets: the spectrum's peaks, at most one per lobe the KrakenSDR drew (lobes that
+    # merge, or more than 12 dB under the strongest, are not peaks)
+    drawn = np.array([[len(b) for b in s["bearings"]] for s in scans])
+    found = np.array([by_t[s["t"]]["n_bearings"] for s in scans])
+    assert (found <= drawn).all() and found.sum() >= 0.85 * drawn.sum(), (found.sum(), drawn.sum())
+    assert sum(tk["state"] == 1 for tk in ticks) >= 10  # monitoring
+    # the bearings: each the KrakenSDR drew (the DF model's, through its spectrum, its heading
+    # and its clock) is one the app made, within 0.5 degree, where no lobes merged
+    made = {(d.t, d.ch): d.bearings for d in st.kraken_scans}
+    checked = 0
+    for s in scans:
+        for ch, b in enumerate(s["bearings"]):
+            g = made[(s["t"], ch)]
+            if len(g) == len(b) and len(b):
+                err = np.degrees(np.abs(wrap(np.asarray(b)[:, None] - g[None, :]))).min(axis=1)
+                assert err.max() < 0.5, (s["t"], ch, np.degrees(b), np.degrees(g))
+                checked += 1
+    assert checked >= 0.75 * 4 * len(scans)
+    means = np.array([tk["means"] for tk in ticks])
+    assert np.isfinite(means).all() and (np.abs(means[:, :, :2] - 500.0) < 1000.0).all()
