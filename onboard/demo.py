@@ -48,6 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--gcs", metavar="PORT", type=int,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
+    p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
+                   help="the DF: datagram (default: the feed's datagrams) or kraken (a simulated KrakenSDR's "
+                        "output over HTTP, which the app reads: docs/KRAKENSDR.md)")
     p.add_argument("--autopilot", choices=("mock", "ardupilot"), default="mock",
                    help="mock (default: sim/autopilot.py, booting in 5 s) or ardupilot: ArduPilot's own "
                    "ArduCopter SITL ($PMON_ARDUPILOT_SITL or ../shared/ardupilot/arducopter; ~43 s of "
@@ -143,17 +146,23 @@ def run(args) -> int:
             sitl = MockProcess(home, speedup, DEMO_VEHICLE_PARAMS, 2, out / "autopilot.log", args.seed,
                                ready_s=DEMO_READY_S, udp_out=args.gcs).start()
             port_app, port_feed = sitl.port(0), sitl.port(1)
+        feed_argv = [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",
+                     "--scenario", args.scenario, "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
+                     "--duration", str(duration)]
+        kraken = []
+        if args.df == "kraken":  # the simulated KrakenSDR first: the app reads the URL it serves
+            feed = Proc("feed", feed_argv + ["--df", "kraken", "--kraken-dir", str(out / "kraken")], out / "feed.log")
+            procs.append(feed)
+            kraken = ["--kraken", feed.wait_line(r"KrakenSDR output at (\S+)", 30).group(1)]
         app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
                            "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
                            "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
-                           "--seed", str(args.seed), "--policy", args.policy], out / "app.log")
+                           "--seed", str(args.seed), "--policy", args.policy, *kraken], out / "app.log")
         procs.append(app)
         df_port = app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1)
-        feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",
-                             "--to", f"127.0.0.1:{df_port}", "--scenario", args.scenario,
-                             "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
-                             "--duration", str(duration)], out / "feed.log")
-        procs.append(feed)
+        if args.df == "datagram":
+            feed = Proc("feed", feed_argv + ["--to", f"127.0.0.1:{df_port}"], out / "feed.log")
+            procs.append(feed)
         console.print(f"{args.autopilot} autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
                       f"speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
