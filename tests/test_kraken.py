@@ -305,3 +305,87 @@ def test_unknown_vfos_and_other_formats_are_refused_by_name():
     msgs = dict(rig.reports)
     assert "unknown_vfo" in msgs and "446000000 Hz" in msgs["unknown_vfo"]
     assert "Kraken App" in msgs["format_version"]
+
+
+# ----------------------------------------------------------------------------- time, status, config
+def test_the_autopilots_utc_maps_unix_time_and_a_stray_message_moves_nothing():
+    utc = UtcMap()
+    assert utc.autopilot_time(UNIX0) is None
+    utc.observe(0, 5000)  # no GPS time yet: ignored
+    assert utc.autopilot_time(UNIX0) is None
+    for k in range(5):
+        utc.observe(int((UNIX0 + 10 + k) * 1e6), (10 + k) * 1000)
+    utc.observe(int((UNIX0 + 3600) * 1e6), 15000)  # forged or garbled: an hour off
+    assert utc.autopilot_time(UNIX0 + 20.0) == pytest.approx(20.0)
+    assert utc.unix_time(20.0) == pytest.approx(UNIX0 + 20.0)
+    for k in range(6):  # a reboot: time since boot starts again, the offset moves; followed
+        utc.observe(int((UNIX0 + 100 + k) * 1e6), k * 1000)
+    assert utc.autopilot_time(UNIX0 + 103.0) == pytest.approx(3.0)
+
+
+def test_host_time_maps_through_this_computers_clock_at_the_autopilots_rate():
+    from onboard.app.kraken import HostTime
+
+    class Clock:
+        rate = 4.0  # a SITL at 4x
+
+        def now(self):
+            return 200.0
+
+    h = HostTime(Clock(), wall=lambda: UNIX0 + 10.0)
+    assert h.autopilot_time(UNIX0 + 9.5) == pytest.approx(198.0)  # 0.5 wall s ago = 2 autopilot s
+
+
+def test_a_bad_status_document_is_counted_and_the_frames_still_used():
+    rig = Rig()
+    for doc in (b"{not json", b'{"timestamp_ms": "x"}', b"[]", b'{"timestamp_ms": 1, "daq_ok": 3}', b"\xff\xfe"):
+        rig.src.offer("status", doc)
+    assert rig.src.rejected["status_invalid"] == 5
+    rig.src.offer("doa", _doc(rig, 100.0, [[0.1]] * 4))
+    assert all(len(d.bearings) == 1 for d in rig.buffer.pending[100.0].values())
+
+
+def test_a_change_of_convention_is_said():
+    rig = Rig(replace(SC.kraken, measurements="main"))
+    for k, conv in enumerate(("unit_circle", "unit_circle", "compass")):
+        model = replace(CLEAN, convention=conv)
+        rig.clock.t = 100.05 + k
+        rig.src.offer("doa", _doc(rig, 100.0 + k, [[0.7]] * 4, model))
+    assert rig.src.convention == "compass"
+    assert [m for r, m in rig.reports if r == "convention"] == [
+        "KrakenSDR's main DoA is now written compass: its software changed?"]
+    got = [rig.buffer.pending[100.0 + k][0].bearings[0] for k in range(3)]
+    assert np.allclose(got, got[0], atol=math.radians(1.0))  # one degree: the main DoA's grid
+
+
+@pytest.mark.parametrize("change, error", [
+    ({"kraken.vfos": [{"target": "T9", "freq_hz": 433e6}]}, "kraken.vfos[0].target: no target named 'T9'"),
+    ({"kraken.vfos": [{"target": "T1", "freq_hz": 433e6}, {"target": "T2", "freq_hz": 433.001e6}]},
+     "kraken.vfos: two VFOs with the same frequency"),
+    ({"kraken.vfos": [{"target": "T1", "freq_hz": 433e6}, {"target": "T1", "freq_hz": 434e6}]},
+     "kraken.vfos: two VFOs with the same target"),
+    ({"kraken.url": "ftp://x/y"}, "kraken.url: must be http://HOST:PORT/PATH"),
+    ({"kraken.convention": "north"}, "kraken.convention: must be one of auto, unit_circle, compass"),
+    ({"kraken.poll_s": 0}, "kraken.poll_s: must be in [0.005, 10] s"),
+    ({"kraken.mount_offset_deg": 1e400}, "kraken.mount_offset_deg: must be finite"),
+    ({"kraken.colour": 1}, "kraken: unknown key 'colour'"),
+])
+def test_the_kraken_section_is_checked(change, error):
+    from onboard.config import ConfigError
+    with pytest.raises(ConfigError, match=error.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")
+                       .replace("(", r"\(").replace(")", r"\)").replace("'", "'")):
+        load_scenario("paper", change)
+
+
+def test_pmon_run_refuses_kraken_without_a_section(tmp_path, capsys):
+    import yaml
+
+    from onboard.cli import main
+    tree = yaml.safe_load(open("config/paper.yaml"))
+    del tree["kraken"]
+    path = tmp_path / "nokraken.yaml"
+    path.write_text(yaml.safe_dump(tree))
+    rc = main(["run", "--mavlink", "udpin:127.0.0.1:0", "--df", "127.0.0.1:0", "--scenario", str(path), "--kraken"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip() == ("pmon run: the scenario has no kraken section (the VFO of each target: "
+                                       "docs/KRAKENSDR.md)")
