@@ -357,7 +357,7 @@ class KrakenInput:
         self.app = app
         self.source = KrakenSource(cfg, tuple(t.name for t in app.base_scenario.targets), app.clock, app.poses,
                                    time_map, app.scans.add, lambda: app.params["PMON_PD"], self._report)
-        self._down_said = False
+        self._down_said = self._status_said = False
         self.handled = 0  # documents the io thread has handled
 
     def start(self) -> "KrakenInput":
@@ -379,10 +379,14 @@ class KrakenInput:
         down = self.poller.down.get("doa", False)
         if down and not self._down_said:
             self._down_said = True
-            self._report("unreachable", f"KrakenSDR unreachable: {self.poller.last_error}")
+            self._report("unreachable", f"KrakenSDR unreachable: {self.poller.last_error.get('doa')}")
         elif not down and self._down_said and self.poller.documents:
             self._down_said = False
             self._report("reachable", f"KrakenSDR {self.url} read again")
+        if self.poller.down.get("status", False) and not self._status_said:
+            self._status_said = True  # its gates then see no overdrive: said once
+            self._report("status", f"KrakenSDR status.json not read ({self.poller.last_error.get('status')}): "
+                                   "ADC overdrive not gated")
 
     def _report(self, reason: str, message: str) -> None:
         from onboard.app.link import mavlink

@@ -167,7 +167,7 @@ class DocumentPoller:
         self.unstable = 0  # polls whose document changed under every read
         self.queue_full = 0
         self.errors: dict[str, int] = {}  # "doa connection_refused" -> count
-        self.last_error: str | None = None
+        self.last_error: dict[str, str] = {}  # kind -> its newest failure
         self.down = {k: False for k in self.sources}  # in an episode of failures
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -226,7 +226,7 @@ class DocumentPoller:
         except FetchError as exc:
             key = f"{kind} {exc.kind}"
             self.errors[key] = self.errors.get(key, 0) + 1
-            self.last_error = f"{src.url}: {exc}"
+            self.last_error[kind] = f"{src.url}: {exc}"
             self.down[kind] = True
             return False
         self.down[kind] = False
