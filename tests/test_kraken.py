@@ -389,3 +389,15 @@ def test_pmon_run_refuses_kraken_without_a_section(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.strip() == ("pmon run: the scenario has no kraken section (the VFO of each target: "
                                        "docs/KRAKENSDR.md)")
+
+
+def test_after_an_autopilot_reboot_the_slots_start_again():
+    rig = Rig(t0=300.0)
+    rig.src.offer("doa", _doc(rig, 300.0, [[0.1]] * 4))
+    assert 300.0 in rig.buffer.pending
+    # the autopilot rebooted: its clock reads 20 s; the app's buffer starts again too
+    rig.clock.t = 20.05
+    rig.buffer = ScanBuffer(len(SC.targets))
+    rig.src.sink = rig.buffer.add
+    rig.src.offer("doa", _doc(rig, 20.0, [[0.1]] * 4))
+    assert 20.0 in rig.buffer.pending and rig.src.decimated == 0

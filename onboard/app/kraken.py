@@ -223,6 +223,9 @@ class KrakenSource:
             if self.late_frames == 1:
                 self.report("late", f"KrakenSDR frames arrive {now - t:.1f} s after they were measured")
         slot = int(round(t))
+        if slot < self._last_slot - MAX_AGE_S:  # within the clock's window yet far behind: the
+            self._last_slot = -math.inf  # autopilot's clock went back (a reboot): a new timeline
+            self._pending.clear()
         if slot <= self._last_slot:
             self.decimated += 1  # its second was ticked with a nearer frame
             return
