@@ -2,6 +2,7 @@
 path lose anything against the datagram feed?
 
     python bench/kraken.py core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_fixed,native]
+                                [--duration 100]   (an arm peaks:F: peak_floor_db F)
     python bench/kraken.py stack [--seeds 1,2,3] [--duration 100] [--speedup 3] [--multipath off]
 
 ``core``: the paper's scenario and method (the greedy one-step rule, jump moves, as ``pmon eval``'s
@@ -56,10 +57,14 @@ T0 = 100.0  # autopilot s of the first scan
 
 # ----------------------------------------------------------------------------- core
 def _kraken_cfg(sc, arm: str):
+    """An arm's kraken settings; ``peaks:F`` / ``peaks_fixed:F``: with ``peak_floor_db`` F."""
     k = sc.kraken
-    if arm == "main":
+    name, _, floor = arm.partition(":")
+    if floor:
+        k = replace(k, peak_floor_db=float(floor))
+    if name == "main":
         return replace(k, measurements="main", clutter="fixed")
-    if arm == "peaks_fixed":
+    if name == "peaks_fixed":
         return replace(k, measurements="peaks", clutter="fixed")
     return replace(k, measurements="peaks", clutter="adaptive")
 
@@ -135,7 +140,7 @@ def core(args) -> dict:
     from sim.evaluation import t_interval
 
     arms = tuple(a for a in args.arms.split(",") if a)
-    bad = [a for a in arms if a not in ARMS]
+    bad = [a for a in arms if a.partition(":")[0] not in ARMS or (":" in a and a.startswith(("main", "native")))]
     if bad or "main" not in arms:
         raise SystemExit(f"--arms: known {', '.join(ARMS)}, and main must be among them (got {args.arms})")
     n_ticks = int(round(args.duration))
@@ -159,7 +164,7 @@ def core(args) -> dict:
     per_trial = {a: np.sqrt((E[a][:, w0:] ** 2).mean(axis=(1, 2))) for a in arms}
     print(f"paper scenario, greedy rule, {args.trials} trials x {n_ticks} s, seed {args.seed}; "
           f"KrakenSDR multipath -10..+3 dB (sim/kraken.py KrakenModel); wall {wall:.0f} s")
-    print(f"{'arm':12s} {'RMSE m':>7s} {'minus main, per trial (95 % CI)':>34s} {'trials no worse':>16s}")
+    print(f"{'arm':16s} {'RMSE m':>7s} {'minus main, per trial (95 % CI)':>34s} {'trials no worse':>16s}")
     out = {"trials": args.trials, "seed": args.seed, "ticks": n_ticks, "rmse_m": {}, "minus_main_m": {},
            "no_worse_than_main": {}, "wall_s": round(wall, 1)}
     for a in arms:
@@ -171,7 +176,7 @@ def core(args) -> dict:
             out["minus_main_m"][a] = [round(m, 2), round(lo, 2), round(hi, 2)]
             out["no_worse_than_main"][a] = no_worse
         ci = "" if a == "main" else f"{m:+.2f} ({lo:+.2f}, {hi:+.2f})"
-        print(f"{a:12s} {rmse[a]:7.2f} {ci:>34s} {'' if a == 'main' else f'{no_worse}/{args.trials}':>16s}")
+        print(f"{a:16s} {rmse[a]:7.2f} {ci:>34s} {'' if a == 'main' else f'{no_worse}/{args.trials}':>16s}")
     return out
 
 

@@ -482,6 +482,8 @@ def main(argv=None) -> int:
     rp.add_argument("--to", default=("127.0.0.1", 14600), type=HOST_PORT)
     rp.add_argument("--mavlink", type=MAVLINK_URL, help="pace on this autopilot's clock (times rebased)")
     rp.add_argument("--speedup", type=SPEEDUP, default=1.0, help="without --mavlink: wall-clock pace")
+    from sim.kraken import add_replay_arguments
+    add_replay_arguments(rp)
     args = ap.parse_args(argv)
     host, port = args.to
     stop = threading.Event()
@@ -509,6 +511,10 @@ def main(argv=None) -> int:
             finally:
                 if writer is not None:
                     writer.close()
+        if args.df == "kraken":
+            from sim.kraken import replay_from_args
+            replay_from_args(args, stop, log=lambda s: print(s, flush=True))
+            return 0
         replay(args.file, (host, port), args.mavlink, args.speedup, stop,
                log=lambda s: print(s, flush=True))
         return 0

@@ -279,3 +279,97 @@ def feed_from_args(args, sc, cfg: LiveFeedConfig, log=print) -> tuple[KrakenFeed
         raise
     log(f"feed: KrakenSDR output at {writer.url}")
     return feed, writer
+
+
+# ----------------------------------------------------------------------------- pmon feed replay --df kraken
+def read_frames(path: str | os.PathLike) -> list[tuple[int, list[str]]]:
+    """The frames of a KrakenSDR recording ("Kraken App" lines: its data recording, mydata.csv,
+    or DOA_value.html documents one after another): [(time stamp ms, [line, ...])] in file
+    order, consecutive lines of one stamp one frame. Every line is checked as the app checks it
+    (onboard/app/kraken_line.py); a bad one is a ValueError naming its line."""
+    from onboard.app import kraken_line as kl
+    from onboard.files import open_regular
+
+    frames: list[tuple[int, list[str]]] = []
+    with open_regular(path, 512 * 1024 * 1024) as f:
+        for n, raw in enumerate(f, 1):
+            raw = raw.rstrip(b"\r\n")
+            if not raw.strip():
+                continue
+            try:
+                line = kl.parse_line(raw)
+            except kl.LineError as exc:
+                raise ValueError(f"{os.fspath(path)}:{n}: {exc}") from None
+            text = raw.decode("utf-8").rstrip() + " \n"
+            if frames and frames[-1][0] == line.epoch_ms:
+                frames[-1][1].append(text)
+            else:
+                frames.append((line.epoch_ms, [text]))
+    return frames
+
+
+def replay_frames(frames, writer: KrakenWriter, unix_now, stop: threading.Event, speedup: float = 1.0,
+                  log=print) -> int:
+    """Write recorded frames as KrakenSDR would, each when its time comes, their stamps moved so
+    that the first is written 1 s from now (``unix_now()``: Unix s on the clock the app maps
+    KrakenSDR's stamps with: the autopilot's UTC or this computer's); ``speedup``: recorded
+    seconds per second. Returns the frames written. The bearings are the recording's, relative
+    to the array: a replay tests the input path and its timing, not the geometry of this flight."""
+    import time
+
+    if not frames:
+        log("replay: no frames")
+        return 0
+    first = frames[0][0]
+    start = unix_now() + 1.0
+    done = 0
+    for epoch, lines in frames:
+        due = start + (epoch - first) / 1000.0 / speedup
+        while not stop.is_set() and unix_now() < due:
+            time.sleep(0.002)
+        if stop.is_set():
+            break
+        stamp = int(round(due * 1000.0))
+        writer.write("".join(str(stamp) + line[line.index(","):] for line in lines), status_json(stamp))
+        done += 1
+    log(f"replay: wrote {done} KrakenSDR frames to {writer.url}")
+    return done
+
+
+def add_replay_arguments(p) -> None:
+    """``pmon feed replay`` options of the KrakenSDR mode (sim/feed.py)."""
+    from onboard.argcheck import HOST_PORT_BIND
+
+    p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
+                   help="datagram (default) or kraken: FILE is a KrakenSDR recording ('Kraken App' lines) "
+                        "written back as KrakenSDR's output and served (docs/KRAKENSDR.md)")
+    p.add_argument("--kraken-dir", metavar="DIR", help="kraken: the folder written (default: a temporary one)")
+    p.add_argument("--kraken-http", type=HOST_PORT_BIND, default=("127.0.0.1", 0), metavar="HOST:PORT",
+                   help="kraken: serve the folder here (default 127.0.0.1:0; the URL is printed)")
+
+
+def replay_from_args(args, stop: threading.Event, log=print) -> int:
+    """``pmon feed replay FILE --df kraken``: with ``--mavlink`` on the autopilot's UTC, else on
+    this computer's clock at ``--speedup``."""
+    import tempfile
+    import time
+
+    frames = read_frames(args.file)
+    writer = KrakenWriter(args.kraken_dir or tempfile.mkdtemp(prefix="pmon-kraken-"), serve=tuple(args.kraken_http))
+    tel = None
+    try:
+        log(f"feed: KrakenSDR output at {writer.url}")
+        if args.mavlink:
+            from onboard.app.pose import Frame
+            tel = Telemetry(args.mavlink, Frame(0, 0, 0)).start()
+            while not stop.is_set() and (tel.clock.now() is None or tel.utc.unix_time(0.0) is None):
+                time.sleep(0.01)
+
+            def unix_now() -> float:
+                return tel.utc.unix_time(tel.clock.now() or 0.0) or time.time()
+            return replay_frames(frames, writer, unix_now, stop, 1.0, log)
+        return replay_frames(frames, writer, time.time, stop, args.speedup, log)
+    finally:
+        if tel is not None:
+            tel.stop()
+        writer.close()

@@ -406,3 +406,44 @@ def test_10000_hostile_lines_between_good_frames_cost_nothing(tmp_path):
     # the io loop kept turning (its beat is stamped every ~2 ms iteration)
     assert max(beats) < 0.25, max(beats)
     assert poller.queue_full == 0
+
+
+# ----------------------------------------------------------------------------- replay
+def test_a_recording_replayed_as_krakensdr_reaches_the_app(tmp_path):
+    """``pmon feed replay FILE --df kraken``: a recording of "Kraken App" lines written back as
+    KrakenSDR's output, stamps moved to now; the app (time_source: host) ticks each frame."""
+    from sim.kraken import read_frames, replay_frames
+
+    rec = tmp_path / "mydata.csv"
+    rec.write_text("".join(_frame(10.0 + k, [[0.2 + 0.1 * j] for j in range(M)], k) for k in range(5)))
+    frames = read_frames(rec)
+    assert [len(lines) for _, lines in frames] == [M] * 5 and frames[1][0] - frames[0][0] == 1000
+    bad = tmp_path / "bad.csv"
+    bad.write_text(_frame(10.0, [[0.2]] * M, 0) + "1700000000000, 12, 3\n")
+    with pytest.raises(ValueError, match=r"bad\.csv:5: field_count"):
+        read_frames(bad)
+
+    class WallClock:  # the autopilot's clock at 1x: autopilot 100 s now
+        w0 = time.time()
+        rate = 1.0
+
+        def now(self):
+            return 100.0 + time.time() - self.w0
+
+    sc = load_scenario("paper", {"kraken.poll_s": 0.005, "kraken.time_source": "host"})
+    w = KrakenWriter(tmp_path / "share", serve=("127.0.0.1", 0))
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken_url=w.url), sc, clock=WallClock())
+    app.poses.keep_s = 1e6
+    for k in range(1500):
+        app.poses.add(PoseSample(90.0 + k / 10.0, UAV.copy(), np.zeros(3), YAW))
+    app.start()
+    try:
+        assert replay_frames(frames, w, time.time, threading.Event(), log=lambda s: None) == 5
+        assert _wait(lambda: len([tk for tk in app.ticks if tk["channels"]]) == 5, 5)
+    finally:
+        app.stop()
+        w.close()
+    ticked = [tk for tk in app.ticks if tk["channels"]]
+    assert all(tk["channels"] == list(range(M)) and tk["n_bearings"] == [1] * M for tk in ticked)
+    assert np.allclose(np.diff([tk["t"] for tk in ticked]), 1.0)
+    assert {r: n for r, n in app.kraken.source.rejected.items() if n} == {}
