@@ -183,7 +183,7 @@ class Kraken:
     mount_offset_rad: float = 0.0  # KrakenSDR's 0 (antenna 0), clockwise from the vehicle's nose
     convention: str = "auto"  # the main DoA's: auto (read off the spectrum) | unit_circle | compass
     measurements: str = "peaks"  # peaks (the spectrum's, the set) | main (the main DoA alone)
-    peak_floor_db: float = 12.0  # peaks within this of the highest
+    peak_floor_db: float = 6.0  # peaks within this of the highest (docs/KRAKENSDR.md: 6 measured best)
     peak_prominence_db: float = 3.0  # ... standing this far above their valleys
     max_peaks: int = 8
     min_confidence: float = 0.0  # gate: a line below this confidence (dB) is an empty set
