@@ -24,8 +24,8 @@ paired per-trial differences measure the processing. Printed: each arm's RMSE (`
 rmse_mean_m: the time-averaged, target-averaged eps_t over t >= 10 s), the paired per-trial
 difference from ``main`` with its 95 % t-interval, and how many trials each arm did no worse.
 
-``stack``: the whole stack on loopback (mock ArduCopter, the app launching itself, the feed;
-sim/stack.py), 100 s missions, once with the datagram feed and once with the simulated
+``stack``: the whole stack on loopback (mock ArduCopter and the app, launching itself, in this
+process; the feed, ``pmon feed live``, a process of its own), 100 s missions, once with the datagram feed and once with the simulated
 KrakenSDR, the same seed (the same truth and DF draws), with ``sensor.clutter_rate: 0`` for both
 (the spectrum has only the target's peak: ``--multipath off``, the default here; the datagrams
 then carry the same bearings). Printed per seed: RMSE of each, their ratio, scans written and
@@ -181,29 +181,76 @@ def core(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- stack
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bool, overrides: dict) -> dict:
+    """One mission: the mock ArduCopter and the app (launching itself) in this process, the feed
+    a process of its own (``pmon feed live``, as bench/latency.py: its truth world must not hold
+    this process's GIL while the app reads and ticks), writing datagrams or KrakenSDR's output."""
+    import subprocess
     import tempfile
 
-    from sim.stack import SitlStack
+    import yaml
 
-    with tempfile.TemporaryDirectory() as tmp:
+    from sim.autopilot import BootTimeline, MockAutopilot
+    from onboard.app.app import AppConfig, OnboardApp
+    from onboard.demo import DEMO_READY_S, DEMO_VEHICLE_PARAMS
+
+    sc = load_scenario("paper", overrides)
+    o = sc.origin
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp, \
+            MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=speedup, seed=seed,
+                          endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS, max_lag_s=0.1,
+                          boot=BootTimeline.scaled(DEMO_READY_S)) as ap:
+        scen = Path(tmp) / "scenario.yaml"
+        tree = yaml.safe_load(open(root / "config" / "paper.yaml"))
+        for key, value in overrides.items():
+            node = tree
+            *parents, last = key.split(".")
+            for part in parents:
+                node = node[part]
+            node[last] = value
+        scen.write_text(yaml.safe_dump(tree))
         run, truth = Path(tmp) / "run.jsonl", Path(tmp) / "truth.jsonl"
-        st = SitlStack(speedup=speedup, ready_s=5.0, seed=seed, df=df, multipath=multipath, auto_launch=True,
-                       feed_duration_s=duration, runlog_path=str(run), truth_path=str(truth),
-                       scenario_overrides=tuple(overrides.items())).start()
+        extra, feed_df = {}, []
+        if df == "kraken":
+            port = _free_port()
+            extra = {"kraken_url": f"http://127.0.0.1:{port}/DOA_value.html"}
+            feed_df = ["--df", "kraken", "--kraken-http", f"127.0.0.1:{port}", "--kraken-dir", str(Path(tmp) / "kraken"),
+                       "--multipath", "on" if multipath else "off"]
+        app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0, auto_launch=True,
+                                   seed=seed, runlog_path=str(run), **extra), sc).start()
         try:
-            if not st.wait_ready(60):
-                raise RuntimeError("the stack did not get ready")
-            st.start_feed()
-            st._feed_thread.join(timeout=duration / speedup * 4 + 120)
-            last = st.feed.last_record["t"] if st.feed.last_record else None
+            with open(Path(tmp) / "feed.out", "w") as fo:
+                feed = subprocess.Popen(
+                    [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
+                     "--to", f"127.0.0.1:{app.sensor_port}", "--seed", str(seed), "--duration", str(int(duration)),
+                     "--scenario", str(scen), "--truth", str(truth), *feed_df], cwd=root, stdout=fo)
+                try:
+                    feed.wait(timeout=duration / speedup * 6 + 300)
+                finally:
+                    if feed.poll() is None:
+                        feed.terminate()
+                        feed.wait(timeout=10)
             deadline = time.monotonic() + 10
-            while last is not None and time.monotonic() < deadline and not any(tk["t"] >= last for tk in list(st.app.ticks)):
+            while (app.scans.pending or app._worker_busy) and time.monotonic() < deadline:
                 time.sleep(0.05)
+            time.sleep(1.0)
         finally:
-            st.stop()
+            app.stop()
         ticks = {tk["t"]: tk for tk in (json.loads(x) for x in open(run))}
         scans = [json.loads(x) for x in open(truth)][1:]
+        kraken = None
+        if app.kraken is not None:
+            k = app.kraken.source
+            kraken = {"frames": k.frames, "scans": k.scans, "decimated": k.decimated,
+                      "rejected": {r: n for r, n in k.rejected.items() if n}}
     errs, ticked = [], 0
     for s in scans:
         tk = ticks.get(s["t"])
@@ -215,12 +262,11 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
     w0 = min(10, len(e) // 2)
     out = {"scans": len(scans), "ticked_all_channels": ticked,
            "rmse_m": float(np.sqrt((e[w0:] ** 2).mean())) if len(e) else float("nan"),
-           "rmse_per_target_m": np.sqrt((e[w0:] ** 2).mean(axis=0)).round(2).tolist() if len(e) else []}
-    if st.app.kraken is not None:
-        k = st.app.kraken.source
-        out["kraken"] = {"frames_written": st.kraken_writer.frames if st.kraken_writer else None,
-                         "frames": k.frames, "scans": k.scans,
-                         "rejected": {r: n for r, n in k.rejected.items() if n}}
+           "rmse_per_target_m": np.sqrt((e[w0:] ** 2).mean(axis=0)).round(2).tolist() if len(e) else [],
+           "ticks_skipped": app.counters.get("ticks_skipped", 0), "ticks_late": app.counters.get("ticks_late", 0),
+           "load_avg_1m_end": round(__import__("os").getloadavg()[0], 2)}
+    if kraken is not None:
+        out["kraken"] = kraken
     return out
 
 

@@ -57,10 +57,11 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     assert src.frames == src.scans // 4 == st.kraken_writer.frames and src.decimated == 0
     assert st.app.counters.get("io_errors", 0) == 0 and st.app.counters.get("tick_errors", 0) == 0
     # each scan's sets: the spectrum's peaks, at most one per lobe the KrakenSDR drew (lobes that
-    # merge, or more than 12 dB under the strongest, are not peaks)
+    # merge, or more than peak_floor_db under the strongest, are not peaks), at least the strongest
     drawn = np.array([[len(b) for b in s["bearings"]] for s in scans])
     found = np.array([by_t[s["t"]]["n_bearings"] for s in scans])
-    assert (found <= drawn).all() and found.sum() >= 0.85 * drawn.sum(), (found.sum(), drawn.sum())
+    assert (found <= drawn).all() and (found >= np.minimum(drawn, 1)).all() and found.sum() > drawn.sum() / 2, \
+        (found.sum(), drawn.sum())
     assert sum(tk["state"] == 1 for tk in ticks) >= 10  # monitoring
     # the bearings: each the KrakenSDR drew (the DF model's, through its spectrum, its heading
     # and its clock) is one the app made, within 0.5 degree, where no lobes merged
