@@ -401,3 +401,17 @@ def test_after_an_autopilot_reboot_the_slots_start_again():
     rig.src.sink = rig.buffer.add
     rig.src.offer("doa", _doc(rig, 20.0, [[0.1]] * 4))
     assert 20.0 in rig.buffer.pending and rig.src.decimated == 0
+
+
+def test_a_frame_is_dated_at_the_middle_of_its_acquisition():
+    # KrakenSDR stamps the end of the frame and writes its acquisition time as the latency
+    for latency_ms in (436, 1000, 3000):
+        rig = Rig()
+        model = replace(CLEAN, latency_ms=latency_ms)
+        scans = [(np.array([0.1]), np.array([True]))] * 4
+        doc = frame_lines(rig.epoch(100.0, latency_ms), scans, FREQS, rig.yaw, model, np.random.default_rng(0))
+        assert f", {latency_ms}, " in doc
+        rig.src.offer("doa", doc.encode())
+        assert rig.buffer.pending[100.0][0].t_measured == pytest.approx(100.0, abs=2e-3)
+        # the same stamp read as if the latency were 0 would be latency/2 later
+        assert (rig.epoch(100.0, latency_ms) / 1000.0 - UNIX0) - 100.0 == pytest.approx(latency_ms / 2000.0, abs=1e-3)
