@@ -2,7 +2,7 @@
 path lose anything against the datagram feed?
 
     python bench/kraken.py core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_fixed,native]
-                                [--duration 100]   (an arm peaks:F: peak_floor_db F)
+                                [--duration 100] [--df-clutter LAMBDA]   (an arm peaks:F: peak_floor_db F)
     python bench/kraken.py stack [--seeds 1,2,3] [--duration 100] [--speedup 3] [--multipath off]
 
 ``core``: the paper's scenario and method (the greedy one-step rule, jump moves, as ``pmon eval``'s
@@ -15,11 +15,13 @@ simulated KrakenSDR (sim/kraken.py: the target's lobe, each clutter bearing a mu
 (onboard/app/pairing.py) into the tick:
 
 * ``main``: the main DoA alone, the filter's clutter rate the scenario's (Lambda = 1);
-* ``peaks``: the spectrum's peaks as the set, the clutter rate they show (the default);
+* ``peaks``: the spectrum's peaks as the set, the clutter rate they show, never less than the
+  filter's own (the default);
 * ``peaks_fixed``: the peaks, Lambda = 1;
 * ``native``: the DF model's bearings themselves (what the datagram feed sends), Lambda = 1.
 
-Every arm draws the same random numbers (DF, spectrum, filter: common random numbers), so the
+``--df-clutter``: the DF model's clutter rate (more multipath than the filter is set for), the
+filter keeping the scenario's. Every arm draws the same random numbers (DF, spectrum, filter: common random numbers), so the
 paired per-trial differences measure the processing. Printed: each arm's RMSE (``pmon eval``'s
 rmse_mean_m: the time-averaged, target-averaged eps_t over t >= 10 s), the paired per-trial
 difference from ``main`` with its 95 % t-interval, and how many trials each arm did no worse.
@@ -69,7 +71,8 @@ def _kraken_cfg(sc, arm: str):
     return replace(k, measurements="peaks", clutter="adaptive")
 
 
-def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial: int) -> np.ndarray:
+def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial: int,
+            df_clutter: float | None = None) -> np.ndarray:
     """(K, M) position errors of one arm on one trial's truth."""
     from onboard.app.clock import ManualClock
     from onboard.app.kraken import KrakenSource, UtcMap
@@ -80,8 +83,8 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
     from sim.kraken import KrakenModel, frame_lines
     from sim.sensors import DirectionFinder, df_scan_labelled
 
-    setup = MonitorSetup.from_scenario(sc)
-    df = DirectionFinder.from_config(sc.sensor)
+    setup = MonitorSetup.from_scenario(sc)  # the filter: the scenario's sensor (Lambda = 1)
+    df = DirectionFinder(sc.sensor.sigma_rad, sc.sensor.p_detect, sc.sensor.clutter_rate if df_clutter is None else df_clutter)
     # common random numbers: every arm the same DF draws, spectra and filter stream
     sensor_ss, render_ss, filter_ss = np.random.SeedSequence(seed, spawn_key=(trial, 32)).spawn(3)
     sensor_rng, render_rng, filter_rng = (np.random.default_rng(s) for s in (sensor_ss, render_ss, filter_ss))
@@ -94,7 +97,8 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
         utc.observe(int((UNIX0 + j) * 1e6), j * 1000)
     made: dict[int, object] = {}
     src = KrakenSource(_kraken_cfg(sc, arm), names, clock, poses, utc,
-                       lambda d, now: made.__setitem__(d.ch, d), lambda: sc.sensor.p_detect, lambda r, m: None)
+                       lambda d, now: made.__setitem__(d.ch, d), lambda: sc.sensor.p_detect, lambda r, m: None,
+                       lambda: sc.sensor.clutter_rate)
     state = initial_state(setup, filter_rng)
     ws = GuidanceWorkspace()
     uav, yaw = np.asarray(start, float).copy(), 0.0
@@ -123,7 +127,7 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
 
 
 def run_trial(args_tuple) -> dict:
-    sc_path, overrides, seed, trial, arms, n_ticks = args_tuple
+    sc_path, overrides, seed, trial, arms, n_ticks, df_clutter = args_tuple
     from sim import evaluation as ev
     from sim.truth import simulate_truth
 
@@ -132,7 +136,7 @@ def run_trial(args_tuple) -> dict:
     truth = simulate_truth(sc, cfg.n_ticks - 1, ev._rng(seed, trial, 0))
     start = ev.draw_start(cfg, ev._rng(seed, trial, 1))
     t0 = time.perf_counter()
-    out = {arm: run_arm(sc, arm, truth, start, seed, trial) for arm in arms}
+    out = {arm: run_arm(sc, arm, truth, start, seed, trial, df_clutter) for arm in arms}
     return {"trial": trial, "errors": out, "wall_s": time.perf_counter() - t0}
 
 
@@ -144,7 +148,7 @@ def core(args) -> dict:
     if bad or "main" not in arms:
         raise SystemExit(f"--arms: known {', '.join(ARMS)}, and main must be among them (got {args.arms})")
     n_ticks = int(round(args.duration))
-    jobs = [("paper", {}, args.seed, n, arms, n_ticks) for n in range(args.trials)]
+    jobs = [("paper", {}, args.seed, n, arms, n_ticks, args.df_clutter) for n in range(args.trials)]
     t0 = time.perf_counter()
     if args.workers > 1:
         import multiprocessing as mp
@@ -162,10 +166,12 @@ def core(args) -> dict:
     eps = {a: np.sqrt((E[a] ** 2).mean(axis=0)) for a in arms}  # (K, M): eps_t per target
     rmse = {a: float(eps[a][w0:].mean(axis=1).mean()) for a in arms}
     per_trial = {a: np.sqrt((E[a][:, w0:] ** 2).mean(axis=(1, 2))) for a in arms}
+    lam = "1 (the scenario's)" if args.df_clutter is None else f"{args.df_clutter:g} (the filter's: 1)"
     print(f"paper scenario, greedy rule, {args.trials} trials x {n_ticks} s, seed {args.seed}; "
-          f"KrakenSDR multipath -10..+3 dB (sim/kraken.py KrakenModel); wall {wall:.0f} s")
+          f"multipath Poisson({lam}), -10..+3 dB (sim/kraken.py KrakenModel); wall {wall:.0f} s")
     print(f"{'arm':16s} {'RMSE m':>7s} {'minus main, per trial (95 % CI)':>34s} {'trials no worse':>16s}")
-    out = {"trials": args.trials, "seed": args.seed, "ticks": n_ticks, "rmse_m": {}, "minus_main_m": {},
+    out = {"trials": args.trials, "seed": args.seed, "ticks": n_ticks, "df_clutter": args.df_clutter,
+           "rmse_m": {}, "minus_main_m": {},
            "no_worse_than_main": {}, "wall_s": round(wall, 1)}
     for a in arms:
         d = per_trial[a] - per_trial["main"]
@@ -299,6 +305,9 @@ def main(argv=None) -> int:
     c.add_argument("--duration", type=float, default=100.0)
     c.add_argument("--workers", type=int, default=1)
     c.add_argument("--arms", default=",".join(ARMS))
+    c.add_argument("--df-clutter", type=float, default=None, metavar="LAMBDA",
+                   help="the DF model's clutter (multipath) rate, the filter keeping the scenario's (default: "
+                        "the scenario's, 1)")
     s = sub.add_parser("stack", help="the stack with the datagram feed and with the simulated KrakenSDR")
     s.add_argument("--seeds", type=lambda v: [int(x) for x in v.split(",")], default=[1, 2, 3])
     s.add_argument("--duration", type=float, default=100.0)

@@ -190,7 +190,9 @@ class Kraken:
     min_power_db: float = -100.0  # gate: ... below this power (KrakenSDR floors it at -100)
     reject_overdrive: bool = True  # gate: frames its status.json flags (ADC overdrive, DAQ not ok)
     clutter: str = "adaptive"  # adaptive (the rate the peaks show) | fixed (sensor.clutter_rate)
-    clutter_min: float = 0.1  # adaptive rate's bounds (per scan)
+    # adaptive rate's bounds (per scan); clutter_min None: the filter's own rate (sensor.clutter_rate,
+    # PMON_CLUTTER): the peaks raise it where they show more clutter, never lower it
+    clutter_min: float | None = None
     clutter_max: float = 10.0
     clutter_window: int = 20  # scans per channel the adaptive rate is averaged over
     time_source: str = "autopilot"  # its Unix stamps to autopilot time: autopilot (SYSTEM_TIME) | host
@@ -538,8 +540,10 @@ def _kraken(k: _Node, targets) -> Kraken:
                             + (f" (or {', '.join(repr(e) for e in extra)})" if extra else ""))
         return v
 
-    lo = k.get("clutter_min", d.clutter_min).number(lambda x: 0 <= x <= 1000, "must be in [0, 1000]")
-    hi = k.get("clutter_max", d.clutter_max).number(lambda x: lo <= x <= 1000, f"must be in [clutter_min={lo:g}, 1000]")
+    lo = k.get("clutter_min", None)
+    lo = None if lo.value is None else lo.number(lambda x: 0 <= x <= 1000, "must be in [0, 1000] (or null)")
+    hi = k.get("clutter_max", d.clutter_max).number(lambda x: (lo or 0.0) <= x <= 1000,
+                                                   f"must be in [clutter_min={lo or 0.0:g}, 1000]")
     return Kraken(
         vfos=tuple(vfos),
         url=url("url", d.url),

@@ -74,7 +74,8 @@ class Rig:
         self.buffer = ScanBuffer(len(SC.targets))
         self.reports: list[tuple[str, str]] = []
         self.src = KrakenSource(self.cfg, tuple(t.name for t in SC.targets), self.clock, self.poses, self.utc,
-                                self.buffer.add, lambda: SC.sensor.p_detect, lambda r, m: self.reports.append((r, m)))
+                                self.buffer.add, lambda: SC.sensor.p_detect, lambda r, m: self.reports.append((r, m)),
+                                lambda: SC.sensor.clutter_rate)
 
     def epoch(self, t: float, latency_ms: int = 436) -> int:
         return int(round((UNIX0 + t) * 1000 + latency_ms / 2))
@@ -261,8 +262,17 @@ def test_peaks_are_the_set_and_the_clutter_rate_follows_them():
         rig.src.offer("doa", _doc(rig, t, [[0.1 + 0.01 * k, 2.0, -2.0]] * 4, model, seed=k))
     last = rig.buffer.pending[124.0][0]
     assert len(last.bearings) == 3
-    # three measurements a scan, p_D = 0.95: Lambda = 2.05 (clipped to [0.1, 10])
+    # three measurements a scan, p_D = 0.95: Lambda = 2.05 (between the filter's own 1 and 10)
     assert last.clutter_rate == pytest.approx(3 - 0.95)
+    # one a scan: the filter's own rate, never less
+    rig1 = Rig()
+    for k in range(5):
+        rig1.clock.t = 100.3 + k
+        rig1.src.offer("doa", _doc(rig1, 100.0 + k, [[0.1 + 0.01 * k]] * 4, seed=k))
+    assert rig1.buffer.pending[104.0][0].clutter_rate == SC.sensor.clutter_rate == 1.0
+    rig2 = Rig(replace(SC.kraken, clutter_min=0.2))
+    rig2.src.offer("doa", _doc(rig2, 100.0, [[0.1]] * 4))
+    assert rig2.buffer.pending[100.0][0].clutter_rate == 0.2
     # the main DoA alone, the filter's own rate
     rig2 = Rig(replace(SC.kraken, measurements="main", clutter="fixed"))
     rig2.src.offer("doa", _doc(rig2, 100.0, [[0.1, 2.0, -2.0]] * 4, model))

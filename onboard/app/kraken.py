@@ -110,10 +110,11 @@ class KrakenSource:
 
     def __init__(self, cfg, target_names: tuple[str, ...], clock, poses, time_map,
                  sink: Callable[[Datagram, float | None], None], p_detect: Callable[[], float],
-                 report: Callable[[str, str], None]):
+                 report: Callable[[str, str], None], clutter_floor: Callable[[], float] = lambda: 0.0):
         self.cfg = cfg
         self.clock, self.poses, self.time_map = clock, poses, time_map
         self.sink, self.p_detect, self.report = sink, p_detect, report
+        self.clutter_floor = clutter_floor  # the filter's own clutter rate (clutter_min: null)
         self.vfo_freqs = np.array([v.freq_hz for v in cfg.vfos], float)
         self.vfo_channels = [target_names.index(v.target) for v in cfg.vfos]
         self.lines = 0  # lines parsed
@@ -341,7 +342,8 @@ class KrakenSource:
             return None
         counts = self._counts[ch]
         counts.append(n)
-        return doa.clutter_rate(counts, self.p_detect(), self.cfg.clutter_min, self.cfg.clutter_max)
+        lo = self.cfg.clutter_min if self.cfg.clutter_min is not None else self.clutter_floor()
+        return doa.clutter_rate(counts, self.p_detect(), min(lo, self.cfg.clutter_max), self.cfg.clutter_max)
 
 
 class KrakenInput:
@@ -359,7 +361,8 @@ class KrakenInput:
         time_map = app.utc if cfg.time_source == "autopilot" else HostTime(app.clock)
         self.app = app
         self.source = KrakenSource(cfg, tuple(t.name for t in app.base_scenario.targets), app.clock, app.poses,
-                                   time_map, app.scans.add, lambda: app.params["PMON_PD"], self._report)
+                                   time_map, app.scans.add, lambda: app.params["PMON_PD"], self._report,
+                                   lambda: app.params["PMON_CLUTTER"])
         self._down_said = self._status_said = False
         self.handled = 0  # documents the io thread has handled
 
