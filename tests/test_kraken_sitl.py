@@ -80,3 +80,22 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     assert np.mean(np.array(near) < 0.5) > 0.9  # the others: lobes that merged into one peak
     means = np.array([tk["means"] for tk in ticks])
     assert np.isfinite(means).all() and (np.abs(means[:, :, :2] - 500.0) < 1000.0).all()
+
+
+@pytest.mark.timeout(120)
+def test_pmon_demo_df_kraken_flies_on_the_simulated_krakensdr(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "d"
+    p = subprocess.run([sys.executable, "-m", "onboard.cli", "demo", "--df", "kraken", "--duration", "15",
+                        "--out", str(out)], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                       text=True, timeout=110)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["scored_ticks"] >= 14 and len(rep["rmse_m"]) == 4
+    app_log = (out / "app.log").read_text()
+    assert "pmon run: KrakenSDR DoA from http://127.0.0.1:" in app_log
+    assert "bad KrakenSDR data" not in app_log and "0 rejected {}" in app_log, app_log[-1500:]
+    assert (out / "kraken" / "DOA_value.html").exists() and "feed: KrakenSDR output at" in (out / "feed.log").read_text()
