@@ -1,8 +1,9 @@
 """KrakenSDR as the DF (issue 32): is the spectrum's set of peaks worth it, and does the KrakenSDR
 path lose anything against the datagram feed?
 
-    python bench/kraken.py core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_fixed,native]
-                                [--duration 100] [--df-clutter LAMBDA]   (an arm peaks:F: peak_floor_db F)
+    python bench/kraken.py core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_adaptive,native]
+                                [--duration 100] [--df-clutter LAMBDA] [--set KEY=VALUE ...]
+                                (an arm peaks:F or peaks_adaptive:F: with peak_floor_db F)
     python bench/kraken.py stack [--seeds 1,2,3] [--duration 100] [--speedup 3] [--multipath off]
 
 ``core``: the paper's scenario and method (the greedy one-step rule, jump moves, as ``pmon eval``'s
@@ -15,9 +16,9 @@ simulated KrakenSDR (sim/kraken.py: the target's lobe, each clutter bearing a mu
 (onboard/app/pairing.py) into the tick:
 
 * ``main``: the main DoA alone, the filter's clutter rate the scenario's (Lambda = 1);
-* ``peaks``: the spectrum's peaks as the set, the clutter rate they show, never less than the
-  filter's own (the default);
-* ``peaks_fixed``: the peaks, Lambda = 1;
+* ``peaks``: the spectrum's peaks as the set, the filter's Lambda = 1 (the default settings);
+* ``peaks_adaptive``: the peaks, the clutter rate they show (``clutter: adaptive``; never less
+  than the filter's own unless ``--set kraken.clutter_min=...``);
 * ``native``: the DF model's bearings themselves (what the datagram feed sends), Lambda = 1.
 
 ``--df-clutter``: the DF model's clutter rate (more multipath than the filter is set for), the
@@ -52,23 +53,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from onboard.config import load_scenario  # noqa: E402
 
-ARMS = ("main", "peaks", "peaks_fixed", "native")
+ARMS = ("main", "peaks", "peaks_adaptive", "native")
 UNIX0 = 1_700_000_000.0
 T0 = 100.0  # autopilot s of the first scan
 
 
 # ----------------------------------------------------------------------------- core
 def _kraken_cfg(sc, arm: str):
-    """An arm's kraken settings; ``peaks:F`` / ``peaks_fixed:F``: with ``peak_floor_db`` F."""
+    """An arm's kraken settings (the scenario's, ``--set`` included); ``peaks:F`` /
+    ``peaks_adaptive:F``: with ``peak_floor_db`` F."""
     k = sc.kraken
     name, _, floor = arm.partition(":")
     if floor:
         k = replace(k, peak_floor_db=float(floor))
     if name == "main":
         return replace(k, measurements="main", clutter="fixed")
-    if name == "peaks_fixed":
-        return replace(k, measurements="peaks", clutter="fixed")
-    return replace(k, measurements="peaks", clutter="adaptive")
+    if name == "peaks_adaptive":
+        return replace(k, measurements="peaks", clutter="adaptive")
+    return replace(k, measurements="peaks", clutter="fixed")
 
 
 def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial: int,
@@ -148,7 +150,9 @@ def core(args) -> dict:
     if bad or "main" not in arms:
         raise SystemExit(f"--arms: known {', '.join(ARMS)}, and main must be among them (got {args.arms})")
     n_ticks = int(round(args.duration))
-    jobs = [("paper", {}, args.seed, n, arms, n_ticks, args.df_clutter) for n in range(args.trials)]
+    from bench import set_overrides
+    overrides = set_overrides(args.parser, args)
+    jobs = [("paper", overrides, args.seed, n, arms, n_ticks, args.df_clutter) for n in range(args.trials)]
     t0 = time.perf_counter()
     if args.workers > 1:
         import multiprocessing as mp
@@ -167,7 +171,8 @@ def core(args) -> dict:
     rmse = {a: float(eps[a][w0:].mean(axis=1).mean()) for a in arms}
     per_trial = {a: np.sqrt((E[a][:, w0:] ** 2).mean(axis=(1, 2))) for a in arms}
     lam = "1 (the scenario's)" if args.df_clutter is None else f"{args.df_clutter:g} (the filter's: 1)"
-    print(f"paper scenario, greedy rule, {args.trials} trials x {n_ticks} s, seed {args.seed}; "
+    from bench import set_label
+    print(f"paper scenario{set_label(args)}, greedy rule, {args.trials} trials x {n_ticks} s, seed {args.seed}; "
           f"multipath Poisson({lam}), -10..+3 dB (sim/kraken.py KrakenModel); wall {wall:.0f} s")
     print(f"{'arm':16s} {'RMSE m':>7s} {'minus main, per trial (95 % CI)':>34s} {'trials no worse':>16s}")
     out = {"trials": args.trials, "seed": args.seed, "ticks": n_ticks, "df_clutter": args.df_clutter,
@@ -305,6 +310,9 @@ def main(argv=None) -> int:
     c.add_argument("--duration", type=float, default=100.0)
     c.add_argument("--workers", type=int, default=1)
     c.add_argument("--arms", default=",".join(ARMS))
+    from bench import add_set_option
+    add_set_option(c, "kraken.clutter_min=0.1")
+    c.set_defaults(parser=c)
     c.add_argument("--df-clutter", type=float, default=None, metavar="LAMBDA",
                    help="the DF model's clutter (multipath) rate, the filter keeping the scenario's (default: "
                         "the scenario's, 1)")

@@ -189,7 +189,7 @@ class Kraken:
     min_confidence: float = 0.0  # gate: a line below this confidence (dB) is an empty set
     min_power_db: float = -100.0  # gate: ... below this power (KrakenSDR floors it at -100)
     reject_overdrive: bool = True  # gate: frames its status.json flags (ADC overdrive, DAQ not ok)
-    clutter: str = "adaptive"  # adaptive (the rate the peaks show) | fixed (sensor.clutter_rate)
+    clutter: str = "fixed"  # fixed (sensor.clutter_rate: measured best) | adaptive (the rate the peaks show)
     # adaptive rate's bounds (per scan); clutter_min None: the filter's own rate (sensor.clutter_rate,
     # PMON_CLUTTER): the peaks raise it where they show more clutter, never lower it
     clutter_min: float | None = None

@@ -254,7 +254,8 @@ def test_the_same_frame_read_twice_is_used_once_and_squelched_vfos_are_empty_set
 
 # ----------------------------------------------------------------------------- the measurement set
 def test_peaks_are_the_set_and_the_clutter_rate_follows_them():
-    rig = Rig()
+    adaptive = replace(SC.kraken, clutter="adaptive")
+    rig = Rig(adaptive)
     model = replace(CLEAN, multipath=True, multipath_db=(-6.0, -3.0))
     for k in range(25):
         t = 100.0 + k
@@ -265,14 +266,18 @@ def test_peaks_are_the_set_and_the_clutter_rate_follows_them():
     # three measurements a scan, p_D = 0.95: Lambda = 2.05 (between the filter's own 1 and 10)
     assert last.clutter_rate == pytest.approx(3 - 0.95)
     # one a scan: the filter's own rate, never less
-    rig1 = Rig()
+    rig1 = Rig(adaptive)
     for k in range(5):
         rig1.clock.t = 100.3 + k
         rig1.src.offer("doa", _doc(rig1, 100.0 + k, [[0.1 + 0.01 * k]] * 4, seed=k))
     assert rig1.buffer.pending[104.0][0].clutter_rate == SC.sensor.clutter_rate == 1.0
-    rig2 = Rig(replace(SC.kraken, clutter_min=0.2))
+    rig2 = Rig(replace(adaptive, clutter_min=0.2))
     rig2.src.offer("doa", _doc(rig2, 100.0, [[0.1]] * 4))
     assert rig2.buffer.pending[100.0][0].clutter_rate == 0.2
+    # the default (clutter: fixed): the filter's own rate
+    rig3 = Rig()
+    rig3.src.offer("doa", _doc(rig3, 100.0, [[0.1, 2.0, -2.0]] * 4, model))
+    assert len(rig3.buffer.pending[100.0][0].bearings) == 3 and rig3.buffer.pending[100.0][0].clutter_rate is None
     # the main DoA alone, the filter's own rate
     rig2 = Rig(replace(SC.kraken, measurements="main", clutter="fixed"))
     rig2.src.offer("doa", _doc(rig2, 100.0, [[0.1, 2.0, -2.0]] * 4, model))
