@@ -260,7 +260,7 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
         kraken = None
         if app.kraken is not None:
             k = app.kraken.source
-            kraken = {"frames": k.frames, "scans": k.scans, "decimated": k.decimated,
+            kraken = {"frames": k.frames, "missed": k.missed, "scans": k.scans, "decimated": k.decimated,
                       "rejected": {r: n for r, n in k.rejected.items() if n}}
     errs, ticked = [], 0
     for s in scans:

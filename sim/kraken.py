@@ -140,6 +140,13 @@ class _QuietHandler(SimpleHTTPRequestHandler):
     def log_message(self, *args) -> None:
         pass
 
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        writer = getattr(self.server, "kraken_writer", None)
+        frames = writer.frames if writer is not None else 0
+        super().do_GET()
+        if writer is not None and self.path.split("?")[0].endswith(DOC_NAME):
+            writer.served = max(writer.served, frames)  # the document of this many frames was read
+
 
 class KrakenWriter:
     """KrakenSDR's ``_share`` folder: DOA_value.html and status.json rewritten in place, served
@@ -156,9 +163,11 @@ class KrakenWriter:
         if serve is not None:
             handler = partial(_QuietHandler, directory=str(self.folder))
             self.server = ThreadingHTTPServer(serve, handler)
+            self.server.kraken_writer = self
             self._thread = threading.Thread(target=self.server.serve_forever, name="kraken-http", daemon=True)
             self._thread.start()
         self.frames = 0
+        self.served = 0  # frames written when the document was last read over HTTP
 
     @property
     def url(self) -> str:
@@ -177,7 +186,14 @@ class KrakenWriter:
         self._doc.flush()
         self.frames += 1
 
-    def close(self) -> None:
+    def close(self, linger_s: float = 3.0) -> None:
+        """Stop serving, once the last frame's document has been read (KrakenSDR keeps serving it:
+        a reader must not miss the last frame because the simulator ended), or ``linger_s``."""
+        import time
+
+        deadline = time.monotonic() + linger_s
+        while self.server is not None and self.served < self.frames and time.monotonic() < deadline:
+            time.sleep(0.01)
         if self.server is not None:
             self.server.shutdown()
             self.server.server_close()

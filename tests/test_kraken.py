@@ -430,3 +430,14 @@ def test_a_frame_is_dated_at_the_middle_of_its_acquisition():
         assert rig.buffer.pending[100.0][0].t_measured == pytest.approx(100.0, abs=2e-3)
         # the same stamp read as if the latency were 0 would be latency/2 later
         assert (rig.epoch(100.0, latency_ms) / 1000.0 - UNIX0) - 100.0 == pytest.approx(latency_ms / 2000.0, abs=1e-3)
+
+
+def test_frames_written_but_never_read_are_counted_and_said():
+    # KrakenSDR's document holds its newest frame only: a reader that falls behind loses frames
+    rig = Rig()
+    for k in (0, 1, 2, 3, 4, 5, 8, 9, 13):
+        rig.clock.t = 100.05 + k
+        rig.src.offer("doa", _doc(rig, 100.0 + k, [[0.1]] * 4, seed=k))
+    assert rig.src.missed == 2 + 3
+    assert [m for r, m in rig.reports if r == "missed"] == [
+        "KrakenSDR frames written but not read (a 3.0 s gap): the reader fell behind"]

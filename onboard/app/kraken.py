@@ -130,6 +130,10 @@ class KrakenSource:
         self._mapped = sorted(set(self.vfo_channels))  # channels with a VFO
         self._counts = {ch: deque(maxlen=cfg.clutter_window) for ch in self._mapped}
         self.last_frame_t: float | None = None  # autopilot s when the newest frame arrived
+        self.missed = 0  # frames estimated lost between reads (_count_gap)
+        self._last_epoch: int | None = None
+        self._gaps: deque[int] = deque(maxlen=20)
+        self._missed_said = False
         self.silent = False
 
     # ----------------------------------------------------------------- errors
@@ -215,6 +219,7 @@ class KrakenSource:
             self.reject("stale_time", f"frame {now - t:.2f} s old", len(chans))
             return
         self.frames += 1
+        self._count_gap(epoch)
         self.last_frame_t = now
         if self.silent:
             self.silent = False
@@ -241,6 +246,23 @@ class KrakenSource:
             self._emit(s)
         if t >= slot - SLOT_EARLY_S:  # no later frame can be nearer its second
             self._emit(slot)
+
+    def _count_gap(self, epoch: int) -> None:
+        """Frames KrakenSDR wrote that were never read: its document holds the newest frame only,
+        so a reader that falls behind (a poll period too long, a starved computer) loses frames.
+        Estimated from the gaps between frame stamps against their median (``missed``)."""
+        if self._last_epoch is not None and epoch > self._last_epoch:
+            gap = epoch - self._last_epoch
+            if len(self._gaps) >= 5:
+                typical = statistics.median(self._gaps)
+                if gap > 1.6 * typical:
+                    self.missed += int(round(gap / typical)) - 1
+                    if not self._missed_said:
+                        self._missed_said = True
+                        self.report("missed", f"KrakenSDR frames written but not read (a {gap / 1000:.1f} s gap): "
+                                              "the reader fell behind")
+            self._gaps.append(gap)
+        self._last_epoch = max(epoch, self._last_epoch or epoch)
 
     def tick(self, now: float | None) -> None:
         """Periodic (io thread): slots whose frames are all in; silence."""

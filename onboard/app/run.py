@@ -116,7 +116,7 @@ def run(args) -> int:
               f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
         if app.kraken is not None:
             k = app.kraken.source
-            print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames, {k.scans} scans, "
+            print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames ({k.missed} missed), {k.scans} scans, "
                   f"{sum(k.rejected.values())} rejected {dict((r, n) for r, n in k.rejected.items() if n)}, "
                   f"gated {dict((g, n) for g, n in k.gated.items() if n)}", flush=True)
     return 0
