@@ -262,16 +262,18 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
             k = app.kraken.source
             kraken = {"frames": k.frames, "missed": k.missed, "scans": k.scans, "decimated": k.decimated,
                       "rejected": {r: n for r, n in k.rejected.items() if n}}
-    errs, ticked = [], 0
+    errs, ticked, unticked = [], 0, []
     for s in scans:
         tk = ticks.get(s["t"])
         if tk is not None and tk["channels"] == list(range(len(s["targets"]))):
             ticked += 1
+        else:
+            unticked.append(s["t"] - scans[0]["t"])  # s after the first scan
         if tk is not None:
             errs.append(np.linalg.norm(np.array(tk["means"])[:, :2] - np.array(s["targets"])[:, :2], axis=1))
     e = np.array(errs)
     w0 = min(10, len(e) // 2)
-    out = {"scans": len(scans), "ticked_all_channels": ticked,
+    out = {"scans": len(scans), "ticked_all_channels": ticked, "unticked_s_after_first": unticked,
            "rmse_m": float(np.sqrt((e[w0:] ** 2).mean())) if len(e) else float("nan"),
            "rmse_per_target_m": np.sqrt((e[w0:] ** 2).mean(axis=0)).round(2).tolist() if len(e) else [],
            "ticks_skipped": app.counters.get("ticks_skipped", 0), "ticks_late": app.counters.get("ticks_late", 0),

@@ -194,6 +194,8 @@ class KrakenWriter:
         deadline = time.monotonic() + linger_s
         while self.server is not None and self.served < self.frames and time.monotonic() < deadline:
             time.sleep(0.01)
+        if self.server is not None and self.frames:
+            time.sleep(min(0.5, max(deadline - time.monotonic(), 0.0)))  # a reader reads twice (kraken_fetch)
         if self.server is not None:
             self.server.shutdown()
             self.server.server_close()
