@@ -353,3 +353,8 @@ def test_unchanged_parameters_leave_the_scenario_as_it_is(paper):
         assert dataclasses.replace(applied, app=sc.app) == sc
         assert MonitorSetup.from_scenario(applied).sensor == MonitorSetup.from_scenario(sc).sensor
         assert defaults_from_scenario(sc)["PMON_REACH"] == max(sc.uav.n_radial * sc.uav.step_m, 1.0)
+    # a file (or --set) gives the app's own settings their start values, as for every parameter
+    own = load_scenario("paper", {"app.setpoint_hz": 20, "app.fence_max_m": 90, "uav.n_radial": 2})
+    assert {k: v for k, v in defaults_from_scenario(own).items() if k in ("PMON_SP_HZ", "PMON_ALT_MAX", "PMON_NR",
+                                                                          "PMON_REACH")} == {
+        "PMON_SP_HZ": 20.0, "PMON_ALT_MAX": 90.0, "PMON_NR": 2.0, "PMON_REACH": 10.0}
