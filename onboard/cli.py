@@ -126,8 +126,10 @@ def main(argv: list[str] | None = None) -> int:
                         "method takes its autopilot as @stock or @demo: docs/RESULTS.md)")
     e.add_argument("--out", default="eval_out", type=OUT_DIR, help="output directory (default eval_out)")
     e.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
-    e.add_argument("--particles", type=integer(10, 1_000_000), default=None,
-                   help="particles per target (default: the scenario's)")
+    from onboard.settings import SETTINGS
+    particles = SETTINGS["tracking.particles"]  # its range declared once (docs/SETTINGS.md)
+    e.add_argument("--particles", type=integer(int(particles.lo), int(particles.hi)), default=None,
+                   help="particles per target, i.e. --set tracking.particles=N (default: the scenario's)")
     e.add_argument("--workers", type=integer(1, 4096), default=None, help="local worker processes (default: all cores)")
     e.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
     e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

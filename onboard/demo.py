@@ -88,8 +88,8 @@ def run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from onboard.config import load_scenario, with_overrides
-    from onboard.policy import POLICIES
+    from onboard.config import load_scenario
+    from onboard.policy import with_policy
 
     console = Console()
     wall0 = time.monotonic()
@@ -114,7 +114,7 @@ def run(args) -> int:
                           "(the URL printed at start)")
             return 2
     if args.speedup == "auto":
-        tick_s = measure_tick_s(with_overrides(sc, POLICIES[args.policy]))  # the tick the app will run
+        tick_s = measure_tick_s(with_policy(sc, args.policy))  # the tick the app will run
         speedup = choose_speedup(tick_s)
         console.print(f"core tick measured {tick_s * 1e3:.0f} ms -> speedup {speedup:g}x")
     else:

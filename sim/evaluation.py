@@ -53,12 +53,11 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy import stats
 
-from onboard.config import with_overrides
-from onboard.core import tracking
+from onboard.config import ConfigError, override
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import PLANAR, bearing_information, information_reduction_factor, pcrb, planar_model
 from onboard.core.monitor import MonitorSetup, MonitorState, Scan, TickResult, initial_state, tick
-from onboard.core.planning import UavMotion, admissible, candidate_positions
+from onboard.core.planning import admissible, candidate_positions
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
@@ -104,9 +103,10 @@ class Method:
     ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). greedy: let the monitor's tick run the paper's
     one-step rule (eq:optimization) from the UAV position; ``policy`` is then not called.
-    (With ``setup`` overrides such as ``planner="lookahead"`` the tick runs that planner
+    (With ``settings`` such as ``planning.planner: lookahead`` the tick runs that planner
     instead: ``greedy`` means "the monitor's tick plans the UAV".)
-    setup: MonitorSetup field overrides for this method only (applied after the config's).
+    settings: scenario settings that make this method what it is (``onboard.config.override``,
+    over the run's own ``--set``, as sensing, clutter_rate and motion are).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
     ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
     A UAV that the monitor's tick plans on the vehicle motion is *flown*: at each tick the app's
@@ -116,7 +116,7 @@ class Method:
     jump_twin: for a vehicle method, the method with the same planner and the jump model; when
     both run, the summary reports this method's RMSE over the twin's, paired, with its CI.
     scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
-    the run's own ``--set`` (``onboard.config.with_overrides``).
+    the run's own ``--set`` (``onboard.config.override(..., beneath=True)``).
     autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
     (None: stock). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
     WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
@@ -130,7 +130,7 @@ class Method:
     clutter_rate: float | None = None
     greedy: bool = False
     policy: Policy | None = None
-    setup: tuple[tuple[str, Any], ...] = ()
+    settings: tuple[tuple[str, Any], ...] = ()
     motion: str | None = None
     jump_twin: str | None = None
     scenario_overrides: tuple[tuple[str, Any], ...] = ()
@@ -209,12 +209,13 @@ def register_method(method: Method) -> Method:
 for _m in (
     Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", greedy=True, clutter_rate=1.0),
     Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="jump"),
+           greedy=True, clutter_rate=1.0, settings=(("planning.planner", "lookahead"),), motion="jump"),
     Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
            "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", greedy=True,
-           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle", jump_twin="lookahead"),
+           clutter_rate=1.0, settings=(("planning.planner", "lookahead"),), motion="vehicle",
+           jump_twin="lookahead"),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle",
+           "Lambda = 1", greedy=True, clutter_rate=1.0, settings=(("planning.planner", "greedy"),), motion="vehicle",
            jump_twin="greedy_l1"),
     Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
            "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
@@ -244,7 +245,6 @@ class EvalConfig:
     n_ticks: int
     window_start: int  # first tick of the convergence window
     orbit_radius_m: float = ORBIT_RADIUS_M
-    overrides: tuple[tuple[str, Any], ...] = ()  # MonitorSetup overrides for every method
 
     @property
     def method_names(self) -> tuple[str, ...]:
@@ -277,19 +277,26 @@ def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_M
     if len(set(names)) != len(names):
         raise ValueError("--methods names a method twice")
     chosen = tuple(method_named(m, sc) for m in names)
+    for option, key, value in (("--duration", "mission.duration_s", duration_s),
+                               ("--particles", "tracking.particles", particles)):
+        if value is not None:  # a setting of every method's scenario, checked as a file is
+            try:
+                sc = override(sc, {key: value})
+            except ConfigError as exc:
+                raise ValueError(f"{option} {value}: {exc}") from None
+    for m in chosen:
+        try:
+            method_scenario(sc, m)
+        except ConfigError as exc:
+            raise ValueError(f"method {m.name}: {exc}") from None
     dt = sc.dynamics.dt_s
-    duration = sc.mission.duration_s if duration_s is None else float(duration_s)
-    if not (math.isfinite(duration) and duration >= 2 * dt):
+    duration = sc.mission.duration_s
+    if not duration >= 2 * dt:
         raise ValueError(f"--duration must be at least 2 time steps ({2 * dt:g} s), got {duration_s}")
     n_ticks = int(round(duration / dt))
     # the window starts at window_s, or halfway when the mission is too short for that
     window_start = min(int(round(window_s / dt)), n_ticks // 2)
-    overrides: tuple = ()
-    if particles is not None:
-        if particles < 10:
-            raise ValueError(f"--particles must be >= 10, got {particles}")
-        overrides = (("n_particles", int(particles)),)
-    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start, overrides=overrides)
+    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start)
 
 
 def method_named(name: str, sc=None) -> Method:
@@ -358,29 +365,32 @@ def draw_start(cfg: EvalConfig, rng: np.random.Generator) -> np.ndarray:
     raise RuntimeError("could not draw a UAV start outside the obstacles in 1000 tries")
 
 
+def method_scenario(sc, method: Method):
+    """The scenario a method runs: the run's (with its ``--set``) under the method's policy
+    (``scenario_overrides``, beneath the run's own settings), then the settings that make the
+    method what it is (over them)."""
+    sc = override(sc, dict(method.scenario_overrides), beneath=True)
+    own = dict(method.settings)
+    if method.sensing == "fixed":  # the baseline's sensors: no clutter, every target seen; the filter must know it
+        own.update({"sensor.p_detect": 1.0, "sensor.clutter_rate": 0.0})
+    elif method.clutter_rate is not None:
+        own["sensor.clutter_rate"] = method.clutter_rate
+    if method.motion is not None:
+        own["planning.motion"] = method.motion
+    return override(sc, own)
+
+
 def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None, VehicleLimits | None]:
     """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
     limits from its autopilot's parameters."""
-    sc = cfg.scenario
-    if method.scenario_overrides:
-        sc = with_overrides(sc, dict(method.scenario_overrides))
-    sigma = sc.sensor.sigma_rad
-    if method.sensing == "fixed":
-        # the baseline's sensors: no clutter, every target seen; the filter must know it
-        sensor, df = tracking.SensorModel(sigma, 1.0, 0.0), None
-    else:
-        lam = sc.sensor.clutter_rate if method.clutter_rate is None else method.clutter_rate
-        sensor = tracking.SensorModel(sigma, sc.sensor.p_detect, lam)
-        df = DirectionFinder(sigma, sc.sensor.p_detect, lam)
-    fields = {**dict(cfg.overrides), **dict(method.setup)}
-    motion = method.motion or sc.planning.motion
-    flown = method.sensing == "uav" and method.greedy and motion == "vehicle"
+    sc = method_scenario(cfg.scenario, method)
+    flown = method.sensing == "uav" and method.greedy and sc.planning.motion == "vehicle"
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
-        fields["motion"] = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
-    elif method.motion is not None:
-        fields["motion"] = replace(UavMotion.from_config(sc.planning), kind=method.motion)
-    return MonitorSetup.from_scenario(sc, **fields, sensor=sensor), df, limits
+        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
+        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
+    df = None if method.sensing == "fixed" else DirectionFinder.from_config(sc.sensor)
+    return MonitorSetup.from_scenario(sc), df, limits
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
@@ -837,8 +847,7 @@ def results_markdown(summary: Summary, command: str) -> str:
     L = [f"# Evaluation results: scenario `{cfg.scenario.name}`", "",
          f"- Command: `{command}`",
          f"- Trials: {summary.n_trials}, seed {cfg.seed}, {cfg.n_ticks} ticks of {dt:g} s "
-         f"({cfg.n_ticks * dt:g} s missions); particles per target: "
-         f"{dict(cfg.overrides).get('n_particles', cfg.scenario.tracking.particles)}",
+         f"({cfg.n_ticks * dt:g} s missions); particles per target: {cfg.scenario.tracking.particles}",
          f"- Convergence window: ticks {cfg.window_start}..{cfg.n_ticks - 1} "
          f"(t = {cfg.window_start * dt:g} s to the end)",
          f"- Machine: {machine_description()}; wall time {summary.wall_s:.0f} s",

@@ -43,7 +43,7 @@ from onboard.app.contract import STAT_FIELDS, STATUS, TGT_FIELDS, Action, Reason
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
 from onboard.app.fence import Fence, outgoing_violation
 from onboard.app.link import Link, mavlink
-from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
+from onboard.app.params import SPECS, ParamTable
 from onboard.app.pose import FixedOrigin, Frame, PoseHistory
 from onboard.app.schedule import COAST_AFTER_S, TickRecord
 from onboard.app.setpoints import PlannedSegment, enu_to_ned_vector
@@ -106,7 +106,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self.link = link or Link(cfg.mavlink_url, cfg.baud, cfg.tlog_path,
                                  source_system=cfg.target_system or 1, signing_key=key,
                                  wait_for_peer=True)
-        self.params = ParamTable(defaults_from_scenario(scenario))
+        self.params = ParamTable.from_scenario(scenario)
         self.M = len(scenario.targets)
         self.scans = dg.ScanBuffer(self.M)
         self.poses = PoseHistory()
