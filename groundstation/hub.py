@@ -228,7 +228,11 @@ class Hub:
             for host, port in cfg.out:
                 self.endpoints.append(Endpoint(host, port, serve=False))
             if cfg.tak_url:
-                from groundstation.tak import TakSender, config
+                try:
+                    from groundstation.tak import TakSender, config
+                except ImportError as exc:
+                    raise GcsError(f"hub: --tak needs pytak and takproto ({exc.name} is missing): "
+                                   "pip install 'passive-monitor[gcs]'", 2) from exc
                 try:
                     self.tak = TakSender(config(cfg.tak_url, cfg.tak_proto, cfg.tak_tls))
                 except (SyntaxError, ValueError) as exc:
