@@ -222,3 +222,35 @@ def test_1000_hostile_estimates_make_no_invalid_output_and_are_all_counted(rig):
             math.hypot(e - (x + 500), n - (y - 500)) for x, y in TARGETS) <= 1.0
     assert hub.targets.rate_limited >= 150  # 200 in well under a second: at most ~10 drawn
     assert latency < 1.0
+
+
+@pytest.mark.timeout(60)
+def test_the_view_and_pmon_gcs_commands_share_the_hubs_link():
+    """The view served by the hub and a `pmon gcs status` through the hub's port, at once,
+    on the one vehicle link (before, `pmon gcs view` held it and status heard nothing)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import urllib.request
+
+    rig = Rig(view_port=0)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "--connect", f"udpout:127.0.0.1:{rig.sport}",
+                                 "--timeout", "2", "--json", "status"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        t = 300.0
+        while proc.poll() is None and t < 330:
+            rig.veh.heartbeat()
+            rig.tick(t)
+            t += 1.0
+            time.sleep(0.25)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        status = json.loads(out.strip().splitlines()[-1])
+        assert status["vehicle"]["sysid"] == 1 and status["app"]["state"] == "monitoring"
+        state = json.loads(urllib.request.urlopen(rig.hub.view.url + "state.json", timeout=5).read())
+        assert [tg["name"] for tg in state["targets"]] == ["T1", "T2", "T3", "T4"]
+        assert state["app"]["tick_time_s"] >= 300.0
+    finally:
+        rig.close()
