@@ -133,17 +133,26 @@ def main() -> int:
     if (why := skip_reason()):
         print(why)
         return 2
+    out = Path(args.out or tempfile.mkdtemp(prefix="pmon-adsb-route-"))
+    params = dict(AVOIDANCE) if args.avoidance == "on" else {}
+    if args.action is not None and params:
+        params["AVD_F_ACTION"] = args.action
+    res = fly(params, args.monitor, args.inject, args.speedup, out)
+    print(json.dumps(res, indent=1))
+    print(json.dumps(res))
+    return 0
+
+
+def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Path) -> dict:
+    """One flight: --monitor s of the hub route, then --inject s of the autopilot route (0:
+    none). Returns the figures (the JSON line)."""
     from groundstation import adsb as A
     from groundstation.estimates import check
     from onboard.app.pose import Frame
     from tests.gcs_fake_vehicle import free_udp_port
 
-    out = Path(args.out or tempfile.mkdtemp(prefix="pmon-adsb-route-"))
-    params = dict(AVOIDANCE) if args.avoidance == "on" else {}
-    if args.action is not None and params:
-        params["AVD_F_ACTION"] = args.action
-    cfg = MissionConfig(speedup=args.speedup, params=params, feed_duration_s=args.monitor + args.inject + 150)
-    res: dict = {"avoidance": args.avoidance, "params": params, "speedup": args.speedup}
+    cfg = MissionConfig(speedup=speedup, params=params, feed_duration_s=monitor_s + inject_s + 150)
+    res: dict = {"avoidance": "on" if params else "off", "params": params, "speedup": speedup}
     with Mission(cfg, out) as m:
         rec = Recorder(m.observer)
         frame = Frame(m.sc.origin.lat_deg, m.sc.origin.lon_deg, m.sc.origin.alt_m)
@@ -158,7 +167,7 @@ def main() -> int:
                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
         client = HubClient(port)
         tb0 = m.observer.t
-        m.sim_sleep(args.monitor)
+        m.sim_sleep(monitor_s)
         tb1 = m.observer.t
         client.close()
         hub.send_signal(signal.SIGINT)
@@ -178,13 +187,15 @@ def main() -> int:
                       "mode_changes": mode_changes(m, tb0, tb1), **rec.counts(tb0, tb1),
                       "hub_summary": {k: summary.get(k) for k in ("adsb_sent", "forwarded_to_vehicle",
                                                                    "estimates_refused", "echoed_targets_dropped")}}
+        if inject_s <= 0:
+            return res
         # ---- A: into the autopilot
         from onboard.app.link import Link, mavlink
         link = Link(m.sitl.url(2), source_system=255, source_component=190)
         mav = A.encoder(1)
         ta0 = m.observer.t
         sent = 0
-        while (m.observer.t or 0) - ta0 < args.inject:
+        while (m.observer.t or 0) - ta0 < inject_s:
             link.send(link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
             with m.observer.lock:
                 latest = {}
@@ -211,9 +222,7 @@ def main() -> int:
                                   "mode_changes": mode_changes(m, ta0, (m.observer.t or ta1)),
                                   **rec.counts(ta0, m.observer.t or ta1)}
         res["app_texts_after_inject"] = m.observer.app_texts(ta0)[-5:]
-    print(json.dumps(res, indent=1))
-    print(json.dumps(res))
-    return 0
+    return res
 
 
 if __name__ == "__main__":
