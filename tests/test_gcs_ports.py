@@ -1,5 +1,5 @@
 """When the ground station cannot have its link, the error names what holds it: another local
-process connected to a one-client TCP port (ArduPilot's serial-over-TCP, SITL's tcp:5763), or
+process connected to a one-client TCP port (ArduPilot's serial-over-TCP ports, SITL's SERIAL2), or
 bound to the UDP port it wants. Before, both said "no vehicle heard ... (no MAVLink at all)"."""
 from __future__ import annotations
 
@@ -82,6 +82,23 @@ def test_a_udp_port_bound_by_another_process_is_named():
     try:
         with pytest.raises(GcsError) as err:
             GcsLink(f"udpin:127.0.0.1:{port}", timeout=1.0)
+        assert "Address already in use" in str(err.value) and f"held by pid {other.pid} (" in str(err.value)
+    finally:
+        other.kill()
+
+
+@pytest.mark.timeout(30)
+def test_the_views_port_held_by_another_process_is_named():
+    from groundstation.view import serve
+    from onboard.config import load_scenario
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    other = holder("STREAM", f"s.bind(('127.0.0.1', {port})); s.listen(1)")
+    try:
+        with pytest.raises(GcsError) as err:
+            serve(None, load_scenario("paper"), port, 1.0, False, None)
         assert "Address already in use" in str(err.value) and f"held by pid {other.pid} (" in str(err.value)
     finally:
         other.kill()
