@@ -23,6 +23,20 @@ class HubConfig:
     view_port: int | None = None
 
 
+def check_url(url: str) -> None:
+    """ValueError unless ``url`` is udp://, tcp:// or tls:// HOST:PORT (pytak's COT_URL forms
+    the hub supports; udp+wo:// and the like as pytak reads them)."""
+    from urllib.parse import urlparse
+    u = urlparse(url)
+    base = u.scheme.split("+")[0].lower()
+    try:
+        port = u.port
+    except ValueError:
+        port = None
+    if base not in ("udp", "tcp", "tls") or not u.hostname or port is None:
+        raise ValueError(f"{url!r} is not udp://HOST:PORT, tcp://HOST:PORT or tls://HOST:PORT")
+
+
 def parse_udp(text: str) -> tuple[str, int]:
     """``udp:HOST:PORT`` or ``HOST:PORT`` -> (host, port); ValueError naming the problem."""
     body = text[4:] if text.startswith("udp:") else text
@@ -67,6 +81,11 @@ def config_from_args(args) -> HubConfig:
         raise ValueError(f"hub: --serve/--out: {exc}") from None
     if not served and not outs and not args.tak and args.view is None:
         raise ValueError("hub: nothing to serve: give --serve, --out, --tak or --view")
+    if args.tak:
+        try:
+            check_url(args.tak)
+        except ValueError as exc:
+            raise ValueError(f"hub: --tak: {exc}") from None
     if not (math.isfinite(args.lost_after) and 1.0 <= args.lost_after <= 255.0):
         raise ValueError(f"hub: --lost-after must be in [1, 255] s, got {args.lost_after:g}")
     if args.duration is not None and not args.duration > 0:

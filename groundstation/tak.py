@@ -36,6 +36,7 @@ from configparser import ConfigParser
 import pytak
 
 from groundstation.estimates import OutputEstimate
+from groundstation.hub_options import check_url
 
 TARGET_TYPE = "a-u-G"
 UAV_TYPE = "a-f-A-M-F-Q"
@@ -104,20 +105,6 @@ def uid(sysid: int, name: str) -> str:
 
 def to_bytes(ev: ET.Element) -> bytes:
     return pytak.serialize_cot(ev, xml_declaration=False) + b"\n"
-
-
-def check_url(url: str) -> None:
-    """ValueError unless ``url`` is udp://, tcp:// or tls:// HOST:PORT (pytak's COT_URL forms
-    the hub supports; udp+wo:// and the like as pytak reads them)."""
-    from urllib.parse import urlparse
-    u = urlparse(url)
-    base = u.scheme.split("+")[0].lower()
-    try:
-        port = u.port
-    except ValueError:
-        port = None
-    if base not in ("udp", "tcp", "tls") or not u.hostname or port is None:
-        raise ValueError(f"{url!r} is not udp://HOST:PORT, tcp://HOST:PORT or tls://HOST:PORT")
 
 
 def config(url: str, proto: int = 0, tls: dict | None = None, extra: dict | None = None):

@@ -254,3 +254,21 @@ def test_the_view_and_pmon_gcs_commands_share_the_hubs_link():
         assert state["app"]["tick_time_s"] >= 300.0
     finally:
         rig.close()
+
+
+def test_hub_usage_errors_are_one_line_exit_2_before_any_link(capsys):
+    from groundstation.cli import main
+    for argv, msg in ((["--serve", "udp:nohost"], "'udp:nohost' is not udp:HOST:PORT"),
+                      (["--out", "udp:h:99999"], "is not udp:HOST:PORT"),
+                      (["--serve", "none"], "nothing to serve"),
+                      (["--lost-after", "nan"], "--lost-after must be in [1, 255] s, got nan"),
+                      (["--tak", "bogus://x:1"], "--tak: 'bogus://x:1' is not udp://HOST:PORT"),
+                      (["--tak", "tcp://host"], "is not udp://HOST:PORT, tcp://HOST:PORT or tls://HOST:PORT"),
+                      (["--view", "70000"], "--view must be in 0..65535"),
+                      (["--duration", "0"], "--duration must be > 0")):
+        capsys.readouterr()
+        t0 = time.monotonic()
+        rc = main(["--connect", "udpin:127.0.0.1:1", "--timeout", "5", "hub", *argv])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and len(err.splitlines()) == 1 and msg in err, (argv, err)
+        assert time.monotonic() - t0 < 2.0  # refused before waiting for a vehicle
