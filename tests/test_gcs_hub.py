@@ -132,6 +132,10 @@ def test_clients_share_the_link_both_ways_and_echoed_targets_stop_at_the_hub(rig
     # a second client at the same time
     other = Client(rig.sport, sysid=253)
     try:
+        deadline = time.monotonic() + 5
+        while not other.got("HEARTBEAT") and time.monotonic() < deadline:  # the hub knows it now
+            rig.veh.heartbeat()
+            time.sleep(0.05)
         rig.tick(20.0)
         assert other.wait(lambda: len(markers(other.got("ADSB_VEHICLE"))) >= 4, 3)
         # a client reflecting our traffic back: it never reaches the autopilot
@@ -193,10 +197,14 @@ def hostile_variants(rng: np.random.Generator, n: int):
 def test_1000_hostile_estimates_make_no_invalid_output_and_are_all_counted(rig):
     rng = np.random.default_rng(31)
     hostile = hostile_variants(rng, 1000)
+    hub = rig.hub
+    t_hostile = time.monotonic()
     for k, (j, values, comp, sysid) in enumerate(hostile):
         rig.veh.target(j, values, comp=comp, sysid=sysid)
-        if k % 50 == 49:
-            time.sleep(0.01)  # loopback UDP: let the hub read (a flood faster than it reads is lost by the kernel, not by us)
+        if k % 50 == 49:  # in bursts of 50 the kernel's UDP buffer holds: every one reaches the hub
+            assert rig.client.wait(lambda: sum(hub.targets.refused.values()) == k + 1, 5), \
+                (k + 1, dict(hub.targets.refused))
+    hostile_s = time.monotonic() - t_hostile
     # a flood of valid-looking estimates (a broken app): at most 10 outputs a second per target
     t0 = time.monotonic()
     for k in range(200):
@@ -204,23 +212,27 @@ def test_1000_hostile_estimates_make_no_invalid_output_and_are_all_counted(rig):
     flood_s = time.monotonic() - t0
     # then a genuine tick: drawn at once, right where it is
     time.sleep(0.3)
+    flood_limited = hub.targets.rate_limited
+    flood_window_s = time.monotonic() - t0  # the hub read the flood within this
     sent = time.monotonic()
     rig.tick(500.0)
     assert rig.client.wait(lambda: any(m.callsign == "PMON-T4" and enu_error_m(m, 885.0 + 500, 676.0 - 500) <= 1
                                        for m in markers(rig.client.got("ADSB_VEHICLE"))), 3)
     latency = time.monotonic() - sent
     time.sleep(0.3)
-    hub = rig.hub
     refused = sum(hub.targets.refused.values())
-    print(f"1000 hostile: refused {refused} {dict(hub.targets.refused)}; flood of 200 in {flood_s:.3f} s: "
-          f"{hub.targets.rate_limited} rate-limited; genuine tick drawn {latency * 1e3:.0f} ms after it was sent")
+    flood_drawn = [m for m in markers(rig.client.got("ADSB_VEHICLE")) if enu_error_m(m, 50.0, 60.0) <= 1.0]
+    print(f"1000 hostile in {hostile_s:.2f} s: refused {refused} {dict(hub.targets.refused)}; flood of 200 in "
+          f"{flood_s:.3f} s: {len(flood_drawn)} drawn, {flood_limited} rate-limited; genuine tick drawn "
+          f"{latency * 1e3:.0f} ms after it was sent")
     assert refused == 1000, dict(hub.targets.refused)
     for m in rig.client.got("ADSB_VEHICLE"):  # every output valid and one of the genuine estimates
         assert abs(m.lat) <= 90e7 and abs(m.lon) <= 180e7
         e, n, _ = FRAME.enu_from_geodetic(m.lat * 1e-7, m.lon * 1e-7, m.altitude * 1e-3)
         assert math.hypot(e - 50.0, n - 60.0) <= 1.0 or min(
             math.hypot(e - (x + 500), n - (y - 500)) for x, y in TARGETS) <= 1.0
-    assert hub.targets.rate_limited >= 150  # 200 in well under a second: at most ~10 drawn
+    # at most 10 a second per target, whatever arrives (the kernel may drop some of a flood this fast)
+    assert 1 <= len(flood_drawn) <= flood_window_s / 0.1 + 1 and len(flood_drawn) + flood_limited <= 200
     assert latency < 1.0
 
 
