@@ -20,6 +20,9 @@ COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
   watch [--count N] [--duration S] [--png FILE] [--scenario NAME]   live table of every target
   view [--port N] [--open] [--duration S] [--scenario NAME]   the mission live in a browser
+  hub [--serve udp:H:P] [--out udp:H:P] [--tak URL] [--view PORT] ...   one vehicle link shared by
+                              ground stations (QGroundControl, Mission Planner, MAVProxy, pmon gcs),
+                              the targets as their traffic (ADSB_VEHICLE) and as CoT to TAK
   arm [--wait]                GUIDED, then arm (--wait: until the autopilot is ready and arms)
   takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
                               bounds the time without climbing)
@@ -72,6 +75,8 @@ def parser() -> argparse.ArgumentParser:
     vw.add_argument("--duration", type=float, help="stop after S seconds (default: until Ctrl-C)")
     vw.add_argument("--scenario", default="paper", help="the mission's scenario: area, obstacles, goals, "
                     "origin (name or YAML file; default paper)")
+    from groundstation.hub_options import add_arguments as hub_arguments  # the hub's options live with it
+    hub_arguments(add("hub", "share the vehicle link; targets to QGC/MP/MAVProxy (ADSB) and TAK (CoT)"))
     a = add("arm", "GUIDED, then arm the motors")
     a.add_argument("--wait", action="store_true",
                    help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
@@ -154,6 +159,10 @@ def run(args, console) -> tuple[str, dict]:
             key = load_key(args.signing_key)
         except KeyFileError as exc:
             raise UsageError(f"--signing-key {exc}")
+    if args.cmd == "hub":
+        from groundstation.hub import run_cli
+        o = run_cli(args, key, sc, console)
+        return o.text, o.data
     with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key) as gl:
         gl.connect()
         cmd = args.cmd

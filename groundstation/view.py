@@ -290,7 +290,10 @@ def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, con
     try:
         srv = ViewServer(sc, port).start()
     except OSError as exc:
-        raise GcsError(f"view: cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}", 1) from exc
+        from groundstation.ports import bound_by
+        who = bound_by("tcp", port) if port else None
+        raise GcsError(f"view: cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}"
+                       + (f" (held by {who})" if who else ""), 1) from exc
     state = ViewState(gl, sc, srv.bus.publish)
     try:
         if as_json:

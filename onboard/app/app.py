@@ -48,6 +48,7 @@ from onboard.app.pose import FixedOrigin, Frame, PoseHistory
 from onboard.app.schedule import COAST_AFTER_S, TickRecord
 from onboard.app.setpoints import PlannedSegment, enu_to_ned_vector
 from onboard.app.setpoints import message as setpoint_message
+from onboard.app.statustext import send_statustext
 from onboard.app.vehicle import Vehicle
 from onboard.app.watchdog import Watchdog
 from onboard.app.worker import TickWorker, _malloc_trim
@@ -269,7 +270,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self.events.append((self.clock.now(), full))
         log.info(full)
         if self.vehicle.sysid is not None:
-            self.link.send(self.link.mav.statustext_encode(severity, full.encode()[:50]))
+            send_statustext(self.link, severity, full)  # chunked past 50 characters
 
     def _heartbeat(self) -> None:
         self.link.send(self.link.mav.heartbeat_encode(

@@ -7,6 +7,7 @@ from typing import Callable
 
 from onboard.app.link import mavlink
 from onboard.app.schedule import COAST_AFTER_S
+from onboard.app.statustext import send_statustext
 
 log = logging.getLogger("pmon.app")
 
@@ -21,7 +22,7 @@ class Watchdog:
         self.events.append((None, full))
         log.error(full)
         if self.vehicle.sysid is not None:
-            self.link.send(self.link.mav.statustext_encode(mavlink.MAV_SEVERITY_CRITICAL, full.encode()[:50]))
+            send_statustext(self.link, mavlink.MAV_SEVERITY_CRITICAL, full)
 
     def _watchdog_loop(self) -> None:
         """Reports, once per episode: an io loop not iterating; a tick schedule that does not
