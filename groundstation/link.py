@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from groundstation import protocol as P
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 
 RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)
 GRACE_S = 0.3  # after a refusal, how long to wait for the STATUSTEXT that says why

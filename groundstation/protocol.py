@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from onboard.app.link import mavlink  # sets MAVLINK20 before pymavlink loads
+from onboard.app.mavlink_connection import mavlink  # sets MAVLINK20 before pymavlink loads
 
 GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190

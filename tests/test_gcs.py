@@ -80,7 +80,7 @@ def test_plot_of_a_missing_or_foreign_file_exits_1(capsys, tmp_path):
 
 def test_wire_constants_match_the_onboard_app():
     from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, State
-    from onboard.app.link import COMP_ID
+    from onboard.app.mavlink_connection import COMP_ID
 
     assert P.APP_COMPID == COMP_ID and P.APP_COMMAND == MAV_CMD_PMON
     assert P.ACTIONS == {a.name.lower(): int(a) for a in Action}

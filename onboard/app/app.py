@@ -37,18 +37,18 @@ from onboard.app import datagram as dg
 from onboard.app import launch
 from onboard.app.autopilot_in import STALE_TELEMETRY_S, AutopilotIn
 from onboard.app.clock import AutopilotClock
-from onboard.app.commands import Commands
+from onboard.app.state_machine import Commands
 from onboard.app.contain import Contained
 from onboard.app.contract import STAT_FIELDS, STATUS, TGT_FIELDS, Action, Reason, State
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
 from onboard.app.fence import Fence, outgoing_violation
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.params import SPECS, ParamTable, defaults_from_scenario
 from onboard.app.pose import FixedOrigin, Frame, PoseHistory
 from onboard.app.schedule import COAST_AFTER_S, TickRecord
-from onboard.app.setpoints import PlannedSegment, enu_to_ned_vector
-from onboard.app.setpoints import message as setpoint_message
-from onboard.app.vehicle import Vehicle
+from onboard.app.setpoint_stream import PlannedSegment, enu_to_ned_vector
+from onboard.app.setpoint_stream import message as setpoint_message
+from onboard.app.vehicle_state import Vehicle
 from onboard.app.watchdog import Watchdog
 from onboard.app.worker import TickWorker, _malloc_trim
 from onboard.core.guidance import GuidanceWorkspace
@@ -139,7 +139,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
         self.last_tick_t: float | None = None
         self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
         self.setpoint: np.ndarray | None = None  # ENU, m, checked safe: the planned next point
-        self.segment: PlannedSegment | None = None  # vehicle motion: the plan to it (setpoints.py)
+        self.segment: PlannedSegment | None = None  # vehicle motion: the plan to it (setpoint_stream.py)
         self._next_sp_t = -math.inf
         self._guided_deadline: float | None = None  # waiting for GUIDED after start/resume
         self.counters: dict[str, int] = {}
@@ -497,7 +497,7 @@ class OnboardApp(AutopilotIn, Commands, TickWorker, Watchdog):
     def _send_setpoint(self, enu: np.ndarray, now: float, centre=None) -> bool:
         """Send the setpoint in LOCAL_NED at the fixed origin: with a planned segment (vehicle
         motion) the plan's position, velocity and acceleration at ``now``, else the point
-        ``enu`` alone (onboard/app/setpoints.py); both checked when planned. The message itself
+        ``enu`` alone (onboard/app/setpoint_stream.py); both checked when planned. The message itself
         is checked against the fence before it goes (fence.outgoing_violation: its position
         read back to ENU). A message that fails is not sent: counted, said, and the setpoint
         dropped (the stream stops; the vehicle holds its last good one). ``centre``: where the

@@ -7,11 +7,11 @@ from __future__ import annotations
 import logging
 import math
 
-from onboard.app.autopilot_commands import heading_from_global_position_int, prearm_ok
+from onboard.app.autopilot_profiles import heading_from_global_position_int, prearm_ok
 from onboard.app.contract import WARN_SPEED, Reason, State
-from onboard.app.link import COMP_ID, mavlink
+from onboard.app.mavlink_connection import COMP_ID, mavlink
 from onboard.app.pose import origin_of, valid_global_position_int
-from onboard.app.vehicle import SPEED_ACCEL_PARAMS
+from onboard.app.vehicle_state import SPEED_ACCEL_PARAMS
 from onboard.policy import vehicle_motion
 
 log = logging.getLogger("pmon.app")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from enum import IntEnum
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 # MAVLink command sent to component 191; param1 = action
 MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010

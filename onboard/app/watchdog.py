@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Callable
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 from onboard.app.schedule import COAST_AFTER_S
 
 log = logging.getLogger("pmon.app")

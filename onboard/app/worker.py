@@ -13,9 +13,9 @@ import numpy as np
 
 from onboard.app.contract import State
 from onboard.app.fence import Fence, violation
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 from onboard.app.schedule import PLAN_RESERVE_S, TickRecord
-from onboard.app.setpoints import PlannedSegment
+from onboard.app.setpoint_stream import PlannedSegment
 from onboard.core import tracking
 from onboard.core.monitor import MonitorSetup, Scan, tick
 from onboard.core.planning import CandidateGrid

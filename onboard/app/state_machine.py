@@ -7,10 +7,10 @@ import logging
 import math
 
 from onboard.app import launch
-from onboard.app.autopilot_commands import takeoff_params
+from onboard.app.autopilot_profiles import takeoff_params
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
-from onboard.app.link import mavlink
-from onboard.app.vehicle import ARDUCOPTER_GUIDED, PX4_MAIN_MODE_OFFBOARD
+from onboard.app.mavlink_connection import mavlink
+from onboard.app.vehicle_state import ARDUCOPTER_GUIDED, PX4_MAIN_MODE_OFFBOARD
 
 log = logging.getLogger("pmon.app")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 ARDUCOPTER_GUIDED = 4
 PX4_MAIN_MODE_OFFBOARD = 6

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 
 def takeoff_params(autopilot: int, lat_deg: float, lon_deg: float, heading_deg: float | None,
