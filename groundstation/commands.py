@@ -210,7 +210,8 @@ def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
     (onboard/app/autopilot_profiles.py). ``wait``: until at ``alt`` and reported in the air; a
     climb takes as long as it takes, so --timeout bounds the time without progress (less
     than CLIMB_PROGRESS_M gained), not the whole climb."""
-    from onboard.app.autopilot_profiles import heading_from_global_position_int, takeoff_params
+    from onboard.app.autopilot_profiles import takeoff_params
+    from onboard.app.pose import heading_from_global_position_int
 
     v = gl.v
     gl.stream(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 4.0)
