@@ -38,7 +38,8 @@ POS_VEL_ACCEL = 3072  # type_mask: yaw and yaw rate ignored (ArduCopter's PosVel
 @dataclass(frozen=True, eq=False)
 class PlannedSegment:
     """The plan between two ticks: from ``p0`` (ENU m) with velocity ``v0`` at autopilot time
-    ``t0`` to the next planned point with ``v1`` (planar ENU m/s) one tick (``tick_s``) later."""
+    ``t0`` to the next planned point with ``v1`` (planar ENU m/s) one tick (``tick_s``) later.
+    The plan is planar: its altitude is ``p0[2]``, the planned point's (h), held throughout."""
 
     t0: float
     p0: np.ndarray  # (3,)

@@ -271,9 +271,12 @@ def _malloc_trim():
 
 def _segment(setup: MonitorSetup, res, t0: float, centre, velocity) -> PlannedSegment | None:
     """The planned segment to the next point, for the vehicle motion (the jump model has none:
-    its point is sent alone)."""
+    its point is sent alone). It starts where the vehicle is, in the plane, and at the planned
+    point's altitude (h): the planner flies at h, so the setpoints hold h, and a vehicle off it
+    (h just changed, a pilot flew it lower) is flown back to it."""
     p = res.planning
     if setup.motion.kind != "vehicle" or p is None or p.index is None or p.velocities is None:
         return None
-    return PlannedSegment(t0, np.asarray(centre, float), np.asarray(velocity, float)[:2],
+    start = np.array([centre[0], centre[1], res.next_position[2]], float)
+    return PlannedSegment(t0, start, np.asarray(velocity, float)[:2],
                           np.asarray(p.velocities[p.index], float)[:2], setup.model.dt_s)
