@@ -12,7 +12,7 @@ from typing import Callable, Protocol
 
 from onboard.app.autopilot_profiles import profile_for
 from onboard.app.counters import Counters
-from onboard.app.mavlink_connection import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink, param_name
 from onboard.app.pose import (
     FixedOrigin,
     Frame,
@@ -274,10 +274,3 @@ class AutopilotSide:
             if jump > 0 and now is not None:
                 self.say(f"autopilot clock jumped {jump:+.0f} s: ticks restart", mavlink.MAV_SEVERITY_CRITICAL)
             self.events.on_clock_jump(jump, now)
-
-
-def param_name(raw) -> str:
-    """A PARAM_* message's param_id as text (pymavlink gives str or bytes, NUL-padded)."""
-    if isinstance(raw, bytes):
-        raw = raw.decode("ascii", "replace")
-    return str(raw).split("\x00", 1)[0]

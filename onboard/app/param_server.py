@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from onboard.app.autopilot_side import param_name
-from onboard.app.mavlink_connection import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink, param_name
 from onboard.app.params import ParamTable
 
 
