@@ -56,7 +56,7 @@ def _first_tick_at(m: Mission, h: float, timeout: float = 60.0) -> float:
 def flight(tmp_path_factory):
     out = tmp_path_factory.mktemp("ardupilot_altitude")
     rec: dict = {}
-    with Mission(MissionConfig(speedup=3.0, feed_duration_s=300, seed=2), out) as m:
+    with Mission(MissionConfig(speedup=2.0, feed_duration_s=300, seed=2), out) as m:
         rec["m"] = m
         rec["launch"] = m.gcs("launch")
         assert m.wait(lambda o: o.app_state == "monitoring", 150 + 60 / m.cfg.speedup, "monitoring"), \
