@@ -85,7 +85,7 @@ class HubClient:
     PMON_TGT (forwarded by the hub) each was made from."""
 
     def __init__(self, port: int):
-        from onboard.app.link import mavlink
+        from onboard.app.mavlink_connection import mavlink
         from pymavlink import mavutil
         self.mavlink = mavlink
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=240,
@@ -190,7 +190,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
         if inject_s <= 0:
             return res
         # ---- A: into the autopilot
-        from onboard.app.link import Link, mavlink
+        from onboard.app.mavlink_connection import Link, mavlink
         link = Link(m.sitl.url(2), source_system=255, source_component=190)
         mav = A.encoder(1)
         ta0 = m.observer.t

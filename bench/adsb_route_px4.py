@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from onboard.app.link import mavlink  # noqa: E402
+from onboard.app.mavlink_connection import mavlink  # noqa: E402
 
 RUN_SIH = ROOT.parent.parent / "shared" / "px4" / "run-sih.sh" if not (ROOT.parent / "shared").exists() \
     else ROOT.parent / "shared" / "px4" / "run-sih.sh"

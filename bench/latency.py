@@ -86,7 +86,7 @@ def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = Non
                 time.sleep(0.5)
             # the last scan's tick: wait until nothing is pending or running (bounded)
             deadline = time.monotonic() + 10
-            while (app.scans.pending or app._worker_busy) and time.monotonic() < deadline:
+            while (app.scans.pending or app.worker.busy) and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(1.5 / speedup)
             if after is not None:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 
 from groundstation.estimates import MAX_TARGETS, OutputEstimate
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 COMPONENT = mavlink.MAV_COMP_ID_ADSB  # 156
 MARKER_BASE = 0x002000

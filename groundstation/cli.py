@@ -185,10 +185,10 @@ def run(args, console) -> tuple[str, dict]:
         elif cmd == "mode":
             o = C.set_mode(gl, f"mode {args.name.upper()}", P.mode_number(args.name))
         elif cmd == "rtl":
-            from onboard.app.link import mavlink
+            from onboard.app.mavlink_connection import mavlink
             o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
         elif cmd == "land":
-            from onboard.app.link import mavlink
+            from onboard.app.mavlink_connection import mavlink
             o = C.set_mode(gl, "land", P.LAND, mavlink.MAV_CMD_NAV_LAND)
         elif cmd == "params":
             o = {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),

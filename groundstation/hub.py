@@ -33,7 +33,7 @@ from groundstation.estimates import OutputEstimate, check
 from groundstation.hub_options import HubConfig, config_from_args
 from groundstation.link import GcsError, GcsLink
 from groundstation.ports import bound_by
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 PEER_TIMEOUT_S = 30.0  # a --serve client not heard for this long gets nothing more
 MIN_INTERVAL_S = 0.1  # per target: at most 10 outputs a second whatever arrives (a flood)
@@ -124,7 +124,7 @@ class HubLink(GcsLink):
 
 
 def write_raw(link, buf: bytes) -> bool:
-    """A client's packet to the vehicle as it came (onboard.app.link.Link encodes only its own
+    """A client's packet to the vehicle as it came (onboard.app.mavlink_connection.Link encodes only its own
     messages: this takes the same lock its send and receive take)."""
     with link._lock:
         conn = link.conn

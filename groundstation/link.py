@@ -21,7 +21,7 @@ from typing import Callable
 
 from groundstation import protocol as P
 from groundstation.ports import in_use_hint, silent_link_hint
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.statustext import Reassembler
 
 RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)

@@ -40,7 +40,7 @@ class LogError(Exception):
 
 
 def load_tlog(path: str | Path) -> Flight:
-    from onboard.app.link import mavlink  # noqa: F401  (MAVLink 2 before mavutil)
+    from onboard.app.mavlink_connection import mavlink  # noqa: F401  (MAVLink 2 before mavutil)
     from pymavlink import mavutil
 
     conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")

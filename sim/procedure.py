@@ -37,7 +37,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from sim.ardupilot import ArduPilotSitl, find_binary, home_of

@@ -9,7 +9,7 @@ import socket
 import threading
 import time
 
-from onboard.app.link import mavlink  # sets MAVLINK20 before pymavlink loads
+from onboard.app.mavlink_connection import mavlink  # sets MAVLINK20 before pymavlink loads
 from pymavlink import mavutil
 
 

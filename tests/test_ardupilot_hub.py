@@ -20,7 +20,7 @@ LONG = "PMON: arming refused: PreArm: Need Position Estimate (EKF not ready, GPS
 @pytest.mark.timeout(120)
 def test_statustext_chunks_pass_arducopters_routing_whole():
     from groundstation.link import GcsLink
-    from onboard.app.link import Link
+    from onboard.app.mavlink_connection import Link
     from onboard.app.statustext import send_statustext
 
     with ArduPilotSitl(find_binary(), (35.145, 33.411, 160.0), speedup=1.0) as sitl:

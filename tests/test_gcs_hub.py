@@ -16,7 +16,7 @@ from groundstation import adsb as A
 from groundstation.estimates import radius_1sigma_m
 from groundstation.hub import Hub, HubLink
 from groundstation.hub_options import HubConfig
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 from onboard.app.pose import Frame
 from onboard.config import load_scenario
 

@@ -13,7 +13,7 @@ import pytest
 
 from tests.gcs_fake_vehicle import free_udp_port  # MAVLINK20 first
 from groundstation.link import GcsError, GcsLink
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import mavlink
 
 HOLDER = """import socket, sys, time
 s = socket.socket(socket.AF_INET, socket.SOCK_{kind})
