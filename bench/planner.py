@@ -36,7 +36,7 @@ from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.planning import UavMotion  # noqa: E402
 from onboard.policy import POLICIES, vehicle_motion  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
-from sim.vehicle import VehicleLimits  # noqa: E402
+from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
 

@@ -1,4 +1,4 @@
-"""How the real ArduCopter SITL follows GUIDED setpoints, and how sim/vehicle.py does on the same ones.
+"""How the real ArduCopter SITL follows GUIDED setpoints, and how sim/multicopter.py does on the same ones.
 
     python bench/sitl_response.py [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
                                   [--speedup 4] [--param NAME=VALUE ...] [--save FILE.json.gz]
@@ -451,11 +451,11 @@ def guided_setpoint(mask: int, pos, vel, acc):
 
 
 def replay(trace: dict, limits=None, rate_hz: float = 400.0) -> np.ndarray:
-    """The model (sim.vehicle, sim.guided) given the trace's setpoints at their firmware times,
+    """The model (sim.multicopter, sim.guided) given the trace's setpoints at their firmware times,
     from the trace's first sample (hovering at its start, GUIDED position-only): its horizontal
     positions at the trace's sample times, (N, 2)."""
     from sim.guided import fly_timeline
-    from sim.vehicle import VehicleLimits, VehicleState
+    from sim.multicopter import VehicleLimits, VehicleState
 
     limits = limits or VehicleLimits()
     t = np.asarray(trace["t"], float)
@@ -488,10 +488,10 @@ def model_errors(data: dict, rate_hz: float = 400.0, **airframe) -> dict:
 
 def fit_airframe(data: dict, rate_hz: float = 400.0, evaluations: int = 60) -> dict:
     """lean_tc and drag minimising the RMS over the in-envelope traces of their RMS errors
-    (Nelder-Mead from sim.vehicle's defaults)."""
+    (Nelder-Mead from sim.multicopter's defaults)."""
     from scipy.optimize import minimize
 
-    from sim.vehicle import VehicleLimits
+    from sim.multicopter import VehicleLimits
 
     def cost(x):
         if x[0] < 0.0 or x[1] <= 0.0:
@@ -511,8 +511,8 @@ def load(path: str) -> dict:
 
 
 def limits_for(params: dict, **airframe):
-    """sim.vehicle's limits for the parameters a flight read back (and airframe terms, if given)."""
-    from sim.vehicle import limits_from_params
+    """sim.multicopter's limits for the parameters a flight read back (and airframe terms, if given)."""
+    from sim.multicopter import limits_from_params
 
     return replace(limits_from_params(params), **airframe)
 
@@ -618,7 +618,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", help="write the traces here (gzipped JSON)")
     ap.add_argument("--replay", metavar="FILE", help="fly nothing: the model's RMS error (m) on each "
                     "trace of a saved flight, and its distance at the next tick beside the SITL's")
-    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.vehicle's lean_tc and drag to "
+    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.multicopter's lean_tc and drag to "
                     "a saved flight's in-envelope traces (a few minutes)")
     args = ap.parse_args(argv)
     if args.replay or args.fit:

@@ -120,9 +120,9 @@ class UsageError(Exception):
 
 
 def run(args, console) -> tuple[str, dict]:
-    from groundstation import commands as C
+    from groundstation import gcs_commands as C
     from groundstation import protocol as P
-    from groundstation.link import GcsLink
+    from groundstation.gcs_link import GcsLink
 
     sc = _scenario(args.scenario) if getattr(args, "scenario", None) else None
     if args.cmd in ("plot", "export"):
@@ -202,7 +202,7 @@ def _scenario(name):
 def _record(gl, duration, path):
     import time
 
-    from groundstation.commands import Outcome
+    from groundstation.gcs_commands import Outcome
     t0 = time.monotonic()
     try:
         while duration is None or time.monotonic() - t0 < duration:
@@ -215,12 +215,12 @@ def _record(gl, duration, path):
 
 
 def _fail(msg, code):
-    from groundstation.link import GcsError
+    from groundstation.gcs_link import GcsError
     return GcsError(msg, code)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from groundstation.link import GcsError
+    from groundstation.gcs_link import GcsError
 
     argv = list(sys.argv[1:] if argv is None else argv)
     try:

@@ -22,9 +22,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
 from groundstation import protocol as P
-from groundstation.commands import Outcome
+from groundstation.gcs_commands import Outcome
 from groundstation.export import lonlat
-from groundstation.link import GcsError, GcsLink
+from groundstation.gcs_link import GcsError, GcsLink
 from groundstation.scene import (BLOCKING_COLOUR, GOAL_COLOUR, OVERFLOWN_COLOUR, UAV_COLOUR, area_outline,
                                  blocks_uav, footprint, target_colour)
 

@@ -7,8 +7,8 @@ import math
 import time
 
 from groundstation import protocol as P
-from groundstation.commands import Outcome, _enu
-from groundstation.link import TIMEOUT, GcsError, GcsLink
+from groundstation.gcs_commands import Outcome, _enu
+from groundstation.gcs_link import TIMEOUT, GcsError, GcsLink
 from groundstation.plot import Estimate, Flight, draw
 
 

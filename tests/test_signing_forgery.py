@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from test_failsafes import _wait
 
-from groundstation.link import GcsLink
+from groundstation.gcs_link import GcsLink
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
