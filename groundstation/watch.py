@@ -8,7 +8,8 @@ import time
 
 from groundstation import protocol as P
 from groundstation.gcs_commands import Outcome, _enu
-from groundstation.gcs_link import TIMEOUT, GcsError, GcsLink
+from groundstation.errors import TIMEOUT, GcsError
+from groundstation.gcs_link import GcsLink
 from groundstation.plot import Estimate, Flight, draw
 
 
