@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT))
 from sim.autopilot import MockAutopilot  # noqa: E402  (sets MAVLINK20 first)
 from onboard.app.app import AppConfig, OnboardApp  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
-from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
-from onboard.demo import DEMO_READY_S  # noqa: E402
+from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
+from sim.demo import DEMO_READY_S  # noqa: E402
 from sim.autopilot import BootTimeline  # noqa: E402
 from sim.tick_account import TickAccount, scan_times  # noqa: E402
 

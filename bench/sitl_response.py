@@ -28,7 +28,7 @@ ended (its coordinates are relative to that point, local NED, metres):
   app sends, computed by the same function (onboard.core.setpoint.plan_setpoint).
 
 Limits: ``stock`` is what the binary boots with (copter.parm over the firmware's defaults: read
-back and printed), ``demo`` is onboard/demo.py's DEMO_VEHICLE_PARAMS. The copter's
+back and printed), ``demo`` is sim/multicopter.py's DEMO_VEHICLE_PARAMS. The copter's
 LOCAL_POSITION_NED is recorded at ~40 Hz (50 Hz asked) on the firmware's clock (time_boot_ms);
 a setpoint's time is the firmware time of the last message received when it was sent.
 
@@ -63,7 +63,7 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from onboard.core.setpoint import plan_setpoint  # noqa: E402
-from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
+from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
 from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
 
 HOME = (35.145, 33.411, 160.0)

@@ -61,7 +61,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="pmon gcs", description="Ground station: operate the Passive Monitor "
                                  "mission over MAVLink.", epilog=COMMANDS,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    from onboard.argcheck import Version
+    ap.add_argument("--version", action=Version)
     _connection(ap, suppress=False)
     sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
@@ -219,14 +220,6 @@ def _record(gl, duration, path):
     dt = time.monotonic() - t0
     return Outcome(f"record: {gl.received} messages in {dt:.1f} s to {path}",
                    {"file": path, "messages": gl.received, "seconds": round(dt, 2)})
-
-
-def _version() -> str:
-    from importlib import metadata
-    try:
-        return metadata.version("passive-monitor")
-    except metadata.PackageNotFoundError:
-        return "(not installed)"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -39,7 +39,7 @@ import numpy as np
 
 from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 from sim.ardupilot import ArduPilotSitl, find_binary, home_of
 from sim.processes import MockProcess, Proc
 from sim.tick_account import TickAccount, scan_times
@@ -435,8 +435,8 @@ class Mission:
                 "max_xy_m": enu[:, :2].max(axis=0).round(1).tolist()}
 
     def estimate_errors(self) -> dict:
-        """The app's estimates against the feed's truth at the same scan times (onboard.demo)."""
-        from onboard.demo import score
+        """The app's estimates against the feed's truth at the same scan times (sim.demo)."""
+        from sim.demo import score
         return score(self.out / "run.jsonl", self.out / "truth.jsonl", self.sc)
 
     def takeover_reactions(self) -> list[float]:

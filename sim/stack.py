@@ -27,7 +27,7 @@ from onboard.config import load_scenario
 from onboard.policy import DEFAULT as DEFAULT_POLICY
 from onboard.policy import POLICIES
 from sim.ardupilot import home_of
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 from sim.feed import LiveFeed, LiveFeedConfig
 
 

@@ -32,7 +32,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 import json
 import subprocess
 import sys

@@ -23,13 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 from sim.processes import MockProcess, Proc
 
-# The mock vehicle's limits for the demo: ArduCopter parameters a fast multicopter is set up
-# with (20 m/s, 5 m/s^2, jerk 20 m/s^3, climb 5 m/s); steps of up to N_r * Delta_r = 20 m per
-# tick need them. See docs/SITL.md.
-DEMO_VEHICLE_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20,
-                       "WPNAV_SPEED_UP": 500}
 # autopilot s until the demo's mock can arm: it boots as ArduCopter does (no fix, no origin,
 # arming refused until then) but in 5 s rather than ArduCopter SITL's ~43 s
 DEMO_READY_S = 5.0
