@@ -1,12 +1,12 @@
 """``pmon demo``: the whole system on loopback, as separate processes, paper scenario, accelerated.
 
-    mock autopilot  (python -m sim.autopilot, 2 TCP ports picked by the OS, home = scenario origin)
+    mock autopilot  (python -m sim.autopilot, 2 TCP ports picked by the OS, home = the UAV's start)
     onboard app     (pmon run --auto-launch: GUIDED, arm, take off, monitor)
     DF feed         (pmon feed live: truth world from arming, DF scans, truth JSONL)
 
-Separate processes because that is how it flies (the app knows the autopilot only through
-MAVLink, the feed only through its own MAVLink link and UDP) and because two busy Python
-loops (core tick and truth step) then run on two cores instead of sharing one GIL.
+stood up by sim/rig.py. Separate processes because that is how it flies (the app knows the
+autopilot only through MAVLink, the feed only through its own MAVLink link and UDP) and because
+two busy Python loops (core tick and truth step) then run on two cores instead of sharing one GIL.
 
 The demo waits for the feed's last scan, stops everything (also on Ctrl-C or an error), then
 scores the run log against the truth: a per-target error table and a PNG of the flight.
@@ -17,14 +17,11 @@ import argparse
 import json
 import math
 import signal
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from sim.multicopter import DEMO_VEHICLE_PARAMS
-from sim.processes import MockProcess, Proc
 
 # autopilot s until the demo's mock can arm: it boots as ArduCopter does (no fix, no origin,
 # arming refused until then) but in 5 s rather than ArduCopter SITL's ~43 s
@@ -80,12 +77,43 @@ def choose_speedup(tick_s: float) -> float:
     return float(min(8.0, max(1.0, math.floor(0.15 / max(tick_s, 1e-3) * 2) / 2)))
 
 
+def _speedup(args, sc, console) -> float | None:
+    """The autopilot's speedup: measured ('auto') or given; None (said why) when out of range."""
+    from onboard.config import with_overrides
+    from onboard.policy import POLICIES
+
+    if args.speedup == "auto":
+        tick_s = measure_tick_s(with_overrides(sc, POLICIES[args.policy]))  # the tick the app will run
+        speedup = choose_speedup(tick_s)
+        console.print(f"core tick measured {tick_s * 1e3:.0f} ms -> speedup {speedup:g}x")
+        return speedup
+    try:
+        speedup = float(args.speedup)
+    except ValueError:
+        speedup = float("nan")
+    if not 0.1 <= speedup <= 50:
+        console.print(f"pmon demo: --speedup must be 'auto' or a number in [0.1, 50], got {args.speedup!r}")
+        return None
+    return speedup
+
+
+def _refusal(args, duration: int) -> str | None:
+    if duration < 5:
+        return "--duration must be >= 5 s"
+    if args.autopilot == "ardupilot":
+        from sim.ardupilot import skip_reason
+        if (why := skip_reason()):
+            return f"--autopilot ardupilot: {why}"
+        if args.gcs:
+            return "--gcs streams from the mock; with ArduPilot connect to its SERIAL2 (the URL printed at start)"
+    return None
+
+
 def run(args) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from onboard.config import load_scenario, with_overrides
-    from onboard.policy import POLICIES
+    from onboard.config import load_scenario
+    from sim.rig import APP_PORT, FEED_PORT, GCS_PORT, Rig, RigConfig
 
     console = Console()
     wall0 = time.monotonic()
@@ -95,99 +123,33 @@ def run(args) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     sc = load_scenario(args.scenario)
     duration = int(round(args.duration if args.duration is not None else sc.mission.duration_s))
-    if duration < 5:
-        console.print("pmon demo: --duration must be >= 5 s")
+    if (why := _refusal(args, duration)):
+        console.print(f"pmon demo: {why}")
         return 2
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    if args.autopilot == "ardupilot":
-        from sim.ardupilot import skip_reason
-        if (why := skip_reason()):
-            console.print(f"pmon demo: --autopilot ardupilot: {why}")
-            return 2
-        if args.gcs:
-            console.print("pmon demo: --gcs streams from the mock; with ArduPilot connect to its SERIAL2 "
-                          "(the URL printed at start)")
-            return 2
-    if args.speedup == "auto":
-        tick_s = measure_tick_s(with_overrides(sc, POLICIES[args.policy]))  # the tick the app will run
-        speedup = choose_speedup(tick_s)
-        console.print(f"core tick measured {tick_s * 1e3:.0f} ms -> speedup {speedup:g}x")
-    else:
-        try:
-            speedup = float(args.speedup)
-        except ValueError:
-            speedup = float("nan")
-        if not 0.1 <= speedup <= 50:
-            console.print(f"pmon demo: --speedup must be 'auto' or a number in [0.1, 50], got {args.speedup!r}")
-            return 2
-    from sim.ardupilot import home_of
-
-    home = home_of(sc)  # the copter stands at the scenario's UAV start
-    py = sys.executable
-    procs: list[Proc] = []
-    sitl = None
+    if (speedup := _speedup(args, sc, console)) is None:
+        return 2
+    mock = args.autopilot == "mock"
+    # the demo's vehicle; the mock boots in DEMO_READY_S, ArduPilot's SITL as it does
+    rig = Rig(RigConfig(scenario=args.scenario, policy=args.policy, seed=args.seed, feed_seed=args.seed,
+                        autopilot=args.autopilot, speedup=speedup, ready_s=DEMO_READY_S if mock else None,
+                        ports=2 if mock else 3, gcs_udp_out=args.gcs, auto_launch=True,
+                        feed_duration_s=duration).records_in(out))
     try:
-        if args.autopilot == "ardupilot":
-            from sim.ardupilot import ArduPilotSitl, find_binary
-            sitl = ArduPilotSitl(find_binary(), home, speedup, dict(DEMO_VEHICLE_PARAMS),
-                                 log_path=out / "autopilot.log").start()
-            port_app, port_feed = sitl.port(0), sitl.port(1)
-            console.print(f"ArduCopter SITL -I {sitl.instance}; a ground station: {sitl.url(2)} "
-                          f"(e.g. pmon gcs --connect {sitl.url(2)} view)")
-        else:
-            sitl = MockProcess(home, speedup, DEMO_VEHICLE_PARAMS, 2, out / "autopilot.log", args.seed,
-                               ready_s=DEMO_READY_S, udp_out=args.gcs).start()
-            port_app, port_feed = sitl.port(0), sitl.port(1)
-        app = Proc("app", [py, "-m", "onboard.cli", "run", "--mavlink", f"tcp:127.0.0.1:{port_app}",
-                           "--df", "127.0.0.1:0", "--auto-launch", "--scenario", args.scenario,
-                           "--runlog", str(out / "run.jsonl"), "--tlog", str(out / "app.tlog"),
-                           "--seed", str(args.seed), "--policy", args.policy], out / "app.log")
-        procs.append(app)
-        df_port = app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1)
-        feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{port_feed}",
-                             "--to", f"127.0.0.1:{df_port}", "--scenario", args.scenario,
-                             "--truth", str(out / "truth.jsonl"), "--seed", str(args.seed),
-                             "--duration", str(duration)], out / "feed.log")
-        procs.append(feed)
-        console.print(f"{args.autopilot} autopilot tcp:{port_app} (app) tcp:{port_feed} (feed), DF udp:{df_port}, "
-                      f"speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
-                      TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console) as prog:
-            task = prog.add_task("mission", total=duration, info="taking off")
-            truth_path, run_path = out / "truth.jsonl", out / "run.jsonl"
-            while feed.p.poll() is None:
-                time.sleep(0.25)
-                if app.p.poll() is not None:
-                    raise RuntimeError(f"the app exited early (code {app.p.returncode}); see {app.log.name}")
-                if not sitl.running:
-                    raise RuntimeError(f"the autopilot exited early; see {out / 'autopilot.log'}")
-                n = max(_count_lines(truth_path) - 1, 0)
-                last = _last_json(run_path)
-                info = ""
-                if last:
-                    state = {0: "idle", 1: "monitoring", 2: "paused", 3: "pilot", 4: "fault"}.get(last["state"], "?")
-                    info = f"{state}  t={last['t']:.0f}s  tick {last['tick_ms']:.0f} ms"
-                prog.update(task, completed=n, info=info)
-            prog.update(task, completed=duration)
-        if feed.p.returncode != 0:
-            raise RuntimeError(f"feed failed (code {feed.p.returncode}); see {feed.log.name}")
-        # the app's tick of the last scan, and no longer: then it would coast on no data
-        last = _last_json(truth_path)
-        deadline = time.monotonic() + 5.0
-        while last and time.monotonic() < deadline and ((_last_json(run_path) or {}).get("t", -1) < last["t"]):
-            time.sleep(0.05)
+        with rig:
+            if not mock:
+                console.print(f"ArduCopter SITL -I {rig.ap.instance}; a ground station: {rig.url(GCS_PORT)} "
+                              f"(e.g. pmon gcs --connect {rig.url(GCS_PORT)} view)")
+            console.print(f"{args.autopilot} autopilot tcp:{rig.port(APP_PORT)} (app) tcp:{rig.port(FEED_PORT)} "
+                          f"(feed), DF udp:{rig.df_port}, speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
+            _fly(rig, duration, console)
     except KeyboardInterrupt:
         console.print("interrupted: stopping every process")
         return 130
     except RuntimeError as exc:
         console.print(f"pmon demo: {exc}")
         return 1
-    finally:
-        for p in reversed(procs):
-            p.stop()
-        if sitl is not None:
-            sitl.stop()
     report = score(out / "run.jsonl", out / "truth.jsonl", sc)
     _print_report(console, report, sc)
     png = plot(out / "run.jsonl", out / "truth.jsonl", sc, out / "flight.png")
@@ -197,6 +159,35 @@ def run(args) -> int:
                   f"tlog: {out / 'app.tlog'}")
     console.print(f"wall time {time.monotonic() - wall0:.1f} s")
     return 0
+
+
+def _fly(rig, duration: int, console) -> None:
+    """A progress bar until the feed's last scan, then the app's tick of it (and no longer: then
+    it would coast on no data). RuntimeError when a program ends early or the feed fails."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    truth_path, run_path = Path(rig.cfg.truth_path), Path(rig.cfg.runlog_path)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
+                  TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console) as prog:
+        task = prog.add_task("mission", total=duration, info="taking off")
+        while rig.feed.p.poll() is None:
+            time.sleep(0.25)
+            if (why := rig.problem()):
+                raise RuntimeError(why.replace(" exited", " exited early"))
+            n = max(_count_lines(truth_path) - 1, 0)
+            last = _last_json(run_path)
+            info = ""
+            if last:
+                state = {0: "idle", 1: "monitoring", 2: "paused", 3: "pilot", 4: "fault"}.get(last["state"], "?")
+                info = f"{state}  t={last['t']:.0f}s  tick {last['tick_ms']:.0f} ms"
+            prog.update(task, completed=n, info=info)
+        prog.update(task, completed=duration)
+    if rig.feed.p.returncode != 0:
+        raise RuntimeError(f"feed failed (code {rig.feed.p.returncode}); see {rig.feed.log.name}")
+    last = _last_json(truth_path)
+    deadline = time.monotonic() + 5.0
+    while last and time.monotonic() < deadline and ((_last_json(run_path) or {}).get("t", -1) < last["t"]):
+        time.sleep(0.05)
 
 
 def _count_lines(path: Path) -> int:
