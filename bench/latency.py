@@ -108,7 +108,7 @@ def figures(run: dict, duration: float, speedup: float) -> dict:
 
 
 def main() -> int:
-    ap_ = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap_ = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap_.add_argument("--duration", type=float, default=60.0, help="mission seconds (default 60: smoke)")
     ap_.add_argument("--speedup", type=float, default=5.0)
     ap_.add_argument("--seed", type=int, default=1)

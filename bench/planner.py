@@ -52,7 +52,7 @@ def setup_for(sc, case: str) -> MonitorSetup:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),

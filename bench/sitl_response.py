@@ -603,7 +603,7 @@ def offline(path: str, fit: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--limits", default="stock,demo", help="comma-separated: stock, demo")
     ap.add_argument("--cases", default="top,step20,step100,ramp,route90,route70",
                     help="comma-separated cases (default top,step20,step100,ramp,route90,route70)")

@@ -681,7 +681,7 @@ def _parse_home(text: str) -> tuple[float, float, float]:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     from onboard.argcheck import HOST_PORT, HOST_PORT_BIND, SEED, SPEEDUP, OneLineParser, fail, number, param_item
 
-    ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n")[0])
+    ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n\n")[0])
     ap.add_argument("--udp", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT,
                     help="send to a UDP listener (like SITL --out); repeatable")
     ap.add_argument("--udpin", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT_BIND,

@@ -14,7 +14,7 @@ from onboard.argcheck import OUT_DIR, SEED, OneLineParser, integer
 
 
 def _parser(verb: str, fn) -> OneLineParser:
-    return OneLineParser(prog=f"pmon {verb}", description=fn.__doc__.split("\n")[0])
+    return OneLineParser(prog=f"pmon {verb}", description=fn.__doc__.split("\n\n")[0])
 
 
 def _config_errors(run, args) -> int:

@@ -1,5 +1,6 @@
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -87,3 +88,12 @@ def test_the_ground_station_help_says_what_applies():
         out = subprocess.run([sys.executable, "-m", "onboard.cli", "gcs", offline, "--help"],
                              capture_output=True, text=True, timeout=60).stdout
         assert "--json" in out and "--connect" not in out and "--timeout" not in out and "--sysid" not in out, out
+
+
+def test_a_programs_help_says_what_it_is_in_whole_sentences():
+    """argparse's description was the docstring's first line: cut mid-sentence where it wraps."""
+    for argv in (["-m", "sim.stack"], ["-m", "sim.autopilot"], ["bench/latency.py"]):
+        out = subprocess.run([sys.executable, *argv, "--help"], capture_output=True, text=True, timeout=60,
+                             cwd=Path(__file__).resolve().parents[1]).stdout
+        description = out.split("\n\n")[1]
+        assert description.rstrip().endswith("."), (argv, description)
