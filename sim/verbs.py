@@ -154,5 +154,36 @@ def _eval(args) -> int:
     summary = ev.summarise(cfg, trials, wall_s=time.perf_counter() - t0)
     command = "pmon " + " ".join(shlex.quote(a) for a in args._argv)
     head = ev.write_outputs(summary, trials, args.out, command, figures=not args.no_figures)
-    print(json.dumps(head), flush=True)
+    print("\n".join(eval_summary(head, args.trials, args.out, ev.REFERENCE, not args.no_figures)), flush=True)
+    if args.trials < FEW_TRIALS:
+        print(f"pmon eval: warning: {args.trials} trial{'s' if args.trials > 1 else ''}: a 95 % confidence interval "
+              f"means little below about {FEW_TRIALS} (the docs' figures use --trials 100)", file=sys.stderr, flush=True)
+    print(json.dumps(head), flush=True)  # the last line, for scripts
     return 0
+
+
+FEW_TRIALS = 10  # below this, pmon eval warns that its confidence intervals mean little
+
+
+def eval_summary(head: dict, trials: int, out, reference: str, figures: bool = True) -> list[str]:
+    """A short table of ``pmon eval``'s headline (the JSON line), and where its results went."""
+    from pathlib import Path
+
+    def f(x, spec=".1f"):
+        return "-" if x is None else format(x, spec)
+    ref = reference if reference in head["methods"] else None
+    width = max(len(n) for n in head["methods"]) + 2
+    rows = [f"{'method':<{width}}{'RMSE [m]':>9}{'PCRB [m]':>10}{'RMSE/PCRB':>11}{'ANEES':>7}"
+            + (f"  {ref} / method (95 % CI)" if ref else "")]
+    for name, m in head["methods"].items():
+        r = m.get("ratio_vs_ref")
+        ratio = "-" if not ref or name == ref or r is None else f"{r[0]:.2f} ({r[1]:.2f}, {r[2]:.2f})"
+        rows.append(f"{name:<{width}}{f(m['rmse_mean_m']):>9}{f(m['bound_m']):>10}{f(m['rmse_over_bound'], '.2f'):>11}"
+                    f"{f(m['nees_mean'], '.2f'):>7}" + (f"  {ratio}" if ref else ""))
+    out = Path(out)
+    pngs = sorted(p.name for p in out.glob("*.png")) if figures else []
+    rows.append(f"{trials} trial{'s' if trials > 1 else ''}; RMSE averaged over the targets and the convergence "
+                f"window; ANEES 2 is a consistent filter" + (f"; {ref} / method > 1: better than {ref}" if ref else ""))
+    rows.append(f"results in {out}/: results.md (every table, and how each figure is made), rmse.csv, "
+                "per_trial.csv" + (f", {len(pngs)} figures ({', '.join(pngs)})" if pngs else ""))
+    return rows
