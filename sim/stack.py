@@ -18,7 +18,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import replace
 
 from sim.autopilot import BootTimeline  # sets MAVLINK20 before pymavlink is imported
 
@@ -27,34 +27,17 @@ from onboard.policy import POLICIES
 from sim.rig import Rig, RigConfig
 
 
-@dataclass(frozen=True)
-class StackConfig:
-    scenario: str = "paper"
-    speedup: float = 4.0
-    seed: int = 1
-    feed_duration_s: float = 600.0
-    gcs_udp_port: int | None = None  # also stream to a GCS listening on udp 127.0.0.1:PORT
-    gcs_udpin: bool = False  # also listen for a GCS on udp (port via SitlStack.udpin_port)
-    runlog_path: str | None = None
-    truth_path: str | None = None
-    tlog_path: str | None = None
-    signing_key_path: str | None = None  # MAVLink 2 signing on every link (mock, app, feed)
-    ready_s: float = BootTimeline.ready_s  # autopilot s after boot until it can arm (ArduCopter's)
-    policy: str = DEFAULT_POLICY  # the app's flight policy (onboard/policy.py), as pmon run's
+# the stack for ground-station work: mock and app in this process (a test looks inside them), no
+# launch, the feed when asked (Rig.start_feed), ArduCopter's boot, 4x, the demo's vehicle
+STACK = RigConfig(speedup=4.0, in_process=True, feed="later", feed_duration_s=600.0)
 
 
 class SitlStack(Rig):
-    """Mock autopilot (TCP ports: app, feed, GCS), onboard app, DF feed (``start_feed``)."""
+    """Mock autopilot (TCP ports: app, feed, GCS), onboard app, DF feed (``start_feed``): the
+    rig of ``STACK`` with ``overrides`` (RigConfig's fields)."""
 
-    def __init__(self, cfg: StackConfig = StackConfig(), **overrides):
-        from dataclasses import replace
-        c = replace(cfg, **overrides)
-        super().__init__(RigConfig(scenario=c.scenario, policy=c.policy, seed=c.seed, speedup=c.speedup,
-                                   ready_s=c.ready_s, gcs_udp_out=c.gcs_udp_port, gcs_udpin=c.gcs_udpin,
-                                   signing_key_path=c.signing_key_path, in_process=True, feed="later",
-                                   feed_duration_s=c.feed_duration_s, runlog_path=c.runlog_path,
-                                   truth_path=c.truth_path, tlog_path=c.tlog_path))
-        self.stack_cfg = c
+    def __init__(self, cfg: RigConfig = STACK, **overrides):
+        super().__init__(replace(cfg, **overrides))
 
 
 def main(argv=None) -> int:
@@ -82,10 +65,9 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.WARNING)
     from onboard.app.signing import KeyFileError
     try:
-        st = SitlStack(StackConfig(speedup=args.speedup, seed=args.seed, gcs_udp_port=args.gcs_udp,
-                                   runlog_path=args.runlog, truth_path=args.truth,
-                                   signing_key_path=args.signing_key,
-                                   ready_s=args.ready_after, policy=args.policy)).start()
+        st = SitlStack(speedup=args.speedup, seed=args.seed, gcs_udp_out=args.gcs_udp, runlog_path=args.runlog,
+                       truth_path=args.truth, signing_key_path=args.signing_key, ready_s=args.ready_after,
+                       policy=args.policy).start()
     except KeyFileError as exc:
         return fail(p.prog, str(exc))
     except OSError as exc:  # a log file's directory missing, a port in use ...
