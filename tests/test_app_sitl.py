@@ -68,7 +68,8 @@ def flight(tmp_path_factory):
                     s = ap.state()
                     out["positions"].append((s.time_boot_ms / 1000, s.pos_enu, s.armed, s.mode))
                     time.sleep(0.01)
-            threading.Thread(target=sample, daemon=True).start()
+            sampler = threading.Thread(target=sample, daemon=True)
+            sampler.start()
 
             def monitoring_ticks():
                 return sum(1 for t in app.ticks if t["planned"] and t["channels"])
@@ -97,6 +98,8 @@ def flight(tmp_path_factory):
             out["counters"] = dict(app.counters)
             out["ap_counters"] = ap.counters()
             out["rejected"] = app.scans.rejected_total
+            stop_sampler.set()  # the tests read the positions as they are now (a list still growing
+            sampler.join(timeout=2)  # while a test read it twice had two lengths: an IndexError)
             yield out
         finally:
             stop_sampler.set()
