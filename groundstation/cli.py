@@ -253,6 +253,15 @@ def main(argv: list[str] | None = None) -> int:
     return OK
 
 
+def script() -> int:
+    """``pmon-gcs``: ``pmon gcs`` as a program of its own, its extra checked as ``pmon`` does."""
+    from onboard.cli import refusal
+    if (why := refusal("pmon-gcs", ("gcs",))):
+        print(why, file=sys.stderr)
+        return USAGE
+    return main()
+
+
 def _error(args, exc, code: int) -> int:
     msg = str(exc) or type(exc).__name__
     print(f"pmon gcs: {msg}", file=sys.stderr, flush=True)

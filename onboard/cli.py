@@ -76,13 +76,28 @@ def missing(dist, extra: str, seen: frozenset = frozenset()) -> list[str]:
     return out
 
 
-def _run_verb(name: str, ep, argv: list[str]) -> int:
-    for extra in ep.extras:
-        lacking = missing(ep.dist, extra)
+def refusal(prog: str, extras, dist=None) -> str | None:
+    """One line saying which extra to install when ``extras`` of ``dist`` (default: this
+    distribution) are not all installed, else None."""
+    from importlib import metadata
+
+    if dist is None:
+        try:
+            dist = metadata.distribution("passive-monitor")
+        except metadata.PackageNotFoundError:  # run from a source tree: nothing to check against
+            return None
+    for extra in extras:
+        lacking = missing(dist, extra)
         if lacking:
-            print(f"pmon {name}: needs the '{extra}' extra ({', '.join(lacking)} not installed): "
-                  f"pip install 'passive-monitor[{extra}]'", file=sys.stderr)
-            return 2
+            return (f"{prog}: needs the '{extra}' extra ({', '.join(lacking)} not installed): "
+                    f"pip install 'passive-monitor[{extra}]'")
+    return None
+
+
+def _run_verb(name: str, ep, argv: list[str]) -> int:
+    if (why := refusal(f"pmon {name}", ep.extras, ep.dist)):
+        print(why, file=sys.stderr)
+        return 2
     return ep.load()(argv)
 
 

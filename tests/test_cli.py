@@ -74,6 +74,9 @@ def test_a_verb_whose_extra_is_not_installed_is_refused_in_one_line(monkeypatch,
     assert cli.main(["gcs", "status"]) == 2
     assert capsys.readouterr().err == ("pmon gcs: needs the 'gcs' extra (rich not installed): "
                                        "pip install 'passive-monitor[gcs]'\n")
+    from groundstation.cli import script  # the pmon-gcs program
+    monkeypatch.setattr(sys, "argv", ["pmon-gcs", "status"])
+    assert script() == 2 and capsys.readouterr().err.startswith("pmon-gcs: needs the 'gcs' extra (rich not")
     hidden.update({"matplotlib", "distributed"})  # the flight install: feed needs no extra
     with pytest.raises(SystemExit) as exc:
         cli.main(["feed", "--help"])
