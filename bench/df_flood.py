@@ -205,7 +205,7 @@ PHASES = [
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd")
     s = sub.add_parser("send", help="the hostile sender (one phase); prints one JSON line")
     s.add_argument("--to", required=True, metavar="HOST:PORT")

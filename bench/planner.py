@@ -35,7 +35,7 @@ from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.policy import vehicle_motion, with_policy  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
-from sim.vehicle import VehicleLimits  # noqa: E402
+from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
 
@@ -52,7 +52,7 @@ def setup_for(sc, case: str) -> MonitorSetup:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),

@@ -111,7 +111,7 @@ def compare_routes(setup: MonitorSetup, particles: np.ndarray, log_w: np.ndarray
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", default="10,25,40,60,80", help="ticks of the closed loop to compare at")
     ap.add_argument("--particles", type=int, default=2000, help="particles per target in the rollout")
     ap.add_argument("--rollouts", type=int, default=2,

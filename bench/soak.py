@@ -110,7 +110,7 @@ def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=7200.0, help="mission seconds (default 7200)")
     ap.add_argument("--speedup", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=1)

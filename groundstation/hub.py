@@ -28,10 +28,11 @@ import time
 from collections import Counter
 
 from groundstation import adsb as A
-from groundstation.commands import Outcome
+from groundstation.gcs_commands import Outcome
 from groundstation.estimates import OutputEstimate, check
 from groundstation.hub_options import HubConfig, config_from_args
-from groundstation.link import GcsError, GcsLink
+from groundstation.errors import GcsError
+from groundstation.gcs_link import GcsLink
 from groundstation.ports import bound_by
 from onboard.app.mavlink_connection import mavlink
 
@@ -380,7 +381,7 @@ def serve(gl: HubLink, sc, cfg: HubConfig, duration: float | None, as_json: bool
 
 def run_cli(args, key, sc, console) -> Outcome:
     """``pmon gcs hub``: options checked, the link opened and the vehicle found, then served."""
-    from groundstation.cli import UsageError
+    from groundstation.errors import UsageError
     try:
         cfg = config_from_args(args)
     except ValueError as exc:

@@ -58,21 +58,21 @@ from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import PLANAR, bearing_information, information_reduction_factor, pcrb, planar_model
 from onboard.core.monitor import MonitorSetup, MonitorState, Scan, TickResult, initial_state, tick
 from onboard.core.planning import admissible, candidate_positions
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
 from sim.numerics import numerics_description, pin_kernels
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
-from sim.vehicle import VehicleLimits, VehicleState, limits_from_params
+from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
 ORBIT_RADIUS_M = 150.0  # radius of the "orbit" baseline around the targets' initial centroid
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
 BOOTSTRAP_RESAMPLES = 2000
-# the ArduCopter parameters a vehicle method's copter flies with (sim.vehicle.limits_from_params):
-# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: onboard/demo.py's)
+# the ArduCopter parameters a vehicle method's copter flies with (sim.multicopter.limits_from_params):
+# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS)
 AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS)}
 
 

@@ -19,7 +19,7 @@ LONG = "PMON: arming refused: PreArm: Need Position Estimate (EKF not ready, GPS
 
 @pytest.mark.timeout(120)
 def test_statustext_chunks_pass_arducopters_routing_whole():
-    from groundstation.link import GcsLink
+    from groundstation.gcs_link import GcsLink
     from onboard.app.mavlink_connection import Link
     from onboard.app.statustext import send_statustext
 

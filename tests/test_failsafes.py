@@ -33,7 +33,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.tracking import ParticleSet
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 

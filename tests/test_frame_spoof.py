@@ -33,7 +33,7 @@ from onboard.app.contract import State
 from onboard.app.pose import Frame
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 

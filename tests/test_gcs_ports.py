@@ -12,7 +12,8 @@ import time
 import pytest
 
 from tests.gcs_fake_vehicle import free_udp_port  # MAVLINK20 first
-from groundstation.link import GcsError, GcsLink
+from groundstation.errors import GcsError
+from groundstation.gcs_link import GcsLink
 from onboard.app.mavlink_connection import mavlink
 
 HOLDER = """import socket, sys, time

@@ -17,7 +17,7 @@ from conftest import Gcs
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]

@@ -7,7 +7,7 @@ import pytest
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import choose_lookahead, choose_next_position
 from onboard.core.setpoint import plan_setpoint
-from sim.vehicle import advance_input
+from sim.multicopter import advance_input
 from tests.test_planning import AREA, GRID, LOOKAHEAD, MODEL, VEHICLE, _still_targets
 
 

@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from app_helpers import wait_for
 
-from groundstation.link import GcsLink
+from groundstation.gcs_link import GcsLink
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario

@@ -9,7 +9,7 @@ import pytest
 from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from groundstation.link import GcsLink
+from groundstation.gcs_link import GcsLink
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.statustext import CHUNK, Reassembler, chunks, send_statustext
 from onboard.config import load_scenario

@@ -20,23 +20,13 @@ from dataclasses import dataclass
 from typing import Callable
 
 from groundstation import protocol as P
+from groundstation.errors import FAILED, TIMEOUT, GcsError
 from groundstation.ports import in_use_hint, silent_link_hint
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.statustext import Reassembler
 
 RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)
 GRACE_S = 0.3  # after a refusal, how long to wait for the STATUSTEXT that says why
-
-
-class GcsError(Exception):
-    """A command failed; ``code`` is the process exit code (1 refused/failed, 3 timeout)."""
-
-    def __init__(self, message: str, code: int = 1):
-        super().__init__(message)
-        self.code = code
-
-
-FAILED, TIMEOUT = 1, 3
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,8 @@ import time
 from dataclasses import dataclass, field
 
 from groundstation import protocol as P
-from groundstation.link import FAILED, TIMEOUT, Ack, GcsError, GcsLink, _same
+from groundstation.errors import FAILED, TIMEOUT, GcsError
+from groundstation.gcs_link import Ack, GcsLink, _same
 from onboard.app.mavlink_connection import mavlink
 
 STAT_WAIT_S = 2.5  # the app publishes PMON_STAT at 1 Hz: a status waits at most this for it
