@@ -23,6 +23,7 @@ from onboard.core.obstacles import Obstacles
 from onboard.core.information import information_reduction_factor
 from onboard.core.planning import (LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion,
                                    choose_lookahead, choose_next_position)
+from onboard.core.steering import SideMode
 
 
 @dataclass(frozen=True)
@@ -53,17 +54,6 @@ class PlanSteering:
             return None
         return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
                    tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
-
-
-@dataclass(frozen=True, eq=False)
-class SideMode:
-    """One hypothesis of the side on which a target rounds its obstacles (``PlanSteering.sides``):
-    the plan from the weighted mean of the particles labelled with it, held to ``sides`` (K,)
-    (``guidance.in_class``: +1 counterclockwise, -1 clockwise, 0 not yet chosen)."""
-
-    plan: Plan
-    sides: np.ndarray
-    references: tuple[Plan | None, ...] = ()  # its spread reference plans (next tick's warm starts)
 
 
 MAX_SIDE_MODES = 4  # per target
