@@ -93,7 +93,8 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
     the QP's sensitivity with the active set held: it equals central differences of the QP's
     solution for the plan's own face assignment, and zero-gain directions are those the
     constraints pin."""
-    from onboard.core.guidance import GuidanceWorkspace, _reduce_obstacles
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance_faces import face_geometry
     from onboard.core.dynamics import predict_mean
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
@@ -109,7 +110,7 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
         assert plan.feedback is not None and plan.feedback.shape == (3, 6)
         qp = ws.qp(T, len(obs), model, params)
         z = np.concatenate([[x[2]], predict_mean(model, x, np.zeros((T, 3)))[:, 2]])
-        geo = _reduce_obstacles(obs, params.obstacle_margin_m, z)
+        geo = face_geometry(obs, params.obstacle_margin_m, z)
         rows = geo.rows(plan.faces)
 
         def p2(state):
@@ -179,7 +180,7 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     """The free steering: a particle whose own plan is the free optimum gets its control;
     the others get the plan's u, and only they can draw the random control of the mixture."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import _Active
+    from onboard.core.guidance_qp import ActiveRows
     from onboard.core.monitor import MonitorSetup, _particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5))
     setup = MonitorSetup.from_scenario(sc)
@@ -187,7 +188,7 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     T, K = setup.guidance.horizon, len(setup.obstacles)
     u = np.array([100.0, -50.0, 0.0])
     plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
-                _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool)))
+                ActiveRows(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool)))
     near = np.tile(np.r_[goal[:2] + [10.0, -5.0], 0, 0.5, 0, 0], (500, 1))  # arriving: free
     far = np.tile(np.r_[goal[:2] + [0.0, 500.0], 0, 0, 0, 0], (500, 1))  # behind O3: not free
     out = _particle_controls(plan, np.vstack([near, far]), goal, setup, rng)
@@ -230,7 +231,8 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     takes the control of the nearest reference law (clipped to the input box) if within
     plan_trust_sigma of it; the others keep the plan's control (or the mixture's random one)."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import LocalLaw, _Active
+    from onboard.core.guidance import LocalLaw
+    from onboard.core.guidance_qp import ActiveRows
     from onboard.core.monitor import MonitorSetup, _particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.0, plan_steering=True,
                                                plan_steered_share=0.7))
@@ -240,7 +242,7 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     T, K = setup.guidance.horizon, len(setup.obstacles)
     u = np.array([100.0, -50.0, 0.0])
     plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
-                _Active(np.zeros(10, bool), np.ones((K, T - 1, 2), bool)))
+                ActiveRows(np.zeros(10, bool), np.ones((K, T - 1, 2), bool)))
     gain = np.zeros((3, 6))
     gain[0, 0] = -50.0  # N per m east of the reference
     a = LocalLaw(np.array([500.0, 600.0, 0.0, -10.0]), np.array([1000.0, 0.0, 0.0]), gain)
