@@ -18,8 +18,9 @@ UAV there. So the UAV moves at most N_r Delta_r per tick and the estimates at ti
 posterior estimates given the scans up to k.
 
 Methods are registered by name in ``METHODS`` (name -> ``Method``); a method is a sensing mode
-and a policy function ``policy(ctx) -> next UAV position``. A new planner registers itself with
-``register_method``.
+and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: the paper's
+greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
+itself with ``register_method``.
 
 Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 
@@ -48,7 +49,7 @@ import signal
 import time
 import zlib
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy import stats
@@ -57,8 +58,9 @@ from onboard.config import with_overrides
 from onboard.core import tracking
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import PLANAR, bearing_information, information_reduction_factor, pcrb, planar_model
-from onboard.core.monitor import MonitorSetup, MonitorState, Scan, TickResult, initial_state, tick
-from onboard.core.planning import UavMotion, admissible, candidate_positions
+from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.core.planners import ORBIT_RADIUS_M, PLANNERS, orbit_centre
+from onboard.core.planning import UavMotion
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
@@ -68,7 +70,6 @@ from sim.truth import simulate_truth
 from sim.vehicle import VehicleLimits, VehicleState, limits_from_params
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
-ORBIT_RADIUS_M = 150.0  # radius of the "orbit" baseline around the targets' initial centroid
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
 BOOTSTRAP_RESAMPLES = 2000
@@ -81,31 +82,14 @@ AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICL
 
 
 @dataclass(frozen=True, eq=False)
-class PolicyContext:
-    """What a UAV policy may look at after tick k to choose the UAV position for tick k+1."""
-
-    step: int
-    uav: np.ndarray  # (3,) ENU m, where the scan of tick k was taken
-    setup: MonitorSetup
-    state: MonitorState  # predicted beliefs for tick k+1 and the targets' plans
-    result: TickResult  # tick k's estimates, plans and (greedy) planning result
-    rng: np.random.Generator  # the method's own policy stream
-    config: "EvalConfig"
-
-
-Policy = Callable[[PolicyContext], np.ndarray]
-
-
-@dataclass(frozen=True, eq=False)
 class Method:
     """A sensing mode and, for a UAV, how it moves.
 
     sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter) or ``fixed`` (the paper's three
     ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
-    filter's likelihood (None: the scenario's). greedy: let the monitor's tick run the paper's
-    one-step rule (eq:optimization) from the UAV position; ``policy`` is then not called.
-    (With ``setup`` overrides such as ``planner="lookahead"`` the tick runs that planner
-    instead: ``greedy`` means "the monitor's tick plans the UAV".)
+    filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
+    from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
+    random); None: the scenario's ``planning.planner``.
     setup: MonitorSetup field overrides for this method only (applied after the config's).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
     ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
@@ -128,8 +112,7 @@ class Method:
     description: str
     sensing: str = "uav"
     clutter_rate: float | None = None
-    greedy: bool = False
-    policy: Policy | None = None
+    planner: str | None = None
     setup: tuple[tuple[str, Any], ...] = ()
     motion: str | None = None
     jump_twin: str | None = None
@@ -140,61 +123,12 @@ class Method:
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed"):
             raise ValueError(f"method {self.name}: sensing must be 'uav' or 'fixed'")
-        if self.sensing == "uav" and not self.greedy and self.policy is None:
-            raise ValueError(f"method {self.name}: a UAV method needs greedy=True or a policy")
+        if self.planner is not None and self.planner not in PLANNERS:
+            raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
         if self.motion not in (None, "jump", "vehicle"):
             raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
         if self.autopilot is not None and self.autopilot not in AUTOPILOTS:
             raise ValueError(f"method {self.name}: autopilot must be one of {', '.join(AUTOPILOTS)}")
-
-
-def hover_policy(ctx: PolicyContext) -> np.ndarray:
-    """Stay at the start position."""
-    return ctx.uav
-
-
-def random_policy(ctx: PolicyContext) -> np.ndarray:
-    """A uniformly random admissible candidate of S_(t+1) ("stay" included)."""
-    s = ctx.setup
-    cand = candidate_positions(ctx.uav, s.grid)
-    ok = np.flatnonzero(admissible(cand, ctx.uav, s.area_min, s.area_max, s.uav_obstacles))
-    return ctx.uav if ok.size == 0 else cand[ctx.rng.choice(ok)]
-
-
-def orbit_policy(ctx: PolicyContext) -> np.ndarray:
-    """Counter-clockwise circle of radius ``config.orbit_radius_m`` around the targets' initial
-    centroid, at the UAV's speed limit N_r Delta_r per tick.
-
-    Far from the circle the UAV flies straight to its nearest point; on it, it advances by one
-    step of arc. The move goes where it should when that is admissible (area, obstacles), else
-    to the admissible grid candidate nearest to that point: the same limits as every method.
-    """
-    s, cfg = ctx.setup, ctx.config
-    c = cfg.orbit_center
-    r = cfg.orbit_radius_m
-    step = s.grid.n_radial * s.grid.step_m
-    p = ctx.uav[:2]
-    d = p - c
-    dist = float(np.hypot(*d))
-    if dist < 1e-9:
-        d, dist = np.array([1.0, 0.0]), 1.0
-    if abs(dist - r) > step:
-        target = c + r * d / dist
-    else:
-        ang = math.atan2(d[1], d[0]) + step / r
-        target = c + r * np.array([math.cos(ang), math.sin(ang)])
-    move = target - p
-    n = float(np.hypot(*move))
-    want = p + (move if n <= step else move * (step / n))
-    want3 = np.array([want[0], want[1], s.grid.altitude_m])
-    if admissible(want3[None], ctx.uav, s.area_min, s.area_max, s.uav_obstacles)[0]:
-        return want3
-    cand = candidate_positions(ctx.uav, s.grid)
-    ok = admissible(cand, ctx.uav, s.area_min, s.area_max, s.uav_obstacles)
-    if not ok.any():
-        return ctx.uav
-    dist_c = np.where(ok, np.linalg.norm(cand[:, :2] - want, axis=1), np.inf)
-    return cand[int(np.argmin(dist_c))]
 
 
 METHODS: dict[str, Method] = {}
@@ -207,25 +141,26 @@ def register_method(method: Method) -> Method:
 
 
 for _m in (
-    Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", greedy=True, clutter_rate=1.0),
+    Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", planner="greedy",
+           clutter_rate=1.0),
     Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="jump"),
+           planner="lookahead", clutter_rate=1.0, motion="jump"),
     Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
-           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", greedy=True,
-           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle", jump_twin="lookahead"),
+           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", planner="lookahead",
+           clutter_rate=1.0, motion="vehicle", jump_twin="lookahead"),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle",
-           jump_twin="greedy_l1"),
+           "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1"),
     Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
            "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
-           "flies, Lambda = 1", greedy=True, clutter_rate=1.0, motion="vehicle",
+           "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", greedy=True, clutter_rate=8.0),
+    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
-    Method("hover", "single UAV hovering at its start, Lambda = 1", policy=hover_policy, clutter_rate=1.0),
-    Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1",
-           policy=orbit_policy, clutter_rate=1.0),
-    Method("random", "single UAV, uniformly random admissible move, Lambda = 1", policy=random_policy,
+    # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
+    Method("hover", "single UAV hovering at its start, Lambda = 1", planner="hover", motion="jump", clutter_rate=1.0),
+    Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1", planner="orbit",
+           motion="jump", clutter_rate=1.0),
+    Method("random", "single UAV, uniformly random admissible move, Lambda = 1", planner="random", motion="jump",
            clutter_rate=1.0),
 ):
     register_method(_m)
@@ -243,7 +178,6 @@ class EvalConfig:
     methods: tuple[Method, ...]
     n_ticks: int
     window_start: int  # first tick of the convergence window
-    orbit_radius_m: float = ORBIT_RADIUS_M
     overrides: tuple[tuple[str, Any], ...] = ()  # MonitorSetup overrides for every method
 
     @property
@@ -251,8 +185,14 @@ class EvalConfig:
         return tuple(m.name for m in self.methods)
 
     @property
+    def orbit_radius_m(self) -> float:
+        """The orbit baseline's radius (``onboard.core.planners.OrbitPlanner``), m."""
+        return ORBIT_RADIUS_M
+
+    @property
     def orbit_center(self) -> np.ndarray:
-        return np.mean([t.position_m[:2] for t in self.scenario.targets], axis=0)
+        """The orbit baseline's centre, the targets' initial centroid (ENU m, planar)."""
+        return orbit_centre(MonitorSetup.from_scenario(self.scenario))
 
     @property
     def dt_s(self) -> float:
@@ -303,7 +243,7 @@ def method_named(name: str, sc=None) -> Method:
     if label not in AUTOPILOTS:
         raise ValueError(f"method {name!r}: unknown autopilot parameters {label!r} (one of {', '.join(AUTOPILOTS)})")
     motion = m.motion or (None if sc is None else sc.planning.motion)
-    if m.sensing != "uav" or not m.greedy or motion == "jump":
+    if m.sensing != "uav" or motion == "jump":
         raise ValueError(f"method {name!r}: {base} flies no vehicle (only vehicle-motion methods take @{label})")
     return replace(m, name=name, autopilot=label, description=f"{m.description}; autopilot: {label}")
 
@@ -373,8 +313,10 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
         sensor = tracking.SensorModel(sigma, sc.sensor.p_detect, lam)
         df = DirectionFinder(sigma, sc.sensor.p_detect, lam)
     fields = {**dict(cfg.overrides), **dict(method.setup)}
+    if method.planner is not None:
+        fields["planner"] = method.planner
     motion = method.motion or sc.planning.motion
-    flown = method.sensing == "uav" and method.greedy and motion == "vehicle"
+    flown = method.sensing == "uav" and motion == "vehicle"
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
         fields["motion"] = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
@@ -408,8 +350,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav_track[k] = uav
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav if method.greedy else None, workspace=ws,
-                          uav_velocity=uav_vel)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=uav, workspace=ws, uav_velocity=uav_vel,
+                          planner_rng=policy_rng)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]
@@ -428,15 +370,12 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             plan_speed[k] = 0.0 if v_next is None else float(np.linalg.norm(v_next))
             speed[k + 1] = float(np.linalg.norm(uav_vel))
         elif uav is not None and k < K - 1:
-            if method.greedy:
-                nxt = res.next_position
-                p = res.planning
-                if p is not None and p.index is not None and p.velocities is not None:
-                    uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
-                else:
-                    uav_vel = np.zeros(2)  # no admissible move: the vehicle stops where it is
+            nxt = res.next_position
+            p = res.planning
+            if p is not None and p.index is not None and p.velocities is not None:
+                uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
             else:
-                nxt = method.policy(PolicyContext(k, uav, setup, state, res, policy_rng, cfg))
+                uav_vel = np.zeros(2)  # no admissible move (or a baseline's): the vehicle stops where it is
             uav = uav if nxt is None else np.asarray(nxt, float).copy()
     bound = None
     if gains is not None:
