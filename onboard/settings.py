@@ -296,8 +296,9 @@ class Planning:
 
     objective: str = choice("trace", ("trace", "position_trace"), "what the greedy rule minimises: tr(Sigma) "
                             "of all six states, or of the position only", paper=True)
-    planner: str = choice("greedy", ("greedy", "lookahead"), "the paper's one-step rule, or routes scored "
-                          "over lookahead_steps", paper=True)
+    planner: str = choice("greedy", ("greedy", "lookahead", "hover", "orbit", "random"),
+                          "the paper's one-step rule, or routes scored over lookahead_steps; hover, "
+                          "orbit, random: the evaluation's baselines (onboard/core/planners.py)", paper=True)
     lookahead_steps: int = integer(50, 1, 200, "ticks", "ticks the lookahead planner scores "
                                    "(<= guidance.horizon)")
     motion: str = choice("jump", ("jump", "vehicle"), "jump: any grid point each tick; vehicle: "

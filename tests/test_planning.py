@@ -157,3 +157,62 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     assert part[np.argmin(ekf)] < 1.15 * part.min()
     # conservative, as the one-step form: it never promises much more than the particles give
     assert 0.95 < np.median(ekf / part) < 1.5
+
+
+# --------------------------------------------------------------------------- the planner and steering roles
+
+
+def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
+    """``MonitorSetup.planner`` names the planner (the baselines too), built once per setup;
+    ``tracking.plan_steering`` / ``plan_sides`` choose the particle steering; a name no planner
+    has is refused with the names that exist."""
+    from dataclasses import replace as dc_replace
+
+    from onboard.core.monitor import MonitorSetup
+    from onboard.core.planners import (GreedyPlanner, HoverPlanner, LookaheadPlanner, OrbitPlanner, RandomPlanner,
+                                       make_planner)
+    from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
+
+    setup = MonitorSetup.from_scenario(paper)
+    assert isinstance(setup.uav_planner, GreedyPlanner) and setup.uav_planner is setup.uav_planner
+    for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
+                       ("random", RandomPlanner)):
+        assert isinstance(MonitorSetup.from_scenario(paper, planner=name).uav_planner, kind)
+    with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
+        make_planner(MonitorSetup.from_scenario(paper, planner="spiral"))
+    assert isinstance(setup.steering, FreeSteering)
+
+    def steering(**tr):
+        return MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))).steering
+    assert isinstance(steering(plan_steering=True), ReferenceSteering)
+    assert isinstance(steering(plan_steering=True, plan_sides=True), SideSteering)
+
+
+def test_a_planners_draws_never_shift_the_filters(paper):
+    """The random baseline draws from ``planner_rng``: with the same scans, the filter's beliefs
+    after each tick are those of the hover baseline from the same streams, and its moves are
+    admissible candidates of S_(t+1); drawing from the filter's own stream instead changes them."""
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+
+    def run(planner, separate):
+        setup = MonitorSetup.from_scenario(paper, planner=planner)
+        rng, prng = np.random.default_rng(5), np.random.default_rng(6)
+        state, ws = initial_state(setup, rng), GuidanceWorkspace()
+        uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []
+        for _ in range(3):
+            bearings = tuple(np.array([0.5 + 0.1 * j]) for j in range(setup.n_targets))
+            state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws,
+                              planner_rng=prng if separate else None)
+            out.append((np.stack([b.particles for b in state.beliefs]), res.planning))  # scans stay put
+        return out
+
+    hover, rand, shared = run("hover", True), run("random", True), run("random", False)
+    moved = 0
+    for (b_h, p_h), (b_r, p_r) in zip(hover, rand):
+        np.testing.assert_array_equal(b_h, b_r)
+        assert p_h.index == 0 and np.array_equal(p_h.position, p_h.candidates[0])
+        assert p_r.admissible[p_r.index] and len(p_r.candidates) == 4 * 15 + 1
+        moved += p_r.index != 0
+    assert moved >= 2
+    assert not np.array_equal(shared[-1][0], rand[-1][0])
