@@ -179,7 +179,7 @@ def eval_summary(head: dict, trials: int, out, reference: str, figures: bool = T
             + (f"  {ref} / method (95 % CI)" if ref else "")]
     for name, m in head["methods"].items():
         r = m.get("ratio_vs_ref")
-        ratio = "-" if not ref or name == ref or r is None else f"{r[0]:.2f} ({r[1]:.2f}, {r[2]:.2f})"
+        ratio = "-" if not ref or name == ref or r is None else f"{f(r[0], '.2f')} ({f(r[1], '.2f')}, {f(r[2], '.2f')})"
         rows.append(f"{name:<{width}}{f(m['rmse_mean_m']):>9}{f(m['bound_m']):>10}{f(m['rmse_over_bound'], '.2f'):>11}"
                     f"{f(m['nees_mean'], '.2f'):>7}" + (f"  {ratio}" if ref else ""))
     out = Path(out)
