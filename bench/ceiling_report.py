@@ -86,15 +86,25 @@ def report(args) -> dict:
             if r:
                 runs[(sp, starts)] = r
     check = _load_dir(out / label(9.0, 2.5) / "check", trials)
+    mm = _load_dir(out / label(9.0, 2.5) / "aggregate", trials)
+    hop = _load_dir(out / label(9.0, 2.5) / "hop", trials)
     greedy = _load_dir(out / "greedy", trials)
     res: dict = {"truths_match": match, "trials": len(trials)}
     res.update(_aggregate(trials, data, runs, greedy))
     if check:
-        res["check"] = _check_table(check, runs.get((9.0, "quick"), {}))
+        res["check"] = _check_table(check, runs.get((9.0, "quick"), {}), hop)
+    if len(mm) == len(trials) and (9.0, "quick") in runs:
+        before = ce.aggregate_bound(np.stack([runs[(9.0, "quick")][t]["bound_m2"] for t in trials]), W0)
+        after = ce.aggregate_bound(np.stack([mm[t]["bound_m2"] for t in trials]), W0)
+        res["aggregate_round"] = {"before_m": round(before, 4), "after_m": round(after, 4),
+                                  "improved_trials": int(sum(bool(mm[t]["improved"]) for t in trials))}
+        print(f"\none majorise-minimise round on the N-trial bound: {before:.4f} -> {after:.4f} m "
+              f"({100 * (after / before - 1):+.2f} %, {res['aggregate_round']['improved_trials']} trials moved)")
     res["features"] = _features(trials, data, runs, greedy, setup)
     if (9.0, "quick") in runs:
         res["counterfactual"] = _counterfactual(trials, data, runs[(9.0, "quick")], setup)
-    _per_trial_csv(out / "per_trial.csv", trials, data, runs, greedy)
+    res["route_pursuit_mps"] = _route_pursuit_speed()
+    _per_trial_csv(Path(args.figures or out) / "per_trial.csv", trials, data, runs, greedy)
     if args.figures:
         _figures(Path(args.figures), trials, data, runs, greedy)
     return res
@@ -132,7 +142,15 @@ def _aggregate(trials, data, runs, greedy) -> dict:
             res[name]["rmse_m"] = round(float(np.sqrt(np.mean(ge ** 2, axis=0))[W0:].mean()), 2)
             res[name]["flight_rmse_m"] = round(rm, 2)
             print(f"|   myopic9 RMSE on them | {len(ts)} | | | {res[name]['rmse_m']:.1f} (flight {rm:.1f}) |")
-    q = runs.get((9.0, "quick"))
+            res["myopic9_rmse"] = _myopic_rmse(ts, data, greedy)
+    r9, r20 = runs.get((9.0, "quick")), runs.get((20.0, "quick"))
+    if r9 and r20:
+        ts = [t for t in trials if t in r9 and t in r20]
+        if len(ts) >= 2:
+            v, lo, hi = _boot_ratio(np.stack([r9[t]["bound_m2"] for t in ts]), np.stack([r20[t]["bound_m2"] for t in ts]))
+            print(f"\nceiling 9 m/s / ceiling 20 m/s on {len(ts)} trials: {v:.3f} ({lo:.3f}, {hi:.3f})")
+            res["ceiling9_over_ceiling20"] = [round(v, 4), round(lo, 4), round(hi, 4), len(ts)]
+    q = r9
     if q:
         cpu = [float(q[t]["cpu_s"]) for t in q]
         res["cpu_s_per_trial"] = {"median": round(float(np.median(cpu)), 1), "max": round(float(np.max(cpu)), 1),
@@ -142,21 +160,51 @@ def _aggregate(trials, data, runs, greedy) -> dict:
     return res
 
 
-def _check_table(check: dict, quick: dict) -> dict:
+def _rmse_agg(err: np.ndarray) -> float:
+    """The evaluation's RMSE over trials: (N, K, M) errors -> rmse_mean_m."""
+    return float(np.sqrt(np.mean(err ** 2, axis=0))[W0:].mean())
+
+
+def _myopic_rmse(ts, data, greedy) -> dict:
+    """The myopic path's RMSE against the flight's: on trials 0-9 (the issue's), 10-19 and all,
+    the paired bootstrap ratio, and the trials where it is lower."""
+    f = np.stack([data[t][f"{FLIGHT}.error_m"] for t in ts])
+    g = np.stack([greedy[t]["error_m"] for t in ts])
+    out = {}
+    for lo, hi in ((0, 10), (10, 20), (0, len(ts))):
+        if hi <= len(ts):
+            out[f"{lo}-{hi - 1}"] = [round(_rmse_agg(g[lo:hi]), 2), round(_rmse_agg(f[lo:hi]), 2)]
+    rng = np.random.default_rng(0)
+    n = len(ts)
+    rs = [_rmse_agg(g[i]) / _rmse_agg(f[i]) for i in (rng.integers(0, n, n) for _ in range(BOOT))]
+    out["ratio"] = [round(_rmse_agg(g) / _rmse_agg(f), 4), round(float(np.percentile(rs, 2.5)), 4),
+                    round(float(np.percentile(rs, 97.5)), 4)]
+    per_f, per_g = np.sqrt(np.mean(f[:, W0:] ** 2, axis=(1, 2))), np.sqrt(np.mean(g[:, W0:] ** 2, axis=(1, 2)))
+    out["lower_on"] = int(np.sum(per_g < per_f))
+    print("myopic9 / flight RMSE: " + ", ".join(f"trials {k}: {v[0]:.1f} vs {v[1]:.1f} m" for k, v in out.items()
+                                                  if "-" in k)
+          + f"; ratio {out['ratio'][0]:.2f} ({out['ratio'][1]:.2f}, {out['ratio'][2]:.2f}); lower on {out['lower_on']}"
+          f" of {n} trials")
+    return out
+
+
+def _check_table(check: dict, quick: dict, hop: dict) -> dict:
     """How near the searches are to the best path known, per trial."""
     rows = []
-    print("\n| trial | quick | all starts | CEM (2 seeds) | CEM + SQP | best known | coarse optima: min-max over starts |")
-    print("|---:|---:|---:|---|---|---:|---|")
+    print("\n| trial | quick (the run) | all starts | basin hopping from the run | CEM (2 seeds) | CEM + SQP | best known "
+          "| coarse optima: min-max over starts |")
+    print("|---:|---:|---:|---:|---|---|---:|---|")
     for t, c in sorted(check.items()):
-        vals = [float(c["full"]), *map(float, c["cem"]), *map(float, c["cem_polished"])]
+        hv = float(hop[t]["best"]) if t in hop else float("nan")
+        vals = [float(c["full"]), hv, *map(float, c["cem"]), *map(float, c["cem_polished"])]
         qv = float(quick[t]["value"]) if t in quick else float("nan")
         best = np.nanmin([qv, *vals])
         loc = c["full_local"][np.isfinite(c["full_local"])]
-        rows.append(dict(trial=t, quick=qv / best - 1, full=float(c["full"]) / best - 1,
+        rows.append(dict(trial=t, quick=qv / best - 1, full=float(c["full"]) / best - 1, hop=hv / best - 1,
                          cem=[float(v) / best - 1 for v in c["cem"]],
                          cem_sqp=[float(v) / best - 1 for v in c["cem_polished"]],
                          spread=float(loc.max() / loc.min() - 1)))
-        print(f"| {t} | {qv:.3f} | {float(c['full']):.3f} | {c['cem'][0]:.3f}, {c['cem'][1]:.3f} | "
+        print(f"| {t} | {qv:.3f} | {float(c['full']):.3f} | {hv:.3f} | {c['cem'][0]:.3f}, {c['cem'][1]:.3f} | "
               f"{c['cem_polished'][0]:.3f}, {c['cem_polished'][1]:.3f} | {best:.3f} | {loc.min():.3f}-{loc.max():.3f} |")
 
     def pct(key, agg=np.mean):
@@ -164,15 +212,22 @@ def _check_table(check: dict, quick: dict) -> dict:
         return round(100 * float(agg(v[np.isfinite(v)])), 2)
     out = {"n": len(rows), "quick_gap_mean_pct": pct("quick"), "quick_gap_max_pct": pct("quick", np.max),
            "all_gap_mean_pct": pct("full"), "all_gap_max_pct": pct("full", np.max),
+           "hop_gap_mean_pct": pct("hop"), "hop_gap_max_pct": pct("hop", np.max),
+           "hop_trials": int(sum(np.isfinite(r["hop"]) for r in rows)),
+           "best_on": {k: int(sum(np.min(r[k]) < 1e-11 for r in rows)) for k in ("quick", "full", "hop", "cem_sqp")},
+           "quick_second_max_pct": round(100 * float(np.sort([r["quick"] for r in rows])[-2]), 2),
            "cem_gap_mean_pct": pct("cem"), "cem_sqp_gap_mean_pct": pct("cem_sqp"),
            "cem_sqp_gap_max_pct": pct("cem_sqp", np.max),
            "coarse_spread_median_pct": round(100 * float(np.median([r["spread"] for r in rows])), 2),
            "cem_sqp_below_quick": int(sum(min(r["cem_sqp"]) < r["quick"] - 1e-9 for r in rows))}
     print(f"\ngap to the best known (mean / max over {len(rows)} trials): quick {out['quick_gap_mean_pct']} / "
           f"{out['quick_gap_max_pct']} %, all starts {out['all_gap_mean_pct']} / {out['all_gap_max_pct']} %, "
+          f"basin hopping {out['hop_gap_mean_pct']} / {out['hop_gap_max_pct']} % ({out['hop_trials']} trials), "
           f"CEM (better seed) {out['cem_gap_mean_pct']} %, CEM + SQP {out['cem_sqp_gap_mean_pct']} / "
           f"{out['cem_sqp_gap_max_pct']} %; local optima from the starts span {out['coarse_spread_median_pct']} % "
-          f"(median); CEM + SQP below the quick search on {out['cem_sqp_below_quick']} trials")
+          f"(median); CEM + SQP below the quick search on {out['cem_sqp_below_quick']} trials; the best known "
+          f"from (quick, all starts, hopping, CEM + SQP) on {out['best_on']} trials; quick's second-largest gap "
+          f"{out['quick_second_max_pct']} %")
     return out
 
 
@@ -220,6 +275,22 @@ def _features(trials, data, runs, greedy, setup) -> dict:
               f"{' / '.join(f'{v:.2f}' for v in x['rate_dps'])} | {' / '.join(f'{v:.2f}' for v in x['bound_m'])} | "
               f"{near:.0f} | {100 * full:.0f} % | {x['to_final_30_60'][0]:.0f} / {x['to_final_30_60'][1]:.0f} |")
     return res
+
+
+def _route_pursuit_speed(vmax: float = 9.0, accel: float = 2.5) -> list[float]:
+    """The speed the flight planner's route pursuit (``planning._fly``) settles at on a straight
+    2 km route at v_max 9 m/s, from rest and from 9 m/s: the mean over ticks 20-49 and 5-9."""
+    from onboard.core.planning import CandidateGrid, UavMotion, _fly, _sample_route
+
+    motion, grid = UavMotion("vehicle", vmax, accel), CandidateGrid(5.0, 4, 15, 40.0)
+    route = _sample_route(np.array([[0.0, 0.0], [2000.0, 0.0]]), 1.0, 40.0, vmax * 52, 2.0)[None]
+    out = []
+    for v0, ticks in ((0.0, slice(20, 50)), (vmax, slice(5, 10))):
+        _, vel = _fly(route, np.zeros(2), np.array([v0, 0.0]), motion, grid, 50, 1.0, 2.0)
+        out.append(round(float(np.linalg.norm(vel[0, ticks], axis=1).mean()), 2))
+    print(f"\nthe flight's route pursuit on a straight route at v_max {vmax:g} m/s settles at {out[0]:.2f} m/s "
+          f"from rest, {out[1]:.2f} m/s from {vmax:g} m/s")
+    return out
 
 
 def _arrival(path: np.ndarray, centroid: np.ndarray, radius_m: float) -> int:
@@ -274,6 +345,7 @@ def _per_trial_csv(path: Path, trials, data, runs, greedy) -> None:
     keys = sorted(runs)
     cols += [f"ceiling_{sp:g}_{st}_pcrb_m" for sp, st in keys] + ["myopic9_rmse_m", "myopic9_pcrb_m"]
     lines = [",".join(cols)]
+    path.parent.mkdir(parents=True, exist_ok=True)
     for t in trials:
         d = data[t]
         row = [str(t), f"{_rmse(d[f'{FLIGHT}.error_m']):.4f}", f"{np.sqrt(d[f'{FLIGHT}.bound_m2'][W0:]).mean():.4f}"]
