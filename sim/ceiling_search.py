@@ -57,12 +57,12 @@ def pursuit(pb: CeilingProblem, refs: np.ndarray, clearance_m: float = 20.0) -> 
     return acc
 
 
-def starts(pb: CeilingProblem, rng: np.random.Generator, n_random: int = 4,
-           radii_m: tuple[float, ...] = (30.0, 80.0), leads: tuple[int, ...] = (0, 15, 40)) -> tuple[np.ndarray, list[str]]:
+def starts(pb: CeilingProblem, radii_m: tuple[float, ...] = (30.0, 80.0),
+           leads: tuple[int, ...] = (0, 15, 40)) -> tuple[np.ndarray, list[str]]:
     """Initial accelerations (B, K-1, 2) and their names: pursuits of the targets' centroid
     (now and ``leads`` ticks ahead: heading for where they will be), of each target, of the
-    targets' final centroid, of circles (both ways) of each radius round the moving centroid,
-    and ``n_random`` smooth random accelerations."""
+    targets' final centroid, and of circles (both ways) of each radius round the centroid 15
+    ticks ahead."""
     K = pb.K
     cen = pb.targets.mean(axis=1)  # (K, 2)
     idx = np.arange(K)
@@ -81,16 +81,7 @@ def starts(pb: CeilingProblem, rng: np.random.Generator, n_random: int = 4,
             refs.append(cen[np.minimum(idx + 15, K - 1)] + r * np.column_stack([np.cos(side * w * idx),
                                                                                    np.sin(side * w * idx)]))
             names.append(f"circle {r:g} m {'ccw' if side > 0 else 'cw'}")
-    acc = pursuit(pb, np.array(refs))
-    if n_random:
-        # smooth random accelerations: white noise through a 10-tick moving average
-        noise = rng.normal(size=(n_random, K + 8, 2))
-        kern = np.ones(10) / np.sqrt(10)
-        sm = np.stack([np.stack([np.convolve(noise[b, :, c], kern, mode="valid")[:K - 1] for c in range(2)], -1)
-                       for b in range(n_random)])
-        acc = np.concatenate([acc, pb.accel_max * sm])
-        names += [f"random{i}" for i in range(n_random)]
-    return acc, names
+    return pursuit(pb, np.array(refs)), names
 
 
 def track(pb: CeilingProblem, path: np.ndarray) -> np.ndarray:
@@ -326,7 +317,7 @@ def search(pb: CeilingProblem, extra: tuple[np.ndarray, list[str]] | None = None
     when None, and ``extra`` accelerations with names), SQP on accelerations held for
     coarse_block ticks; the ``keep`` best are refined with one acceleration per tick. The best
     checked path of all (the starts included)."""
-    acc, names = starts(pb, np.random.default_rng(0), n_random=0)
+    acc, names = starts(pb)
     if only is not None:
         sel = [i for i, n in enumerate(names) if n in only]
         acc, names = acc[sel], [names[i] for i in sel]
