@@ -150,6 +150,28 @@ def _aggregate(trials, data, runs, greedy) -> dict:
             v, lo, hi = _boot_ratio(np.stack([r9[t]["bound_m2"] for t in ts]), np.stack([r20[t]["bound_m2"] for t in ts]))
             print(f"\nceiling 9 m/s / ceiling 20 m/s on {len(ts)} trials: {v:.3f} ({lo:.3f}, {hi:.3f})")
             res["ceiling9_over_ceiling20"] = [round(v, 4), round(lo, 4), round(hi, 4), len(ts)]
+    if r9:
+        wins: dict = {}
+        for t in r9:
+            name = str(r9[t]["names"][int(r9[t]["refined"][np.argmin(r9[t]["refined_values"])])])
+            if float(r9[t]["value"]) < float(np.min(r9[t]["refined_values"])) - 1e-12:
+                name = "a start as it is"
+            wins[name] = wins.get(name, 0) + 1
+        res["winning_start_9"] = wins
+        print(f"\nthe 9 m/s ceiling came from (refined start: trials): {wins}")
+        rad, spd = [], []
+        for t in r9:
+            a = r9[t]["acc"]
+            v = np.vstack([[0.0, 0.0], np.cumsum(a, axis=0)])
+            sp = np.linalg.norm(v[60:-1], axis=1)
+            an = np.abs(v[60:-1, 0] * a[60:, 1] - v[60:-1, 1] * a[60:, 0]) / np.maximum(sp, 1e-9)
+            keep = (sp > 0.5) & (an > 1e-3)
+            rad += list(sp[keep] ** 2 / an[keep])
+            spd += list(np.linalg.norm(v[60:], axis=1))
+        res["ceiling9_60_99"] = {"speed_median_mps": round(float(np.median(spd)), 2),
+                                 "turn_radius_quartiles_m": np.percentile(rad, [25, 50, 75]).round(1).tolist()}
+        print(f"the 9 m/s ceiling at 60-99 s: speed {np.median(spd):.2f} m/s (median), turn radius "
+              f"{res['ceiling9_60_99']['turn_radius_quartiles_m']} m (quartiles)")
     q = r9
     if q:
         cpu = [float(q[t]["cpu_s"]) for t in q]
@@ -265,6 +287,7 @@ def _features(trials, data, runs, greedy, setup) -> dict:
         to_fin = np.mean([f["to_final_t"] for f in fs], axis=0)
         near = np.nanmedian([f["first_near_s"] for f in fs])
         full = float(np.mean([f["full_speed"] for f in fs]))
+        print(f"{name}: mean range at 35 / 45 s {rng_t[35]:.0f} / {rng_t[45]:.0f} m")
         res[name] = dict(trials=len(ts), range_m=[round(_phase(rng_t, a, z), 0) for a, z in PHASES],
                          rate_dps=[round(_phase(rate_t, a - 1, z - 1), 2) for a, z in PHASES],
                          bound_m=[round(_phase(bt, a, z), 2) for a, z in PHASES], first_near_s_median=near,
