@@ -43,9 +43,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from onboard.app import datagram as dg
-from onboard.app.clock import AutopilotClock
-from onboard.app.kraken import UtcMap
-from onboard.app.link import Link, mavlink
+from onboard.app.clock import AutopilotClock, UtcMap
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
 
 READY_STATES = 5  # truth states computed before the first scan is sent
@@ -342,7 +341,6 @@ class LiveFeed:
             sock.close()
             if out is not None:
                 out.close()
-
 
     def scan(self, T: float, states: np.ndarray, uav: np.ndarray, tel: Telemetry) -> tuple[np.ndarray, ...]:
         """The DF's bearings of the truth at T from ``uav`` (per channel): the DF model's."""

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.core import doa
+from onboard.settings import ConfigError
 from sim.feed import LiveFeed, LiveFeedConfig, Telemetry
 
 DOC_NAME = "DOA_value.html"
@@ -213,8 +214,8 @@ class KrakenFeed(LiveFeed):
     def __init__(self, cfg: LiveFeedConfig, scenario, writer: KrakenWriter, model: KrakenModel = KrakenModel(),
                  log=print):
         super().__init__(cfg, scenario, log)
-        if scenario.kraken is None:
-            raise ValueError("the scenario has no kraken section: which VFO frequency is which target")
+        if not scenario.kraken.vfos:
+            raise ConfigError("kraken.vfos: none: which VFO frequency is which target? (docs/KRAKENSDR.md)")
         names = [t.name for t in scenario.targets]
         self.freqs = {names.index(v.target): v.freq_hz for v in scenario.kraken.vfos}
         self.writer, self.model = writer, model
@@ -290,7 +291,7 @@ def feed_from_args(args, sc, cfg: LiveFeedConfig, log=print) -> tuple[KrakenFeed
     writer = KrakenWriter(folder, serve=tuple(args.kraken_http))
     try:
         model = KrakenModel(multipath=args.multipath == "on",
-                            mount_offset_rad=sc.kraken.mount_offset_rad if sc.kraken else 0.0)
+                            mount_offset_rad=sc.kraken.mount_offset_rad)
         feed = KrakenFeed(cfg, sc, writer, model, log=log)
     except BaseException:
         writer.close()

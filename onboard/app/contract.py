@@ -1,11 +1,14 @@
-"""The onboard app's wire contract: its states, the actions it is commanded with, the reasons
-it refuses, and the layout of what it publishes (docs/MAVLINK.md). groundstation/protocol.py
-repeats the numbers a ground station needs (tests/test_gcs.py checks they agree)."""
+"""The onboard app's wire contract: its component id, its states, the actions it is commanded
+with, the reasons it refuses, and the layout of what it publishes (docs/MAVLINK.md). The app
+speaks it and the ground station (groundstation/protocol.py) reads it from here: one
+declaration. Light module (the MAVLink dialect only), so a ground station imports it without
+the app or the core."""
 from __future__ import annotations
 
 from enum import IntEnum
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import COMP_ID as APP_COMPID  # noqa: F401  (191, the app's component)
+from onboard.app.mavlink_connection import mavlink
 
 # MAVLink command sent to component 191; param1 = action
 MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010
@@ -69,7 +72,11 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
                "next_u_m", "dgram_accepted", "dgram_rejected", "ticks", "ticks_skipped",
                "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
                "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
-               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase")
+               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase",
+               "kraken_frames", "kraken_rejected", "kraken_gated")
+# a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
+# empty (confidence, power, overdrive); NaN without one
+KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")
 # PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)
 WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
 WARN_ACCEL = 2  # ... its acceleration limit

@@ -8,7 +8,7 @@ Read by ``DocumentPoller`` (onboard/app/kraken_fetch.py), parsed here on the io 
    frame per document). A VFO's line is a target's by its frequency (``kraken.vfos``,
    ``freq_tol_hz``); another frequency is ``unknown_vfo``. Its time: the middle of the frame's
    acquisition (``epoch - latency / 2``, Unix s) in autopilot s, through the autopilot's own
-   UTC (SYSTEM_TIME: ``UtcMap``) or this computer's clock (``time_source: host``); a frame more
+   UTC (SYSTEM_TIME: ``UtcMap``, onboard/app/clock.py) or this computer's clock (``time_source: host``); a frame more
    than ``MAX_FUTURE_S`` ahead of the autopilot clock or ``MAX_AGE_S`` behind it is refused.
 3. **Slots.** The filter steps dt = 1 s per tick, KrakenSDR frames come at its own rate (a
    frame per ~0.4-1 s). Each frame falls in the slot of the nearest whole autopilot second; a
@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import math
 import statistics
-import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import Callable
@@ -35,9 +34,12 @@ from typing import Callable
 import numpy as np
 
 from onboard.app import kraken_line as kl
-from onboard.app.datagram import MAX_AGE_S, MAX_FUTURE_S, Datagram, DatagramError
+from onboard.app.clock import HostTime
+from onboard.app.datagram import MAX_AGE_S, MAX_FUTURE_S, Datagram, DatagramError, ScanBuffer
 from onboard.app.kraken_fetch import DocumentPoller, status_url_for
+from onboard.app.mavlink_connection import mavlink
 from onboard.core import doa
+from onboard.settings import ConfigError
 
 SLOT_EARLY_S = 0.05  # a frame this close before its slot's second closes the slot at once
 SLOT_HOLD_S = 0.3  # a slot without such a frame waits this long after its half-second end
@@ -61,47 +63,6 @@ class KrakenScan(Datagram):
 
     t_measured: float | None = None  # autopilot s of the frame (its pose is the vehicle's then)
     clutter_rate: float | None = None  # the clutter rate of this scan's likelihood (None: the filter's)
-
-
-class UtcMap:
-    """Unix time to autopilot time from the autopilot's SYSTEM_TIME (UTC from its GPS, and its
-    time since boot): the median offset of the last ``WINDOW`` messages with a UTC (0 = none),
-    so a stray message moves nothing. After a reboot it follows in WINDOW // 2 + 1 messages."""
-
-    WINDOW = 9
-
-    def __init__(self):
-        self._offsets: deque[float] = deque(maxlen=self.WINDOW)
-
-    def observe(self, time_unix_usec: int, time_boot_ms: int) -> None:
-        if time_unix_usec <= 0 or not 0 <= time_boot_ms < 2**32:
-            return
-        off = time_unix_usec / 1e6 - time_boot_ms / 1e3
-        if math.isfinite(off):
-            self._offsets.append(off)
-
-    def autopilot_time(self, unix_s: float) -> float | None:
-        if not self._offsets:
-            return None
-        return unix_s - statistics.median(self._offsets)
-
-    def unix_time(self, autopilot_s: float) -> float | None:
-        """The inverse (a simulated KrakenSDR stamps its frames with it: sim/kraken.py)."""
-        if not self._offsets:
-            return None
-        return autopilot_s + statistics.median(self._offsets)
-
-
-class HostTime:
-    """Unix time to autopilot time through this computer's clock (KrakenSDR on this computer,
-    or synchronised with it): the autopilot clock now, less the age of the stamp."""
-
-    def __init__(self, clock, wall: Callable[[], float] = time.time):
-        self.clock, self.wall = clock, wall
-
-    def autopilot_time(self, unix_s: float) -> float | None:
-        now = self.clock.now()
-        return None if now is None else now - (self.wall() - unix_s) * getattr(self.clock, "rate", 1.0)
 
 
 class KrakenSource:
@@ -369,22 +330,24 @@ class KrakenSource:
 
 
 class KrakenInput:
-    """The app's KrakenSDR input: the poller thread and the source; ``drain`` and ``periodic``
-    run on the io thread under the app lock."""
+    """The app's KrakenSDR input, one of its parts (onboard/app/app.py): the poller thread and the
+    source. ``drain`` and ``periodic`` run on the io thread under the app lock. ``scenario``: its
+    ``kraken`` section and targets; ``autopilot``: the autopilot side (its poses and UTC);
+    ``scans``: the scan buffer the tick schedule takes from; ``params``: PMON_PD and
+    PMON_CLUTTER (the adaptive clutter's); ``say``: STATUSTEXT."""
 
-    def __init__(self, app, url: str | None = None):
-        cfg = app.base_scenario.kraken
-        if cfg is None:
-            raise ValueError("the scenario has no kraken section (the VFO of each target: docs/KRAKENSDR.md)")
-        url = url or cfg.url
-        self.url = url
-        self.poller = DocumentPoller(url, status_url_for(url, cfg.status_url), cfg.poll_s,
+    def __init__(self, scenario, clock, autopilot, scans: ScanBuffer, params, say):
+        cfg = scenario.kraken
+        if not cfg.vfos:
+            raise ConfigError("kraken.vfos: none: which VFO frequency is which target? (docs/KRAKENSDR.md)")
+        self.url = cfg.url
+        self.say = say
+        self.poller = DocumentPoller(cfg.url, status_url_for(cfg.url, cfg.status_url), cfg.poll_s,
                                      prepare={"doa": kl.parse_document})
-        time_map = app.utc if cfg.time_source == "autopilot" else HostTime(app.clock)
-        self.app = app
-        self.source = KrakenSource(cfg, tuple(t.name for t in app.base_scenario.targets), app.clock, app.poses,
-                                   time_map, app.scans.add, lambda: app.params["PMON_PD"], self._report,
-                                   lambda: app.params["PMON_CLUTTER"])
+        time_map = autopilot.utc if cfg.time_source == "autopilot" else HostTime(clock)
+        self.source = KrakenSource(cfg, tuple(t.name for t in scenario.targets), clock, autopilot.poses,
+                                   time_map, scans.add, lambda: params["PMON_PD"], self._report,
+                                   lambda: params["PMON_CLUTTER"])
         self._down_said = self._status_said = False
         self.handled = 0  # documents the io thread has handled
 
@@ -416,7 +379,12 @@ class KrakenInput:
             self._report("status", f"KrakenSDR status.json not read ({self.poller.last_error.get('status')}): "
                                    "ADC overdrive not gated")
 
+    def status(self) -> dict[str, float]:
+        """PMON_STAT's KrakenSDR fields (contract.STAT_FIELDS)."""
+        s = self.source
+        return {"kraken_frames": s.frames, "kraken_rejected": sum(s.rejected.values()),
+                "kraken_gated": sum(s.gated.values())}
+
     def _report(self, reason: str, message: str) -> None:
-        from onboard.app.link import mavlink
         quiet = reason in ("back", "reachable")
-        self.app.say(message, mavlink.MAV_SEVERITY_INFO if quiet else mavlink.MAV_SEVERITY_WARNING)
+        self.say(message, mavlink.MAV_SEVERITY_INFO if quiet else mavlink.MAV_SEVERITY_WARNING)

@@ -135,9 +135,9 @@ def source_for(url: str, cap: int, timeout_s: float = 1.0):
     return HttpSource(url, cap, timeout_s) if url.startswith("http://") else FileSource(url, cap)
 
 
-def status_url_for(url: str, status_url: str) -> str | None:
-    """``status_url`` resolved: ``auto`` is status.json in the folder of ``url``, "" none."""
-    if status_url == "":
+def status_url_for(url: str, status_url: str | None) -> str | None:
+    """``status_url`` resolved: ``auto`` is status.json in the folder of ``url``, None none."""
+    if status_url is None:
         return None
     if status_url != "auto":
         return status_url

@@ -63,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
     from onboard.app.signing import KeyFileError
-    from onboard.config import ConfigError, load_scenario
+    from onboard.config import ConfigError, load_scenario, override
     from onboard.policy import POLICIES
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
@@ -72,15 +72,17 @@ def run(args) -> int:
     gcs = tuple(args.gcs_sysid or (255,))
     try:  # a bad scenario refuses to start, with one error naming the field
         sc = load_scenario(args.scenario, POLICIES[args.policy])
+        if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
+            sc = override(sc, {"kraken.url": args.kraken})
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     cfg = AppConfig(args.mavlink, host, port, args.baud, args.sysid, args.auto_launch,
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
-                    df_sources=args.df_from, df_rate_hz=args.df_rate, kraken_url=args.kraken)
+                    df_sources=args.df_from, df_rate_hz=args.df_rate, kraken=args.kraken is not None)
     try:
         app = OnboardApp(cfg, sc)
-    except (KeyFileError, ValueError) as exc:  # ValueError: --kraken without a kraken section, a bad URL
+    except (KeyFileError, ConfigError) as exc:  # ConfigError: --kraken without kraken.vfos
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # connection refused, address in use, a log file's directory missing ...
