@@ -60,7 +60,7 @@ from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
 from sim.multicopter import DEMO_VEHICLE_PARAMS, VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
-                         motion_stats, nees_band, paired_ratio, pcrb_position, seeded_rng, t_interval)
+                         motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
@@ -87,8 +87,10 @@ AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICL
 class Method:
     """A sensing mode and, for a UAV, how it moves.
 
-    sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter) or ``fixed`` (the paper's three
-    ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
+    sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter), ``fixed`` (the paper's three
+    ground DFs, no clutter, p_D = 1) or ``ceiling`` (bound only, no sensor and no filter run: the
+    path is the clairvoyant ceiling's, ``sim.ceiling_search.ceiling_path``, from the trial's
+    truth, gains and start at the method's vehicle limits; only its PCRB and path are defined). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
     from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
     random); None: the scenario's ``planning.planner``.
@@ -124,8 +126,15 @@ class Method:
     autopilot_limits: bool = False
 
     def __post_init__(self):
-        if self.sensing not in ("uav", "fixed"):
-            raise ValueError(f"method {self.name}: sensing must be 'uav' or 'fixed'")
+        if self.sensing not in ("uav", "fixed", "ceiling"):
+            raise ValueError(f"method {self.name}: sensing must be 'uav', 'fixed' or 'ceiling'")
+        if self.sensing == "ceiling" and self.motion != "vehicle":
+            raise ValueError(f"method {self.name}: a ceiling is a vehicle's (motion 'vehicle')")
+
+    @property
+    def bound_only(self) -> bool:
+        """No filter run (RMSE and NEES undefined): the clairvoyant ceiling."""
+        return self.sensing == "ceiling"
         if self.planner is not None and self.planner not in PLANNERS:
             raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
         if self.motion not in (None, "jump", "vehicle"):
@@ -156,6 +165,11 @@ for _m in (
     Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
            "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
            "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
+           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+    Method("ceiling", "bound only: the path of a vehicle at the flight default's limits (its policy, the stock "
+           "autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies) that minimises the PCRB "
+           "knowing the true target trajectories (sim/ceiling.py, docs/PLANNING.md 'The clairvoyant ceiling'); "
+           "no filter run, Lambda = 1", sensing="ceiling", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
@@ -327,12 +341,12 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
     limits from its autopilot's parameters."""
     sc = method_scenario(cfg.scenario, method)
-    flown = method.sensing == "uav" and sc.planning.motion == "vehicle"
+    flown = method.sensing != "fixed" and sc.planning.motion == "vehicle"  # the ceiling: its vehicle's limits
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
         m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
         sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
-    df = None if method.sensing == "fixed" else DirectionFinder.from_config(sc.sensor)
+    df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
     return MonitorSetup.from_scenario(sc), df, limits
 
 
@@ -401,12 +415,41 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown)
 
 
+def run_ceiling(cfg: EvalConfig, method: Method, truth: np.ndarray, start: np.ndarray, gains: np.ndarray,
+                given: Sequence[np.ndarray] = ()) -> MethodTrace:
+    """A bound-only method on one trial: the clairvoyant ceiling's path at the method's vehicle
+    limits (``sim.ceiling_search.ceiling_path``; ``given``: flown paths (K, 3) as extra starts,
+    so the ceiling is never above them as the vehicle tracks them) and its PCRB; the error, NEES
+    and estimates are NaN (no filter runs)."""
+    from sim.ceiling_search import ceiling_path
+
+    setup, _, _ = _setup_for(cfg, method)
+    K, M = truth.shape[:2]
+    t0 = time.process_time()
+    path = ceiling_path(setup, truth, gains, start, cfg.window_start, [np.asarray(g)[:, :2] for g in given])
+    cpu = time.process_time() - t0
+    q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
+    bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, path[:, None], setup.sensor.sigma_rad, q)
+    nan = np.full((K, M), np.nan)
+    uav = np.column_stack([path, np.full(K, setup.grid.altitude_m)])
+    return MethodTrace(nan, nan.copy(), np.full((K, M, 2), np.nan), uav, 0, cpu / K, bound)
+
+
 def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
-    """One trial of every method: truth once, the same truth and UAV start for all."""
+    """One trial of every method: truth once, the same truth and UAV start for all. A bound-only
+    method runs last, with the flown paths of the run's methods that plan with its limits as
+    extra starts of its search."""
     t0 = time.perf_counter()
     truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True)
     start = draw_start(cfg, _rng(cfg.seed, trial, 1))
-    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in cfg.methods}
+    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in cfg.methods if not m.bound_only}
+    for m in cfg.methods:
+        if m.bound_only:
+            motion = _setup_for(cfg, m)[0].motion
+            given = [traces[o.name].uav for o in cfg.methods if not o.bound_only and o.sensing == "uav"
+                     and _setup_for(cfg, o)[0].motion == motion]
+            traces[m.name] = run_ceiling(cfg, m, truth, start, gains, given)
+    traces = {m.name: traces[m.name] for m in cfg.methods}
     return TrialResult(trial, start, truth, traces, time.perf_counter() - t0, gains)
 
 
@@ -559,10 +602,11 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
         eps = np.sqrt(np.mean(err ** 2, axis=0))
         anees = nees.mean(axis=0)
         per_trial = np.sqrt(np.mean(err[:, w0:] ** 2, axis=(1, 2)))
-        diff = None if ref_r is None else t_interval(per_trial - ref_r)
-        ratio_ref = None if ref_r is None else paired_ratio(ref_err, err, w0, cfg.seed)
+        filtered = ref_r is not None and not m.bound_only
+        diff = t_interval(per_trial - ref_r) if filtered else None
+        ratio_ref = paired_ratio(ref_err, err, w0, cfg.seed) if filtered else None
         motion: dict = {}
-        if m.sensing == "uav":
+        if m.sensing != "fixed":
             st = [motion_stats(t.traces[m.name], t.truth) for t in trials]
             steps = np.concatenate([s["step_m"] for s in st])
             motion = dict(
@@ -591,7 +635,30 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
     per10 = int(round(10.0 / cfg.dt_s))
     speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
+    filtered = [m.name for m in cfg.methods if not m.bound_only]
     pairs = {(a, b): (paired_ratio(errs[a], errs[b], w0, cfg.seed),
                       t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
-             for a in cfg.method_names if is_flight(a) for b in cfg.method_names if b != a}
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs)
+             for a in filtered if is_flight(a) for b in filtered if b != a}
+    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs, _over_ceiling(cfg, trials))
+
+
+def _over_ceiling(cfg: EvalConfig, trials: Sequence[TrialResult]) -> dict:
+    """Each UAV method's PCRB over the (first) bound-only method's, paired over the trials
+    (``Summary.ceiling``)."""
+    ceil = next((m for m in cfg.methods if m.bound_only), None)
+    if ceil is None:
+        return {}
+    w0 = cfg.window_start
+    ref = np.stack([t.traces[ceil.name].bound_m2 for t in trials])
+    ratios, limits = {}, {}
+    for m in cfg.methods:
+        if m.sensing == "fixed":
+            continue
+        mo = _setup_for(cfg, m)[0].motion
+        limits[m.name] = (f"{mo.speed_max_mps:g} m/s, {mo.accel_max_mps2:g} m/s²" if mo.kind == "vehicle" else
+                          f"jumps of {cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m:g} m")
+        if m.sensing == "uav":
+            b = np.stack([t.traces[m.name].bound_m2 for t in trials])
+            per_trial = np.sqrt(b[:, w0:].mean(axis=(1, 2)) / ref[:, w0:].mean(axis=(1, 2)))
+            ratios[m.name] = (paired_bound_ratio(b, ref, w0, cfg.seed), per_trial)
+    return {"name": ceil.name, "limits": limits, "ratios": ratios}
