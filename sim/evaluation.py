@@ -106,7 +106,9 @@ class Method:
     scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
     the run's own ``--set`` (``onboard.config.override(..., beneath=True)``).
     autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
-    (None: stock). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
+    (None: stock). follows: ``ceiling``: the UAV flies the clairvoyant ceiling's path (at the method's
+    limits, as the bound-only ``ceiling``), known in advance: no planning; the filter runs on its
+    bearings (what the filter makes of the best path for the bound). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
     WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
     airframe flies; ``onboard.policy.vehicle_motion``), as the app does; else with the
     scenario's values.
@@ -123,12 +125,15 @@ class Method:
     scenario_overrides: tuple[tuple[str, Any], ...] = ()
     autopilot: str | None = None
     autopilot_limits: bool = False
+    follows: str | None = None
 
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed", "ceiling"):
             raise ValueError(f"method {self.name}: sensing must be 'uav', 'fixed' or 'ceiling'")
-        if self.sensing == "ceiling" and self.motion != "vehicle":
+        if (self.sensing == "ceiling" or self.follows is not None) and self.motion != "vehicle":
             raise ValueError(f"method {self.name}: a ceiling is a vehicle's (motion 'vehicle')")
+        if self.follows not in (None, "ceiling") or (self.follows and self.sensing != "uav"):
+            raise ValueError(f"method {self.name}: follows must be None or 'ceiling' (with sensing 'uav')")
 
     @property
     def bound_only(self) -> bool:
@@ -170,6 +175,9 @@ for _m in (
            "knowing the true target trajectories (sim/ceiling.py, docs/PLANNING.md 'The clairvoyant ceiling'); "
            "no filter run, Lambda = 1", sensing="ceiling", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+    Method("ceiling_flown", "single UAV flying the ceiling's path (clairvoyant, not a planner: the path of "
+           "'ceiling'), the flight default's filter on its bearings, Lambda = 1", clutter_rate=1.0, motion="vehicle",
+           follows="ceiling", scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
     # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
@@ -350,10 +358,13 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
-               gains: np.ndarray | None = None) -> MethodTrace:
+               gains: np.ndarray | None = None, path: np.ndarray | None = None) -> MethodTrace:
     """Closed loop of one method on one trial's truth (K, M, 6); with the truth's closed-loop
-    gains (K-1, M, 3, 6), also the PCRB along the flown path."""
+    gains (K-1, M, 3, 6), also the PCRB along the flown path. ``path`` (K, 2): the UAV's
+    positions given in advance (``Method.follows``; its start first): no planning, no flight."""
     setup, df, limits = _setup_for(cfg, method)
+    if path is not None:
+        limits = None
     ss = np.random.SeedSequence(cfg.seed, spawn_key=(trial, 2, _method_key(method.name)))
     sensor_rng, filter_rng, policy_rng = (np.random.default_rng(s) for s in ss.spawn(3))
     K, M = truth.shape[0], truth.shape[1]
@@ -374,8 +385,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav_track[k] = uav
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav, workspace=ws, uav_velocity=uav_vel,
-                          planner_rng=policy_rng)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=None if path is not None else uav,
+                          workspace=ws, uav_velocity=uav_vel, planner_rng=policy_rng)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]
@@ -383,7 +394,9 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         P = res.covs[:, :2, :2]
         nees[k] = np.einsum("mi,mi->m", e, np.linalg.solve(P, e[..., None])[..., 0])
         degenerate += int(res.degenerate.sum())
-        if uav is not None and k < K - 1 and limits is not None:
+        if path is not None and k < K - 1:
+            uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
+        elif uav is not None and k < K - 1 and limits is not None:
             p = res.planning
             ok = p is not None and p.index is not None
             v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
@@ -414,40 +427,45 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown)
 
 
-def run_ceiling(cfg: EvalConfig, method: Method, truth: np.ndarray, start: np.ndarray, gains: np.ndarray,
-                given: Sequence[np.ndarray] = ()) -> MethodTrace:
-    """A bound-only method on one trial: the clairvoyant ceiling's path at the method's vehicle
-    limits (``sim.ceiling_search.ceiling_path``; ``given``: flown paths (K, 3) as extra starts,
-    so the ceiling is never above them as the vehicle tracks them) and its PCRB; the error, NEES
-    and estimates are NaN (no filter runs)."""
-    from sim.ceiling_search import ceiling_path
-
+def _ceiling_trace(cfg: EvalConfig, method: Method, truth: np.ndarray, gains: np.ndarray, path: np.ndarray,
+                   cpu_s: float) -> MethodTrace:
+    """A bound-only method's trace: its path (K, 2) and the PCRB along it; the error, NEES and
+    estimates NaN (no filter runs); tick_s: the search's CPU time per tick."""
     setup, _, _ = _setup_for(cfg, method)
     K, M = truth.shape[:2]
-    t0 = time.process_time()
-    path = ceiling_path(setup, truth, gains, start, cfg.window_start, [np.asarray(g)[:, :2] for g in given])
-    cpu = time.process_time() - t0
     q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
     bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, path[:, None], setup.sensor.sigma_rad, q)
     nan = np.full((K, M), np.nan)
     uav = np.column_stack([path, np.full(K, setup.grid.altitude_m)])
-    return MethodTrace(nan, nan.copy(), np.full((K, M, 2), np.nan), uav, 0, cpu / K, bound)
+    return MethodTrace(nan, nan.copy(), np.full((K, M, 2), np.nan), uav, 0, cpu_s / K, bound)
 
 
 def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
-    """One trial of every method: truth once, the same truth and UAV start for all. A bound-only
-    method runs last, with the flown paths of the run's methods that plan with its limits as
-    extra starts of its search."""
+    """One trial of every method: truth once, the same truth and UAV start for all. The
+    clairvoyant ceiling's path (``sim.ceiling_search.ceiling_path``), for a bound-only method
+    or one that follows it, is searched once per vehicle limits after the other methods ran,
+    with their flown paths at those limits as extra starts of its search."""
+    from sim.ceiling_search import ceiling_path
+
     t0 = time.perf_counter()
     truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True)
     start = draw_start(cfg, _rng(cfg.seed, trial, 1))
-    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in cfg.methods if not m.bound_only}
+    planned = [m for m in cfg.methods if not m.bound_only and m.follows is None]
+    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in planned}
+    ceilings: dict = {}  # UavMotion -> (path (K, 2), CPU s)
     for m in cfg.methods:
-        if m.bound_only:
-            motion = _setup_for(cfg, m)[0].motion
-            given = [traces[o.name].uav for o in cfg.methods if not o.bound_only and o.sensing == "uav"
-                     and _setup_for(cfg, o)[0].motion == motion]
-            traces[m.name] = run_ceiling(cfg, m, truth, start, gains, given)
+        if m in planned:
+            continue
+        setup = _setup_for(cfg, m)[0]
+        if setup.motion not in ceilings:
+            given = [traces[o.name].uav[:, :2] for o in planned
+                     if o.sensing == "uav" and _setup_for(cfg, o)[0].motion == setup.motion]
+            c0 = time.process_time()
+            path = ceiling_path(setup, truth, gains, start, cfg.window_start, given)
+            ceilings[setup.motion] = (path, time.process_time() - c0)
+        path, cpu = ceilings[setup.motion]
+        traces[m.name] = (_ceiling_trace(cfg, m, truth, gains, path, cpu) if m.bound_only else
+                          run_method(cfg, m, trial, truth, start, gains, path=path))
     traces = {m.name: traces[m.name] for m in cfg.methods}
     return TrialResult(trial, start, truth, traces, time.perf_counter() - t0, gains)
 
