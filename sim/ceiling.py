@@ -17,7 +17,7 @@ global minimum (``sim.ceiling_search``: many starts, and an independent sampling
 The vehicle (the flight planner's model, ``onboard.core.planning._fly``): a double integrator
 with a constant acceleration through each tick, |a| <= a_max and |v| <= v_max at every tick (so
 between ticks too), starting at rest at the start; it flies at the UAV's altitude, so it keeps
-out of the obstacles it cannot overfly, inflated by the UAV's margin (``planning._blocking_2d``),
+out of the obstacles it cannot overfly, inflated by the UAV's margin (``planning.blocking_2d``),
 along the whole curved path, and inside the area.
 
 The search (``sim.ceiling_search``) works on the accelerations a_k (positions and velocities
@@ -34,7 +34,7 @@ import numpy as np
 
 from onboard.core.information import PLANAR, information_reduction_factor, planar_model
 from onboard.core.obstacles import polygons_crossed
-from onboard.core.planning import _blocking_2d
+from onboard.core.planning import blocking_2d
 
 SUBSTEPS = 4  # points per tick where the penalties hold the curved path out of obstacles
 CHECK_SUBSTEPS = 20  # points per tick of the final check (chords of <= 0.5 m at 9 m/s)
@@ -83,7 +83,7 @@ def problem_for_trial(setup, truth: np.ndarray, gains: np.ndarray, start: np.nda
     P0 = np.asarray(setup.initial_cov, float)[np.ix_(PLANAR, PLANAR)]
     sigma = setup.sensor.sigma_rad
     q = information_reduction_factor(setup.sensor.p_detect, clutter_rate, sigma)
-    normals, offsets = _blocking_2d(setup.uav_obstacles, setup.grid.altitude_m)
+    normals, offsets = blocking_2d(setup.uav_obstacles, setup.grid.altitude_m)
     return CeilingProblem(np.asarray(truth, float)[:, :, :2].copy(), F, Q, np.linalg.inv(P0), q / sigma**2,
                           int(window_start), np.asarray(start, float)[:2].copy(), setup.model.dt_s,
                           float(speed_max), float(accel_max), np.asarray(setup.area_min, float)[:2],

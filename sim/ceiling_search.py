@@ -332,3 +332,19 @@ def search(pb: CeilingProblem, extra: tuple[np.ndarray, list[str]] | None = None
     best = pool[b]
     return Ceiling(best.paths[i], best.acc[i], best.bound_m2[i], float(best.value[i]), tuple(names),
                    first.value, coarse.value, order, fine.value)
+
+
+def ceiling_path(setup, truth: np.ndarray, gains: np.ndarray, start: np.ndarray, window_start: int,
+                 given: list[np.ndarray] = ()) -> np.ndarray:
+    """The ceiling's path (K, 2) of one evaluation trial (the evaluation's bound-only method
+    ``ceiling``): ``search`` (the quick starts) at ``setup.motion``'s speed and acceleration, with
+    Lambda and p_D of ``setup.sensor``, and each path of ``given`` ((K, 2), e.g. the run's flown
+    paths) as the vehicle tracks it (``track``) as an extra start."""
+    from sim.ceiling import problem_for_trial
+
+    pb = problem_for_trial(setup, truth, gains, start, window_start, setup.motion.speed_max_mps,
+                           setup.motion.accel_max_mps2, setup.sensor.clutter_rate)
+    extra = None
+    if len(given):
+        extra = (np.stack([track(pb, np.asarray(g, float)[:, :2]) for g in given]), [f"given {i}" for i in range(len(given))])
+    return search(pb, extra).path
