@@ -293,7 +293,7 @@ class LiveFeed:
                 return 130
             T = math.floor(tel.clock.now()) + 1.0
             resets = tel.clock.resets
-            self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {dest[0]}:{dest[1]}")
+            self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {self.destination(dest)}")
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
                 if states is None or not _sleep_until(tel.clock, T, self.stop_event):
@@ -331,7 +331,7 @@ class LiveFeed:
                     out.write(json.dumps(rec) + "\n")
                 self.scans += 1
                 T += 1.0
-            self.log(f"feed: done: {self.scans} scans, {self.sent} datagrams, "
+            self.log(f"feed: done: {self.scans} scans, {self.sent} {self.sent_unit}, "
                      f"{self.late_scans} sent > {LATE_S:g} s late (max {self.max_send_lag_s:.2f} s autopilot), "
                      f"truth step median {np.median(self.step_ms) if self.step_ms else 0:.0f} ms")
             return 0
@@ -341,6 +341,11 @@ class LiveFeed:
             sock.close()
             if out is not None:
                 out.close()
+
+    sent_unit = "datagrams"  # what ``sent`` counts
+
+    def destination(self, dest: tuple[str, int]) -> str:
+        return f"{dest[0]}:{dest[1]}"
 
     def scan(self, T: float, states: np.ndarray, uav: np.ndarray, tel: Telemetry) -> tuple[np.ndarray, ...]:
         """The DF's bearings of the truth at T from ``uav`` (per channel): the DF model's."""

@@ -225,6 +225,17 @@ class KrakenFeed(LiveFeed):
         self._moving_since: float | None = None
         self.skipped_no_time = 0
 
+    sent_unit = "KrakenSDR lines"
+
+    def destination(self, dest) -> str:
+        return self.writer.url
+
+    def run(self) -> int:
+        rc = super().run()
+        self.log(f"feed: KrakenSDR: {self.writer.frames} frames written, {self.skipped_no_time} scans without "
+                 "the autopilot's UTC or heading")
+        return rc
+
     def scan(self, T, states, uav, tel: Telemetry):
         from sim.sensors import df_scan_labelled
 

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from onboard.app import kraken_line as kl
-from onboard.app.clock import ManualClock
+from onboard.app.clock import ManualClock, UtcMap
 from onboard.app.datagram import ScanBuffer
-from onboard.app.kraken import KrakenSource, UtcMap
+from onboard.app.kraken import KrakenSource
 from onboard.app.pose import PoseHistory, PoseSample
 from onboard.config import load_scenario
 from onboard.core import doa
@@ -162,7 +162,7 @@ def _geometry_errors_deg(yaw_error_deg: float, mount_deg: float = 0.0) -> np.nda
     """Bearings the app makes of targets at known places, from spectra KrakenSDR would show on a
     vehicle heading 63.4 degrees with the array mounted ``mount_deg`` right of the nose, with the
     pose history's heading off by ``yaw_error_deg``; their errors against the geometry."""
-    cfg = replace(SC.kraken, mount_offset_rad=math.radians(mount_deg))
+    cfg = replace(SC.kraken, mount_offset_deg=mount_deg)
     rig = Rig(cfg, yaw_deg=63.4, yaw_error_deg=yaw_error_deg)
     uav = np.array([150.0, 200.0])
     targets = np.array([[281.0, 925.0], [238.0, 706.0], [901.0, 925.0], [885.0, 676.0]])
@@ -339,7 +339,7 @@ def test_the_autopilots_utc_maps_unix_time_and_a_stray_message_moves_nothing():
 
 
 def test_host_time_maps_through_this_computers_clock_at_the_autopilots_rate():
-    from onboard.app.kraken import HostTime
+    from onboard.app.clock import HostTime
 
     class Clock:
         rate = 4.0  # a SITL at 4x
@@ -376,14 +376,14 @@ def test_a_change_of_convention_is_said():
 @pytest.mark.parametrize("change, error", [
     ({"kraken.vfos": [{"target": "T9", "freq_hz": 433e6}]}, "kraken.vfos[0].target: no target named 'T9'"),
     ({"kraken.vfos": [{"target": "T1", "freq_hz": 433e6}, {"target": "T2", "freq_hz": 433.001e6}]},
-     "kraken.vfos: two VFOs with the same frequency"),
+     "kraken.vfos[1].freq_hz: two VFOs with the same frequency"),
     ({"kraken.vfos": [{"target": "T1", "freq_hz": 433e6}, {"target": "T1", "freq_hz": 434e6}]},
-     "kraken.vfos: two VFOs with the same target"),
+     "kraken.vfos[1].target: two VFOs with the same target"),
     ({"kraken.url": "ftp://x/y"}, "kraken.url: must be http://HOST:PORT/PATH"),
     ({"kraken.convention": "north"}, "kraken.convention: must be one of auto, unit_circle, compass"),
     ({"kraken.poll_s": 0}, "kraken.poll_s: must be in [0.005, 10] s"),
     ({"kraken.mount_offset_deg": 1e400}, "kraken.mount_offset_deg: must be finite"),
-    ({"kraken.colour": 1}, "kraken: unknown key 'colour'"),
+    ({"kraken.colour": 1}, "kraken.colour: unknown key"),
 ])
 def test_the_kraken_section_is_checked(change, error):
     from onboard.config import ConfigError
@@ -392,7 +392,7 @@ def test_the_kraken_section_is_checked(change, error):
         load_scenario("paper", change)
 
 
-def test_pmon_run_refuses_kraken_without_a_section(tmp_path, capsys):
+def test_pmon_run_refuses_kraken_without_vfos(tmp_path, capsys):
     import yaml
 
     from onboard.cli import main
@@ -402,8 +402,8 @@ def test_pmon_run_refuses_kraken_without_a_section(tmp_path, capsys):
     path.write_text(yaml.safe_dump(tree))
     rc = main(["run", "--mavlink", "udpin:127.0.0.1:0", "--df", "127.0.0.1:0", "--scenario", str(path), "--kraken"])
     err = capsys.readouterr().err
-    assert rc == 2 and err.strip() == ("pmon run: the scenario has no kraken section (the VFO of each target: "
-                                       "docs/KRAKENSDR.md)")
+    assert rc == 2 and err.strip() == ("pmon run: kraken.vfos: none: which VFO frequency is which target? "
+                                       "(docs/KRAKENSDR.md)")
 
 
 def test_after_an_autopilot_reboot_the_slots_start_again():

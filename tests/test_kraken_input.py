@@ -25,7 +25,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.kraken_fetch import DocumentPoller, FileSource, HttpSource
 from onboard.app.pose import PoseSample
-from onboard.config import load_scenario
+from onboard.config import load_scenario, override
 from onboard.core.bearings import bearing, wrap
 from sim.kraken import KrakenModel, KrakenWriter, frame_lines, status_json
 
@@ -58,9 +58,10 @@ def _frame(t: float, bearings, seed: int) -> str:
 
 def _app(url: str, clock: ManualClock) -> OnboardApp:
     """An app reading ``url``, no autopilot: the test gives it the autopilot's UTC and poses."""
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken_url=url), SC, clock=clock)
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken=True),
+                     override(SC, {"kraken.url": url}), clock=clock)
     for k in range(9):
-        app.utc.observe(int((UNIX0 + 1.0 + k) * 1e6), int((1.0 + k) * 1e3))
+        app.autopilot.utc.observe(int((UNIX0 + 1.0 + k) * 1e6), int((1.0 + k) * 1e3))
     app.poses.keep_s = 1e6
     for k in range(0, 6000):  # 10 Hz for 600 s, hovering at UAV heading 30 degrees
         app.poses.add(PoseSample(k / 10.0, UAV.copy(), np.zeros(3), YAW))
@@ -118,6 +119,22 @@ def test_a_document_caught_mid_rewrite_is_never_taken(tmp_path):
     torn = [d for d in taken if d not in written]
     assert not torn, (len(torn), len(taken))
     assert naive_torn[0] > 10  # a reader that takes one read as it is takes torn documents
+
+
+def test_an_empty_document_is_not_taken(tmp_path):
+    """A document truncated and not yet rewritten (a writer descheduled between its truncate and
+    its write: two reads agree on it) is no document: not queued, and the next one is."""
+    path = tmp_path / "status.json"
+    path.write_text('{"timestamp_ms": 1}')
+    poller = DocumentPoller(str(tmp_path / "DOA_value.html"), str(path), 0.01)
+    assert poller.poll("status") and len(poller.queue) == 1
+    path.write_text("")
+    assert poller.poll("status") and len(poller.queue) == 1 and poller.empty == 1
+    path.write_text('{"timestamp_ms": 2}')
+    assert poller.poll("status") and [d for _, d, _ in poller.queue] == [b'{"timestamp_ms": 1}', b'{"timestamp_ms": 2}']
+    path.write_text('{"timestamp_ms": 2}')  # the same again: not new
+    assert poller.poll("status") and len(poller.queue) == 2
+    poller.stop()
 
 
 class _Trickle(BaseHTTPRequestHandler):
@@ -433,9 +450,9 @@ def test_a_recording_replayed_as_krakensdr_reaches_the_app(tmp_path):
         def now(self):
             return 100.0 + time.time() - self.w0
 
-    sc = load_scenario("paper", {"kraken.poll_s": 0.005, "kraken.time_source": "host"})
     w = KrakenWriter(tmp_path / "share", serve=("127.0.0.1", 0))
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken_url=w.url), sc, clock=WallClock())
+    sc = load_scenario("paper", {"kraken.poll_s": 0.005, "kraken.time_source": "host", "kraken.url": w.url})
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken=True), sc, clock=WallClock())
     app.poses.keep_s = 1e6
     for k in range(1500):
         app.poses.add(PoseSample(90.0 + k / 10.0, UAV.copy(), np.zeros(3), YAW))

@@ -6,6 +6,8 @@ and the bearings are the ones it drew. (Accuracy against the datagram feed: benc
 from __future__ import annotations
 
 import json
+import re
+import time
 
 import numpy as np
 import pytest
@@ -19,10 +21,17 @@ from conftest import QUICK_BOOT_S
 pytestmark = pytest.mark.sitl
 
 
+def _feed_log(st) -> str:
+    return (st.out / "feed.log").read_text()
+
+
 def _fly(tmp_path, df: str, duration: float, **cfg) -> tuple[SitlStack, list, list]:
+    """The stack (mock and app in this process, the feed a process of its own as on the
+    vehicle) launching itself, ``duration`` scans from the arming; its run log and truth."""
     run, truth = tmp_path / f"run_{df}.jsonl", tmp_path / f"truth_{df}.jsonl"
     st = SitlStack(speedup=3.0, ready_s=QUICK_BOOT_S, seed=7, df=df, auto_launch=True, feed_duration_s=duration,
-                   runlog_path=str(run), truth_path=str(truth), **cfg).start()
+                   runlog_path=str(run), truth_path=str(truth), out_dir=str(tmp_path / f"rig_{df}"), **cfg)
+    st.start()
     st.kraken_scans = []
     if st.app.kraken is not None:  # every scan the KrakenSDR input makes, as it makes it
         src = st.app.kraken.source
@@ -31,10 +40,8 @@ def _fly(tmp_path, df: str, duration: float, **cfg) -> tuple[SitlStack, list, li
     try:
         assert st.wait_ready()
         st.start_feed()
-        st._feed_thread.join(timeout=duration / 3.0 + 90)
-        assert not st._feed_thread.is_alive(), "the feed finished"
-        last = st.feed.last_record["t"]
-        import time
+        assert st.feed.p.wait(timeout=duration / 3.0 + 120) == 0, _feed_log(st)[-2000:]
+        last = [json.loads(line) for line in open(truth)][-1]["t"]
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and not any(tk["t"] >= last for tk in list(st.app.ticks)):
             time.sleep(0.05)
@@ -50,11 +57,12 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     st, ticks, scans = _fly(tmp_path, "kraken", 30.0)
     src = st.app.kraken.source
     by_t = {tk["t"]: tk for tk in ticks}
-    assert len(scans) == 30 and st.feed.skipped_no_time == 0
+    written = re.search(r"feed: KrakenSDR: (\d+) frames written, (\d+) scans without", _feed_log(st))
+    assert len(scans) == 30 and written and int(written.group(2)) == 0, _feed_log(st)[-2000:]
     missing = [s["t"] for s in scans if s["t"] not in by_t or by_t[s["t"]]["channels"] != [0, 1, 2, 3]]
     assert not missing, missing
     assert {r: n for r, n in src.rejected.items() if n} == {}, src.last_error
-    assert src.frames == src.scans // 4 == st.kraken_writer.frames and src.decimated == 0
+    assert src.frames == src.scans // 4 == int(written.group(1)) == 30 and src.decimated == 0
     assert st.app.counters.get("io_errors", 0) == 0 and st.app.counters.get("tick_errors", 0) == 0
     # each scan's sets: the spectrum's peaks, at most one per lobe the KrakenSDR drew (lobes that
     # merge, or more than peak_floor_db under the strongest, are not peaks), at least the strongest

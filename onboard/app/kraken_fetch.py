@@ -5,7 +5,9 @@ KrakenSDR rewrites ``_share/DOA_value.html`` in place each frame (``seek(0)``, `
 krakensdr_doa's ``gui_run.sh``); ``status.json`` beside it is rewritten each frame too. A
 reader can therefore catch a document mid-rewrite: the new text's start over the old one's
 end, lines that parse but mix two frames. So a document is taken only when two reads in a row
-return the same bytes (``stable``): a torn read differs from the next read.
+return the same bytes (``stable``): a torn read differs from the next read. An empty document
+is never taken (``empty``): a writer that truncates, then writes (status.json, opened "w") and is
+descheduled in between leaves it empty for as long as it waits, and two reads agree on it.
 
 ``DocumentPoller`` reads every ``poll_s`` (wall s), on thread ``pmon-kraken``, and queues each
 new stable document (``queue``, bounded: ``queue_full`` counts what did not fit), parsed on
@@ -165,6 +167,7 @@ class DocumentPoller:
         self.reads = 0
         self.documents = 0  # new stable documents queued
         self.unstable = 0  # polls whose document changed under every read
+        self.empty = 0  # polls that found the document empty (between a writer's truncate and write)
         self.queue_full = 0
         self.errors: dict[str, int] = {}  # "doa connection_refused" -> count
         self.last_error: dict[str, str] = {}  # kind -> its newest failure
@@ -230,6 +233,9 @@ class DocumentPoller:
             self.down[kind] = True
             return False
         self.down[kind] = False
+        if not a:  # truncated, not yet rewritten (a writer descheduled between the two): no document
+            self.empty += 1
+            return True
         self._last[kind] = a
         if len(self.queue) >= self.queue_max:
             self.queue_full += 1

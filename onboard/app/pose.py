@@ -51,7 +51,8 @@ class Frame:
     def pose_from_global_position_int(self, msg) -> PoseSample:
         pos = self.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
         vel = np.array([msg.vy, msg.vx, -msg.vz], dtype=float) / 100.0  # NED cm/s -> ENU m/s
-        yaw = None if msg.hdg == 65535 or msg.hdg > 36000 else float(wrap(math.radians(msg.hdg / 100.0)))  # cdeg; UINT16_MAX: unknown
+        hdg = heading_from_global_position_int(msg.hdg)
+        yaw = None if hdg is None else float(wrap(math.radians(hdg)))
         return PoseSample(msg.time_boot_ms / 1000.0, pos, vel, yaw)
 
 
@@ -105,8 +106,9 @@ class FixedOrigin:
 
 
 def heading_from_global_position_int(hdg_cdeg: int) -> float | None:
-    """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535)."""
-    return None if hdg_cdeg == 65535 else hdg_cdeg / 100.0
+    """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535) or
+    it is out of its range (0..35999 cdeg; 36000 read as north)."""
+    return None if hdg_cdeg > 36000 else hdg_cdeg / 100.0
 
 
 def valid_global_position_int(msg) -> bool:
