@@ -27,8 +27,8 @@ paired per-trial differences measure the processing. Printed: each arm's RMSE (`
 rmse_mean_m: the time-averaged, target-averaged eps_t over t >= 10 s), the paired per-trial
 difference from ``main`` with its 95 % t-interval, and how many trials each arm did no worse.
 
-``stack``: the whole stack on loopback (mock ArduCopter and the app, launching itself, in this
-process; the feed, ``pmon feed live``, a process of its own), 100 s missions, once with the datagram feed and once with the simulated
+``stack``: the whole stack on loopback, stood up by sim/rig.py (mock ArduCopter and the app,
+launching itself, in this process; the feed, ``pmon feed live``, a process of its own), 100 s missions, once with the datagram feed and once with the simulated
 KrakenSDR, the same seed (the same truth and DF draws), with ``sensor.clutter_rate: 0`` for both
 (the spectrum has only the target's peak: ``--multipath off``, the default here; the datagrams
 then carry the same bearings). Printed per seed: RMSE of each, their ratio, scans written and
@@ -76,8 +76,8 @@ def _kraken_cfg(sc, arm: str):
 def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial: int,
             df_clutter: float | None = None) -> np.ndarray:
     """(K, M) position errors of one arm on one trial's truth."""
-    from onboard.app.clock import ManualClock
-    from onboard.app.kraken import KrakenSource, UtcMap
+    from onboard.app.clock import ManualClock, UtcMap
+    from onboard.app.kraken import KrakenSource
     from onboard.app.pairing import scans_for_tick
     from onboard.app.pose import PoseHistory, PoseSample
     from onboard.core.guidance import GuidanceWorkspace
@@ -131,19 +131,20 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
 def run_trial(args_tuple) -> dict:
     sc_path, overrides, seed, trial, arms, n_ticks, df_clutter = args_tuple
     from sim import evaluation as ev
+    from sim.metrics import seeded_rng
     from sim.truth import simulate_truth
 
     sc = load_scenario(sc_path, overrides)
     cfg = ev.make_config(sc, 1, seed, ("greedy_l1",), duration_s=n_ticks * sc.dynamics.dt_s)
-    truth = simulate_truth(sc, cfg.n_ticks - 1, ev._rng(seed, trial, 0))
-    start = ev.draw_start(cfg, ev._rng(seed, trial, 1))
+    truth = simulate_truth(sc, cfg.n_ticks - 1, seeded_rng(seed, trial, 0))
+    start = ev.draw_start(cfg, seeded_rng(seed, trial, 1))
     t0 = time.perf_counter()
     out = {arm: run_arm(sc, arm, truth, start, seed, trial, df_clutter) for arm in arms}
     return {"trial": trial, "errors": out, "wall_s": time.perf_counter() - t0}
 
 
 def core(args) -> dict:
-    from sim.evaluation import t_interval
+    from sim.metrics import t_interval
 
     arms = tuple(a for a in args.arms.split(",") if a)
     bad = [a for a in arms if a.partition(":")[0] not in ARMS or (":" in a and a.startswith(("main", "native")))]
@@ -192,33 +193,19 @@ def core(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- stack
-def _free_port() -> int:
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bool, overrides: dict) -> dict:
-    """One mission: the mock ArduCopter and the app (launching itself) in this process, the feed
-    a process of its own (``pmon feed live``, as bench/latency.py: its truth world must not hold
-    this process's GIL while the app reads and ticks), writing datagrams or KrakenSDR's output."""
-    import subprocess
+    """One mission on sim/rig.py: the mock ArduCopter and the app (launching itself) in this
+    process, the feed a process of its own (``pmon feed live``: its truth world must not hold this
+    process's GIL while the app reads and ticks), sending datagrams or serving KrakenSDR's output."""
     import tempfile
 
     import yaml
 
-    from sim.autopilot import BootTimeline, MockAutopilot
-    from onboard.app.app import AppConfig, OnboardApp
-    from onboard.demo import DEMO_READY_S, DEMO_VEHICLE_PARAMS
+    from sim.demo import DEMO_READY_S
+    from sim.rig import Rig, RigConfig
 
-    sc = load_scenario("paper", overrides)
-    o = sc.origin
     root = Path(__file__).resolve().parents[1]
-    with tempfile.TemporaryDirectory() as tmp, \
-            MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=speedup, seed=seed,
-                          endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS, max_lag_s=0.1,
-                          boot=BootTimeline.scaled(DEMO_READY_S)) as ap:
+    with tempfile.TemporaryDirectory() as tmp:
         scen = Path(tmp) / "scenario.yaml"
         tree = yaml.safe_load(open(root / "config" / "paper.yaml"))
         for key, value in overrides.items():
@@ -229,34 +216,26 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
             node[last] = value
         scen.write_text(yaml.safe_dump(tree))
         run, truth = Path(tmp) / "run.jsonl", Path(tmp) / "truth.jsonl"
-        extra, feed_df = {}, []
-        if df == "kraken":
-            port = _free_port()
-            extra = {"kraken_url": f"http://127.0.0.1:{port}/DOA_value.html"}
-            feed_df = ["--df", "kraken", "--kraken-http", f"127.0.0.1:{port}", "--kraken-dir", str(Path(tmp) / "kraken"),
-                       "--multipath", "on" if multipath else "off"]
-        app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0, auto_launch=True,
-                                   seed=seed, runlog_path=str(run), **extra), sc).start()
-        try:
-            with open(Path(tmp) / "feed.out", "w") as fo:
-                feed = subprocess.Popen(
-                    [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
-                     "--to", f"127.0.0.1:{app.sensor_port}", "--seed", str(seed), "--duration", str(int(duration)),
-                     "--scenario", str(scen), "--truth", str(truth), *feed_df], cwd=root, stdout=fo)
-                try:
-                    feed.wait(timeout=duration / speedup * 6 + 300)
-                finally:
-                    if feed.poll() is None:
-                        feed.terminate()
-                        feed.wait(timeout=10)
+        rig = Rig(RigConfig(scenario=str(scen), seed=seed, feed_seed=seed, speedup=speedup, ready_s=DEMO_READY_S,
+                            in_process=True, auto_launch=True, df=df, multipath=multipath,
+                            feed_duration_s=float(int(duration)), out_dir=str(Path(tmp) / "rig"),
+                            runlog_path=str(run), truth_path=str(truth)))
+        with rig:
+            app = rig.app
+            feed = rig.feed.p
+            try:
+                feed.wait(timeout=duration / speedup * 6 + 300)
+            finally:
+                if feed.poll() is None:
+                    feed.terminate()
+                    feed.wait(timeout=10)
+            scans = [json.loads(x) for x in open(truth)][1:]
+            last = scans[-1]["t"] if scans else math.inf
             deadline = time.monotonic() + 10
-            while (app.scans.pending or app._worker_busy) and time.monotonic() < deadline:
+            while time.monotonic() < deadline and not any(tk["t"] >= last for tk in list(app.ticks)):
                 time.sleep(0.05)
             time.sleep(1.0)
-        finally:
-            app.stop()
         ticks = {tk["t"]: tk for tk in (json.loads(x) for x in open(run))}
-        scans = [json.loads(x) for x in open(truth)][1:]
         kraken = None
         if app.kraken is not None:
             k = app.kraken.source

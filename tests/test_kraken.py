@@ -441,3 +441,34 @@ def test_frames_written_but_never_read_are_counted_and_said():
     assert rig.src.missed == 2 + 3
     assert [m for r, m in rig.reports if r == "missed"] == [
         "KrakenSDR frames written but not read (a 3.0 s gap): the reader fell behind"]
+
+
+def test_pmon_stat_carries_the_krakensdr_counts_to_the_ground_station():
+    """PMON_STAT's KrakenSDR fields as the publisher encodes them and the ground station decodes
+    them: the counts with a KrakenSDR input, None (NaN on the wire) without one."""
+    from groundstation import protocol as P
+    from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, State
+    from onboard.app.mavlink_connection import mavlink
+    from onboard.app.publisher import Publisher
+    from onboard.app.vehicle_state import Vehicle
+
+    class Wire:
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+        sent: list = []
+
+        def send(self, msg):
+            self.sent.append(self.mav.decode(bytearray(msg.pack(self.mav))))
+            return True
+
+    class Clock:
+        def now(self):
+            return 12.0
+
+    stat = dict.fromkeys(STAT_FIELDS, 0.0)
+    stat.update(dict(zip(KRAKEN_STAT_FIELDS, (1234.0, 7.0, 3.0))))
+    pub = Publisher(Wire(), Clock(), Vehicle(sysid=1), lambda: State.PAUSED, lambda: stat)
+    pub.publish_stat()
+    assert P.AppStatus.from_msg(Wire.sent[-1]).kraken == (1234, 7, 3)
+    stat.update(dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan))
+    pub.publish_stat()
+    assert P.AppStatus.from_msg(Wire.sent[-1]).kraken is None
