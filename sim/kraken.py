@@ -177,10 +177,13 @@ class KrakenWriter:
         host, port = self.server.server_address[:2]
         return f"http://{host}:{port}/{DOC_NAME}"
 
+    def write_status(self, status: str) -> None:
+        with open(self.status_path, "w", encoding="utf-8") as f:
+            f.write(status)
+
     def write(self, doc: str, status: str | None = None) -> None:
         if status is not None:  # KrakenSDR writes its status before processing the frame
-            with open(self.status_path, "w", encoding="utf-8") as f:
-                f.write(status)
+            self.write_status(status)
         self._doc.seek(0)
         self._doc.write(doc)
         self._doc.truncate()
@@ -297,9 +300,13 @@ def add_feed_arguments(p) -> None:
 def feed_from_args(args, sc, cfg: LiveFeedConfig, log=print) -> tuple[KrakenFeed, KrakenWriter]:
     """The KrakenSDR feed ``pmon feed live --df kraken`` runs; the writer to close after it."""
     import tempfile
+    import time
 
     folder = args.kraken_dir or tempfile.mkdtemp(prefix="pmon-kraken-")
     writer = KrakenWriter(folder, serve=tuple(args.kraken_http))
+    # its status from its start, as KrakenSDR's (written every frame its DAQ delivers, whether
+    # or not a VFO is above the squelch): the app reads it from its own start
+    writer.write_status(status_json(int(round(time.time() * 1000))))
     try:
         model = KrakenModel(multipath=args.multipath == "on",
                             mount_offset_rad=sc.kraken.mount_offset_rad)
