@@ -136,7 +136,7 @@ def main() -> int:
     from groundstation import adsb as A
     from groundstation.estimates import check
     from onboard.app.pose import Frame
-    from tests.gcs_fake_vehicle import free_udp_port, target_values
+    from tests.support.gcs_fake_vehicle import free_udp_port, target_values
 
     n = args.instance
     wd = Path(tempfile.mkdtemp(prefix="pmon-px4-"))
