@@ -65,87 +65,12 @@ def flight():
         assert wait_for(lambda: app.state == State.MONITORING
                      and sum(1 for t in app.ticks if t["planned"]) >= 5, 90), list(app.events)
 
-        # 1. sensor silence
-        df.silent = True
-        out["silence"] = (ap.sim_time, wait_autopilot_s(ap, 15.0))
-        df.silent = False
-        assert wait_for(lambda: any(t["channels"] and t["t"] > out["silence"][1] for t in app.ticks), 30)
-
-        # 2. guidance gets no time at all (PMON_GUID_S = 0), then its time back
-        out["guid_set"] = gcs.param_set("PMON_GUID_S", 0.0)
-        t0 = ap.sim_time
-        wait_autopilot_s(ap, 5.0)
-        out["guid_reset"] = gcs.param_set("PMON_GUID_S", 0.3)
-        out["guidance"] = (t0, ap.sim_time)
-        wait_autopilot_s(ap, 3.0)
-
-        # 3. particle collapse of T1: a NaN appears in its belief (a numerical fault in the core;
-        #    with the clutter-aware likelihood in log space, no finite datagram can cause it)
-        def nan_tick(*a, real, **k):
-            state, res = real(*a, **k)
-            if "collapse_t" not in out:
-                out["collapse_t"] = ap.sim_time
-                b = state.beliefs[0]
-                p = b.particles.copy()
-                p[::7, 0] = np.nan
-                state = replace(state, beliefs=(ParticleSet(p, b.log_weights),) + state.beliefs[1:])
-            return state, res
-        tick.fault = nan_tick
-        assert wait_for(lambda: app.counters.get("reseeds", 0) >= 1, 30), list(app.events)[-10:]
-        tick.fault = None
-        wait_autopilot_s(ap, 3.0)
-
-        # 4. one tick stalls 1.5 s of wall time (4.5 s of autopilot time at 3x)
-        stalled = {"done": False}
-
-        def slow_tick(*a, real, **k):
-            if not stalled["done"]:
-                stalled["done"] = True
-                stalled["t"] = ap.sim_time
-                time.sleep(1.5)  # the stall itself (wall time), not a wait for a condition
-                stalled["t_end"] = ap.sim_time
-            return real(*a, **k)
-        skipped0 = app.counters.get("ticks_skipped", 0)
-        tick.fault = slow_tick
-        assert wait_for(lambda: "t_end" in stalled, 30)
-        tick.fault = None
-        wait_autopilot_s(ap, 3.0)
-        out["stall"] = stalled
-        out["skipped_by_stall"] = app.counters.get("ticks_skipped", 0) - skipped0
-
-        # 5. the planner proposes a point outside the area (a fault in the core): refused
-        def bad_tick(*a, real, **k):
-            state, res = real(*a, **k)
-            if res.planning is not None and "bad_t" not in out:
-                out["bad_t"] = ap.sim_time
-                cand = res.planning.candidates.copy()
-                cand[res.planning.index] = (-50.0, 200.0, 40.0)
-                res = replace(res, planning=replace(res.planning, candidates=cand))
-            return state, res
-        refused0 = app.counters.get("setpoints_refused", 0)
-        tick.fault = bad_tick
-        assert wait_for(lambda: "bad_t" in out, 30)
-        wait_autopilot_s(ap, 1.0)
-        tick.fault = None
-        out["refused"] = app.counters.get("setpoints_refused", 0) - refused0
-        wait_autopilot_s(ap, 2.0)
-
-        # 6. the app's link to the autopilot goes dead both ways for 6 s
-        ticks_before_cut = len([t for t in app.ticks])
-        assert ap.cut_link(191, 9.0) == 1
-        out["cut"] = (ap.sim_time, ap.sim_time + 9.0)
-        assert wait_for(lambda: app.state == State.FAULT, 30), list(app.events)[-5:]
-        out["state_in_cut"] = app.state
-        wait_autopilot_s(ap, 9.5 - (ap.sim_time - out["cut"][0]))
-        assert wait_for(lambda: app.counters.get("link_regained", 0) >= 1, 30), list(app.events)[-5:]
-        out["ticks_in_cut"] = [t for t in list(app.ticks)[ticks_before_cut:] if out["cut"][0] < t["t"] < out["cut"][1]]
-        out["back_t"] = ap.sim_time
-        wait_autopilot_s(ap, 3.0)
-        out["state_after_back"] = app.state
-        out["resume_t"] = ap.sim_time
-        out["resume_ack"] = gcs.command(191, mavlink.MAV_CMD_USER_1, 3)
-        wait_autopilot_s(ap, 8.0)
-        out["state_after_resume"] = app.state
+        _sensor_silence(ap, app, df, out)
+        _no_guidance_time(ap, gcs, out)
+        _particle_collapse(ap, app, tick, out)
+        _stalled_tick(ap, app, tick, out)
+        _point_outside_the_area(ap, app, tick, out)
+        _link_cut(ap, app, gcs, out)
         out["texts"] = gcs.texts()
         out["events"] = [e for _, e in app.events]
         out["ticks"] = list(app.ticks)
@@ -161,6 +86,102 @@ def flight():
         if app is not None:
             app.stop()
         ap.stop()
+
+
+def _sensor_silence(ap, app, df, out) -> None:
+    """1. The direction finder falls silent for 15 s of autopilot time, then speaks again."""
+    df.silent = True
+    out["silence"] = (ap.sim_time, wait_autopilot_s(ap, 15.0))
+    df.silent = False
+    assert wait_for(lambda: any(t["channels"] and t["t"] > out["silence"][1] for t in app.ticks), 30)
+
+
+def _no_guidance_time(ap, gcs, out) -> None:
+    """2. Guidance gets no time at all (PMON_GUID_S = 0), then its time back."""
+    out["guid_set"] = gcs.param_set("PMON_GUID_S", 0.0)
+    t0 = ap.sim_time
+    wait_autopilot_s(ap, 5.0)
+    out["guid_reset"] = gcs.param_set("PMON_GUID_S", 0.3)
+    out["guidance"] = (t0, ap.sim_time)
+    wait_autopilot_s(ap, 3.0)
+
+
+def _particle_collapse(ap, app, tick, out) -> None:
+    """3. Particle collapse of T1: a NaN appears in its belief (a numerical fault in the core;
+    with the clutter-aware likelihood in log space, no finite datagram can cause it)."""
+
+    def nan_tick(*a, real, **k):
+        state, res = real(*a, **k)
+        if "collapse_t" not in out:
+            out["collapse_t"] = ap.sim_time
+            b = state.beliefs[0]
+            p = b.particles.copy()
+            p[::7, 0] = np.nan
+            state = replace(state, beliefs=(ParticleSet(p, b.log_weights),) + state.beliefs[1:])
+        return state, res
+    tick.fault = nan_tick
+    assert wait_for(lambda: app.counters.get("reseeds", 0) >= 1, 30), list(app.events)[-10:]
+    tick.fault = None
+    wait_autopilot_s(ap, 3.0)
+
+
+def _stalled_tick(ap, app, tick, out) -> None:
+    """4. One tick stalls 1.5 s of wall time (4.5 s of autopilot time at 3x)."""
+    stalled = {"done": False}
+
+    def slow_tick(*a, real, **k):
+        if not stalled["done"]:
+            stalled["done"] = True
+            stalled["t"] = ap.sim_time
+            time.sleep(1.5)  # the stall itself (wall time), not a wait for a condition
+            stalled["t_end"] = ap.sim_time
+        return real(*a, **k)
+    skipped0 = app.counters.get("ticks_skipped", 0)
+    tick.fault = slow_tick
+    assert wait_for(lambda: "t_end" in stalled, 30)
+    tick.fault = None
+    wait_autopilot_s(ap, 3.0)
+    out["stall"] = stalled
+    out["skipped_by_stall"] = app.counters.get("ticks_skipped", 0) - skipped0
+
+
+def _point_outside_the_area(ap, app, tick, out) -> None:
+    """5. The planner proposes a point outside the area (a fault in the core): refused."""
+
+    def bad_tick(*a, real, **k):
+        state, res = real(*a, **k)
+        if res.planning is not None and "bad_t" not in out:
+            out["bad_t"] = ap.sim_time
+            cand = res.planning.candidates.copy()
+            cand[res.planning.index] = (-50.0, 200.0, 40.0)
+            res = replace(res, planning=replace(res.planning, candidates=cand))
+        return state, res
+    refused0 = app.counters.get("setpoints_refused", 0)
+    tick.fault = bad_tick
+    assert wait_for(lambda: "bad_t" in out, 30)
+    wait_autopilot_s(ap, 1.0)
+    tick.fault = None
+    out["refused"] = app.counters.get("setpoints_refused", 0) - refused0
+    wait_autopilot_s(ap, 2.0)
+
+
+def _link_cut(ap, app, gcs, out) -> None:
+    """6. The app's link to the autopilot goes dead both ways for 9 s, then the operator resumes."""
+    ticks_before_cut = len([t for t in app.ticks])
+    assert ap.cut_link(191, 9.0) == 1
+    out["cut"] = (ap.sim_time, ap.sim_time + 9.0)
+    assert wait_for(lambda: app.state == State.FAULT, 30), list(app.events)[-5:]
+    out["state_in_cut"] = app.state
+    wait_autopilot_s(ap, 9.5 - (ap.sim_time - out["cut"][0]))
+    assert wait_for(lambda: app.counters.get("link_regained", 0) >= 1, 30), list(app.events)[-5:]
+    out["ticks_in_cut"] = [t for t in list(app.ticks)[ticks_before_cut:] if out["cut"][0] < t["t"] < out["cut"][1]]
+    out["back_t"] = ap.sim_time
+    wait_autopilot_s(ap, 3.0)
+    out["state_after_back"] = app.state
+    out["resume_t"] = ap.sim_time
+    out["resume_ack"] = gcs.command(191, mavlink.MAV_CMD_USER_1, 3)
+    wait_autopilot_s(ap, 8.0)
+    out["state_after_resume"] = app.state
 
 
 def _between(ticks, t0, t1):

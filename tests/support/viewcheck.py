@@ -216,55 +216,19 @@ def check_live_view(gcs_url: str, scenario: str = "paper", *, seconds: float = 1
         assert ready.wait(timeout + 10), "the view did not start"
         assert not failure, f"the view failed: {failure[0]!r}"
         url = report.url = server[0].url
-        payload = 0
-        for path in ("", "view.js", "view.css"):
-            with urllib.request.urlopen(url + path, timeout=5) as r:
-                body = r.read()
-            payload += len(body)
-            text = body.decode()
-            ext = [w for w in ("http://", "https://", "//cdn", "@import") if w in text.replace(
-                "http://www.w3.org/2000/svg", "")]
-            assert not ext, f"/{path} refers to something outside the ground station: {ext}"
-        report.payload_bytes = payload
-        assert payload <= PAYLOAD_MAX, f"payload {payload} B > {PAYLOAD_MAX} B"
-        with chromium(1280, 800) as driver:
-            driver.get(url)
-            t0 = time.monotonic()
-            while not driver.execute_script("return document.querySelectorAll('circle.target-marker').length"):
-                assert time.monotonic() - t0 < timeout, f"no target drawn within {timeout:g} s of loading the page"
-                time.sleep(0.1)
-            driver.execute_script(OBSERVER)
-            time.sleep(seconds)
-            frames = driver.execute_script("return window.__frames")
-            lay = _layout(driver)
-            if screenshot is not None:
-                driver.save_screenshot(str(screenshot))
-                report.screenshot = str(screenshot)
-            resources = driver.execute_script(
-                "return performance.getEntriesByType('resource').map((e) => e.name)")
-            report.console = [e for e in driver.get_log("browser") if e["level"] in ("SEVERE", "WARNING")]
+        report.payload_bytes = _check_payload(url)
+        frames, lay, resources = _watch_desktop(url, seconds, timeout, screenshot, report)
         with urllib.request.urlopen(url + "state.json", timeout=5) as r:
             report.state = json.loads(r.read())
         with lock:
             est = dict(estimates)
         report.frames = len(frames)
         _check_frames(frames, est, sc, tol_px, report)
-        ticks = sorted({round(float(f["tick"]), 3) for f in frames if f["tick"]})
-        report.ticks_shown = len(ticks)
-        report.mission_s = ticks[-1] - ticks[0] if len(ticks) > 1 else 0.0
-        report.rate_hz = (len(ticks) - 1) / report.mission_s if report.mission_s > 0 else 0.0
-        assert report.rate_hz >= min_rate_hz, (f"the page showed {len(ticks)} ticks over {report.mission_s:.1f} s "
-                                               f"of mission: {report.rate_hz:.2f} Hz < {min_rate_hz}")
+        _check_rate(frames, min_rate_hz, report)
         assert not report.console, f"browser console: {report.console}"
         foreign = [r for r in resources if not r.startswith(url)]
         assert not foreign, f"the page loaded resources from elsewhere: {foreign}"
-        # readable at 1280x800: map and target table wholly in the window, no horizontal scroll
-        assert lay["scroll_w"] <= lay["vw"], f"horizontal scroll at 1280x800: {lay}"
-        for name in ("map", "table"):
-            left, top, w, h = lay[name]
-            assert left >= 0 and top >= 0 and left + w <= lay["vw"] + 0.5 and top + h <= lay["vh"] + 0.5, \
-                f"the {name} is not wholly visible at 1280x800: {lay}"
-        assert lay["map"][3] >= 600 and lay["min_font_px"] >= 12, f"too small at 1280x800: {lay}"
+        _check_desktop_layout(lay)
         if phone:
             def latest():
                 with lock:
@@ -275,6 +239,63 @@ def check_live_view(gcs_url: str, scenario: str = "paper", *, seconds: float = 1
         stop.set()
         th.join(timeout=10)
         gl.close()
+
+
+def _check_payload(url: str) -> int:
+    """The page, its script and its style: nothing from outside the ground station, and small.
+    Returns their size in bytes."""
+    payload = 0
+    for path in ("", "view.js", "view.css"):
+        with urllib.request.urlopen(url + path, timeout=5) as r:
+            body = r.read()
+        payload += len(body)
+        text = body.decode()
+        ext = [w for w in ("http://", "https://", "//cdn", "@import") if w in text.replace(
+            "http://www.w3.org/2000/svg", "")]
+        assert not ext, f"/{path} refers to something outside the ground station: {ext}"
+    assert payload <= PAYLOAD_MAX, f"payload {payload} B > {PAYLOAD_MAX} B"
+    return payload
+
+
+def _watch_desktop(url: str, seconds: float, timeout: float, screenshot, report: ViewReport):
+    """The page at 1280x800 watched for ``seconds``: the frames drawn, the layout, the resources
+    loaded (the console's warnings and the screenshot into ``report``)."""
+    with chromium(1280, 800) as driver:
+        driver.get(url)
+        t0 = time.monotonic()
+        while not driver.execute_script("return document.querySelectorAll('circle.target-marker').length"):
+            assert time.monotonic() - t0 < timeout, f"no target drawn within {timeout:g} s of loading the page"
+            time.sleep(0.1)
+        driver.execute_script(OBSERVER)
+        time.sleep(seconds)
+        frames = driver.execute_script("return window.__frames")
+        lay = _layout(driver)
+        if screenshot is not None:
+            driver.save_screenshot(str(screenshot))
+            report.screenshot = str(screenshot)
+        resources = driver.execute_script(
+            "return performance.getEntriesByType('resource').map((e) => e.name)")
+        report.console = [e for e in driver.get_log("browser") if e["level"] in ("SEVERE", "WARNING")]
+    return frames, lay, resources
+
+
+def _check_rate(frames, min_rate_hz: float, report: ViewReport) -> None:
+    ticks = sorted({round(float(f["tick"]), 3) for f in frames if f["tick"]})
+    report.ticks_shown = len(ticks)
+    report.mission_s = ticks[-1] - ticks[0] if len(ticks) > 1 else 0.0
+    report.rate_hz = (len(ticks) - 1) / report.mission_s if report.mission_s > 0 else 0.0
+    assert report.rate_hz >= min_rate_hz, (f"the page showed {len(ticks)} ticks over {report.mission_s:.1f} s "
+                                           f"of mission: {report.rate_hz:.2f} Hz < {min_rate_hz}")
+
+
+def _check_desktop_layout(lay: dict) -> None:
+    """Readable at 1280x800: map and target table wholly in the window, no horizontal scroll."""
+    assert lay["scroll_w"] <= lay["vw"], f"horizontal scroll at 1280x800: {lay}"
+    for name in ("map", "table"):
+        left, top, w, h = lay[name]
+        assert left >= 0 and top >= 0 and left + w <= lay["vw"] + 0.5 and top + h <= lay["vh"] + 0.5, \
+            f"the {name} is not wholly visible at 1280x800: {lay}"
+    assert lay["map"][3] >= 600 and lay["min_font_px"] >= 12, f"too small at 1280x800: {lay}"
 
 
 def _check_phone(url, estimates_now, sc, tol_px) -> dict:
