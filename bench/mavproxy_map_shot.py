@@ -4,7 +4,7 @@
 
 PYTHON runs MAVProxy 1.8.74 with its map module (wxPython and OpenCV: Debian's python3-wxgtk4.0
 and python3-opencv in a venv made with --system-site-packages). The vehicle is the hub tests'
-loopback vehicle (tests/test_gcs_hub.py: the app's four targets on the paper scenario);
+loopback vehicle (tests/gcs/test_gcs_hub.py: the app's four targets on the paper scenario);
 ``pmon gcs hub`` serves MAVProxy; Xvfb is the display. No map tiles (no internet): the
 targets, their 1-sigma circles and the vehicle on MAVProxy's blank background.
 """

@@ -5,7 +5,7 @@ port on 127.0.0.1, docs/OPERATING.md "TAK" says how it was started).
     python bench/tak_server.py --port 18087
 
 A TCP client announces itself to the server (a takPong-style hello, pytak.hello_event), then
-``pmon gcs hub --tak tcp://127.0.0.1:PORT`` (tests/test_gcs_hub.py's loopback vehicle: four
+``pmon gcs hub --tak tcp://127.0.0.1:PORT`` (tests/gcs/test_gcs_hub.py's loopback vehicle: four
 targets, 1 Hz ticks) sends three ticks; the client counts what the server relays: position
 error (m), ce against the 1-sigma ellipse's radius, latency from the tick. One JSON line.
 """

@@ -13,7 +13,7 @@ itself and monitors, the faults come one after the other, each followed by recov
   5. a setpoint outside the fence -> refused and logged, never sent (nor clipped)
   6. autopilot link cut 6 s (link timeout 1 s local = 3 s autopilot) -> stop commanding, keep estimating, link back by itself,
                                   no setpoint until the GCS says resume
-Pilot takeover (another mode) is shown in tests/test_app_sitl.py.
+Pilot takeover (another mode) is shown in tests/app/test_app_sitl.py.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The fence, checked on the setpoint when planned and on the message as it is sent (issue 23,
 part 3): ``fence.outgoing_violation`` reads the SET_POSITION_TARGET_LOCAL_NED's own position
 (float32, LOCAL_NED at the fixed origin) back to ENU. Unit tests; the flight with a spoofed
-origin is tests/test_frame_spoof.py."""
+origin is tests/app/test_frame_spoof.py."""
 from __future__ import annotations
 
 import math

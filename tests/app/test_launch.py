@@ -1,5 +1,5 @@
 """The launch sequence (onboard/app/launch.py) on plain values: what it asks the autopilot for,
-when, and what it says, through a boot like ArduCopter's (tests/test_ardupilot.py flies it on the
+when, and what it says, through a boot like ArduCopter's (tests/firmware/test_ardupilot.py flies it on the
 real firmware)."""
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 autopilot (issue 29, item 6): the setpoints carry h (they used to carry the vehicle's own
 altitude at the tick, so a new h never flew and a vehicle a pilot had flown lower stayed low);
 a change of h flies; after a takeover and resume the vehicle goes back to h.
-The same on ArduCopter's own firmware: tests/test_ardupilot_altitude.py."""
+The same on ArduCopter's own firmware: tests/firmware/test_ardupilot_altitude.py."""
 from __future__ import annotations
 
 import numpy as np

@@ -41,7 +41,7 @@ def _ok(call, *want):
 
 
 def _view(m: Mission, out):
-    """``pmon gcs view`` in headless Chromium during the flight (tests/viewcheck.py), or why not."""
+    """``pmon gcs view`` in headless Chromium during the flight (tests/support/viewcheck.py), or why not."""
     from tests.support.viewcheck import browser_unavailable, check_live_view
     if (why := browser_unavailable()):
         return why

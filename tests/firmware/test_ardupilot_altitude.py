@@ -4,7 +4,7 @@ policy's setpoints carry h, so ``pmon gcs params set PMON_ALT 60`` flies the cop
 and after a pilot's takeover (LOITER: with no stick input ArduCopter sinks in it) and the
 operator's resume the copter climbs back to h. Before, the setpoints carried the copter's own
 altitude at each tick: it stayed at 40 m, and after a takeover it flew on at the height the
-pilot left it at. The mock's version: tests/test_mission_altitude.py."""
+pilot left it at. The mock's version: tests/app/test_mission_altitude.py."""
 from __future__ import annotations
 
 import pytest

@@ -1,7 +1,7 @@
 """Flights for map tools and pictures: ``pmon gcs export`` (GeoJSON checked against RFC 7946 with
 geojson and shapely, KML against the OGC KML 2.2 schema with fastkml), ``plot`` / ``watch --png``
 (the whole scene, the one palette, a legend that covers nothing). The demo's own flight.geojson
-is checked in tests/test_demo.py (``assert_geojson_in_area``)."""
+is checked in tests/sim/test_demo.py (``assert_geojson_in_area``)."""
 from __future__ import annotations
 
 import json

@@ -242,7 +242,7 @@ def test_the_console_scripts_and_the_environment_variable(stack):
 @pytest.mark.sitl
 @pytest.mark.timeout(60)
 def test_arm_right_after_boot_is_refused_with_the_reason_and_arm_wait_arms_when_ready(capsys):
-    """As on ArduCopter (its SITL: tests/test_ardupilot.py): the mock boots with no position and
+    """As on ArduCopter (its SITL: tests/firmware/test_ardupilot.py): the mock boots with no position and
     refuses to arm until its EKF is ready; arm says why, arm --wait waits it out by itself."""
     with SitlStack(speedup=4.0, ready_s=8.0) as st:
         url = ["--connect", st.gcs_url]

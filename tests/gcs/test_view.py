@@ -1,4 +1,4 @@
-"""``pmon gcs view``: the live page in a real browser during a SITL mission (tests/viewcheck.py
+"""``pmon gcs view``: the live page in a real browser during a SITL mission (tests/support/viewcheck.py
 says what is checked), through the autopilot's routing and on a link that carries only the
 companion's messages; the HTTP side and the command's errors."""
 from __future__ import annotations

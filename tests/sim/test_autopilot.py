@@ -499,7 +499,7 @@ def test_ports_are_freed_and_endpoints_validated():
 
 # --------------------------------------------------------------------------- as strict as ArduCopter
 # Each of these was measured on ArduCopter 4.4 SITL (../shared/ardupilot; sim.autopilot.BootTimeline)
-# and is what tests/test_ardupilot.py's real firmware does; tests/test_conformance.py compares the
+# and is what tests/firmware/test_ardupilot.py's real firmware does; tests/firmware/test_conformance.py compares the
 # two as the app sees them.
 
 def _fresh(boot=BootTimeline.scaled(6.0), **kw):

@@ -9,7 +9,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 # autopilot s until a mock SITL stack can arm, in tests not about the boot (ArduCopter's ~43 s
-# is flown in tests/test_autopilot.py, test_conformance.py and against the firmware itself)
+# is flown in tests/sim/test_autopilot.py, test_conformance.py and against the firmware itself)
 QUICK_BOOT_S = 4.0
 
 
@@ -17,7 +17,7 @@ class Gcs:
     """A raw pymavlink ground station (sysid 255 by default, component 190) on its own TCP link
     to the mock autopilot (127.0.0.1:port); the onboard app is reached by the autopilot's
     routing. A thread keeps every message received (``msgs``) and sends a GCS heartbeat every
-    0.5 s. Used by tests/test_app_sitl.py, tests/test_failsafes.py and tests/test_gcs_terminal.py
+    0.5 s. Used by tests/app/test_app_sitl.py, tests/app/test_failsafes.py and tests/gcs/test_gcs_terminal.py
     (``from tests.support.mavlink_gcs import Gcs``); ``close()`` joins the thread and frees the port."""
 
     def __init__(self, port: int, sysid: int = 255):
