@@ -19,7 +19,7 @@ from pathlib import Path
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
 PARTS = {"core", "app", "sim", "gcs", "firmware", "examples"}
-PACKAGES = ("onboard", "sim", "groundstation")
+PACKAGES = ("onboard", "sim", "groundstation", "bench")
 
 
 def imported_names(path: Path, skip_type_checking: bool = False) -> list[tuple[int, str]]:
@@ -70,7 +70,7 @@ def test_every_test_module_is_in_the_folder_of_its_part():
 
 
 def _module_graph() -> dict[str, set[str]]:
-    """File-level import graph of the packages, run-time imports only, every depth."""
+    """File-level import graph of the packages and bench/, run-time imports only, every depth."""
     mods = {}
     for pkg in PACKAGES:
         for p in (ROOT / pkg).rglob("*.py"):
