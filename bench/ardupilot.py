@@ -5,7 +5,7 @@ takeover reactions, the estimates' error, where the copter flew, the firmware's 
     python bench/ardupilot.py [--params stock|recommended] [--monitor 100] [--speedup 2]
                               [--autopilot ardupilot|mock] [--policy flight|paper] [--out DIR]
 
-The flight is tests/firmware/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
+The flight is tests/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
 launch` as the autopilot boots, --monitor s of monitoring, a pilot's LOITER and BRAKE each
 followed by `pmon gcs resume`. The binary: $PMON_ARDUPILOT_SITL, else ../shared/ardupilot.
 Prints a summary and ends with one JSON line.
