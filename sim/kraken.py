@@ -45,7 +45,7 @@ import numpy as np
 
 from onboard.core import doa
 from onboard.settings import ConfigError
-from sim.feed import LiveFeed, LiveFeedConfig, Telemetry
+from sim.live_feed import LiveFeed, LiveFeedConfig, Telemetry
 
 DOC_NAME = "DOA_value.html"
 STATUS_NAME = "status.json"
