@@ -12,7 +12,9 @@ Prints a table per planner x motion (medians and p95 over ticks after the first,
 the guidance's exploratory face search), writes a figure of the tick-time distributions, and
 ends with one JSON line. The case ``flight`` is the flight default (onboard/policy.py
 POLICIES["flight"], with ArduCopter's stock WPNAV_SPEED / WPNAV_ACCEL as the app reads them,
-capped as the policy says), the scenario's ``--set`` on top.
+capped as the policy says), the scenario's ``--set`` on top; ``flight~free`` is it with the default
+filter (the free steering: ``plan_steering``, ``plan_sides`` off), ``flight~sides`` with the
+side-aware filter (both on), whatever the policy says.
 """
 from __future__ import annotations
 
@@ -38,12 +40,17 @@ from onboard.policy import POLICIES, vehicle_motion  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
 from sim.vehicle import VehicleLimits  # noqa: E402
 
-CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
+CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
+         "flight~sides")
+# variants of the flight default: its filter as the policy has it, the default filter (free steering:
+# plan_steering and plan_sides off), the side-aware filter (both on)
+FLIGHT_FILTERS = {"flight": {}, "flight~free": {"tracking.plan_steering": False, "tracking.plan_sides": False},
+                  "flight~sides": {"tracking.plan_steering": True, "tracking.plan_sides": True}}
 
 
 def setup_for(sc, case: str) -> MonitorSetup:
-    if case == "flight":
-        fl = with_overrides(sc, POLICIES["flight"])
+    if case in FLIGHT_FILTERS:
+        fl = with_overrides(sc, {**POLICIES["flight"], **FLIGHT_FILTERS[case]})
         stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
         return MonitorSetup.from_scenario(fl, motion=vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy))
     planner, motion = case.split("/")
