@@ -34,6 +34,11 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
                 overrides: dict | None = None, workers: int | None = None) -> dict:
     cfg = ev.make_config(load_scenario(scenario, overrides), trials, seed, methods=methods)
     results = ev.run_trials(cfg, workers=workers, progress=False)  # the trials of ``pmon eval``
+    return figures(cfg, results)
+
+
+def figures(cfg, results) -> dict:
+    """Per method of ``cfg``, the figures above from the evaluation's trial results."""
     w = slice(cfg.window_start, None)
     out = {}
     for m in cfg.method_names:

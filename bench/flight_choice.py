@@ -11,7 +11,9 @@ method has); ``flight`` itself runs as the base. ``--with`` adds registered meth
 sees the same truths and UAV starts (``pmon eval``'s trials for the seed). Prints, per variant,
 its RMSE, the paired difference from the base (per-trial window RMSE, mean and 95 % t-interval)
 and the ratio of time-averaged RMSEs variant / base (95 % paired bootstrap CI), with the mean
-ms per tick, and writes ``pmon eval``'s files to ``--out``. Last line: JSON.
+ms per tick; then per method its ANEES, RMSE / bound and tails (the largest per-(trial, target)
+NEES and the pairs carrying most of the squared error, as bench/consistency.py prints them); and
+writes ``pmon eval``'s files to ``--out``. Last line: JSON.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from bench.consistency import figures  # noqa: E402
 from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 
@@ -87,6 +90,16 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"{m.name:34s} {s.rmse_mean_m:6.1f} {'':24s} {'':22s} {s.tick_ms:8.0f} {plan:>18s}")
             out[m.name] = {"rmse_m": round(s.rmse_mean_m, 4), "ms_per_tick": round(s.tick_ms, 1)}
+    tails = figures(cfg, trials)  # bench/consistency.py's: where each filter's error and NEES come from
+    for m in cfg.methods:
+        s, t = summary.methods[m.name], tails[m.name]
+        print(f"{m.name:34s} ANEES {s.nees_mean:.2f}, RMSE / bound {s.rmse_over_bound:.2f}, median per-trial ratio "
+              f"{t.get('over_bound_trial_median', float('nan'))}; largest (trial, target) NEES {t['top5']}; "
+              "largest shares of the squared error: " + ", ".join(
+                  f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
+                  for p in t["worst_pairs"]))
+        out[m.name].update(anees=round(s.nees_mean, 4), over_bound=round(s.rmse_over_bound, 4), top5_nees=t["top5"],
+                           worst_pairs=t["worst_pairs"])
     if args.out:
         command = "python bench/flight_choice.py " + " ".join(sys.argv[1:] if argv is None else argv)
         ev.write_outputs(summary, trials, args.out, command, figures=False)

@@ -46,11 +46,11 @@ SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets
 # the side-aware steering's QP solves per target and tick (``Budget``) and what one plan may take of
 # them: a side mode's re-plan (a search from scratch when its warm starts fail), a side's birth, a
 # reference plan (warm starts only); a plan's law counts as LAW_COST solves
-TICK_QP_BUDGET = 24  # per target, when no budget is given
-STEER_QPS = 40  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
-STEER_MIN_QPS = 12  # ... but at least this many
+TICK_QP_BUDGET = 40  # per target, when side_modes is given no budget
+STEER_QPS = 24  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
+STEER_MIN_QPS = 8  # ... but at least this many
 MODE_QPS = 8
-BIRTH_QPS = 12
+BIRTH_QPS = 16
 REFERENCE_QPS = 3
 LAW_COST = 1
 AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
@@ -72,6 +72,7 @@ class TargetTick:
     previous_plan: Plan | None  # last tick's
     replan: Replan  # ``replan(x, previous, sides=None, strict=False)``: P1 from x, with its law
     budget: int | None = None  # QP solves its steering may spend this tick (``ParticleSteering.budgets``)
+    births: int | None = None  # and on a side's birth (None: from ``budget``)
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,10 +93,10 @@ class ParticleSteering(ABC):
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         ...
 
-    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
-        """Per target, the QP solves its steering may spend this tick (None: no limit), given the
-        mean's plans of the tick (made before the steering)."""
-        return [None] * len(plans)
+    def budgets(self, plans: Sequence[Plan], step: int) -> list[tuple[int | None, int | None]]:
+        """Per target, the QP solves its steering may spend this tick and those it may spend on
+        births (None: no limit), given the mean's plans of tick ``step`` (made before the steering)."""
+        return [(None, None)] * len(plans)
 
     def free(self, target: TargetTick, rng: np.random.Generator) -> Steered:
         """The free law and the plan's control, nothing kept."""
@@ -132,20 +133,23 @@ class SideSteering(ParticleSteering):
     """``tracking.plan_sides``: side modes (``side_modes``); kept: the modes. Its plans are made
     within a budget of QP solves per tick (a count, never wall time: the same inputs give the same
     plans on any machine): ``STEER_QPS`` less what the mean's plans spent beyond a warm start, at
-    least ``STEER_MIN_QPS``, shared by the targets whose plan is constrained."""
+    least ``STEER_MIN_QPS``, shared by the targets whose plan is constrained; and one side's birth
+    (``BIRTH_QPS``) per tick, the steered targets taking turns."""
 
-    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
+    def budgets(self, plans: Sequence[Plan], step: int) -> list[tuple[int | None, int | None]]:
         searched = sum(max(0, p.qp_solves - 1) for p in plans)  # the mean plans' searches this tick
         total = max(STEER_MIN_QPS, STEER_QPS - searched)
-        steered = [self.constrained(p) for p in plans]
-        share = total // max(1, sum(steered))
-        return [share if c else None for c in steered]
+        steered = [j for j, p in enumerate(plans) if self.constrained(p)]
+        share = total // max(1, len(steered))
+        turn = steered[step % len(steered)] if steered else -1
+        return [(share, BIRTH_QPS + LAW_COST if j == turn else 0) if j in steered else (None, None)
+                for j in range(len(plans))]
 
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         if not self.constrained(target.plan):
             return self.free(target, rng)  # a particle's side is dropped while the mean's plan is free
         side_laws, modes = side_modes(self.setup, target.post, target.mean, target.cov, target.plan, memory,
-                                      target.previous_plan, target.replan, rng, target.budget)
+                                      target.previous_plan, target.replan, rng, target.budget, target.births)
         u = particle_controls(target.plan, target.post.particles, target.goal, self.setup, rng, sides=side_laws)
         return Steered(u, side_laws.labels, modes)
 
@@ -314,7 +318,8 @@ class Budget:
 
 def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
                previous: Sequence[SideMode], previous_plan: Plan | None, replan: Replan,
-               rng: np.random.Generator, budget: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
+               rng: np.random.Generator, budget: int | None = None,
+               births: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
     """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``).
 
     A true target keeps the side of an obstacle its plan took when the obstacle first bound it
@@ -337,24 +342,31 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
        plan of this tick, never searched from scratch (a mode born this tick has its own plan only).
 
     All of it within ``budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
-    most weight first: the modes' re-plans, then the births, then the references. A mode or
-    reference the budget does not reach (or whose warm starts fail) keeps its plan of the last tick
-    shifted by a tick (``Plan.shifted``: its law the next control's) for up to ``AHEAD_STEPS`` ticks.
+    most weight first: the modes' re-plans, then the references; the births within ``births``
+    (None: ``BIRTH_QPS`` and what is left of ``budget``). A birth the budget cannot pay for waits
+    for a later tick (its side is not held). A mode or reference the budget does not reach (or
+    whose warm starts fail) keeps its plan of the last tick shifted by a tick (``Plan.shifted``:
+    its law the next control's) for up to ``AHEAD_STEPS`` ticks.
     """
     metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
     budget = Budget(TICK_QP_BUDGET if budget is None else budget)
+    for_births = budget if births is None else Budget(births)
 
-    def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS):
-        if budget.cap(most) <= 0:
-            return None
-        p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=budget.cap(most))
-        budget.spend(p)
-        return p if p.feasible and p.law is not None else None
+    def planner(pool: Budget) -> Callable:
+        def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS):
+            if pool.cap(most) <= 0:
+                return None
+            p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=pool.cap(most))
+            pool.spend(p)
+            return p if p.feasible and p.law is not None else None
+        planned.pool = pool
+        return planned
+    planned = planner(budget)
 
     labels, modes, stats, old = _carry_modes(ps, mean, cov, plan, previous, previous_plan, planned, metric,
                                              len(setup.obstacles))
     n_old = len(modes)
-    _birth_sides(setup.plan_steering, labels, modes, stats, planned, rng)
+    _birth_sides(setup.plan_steering, labels, modes, stats, planner(for_births), rng)
     weight = np.bincount(labels, weights=ps.weights, minlength=len(modes))
     refs_of: dict[int, tuple] = {}
     for m in sorted(range(n_old), key=lambda m: -weight[m]):  # the heaviest modes' references first
@@ -437,6 +449,8 @@ def _birth_sides(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], st
         # a side is chosen ahead of the obstacle: a plan already against it has made its choice
         ahead = rows.any(axis=1) & ~rows[:, :SIDE_LEAD_STEPS].any(axis=1)
         for k in np.flatnonzero(ahead & (wind != 0) & (mode.sides == 0)):
+            if len(modes) < MAX_SIDE_MODES and planned.pool.cap(BIRTH_QPS) < BIRTH_QPS:
+                continue  # no budget for the other side's search this tick: the side waits, not held
             held = mode.sides.copy()
             held[k] = np.sign(wind[k])
             modes[m] = mode = SideMode(p, held, mode.references)
