@@ -342,8 +342,9 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
        plan of this tick, never searched from scratch (a mode born this tick has its own plan only).
 
     All of it within ``budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
-    most weight first: the modes' re-plans, then the references; the births within ``births``
-    (None: ``BIRTH_QPS`` and what is left of ``budget``). A birth the budget cannot pay for waits
+    most weight first: the modes' re-plans (a mode whose plan cannot be shifted again is re-planned
+    past the budget: a mode is never lost for want of QPs), then the references; the births within
+    ``births`` (None: ``BIRTH_QPS`` and what is left of ``budget``). A birth the budget cannot pay for waits
     for a later tick (its side is not held). A mode or reference the budget does not reach (or
     whose warm starts fail) keeps its plan of the last tick shifted by a tick (``Plan.shifted``:
     its law the next control's) for up to ``AHEAD_STEPS`` ticks.
@@ -353,10 +354,13 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
     for_births = budget if births is None else Budget(births)
 
     def planner(pool: Budget) -> Callable:
-        def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS):
-            if pool.cap(most) <= 0:
-                return None
-            p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=pool.cap(most))
+        def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS, force=False):
+            cap = pool.cap(most)
+            if cap <= 0:
+                if not force:
+                    return None
+                cap = most  # past the budget: a mode that would otherwise be lost
+            p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=cap)
             pool.spend(p)
             return p if p.feasible and p.law is not None else None
         planned.pool = pool
@@ -412,7 +416,10 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
         if share > 1.0 - 1e-12 and on_side:
             planned_for[m] = plan  # the mean's plan is this mode's: no second solve
         else:
-            planned_for[m] = planned(centre, mode.plan, mode.sides, nearby=plan if on_side else None)
+            # a mode whose plan cannot be shifted again is re-planned whatever the budget: a side
+            # mode is a hypothesis the bearings may still be weighing, never dropped for want of QPs
+            planned_for[m] = planned(centre, mode.plan, mode.sides, nearby=plan if on_side else None,
+                                     force=not mode.plan.ahead)
             if planned_for[m] is None and mode.plan.ahead:
                 planned_for[m] = mode.plan.shifted()  # not re-planned this tick: its last plan, a tick on
     modes, stats, old = [], [], []  # old: the mode's last plan and references (warm starts)
