@@ -198,10 +198,10 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
 
 def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     """``flight`` is onboard/policy.py's flight default (with the side-aware filter), planned with the
-    autopilot's WPNAV_SPEED /
-    WPNAV_ACCEL capped by what the airframe flies; ``NAME@demo`` flies a vehicle method with the
-    demo's parameters. A plan faster than the airframe (20 m/s on the demo's WPNAV_SPEED) is not
-    flown: the copter tops out near 10 m/s (its drag at ANGLE_MAX) and falls behind its plan."""
+    autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies; ``NAME@demo`` flies a
+    vehicle method with the demo's parameters. A plan faster than the airframe (20 m/s on the demo's
+    WPNAV_SPEED) is not flown: the copter tops out near 10 m/s (its drag at ANGLE_MAX) and falls
+    behind its plan."""
     from onboard.config import load_scenario
     from onboard.core.steering import SideSteering
     from onboard.policy import POLICIES
