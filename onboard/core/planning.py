@@ -193,12 +193,23 @@ def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
     start = np.broadcast_to(np.asarray(start, float), (C, 1, 3))
     ext = np.concatenate([start, paths], axis=1)  # (C, H+1, 3): the start, then the path
     ok = admissible(paths.reshape(-1, 3), ext[:, :-1].reshape(-1, 3), area_min, area_max,
-                    uav_obstacles).reshape(C, H)
+                    _at_level(uav_obstacles, ext[:, :, 2])).reshape(C, H)
     alive = np.logical_and.accumulate(ok, axis=1)
     n_ok = alive.sum(axis=1)  # the steps before the first that is not admissible
     last = np.minimum(np.arange(H)[None, :], n_ok[:, None] - 1)  # -1: the start
     held = ext[np.arange(C)[:, None], last + 1]
     return alive[:, 0].copy(), held
+
+
+def _at_level(obstacles: Obstacles, z: np.ndarray) -> Obstacles:
+    """The obstacles a path at the one altitude z (every point's) can meet: those it is neither
+    above nor below (what ``admissible`` finds for the others is already known: nothing)."""
+    if not len(obstacles) or np.ptp(z) > 0.0:
+        return obstacles
+    _, _, z_lo, z_hi = obstacles.lateral()
+    level = float(z.flat[0])
+    keep = (z_lo < level + 1e-6) & (z_hi > level - 1e-6)
+    return obstacles if keep.all() else Obstacles(obstacles.normals[keep], obstacles.offsets[keep])
 
 
 @dataclass(frozen=True)
@@ -296,7 +307,10 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
     C = len(polys)
     n_seg = np.array([len(pl) - 1 for pl in polys])
     V = int(n_seg.max()) + 1
-    poly = np.stack([np.vstack([pl, np.broadcast_to(pl[-1], (V - len(pl), 2))]) for pl in polys])  # (C, V, 2)
+    poly = np.empty((C, V, 2))  # each polyline, then its end point repeated
+    for c, pl in enumerate(polys):
+        poly[c, :len(pl)] = pl
+        poly[c, len(pl):] = pl[-1]
     seg = np.diff(poly, axis=1)
     seg_len = np.linalg.norm(seg, axis=2)
     cum = np.concatenate([np.zeros((C, 1)), np.cumsum(seg_len, axis=1)], axis=1)

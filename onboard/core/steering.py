@@ -47,8 +47,8 @@ SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets
 # them: a side mode's re-plan (a search from scratch when its warm starts fail), a side's birth, a
 # reference plan (warm starts only); a plan's law counts as LAW_COST solves
 TICK_QP_BUDGET = 40  # per target, when side_modes is given no budget
-STEER_QPS = 24  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
-STEER_MIN_QPS = 8  # ... but at least this many
+STEER_QPS = 40  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
+STEER_MIN_QPS = 12  # ... but at least this many
 MODE_QPS = 8
 BIRTH_QPS = 16
 REFERENCE_QPS = 3
@@ -259,7 +259,7 @@ def reference_laws(ps: PlanSteering, mean: np.ndarray, cov: np.ndarray, plan: Pl
             if budget is None:
                 p = replan(x, own if own is not None else previous, sides)
             else:
-                p = _budgeted_reference(x, own, previous, plan, sides, replan, budget)
+                p = _budgeted_reference(x, own, previous, plan, sides, replan, budget, first=i >= len(previous_refs))
             refs.append(p if p is not None and p.feasible else None)
             if p is not None and p.feasible and p.law is not None:
                 laws.append(p.law)
@@ -267,16 +267,17 @@ def reference_laws(ps: PlanSteering, mean: np.ndarray, cov: np.ndarray, plan: Pl
 
 
 def _budgeted_reference(x: np.ndarray, own: Plan | None, previous: Plan | None, plan: Plan, sides: np.ndarray | None,
-                        replan: Replan, budget: Budget) -> Plan | None:
+                        replan: Replan, budget: Budget, first: bool) -> Plan | None:
     """A reference plan within the side modes' budget: its own last plan shifted by a tick
     (``Plan.shifted``) while that has a next law, so each is made afresh every ``AHEAD_STEPS`` + 1
     ticks; else P1 from x warm-started by its own last plan (else the mode's last), then by the
-    mode's plan of this tick, no search from scratch; where the budget does not reach or that
-    fails, shifted while it can be."""
+    mode's plan of this tick, no search from scratch (``first``: the reference's first plan, with
+    ``MODE_QPS``, else ``REFERENCE_QPS``); where the budget does not reach or that fails, shifted
+    while it can be."""
     if own is not None and own.ahead:
         return own.shifted()
     p = None
-    most = REFERENCE_QPS if own is not None else MODE_QPS  # a reference's first plan: its faces re-picked more
+    most = MODE_QPS if first else REFERENCE_QPS  # a reference's first plan: its faces re-picked more
     if budget.cap(most) > 0:
         p = replan(x, own if own is not None else previous, sides, nearby=plan, explore=False, budget=budget.cap(most))
         budget.spend(p)
@@ -415,6 +416,8 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
         on_side = in_class(plan.faces, mode.sides)
         if share > 1.0 - 1e-12 and on_side:
             planned_for[m] = plan  # the mean's plan is this mode's: no second solve
+        elif mode.plan.ahead and mode.plan.status != "shifted":
+            planned_for[m] = mode.plan.shifted()  # made afresh every other tick, shifted between
         else:
             # a mode whose plan cannot be shifted again is re-planned whatever the budget: a side
             # mode is a hypothesis the bearings may still be weighing, never dropped for want of QPs
