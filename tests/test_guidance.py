@@ -523,12 +523,12 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
             bearings = tuple(np.array([np.arctan2(truth[j, 0] - uav[0], truth[j, 1] - uav[1]) + rng.normal(0, 0.017)])
                              for j in range(setup.n_targets))
             state, res = tick(setup, state, [Scan(uav, bearings)], rng, workspace=ws, timer=timer)
-            shares = [b for b in setup.steering.budgets(res.plans, state.step - 1) if b[0] is not None]
-            # each target's steering stops when its share (and birth allowance) is spent; one plan (a
-            # search that gave up the margin once) can overshoot each by its own cap, and each mode
-            # whose plan cannot be shifted again is re-planned with its own cap past the budget
-            over = (2 + steering.MAX_SIDE_MODES) * (max(steering.MODE_QPS, steering.BIRTH_QPS) + steering.LAW_COST)
-            assert spent[-1] <= sum(a + b for a, b in shares) + len(shares) * over
+            shares = [b for b in setup.steering.budgets(res.plans) if b is not None]
+            # each target's steering stops when its share is spent; one plan (a search that gave up
+            # the margin once) can overshoot it by its own cap, and each mode whose plan cannot be
+            # shifted again is re-planned with its own cap past the budget
+            over = (1 + steering.MAX_SIDE_MODES) * (max(steering.MODE_QPS, steering.BIRTH_QPS) + steering.LAW_COST)
+            assert spent[-1] <= sum(shares) + len(shares) * over
             out.append(res.means)
             truth = np.array([p.means[0] for p in res.plans])
         return np.stack(out)

@@ -251,10 +251,10 @@ def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.
     """Step 4: each posterior predicted to t+1 with the particle steering's controls (its
     reference plans count as tracking time); the beliefs and what the steering keeps."""
     beliefs, memory = [], []
-    budgets = setup.steering.budgets(plans, state.step)
+    budgets = setup.steering.budgets(plans)
     for j in range(setup.n_targets):
         target = TargetTick(posts[j], means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
-                            replanner(setup, setup.goals[j], workspace, timer), *budgets[j])
+                            replanner(setup, setup.goals[j], workspace, timer), budgets[j])
         steered = setup.steering.steer(target, state.steering[j] if state.steering else (), rng)
         post = replace(posts[j], labels=steered.labels)
         beliefs.append(tracking.predict(post, setup.model, steered.controls, rng))

@@ -50,7 +50,7 @@ TICK_QP_BUDGET = 40  # per target, when side_modes is given no budget
 STEER_QPS = 40  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
 STEER_MIN_QPS = 12  # ... but at least this many
 MODE_QPS = 8
-BIRTH_QPS = 16
+BIRTH_QPS = 12
 REFERENCE_QPS = 3
 LAW_COST = 1
 AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
@@ -72,7 +72,6 @@ class TargetTick:
     previous_plan: Plan | None  # last tick's
     replan: Replan  # ``replan(x, previous, sides=None, strict=False)``: P1 from x, with its law
     budget: int | None = None  # QP solves its steering may spend this tick (``ParticleSteering.budgets``)
-    births: int | None = None  # and on a side's birth (None: from ``budget``)
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,10 +92,10 @@ class ParticleSteering(ABC):
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         ...
 
-    def budgets(self, plans: Sequence[Plan], step: int) -> list[tuple[int | None, int | None]]:
-        """Per target, the QP solves its steering may spend this tick and those it may spend on
-        births (None: no limit), given the mean's plans of tick ``step`` (made before the steering)."""
-        return [(None, None)] * len(plans)
+    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
+        """Per target, the QP solves its steering may spend this tick (None: no limit), given the
+        mean's plans of the tick (made before the steering)."""
+        return [None] * len(plans)
 
     def free(self, target: TargetTick, rng: np.random.Generator) -> Steered:
         """The free law and the plan's control, nothing kept."""
@@ -133,23 +132,20 @@ class SideSteering(ParticleSteering):
     """``tracking.plan_sides``: side modes (``side_modes``); kept: the modes. Its plans are made
     within a budget of QP solves per tick (a count, never wall time: the same inputs give the same
     plans on any machine): ``STEER_QPS`` less what the mean's plans spent beyond a warm start, at
-    least ``STEER_MIN_QPS``, shared by the targets whose plan is constrained; and one side's birth
-    (``BIRTH_QPS``) per tick, the steered targets taking turns."""
+    least ``STEER_MIN_QPS``, shared by the targets whose plan is constrained."""
 
-    def budgets(self, plans: Sequence[Plan], step: int) -> list[tuple[int | None, int | None]]:
+    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
         searched = sum(max(0, p.qp_solves - 1) for p in plans)  # the mean plans' searches this tick
         total = max(STEER_MIN_QPS, STEER_QPS - searched)
-        steered = [j for j, p in enumerate(plans) if self.constrained(p)]
-        share = total // max(1, len(steered))
-        turn = steered[step % len(steered)] if steered else -1
-        return [(share, BIRTH_QPS + LAW_COST if j == turn else 0) if j in steered else (None, None)
-                for j in range(len(plans))]
+        steered = [self.constrained(p) for p in plans]
+        share = total // max(1, sum(steered))
+        return [share if c else None for c in steered]
 
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         if not self.constrained(target.plan):
             return self.free(target, rng)  # a particle's side is dropped while the mean's plan is free
         side_laws, modes = side_modes(self.setup, target.post, target.mean, target.cov, target.plan, memory,
-                                      target.previous_plan, target.replan, rng, target.budget, target.births)
+                                      target.previous_plan, target.replan, rng, target.budget)
         u = particle_controls(target.plan, target.post.particles, target.goal, self.setup, rng, sides=side_laws)
         return Steered(u, side_laws.labels, modes)
 
@@ -277,7 +273,7 @@ def _budgeted_reference(x: np.ndarray, own: Plan | None, previous: Plan | None, 
     if own is not None and own.ahead:
         return own.shifted()
     p = None
-    most = MODE_QPS if first else REFERENCE_QPS  # a reference's first plan: its faces re-picked more
+    most = REFERENCE_QPS if own is not None else MODE_QPS  # a reference's first plan: its faces re-picked more
     if budget.cap(most) > 0:
         p = replan(x, own if own is not None else previous, sides, nearby=plan, explore=False, budget=budget.cap(most))
         budget.spend(p)
@@ -319,8 +315,7 @@ class Budget:
 
 def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
                previous: Sequence[SideMode], previous_plan: Plan | None, replan: Replan,
-               rng: np.random.Generator, budget: int | None = None,
-               births: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
+               rng: np.random.Generator, budget: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
     """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``).
 
     A true target keeps the side of an obstacle its plan took when the obstacle first bound it
@@ -344,34 +339,28 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
 
     All of it within ``budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
     most weight first: the modes' re-plans (a mode whose plan cannot be shifted again is re-planned
-    past the budget: a mode is never lost for want of QPs), then the references; the births within
-    ``births`` (None: ``BIRTH_QPS`` and what is left of ``budget``). A birth the budget cannot pay for waits
-    for a later tick (its side is not held). A mode or reference the budget does not reach (or
-    whose warm starts fail) keeps its plan of the last tick shifted by a tick (``Plan.shifted``:
-    its law the next control's) for up to ``AHEAD_STEPS`` ticks.
+    past the budget: a mode is never lost for want of QPs), then the births, then the references.
+    A mode or reference the budget does not reach (or whose warm starts fail) keeps its plan of the
+    last tick shifted by a tick (``Plan.shifted``: its law the next control's) for up to
+    ``AHEAD_STEPS`` ticks.
     """
     metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
     budget = Budget(TICK_QP_BUDGET if budget is None else budget)
-    for_births = budget if births is None else Budget(births)
 
-    def planner(pool: Budget) -> Callable:
-        def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS, force=False):
-            cap = pool.cap(most)
-            if cap <= 0:
-                if not force:
-                    return None
-                cap = most  # past the budget: a mode that would otherwise be lost
-            p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=cap)
-            pool.spend(p)
-            return p if p.feasible and p.law is not None else None
-        planned.pool = pool
-        return planned
-    planned = planner(budget)
+    def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS, force=False):
+        cap = budget.cap(most)
+        if cap <= 0:
+            if not force:
+                return None
+            cap = most  # past the budget: a mode that would otherwise be lost
+        p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=cap)
+        budget.spend(p)
+        return p if p.feasible and p.law is not None else None
 
     labels, modes, stats, old = _carry_modes(ps, mean, cov, plan, previous, previous_plan, planned, metric,
                                              len(setup.obstacles))
     n_old = len(modes)
-    _birth_sides(setup.plan_steering, labels, modes, stats, planner(for_births), rng)
+    _birth_sides(setup.plan_steering, labels, modes, stats, planned, rng)
     weight = np.bincount(labels, weights=ps.weights, minlength=len(modes))
     refs_of: dict[int, tuple] = {}
     for m in sorted(range(n_old), key=lambda m: -weight[m]):  # the heaviest modes' references first
@@ -416,8 +405,6 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
         on_side = in_class(plan.faces, mode.sides)
         if share > 1.0 - 1e-12 and on_side:
             planned_for[m] = plan  # the mean's plan is this mode's: no second solve
-        elif mode.plan.ahead and mode.plan.status != "shifted":
-            planned_for[m] = mode.plan.shifted()  # made afresh every other tick, shifted between
         else:
             # a mode whose plan cannot be shifted again is re-planned whatever the budget: a side
             # mode is a hypothesis the bearings may still be weighing, never dropped for want of QPs
@@ -459,8 +446,6 @@ def _birth_sides(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], st
         # a side is chosen ahead of the obstacle: a plan already against it has made its choice
         ahead = rows.any(axis=1) & ~rows[:, :SIDE_LEAD_STEPS].any(axis=1)
         for k in np.flatnonzero(ahead & (wind != 0) & (mode.sides == 0)):
-            if len(modes) < MAX_SIDE_MODES and planned.pool.cap(BIRTH_QPS) < BIRTH_QPS:
-                continue  # no budget for the other side's search this tick: the side waits, not held
             held = mode.sides.copy()
             held[k] = np.sign(wind[k])
             modes[m] = mode = SideMode(p, held, mode.references)
