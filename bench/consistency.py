@@ -1,6 +1,6 @@
 """Filter consistency per method: where the average NEES comes from (bulk or tails).
 
-    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20]
+    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
                                 [--set tracking.regularise_bandwidth=0 ...]
 
 Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
@@ -31,9 +31,11 @@ from sim import evaluation as ev  # noqa: E402
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
-                overrides: dict | None = None, workers: int | None = None) -> dict:
-    cfg = ev.make_config(load_scenario(scenario, overrides), trials, seed, methods=methods)
-    results = ev.run_trials(cfg, workers=workers, progress=False)  # the trials of ``pmon eval``
+                overrides: dict | None = None, workers: int | None = None, trial_ids: list[int] | None = None) -> dict:
+    n = trials if trial_ids is None else max(trial_ids) + 1
+    cfg = ev.make_config(load_scenario(scenario, overrides), n, seed, methods=methods)
+    # the trials of ``pmon eval``, each as a run of all of them computes it
+    results = ev.run_trials(cfg, workers=workers, progress=False, trials=trial_ids)
     return figures(cfg, results)
 
 
@@ -50,7 +52,7 @@ def figures(cfg, results) -> dict:
         # the (trial, target) pairs that carry the most of the window's squared error
         sq = np.mean(e_all[:, w] ** 2, axis=1)  # (N, M)
         out[m]["worst_pairs"] = [
-            {"trial": int(i), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
+            {"trial": int(results[i].trial), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
              "share": round(float(sq[i, j] / sq.sum()), 3), "nees": round(float(nees[i, j]), 1)}
             for i, j in zip(*np.unravel_index(np.argsort(sq, axis=None)[::-1][:3], sq.shape))]
         if all(r.traces[m].bound_m2 is not None for r in results):
@@ -85,11 +87,19 @@ def main() -> int:
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--workers", type=int, default=None, help="local processes (default: one per core)")
+    ap.add_argument("--trial-ids", default=None, help="comma-separated trial numbers to run instead of 0..N-1 "
+                                                      "(each exactly as pmon eval runs it)")
     add_set_option(ap, "tracking.regularise_bandwidth=0")
     args = ap.parse_args()
     overrides = set_overrides(ap, args)
+    try:
+        ids = None if args.trial_ids is None else sorted({int(i) for i in args.trial_ids.split(",")})
+    except ValueError:
+        ap.error(f"--trial-ids: not a comma-separated list of trial numbers: {args.trial_ids!r}")
+    if ids is not None and (not ids or ids[0] < 0):
+        ap.error("--trial-ids: trial numbers are >= 0")
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
-                      workers=args.workers)
+                      workers=args.workers, trial_ids=ids)
     report(res)
     return 0
 
