@@ -76,7 +76,7 @@ _steering.particle_controls = _oracle_controls
 
 def main() -> int:
     from bench.consistency import consistency, report
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--methods", default="lookahead,greedy_l1,orbit")
     ap.add_argument("--trials", type=int, default=16)
     ap.add_argument("--workers", type=int, default=None)

@@ -39,12 +39,11 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
-from onboard.config import load_scenario, with_overrides  # noqa: E402
+from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.core.planning import UavMotion  # noqa: E402
-from onboard.policy import POLICIES, vehicle_motion  # noqa: E402
+from onboard.policy import vehicle_motion, with_policy  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
-from sim.vehicle import VehicleLimits  # noqa: E402
+from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
          "flight~sides")
@@ -56,12 +55,13 @@ FLIGHT_FILTERS = {"flight": {}, "flight~free": {"tracking.plan_steering": False,
 
 def setup_for(sc, case: str) -> MonitorSetup:
     if case in FLIGHT_FILTERS:
-        fl = with_overrides(sc, {**POLICIES["flight"], **FLIGHT_FILTERS[case]})
+        fl = override(with_policy(sc, "flight"), FLIGHT_FILTERS[case])
         stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
-        return MonitorSetup.from_scenario(fl, motion=vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy))
+        m = vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy)
+        return MonitorSetup.from_scenario(override(fl, {"planning.speed_max_mps": m.speed_max_mps,
+                                                        "planning.accel_max_mps2": m.accel_max_mps2}))
     planner, motion = case.split("/")
-    return MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
-        motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+    return MonitorSetup.from_scenario(override(sc, {"planning.planner": planner, "planning.motion": motion}))
 
 
 def timings(sc, cases: list[str], ticks: int, seeds: list[int], repeat: int, timer) -> dict:
@@ -76,7 +76,7 @@ def timings(sc, cases: list[str], ticks: int, seeds: list[int], repeat: int, tim
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--seeds", default=None, help="comma-separated seeds, their ticks pooled (instead of --seed)")
@@ -102,7 +102,7 @@ def main() -> None:
     results = timings(sc, cases, args.ticks, seeds, args.repeat, time.process_time if args.clock == "cpu" else None)
     print(f"paper scenario{set_label(args)}, {args.ticks} ticks x seeds {','.join(map(str, seeds))}, "
           f"{args.clock} clock, least of {args.repeat} run(s) per tick, lookahead over "
-          f"{sc.planning.lookahead_steps} ticks (flight: {with_overrides(sc, POLICIES['flight']).planning.lookahead_steps}), "
+          f"{sc.planning.lookahead_steps} ticks (flight: {with_policy(sc, 'flight').planning.lookahead_steps}), "
           f"BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
     print(f"numerics: {numerics_description()}")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")

@@ -1,4 +1,4 @@
-"""How the real ArduCopter SITL follows GUIDED setpoints, and how sim/vehicle.py does on the same ones.
+"""How the real ArduCopter SITL follows GUIDED setpoints, and how sim/multicopter.py does on the same ones.
 
     python bench/sitl_response.py [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
                                   [--speedup 4] [--param NAME=VALUE ...] [--save FILE.json.gz]
@@ -28,7 +28,7 @@ ended (its coordinates are relative to that point, local NED, metres):
   app sends, computed by the same function (onboard.core.setpoint.plan_setpoint).
 
 Limits: ``stock`` is what the binary boots with (copter.parm over the firmware's defaults: read
-back and printed), ``demo`` is onboard/demo.py's DEMO_VEHICLE_PARAMS. The copter's
+back and printed), ``demo`` is sim/multicopter.py's DEMO_VEHICLE_PARAMS. The copter's
 LOCAL_POSITION_NED is recorded at ~40 Hz (50 Hz asked) on the firmware's clock (time_boot_ms);
 a setpoint's time is the firmware time of the last message received when it was sent.
 
@@ -63,7 +63,7 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from onboard.core.setpoint import plan_setpoint  # noqa: E402
-from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
+from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
 from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
 
 HOME = (35.145, 33.411, 160.0)
@@ -451,11 +451,11 @@ def guided_setpoint(mask: int, pos, vel, acc):
 
 
 def replay(trace: dict, limits=None, rate_hz: float = 400.0) -> np.ndarray:
-    """The model (sim.vehicle, sim.guided) given the trace's setpoints at their firmware times,
+    """The model (sim.multicopter, sim.guided) given the trace's setpoints at their firmware times,
     from the trace's first sample (hovering at its start, GUIDED position-only): its horizontal
     positions at the trace's sample times, (N, 2)."""
     from sim.guided import fly_timeline
-    from sim.vehicle import VehicleLimits, VehicleState
+    from sim.multicopter import VehicleLimits, VehicleState
 
     limits = limits or VehicleLimits()
     t = np.asarray(trace["t"], float)
@@ -488,10 +488,10 @@ def model_errors(data: dict, rate_hz: float = 400.0, **airframe) -> dict:
 
 def fit_airframe(data: dict, rate_hz: float = 400.0, evaluations: int = 60) -> dict:
     """lean_tc and drag minimising the RMS over the in-envelope traces of their RMS errors
-    (Nelder-Mead from sim.vehicle's defaults)."""
+    (Nelder-Mead from sim.multicopter's defaults)."""
     from scipy.optimize import minimize
 
-    from sim.vehicle import VehicleLimits
+    from sim.multicopter import VehicleLimits
 
     def cost(x):
         if x[0] < 0.0 or x[1] <= 0.0:
@@ -511,8 +511,8 @@ def load(path: str) -> dict:
 
 
 def limits_for(params: dict, **airframe):
-    """sim.vehicle's limits for the parameters a flight read back (and airframe terms, if given)."""
-    from sim.vehicle import limits_from_params
+    """sim.multicopter's limits for the parameters a flight read back (and airframe terms, if given)."""
+    from sim.multicopter import limits_from_params
 
     return replace(limits_from_params(params), **airframe)
 
@@ -603,7 +603,7 @@ def offline(path: str, fit: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--limits", default="stock,demo", help="comma-separated: stock, demo")
     ap.add_argument("--cases", default="top,step20,step100,ramp,route90,route70",
                     help="comma-separated cases (default top,step20,step100,ramp,route90,route70)")
@@ -618,7 +618,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", help="write the traces here (gzipped JSON)")
     ap.add_argument("--replay", metavar="FILE", help="fly nothing: the model's RMS error (m) on each "
                     "trace of a saved flight, and its distance at the next tick beside the SITL's")
-    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.vehicle's lean_tc and drag to "
+    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.multicopter's lean_tc and drag to "
                     "a saved flight's in-envelope traces (a few minutes)")
     args = ap.parse_args(argv)
     if args.replay or args.fit:

@@ -5,7 +5,9 @@ from onboard.core.guidance import GuidanceParams, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 from bench.miqp_reference import random_instance
 
-PARAMS = GuidanceParams(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16)
+from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
+
+PARAMS = GuidanceParams.from_config(Guidance(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16))
 
 
 def check_plan(plan, obs, mean0, params):
@@ -71,7 +73,7 @@ def test_cost_matches_exact_miqp_on_small_instances():
     the fraction on 100)."""
     from bench.miqp_reference import solve_p1_exact
     rng = np.random.default_rng(3)
-    params = GuidanceParams(horizon=10, obstacle_margin_m=5.0)
+    params = GuidanceParams.from_config(Guidance(horizon=10, obstacle_margin_m=5.0))
     ratios = []
     for _ in range(8):
         obs, mean0, goal = random_instance(rng, params.obstacle_margin_m, blocked=True)
@@ -370,7 +372,7 @@ def _one_box(paper, **tracking):
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, **tracking))
     obs = Obstacles.from_boxes([Box("B", (0.0, 0.0, 25.0), (100.0, 100.0, 50.0))])
     goals = np.tile([0.0, -300.0, 0.0], (len(paper.targets), 1))
-    return MonitorSetup.from_scenario(sc, obstacles=obs, goals=goals)
+    return dc_replace(MonitorSetup.from_scenario(sc), obstacles=obs, goals=goals)
 
 
 def test_winding_is_the_side_a_plan_rounds_an_obstacle_and_sides_hold_it(paper, model):

@@ -4,6 +4,7 @@ from types import SimpleNamespace as Box
 import numpy as np
 import pytest
 
+from onboard.config import override
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import CandidateGrid, admissible, candidate_positions, choose_next_position
 
@@ -47,10 +48,12 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 # --------------------------------------------------------------------------- beyond the paper
 
 from onboard.core.dynamics import MotionModel  # noqa: E402
-from onboard.core.planning import UavMotion, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning import JUMP, LookaheadParams, UavMotion, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.settings import Lookahead  # noqa: E402
 
 MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10])
 VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5)
+LOOKAHEAD = LookaheadParams.from_config(Lookahead())  # the declared defaults
 AREA = ((-2e3, -2e3, 0.0), (2e3, 2e3, 1e3))
 
 
@@ -85,7 +88,7 @@ def test_both_planners_move_a_vehicle_within_its_limits(rng):
     for res in (choose_next_position(particles, logw, np.array([0.0, 0.0]), GRID, math.radians(1.0), *AREA,
                                      Obstacles.empty(), "position_trace", VEHICLE, v0, 1.0),
                 choose_lookahead(particles, logw, plans, np.array([0.0, 0.0]), v0, GRID, VEHICLE, MODEL,
-                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty())):
+                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)):
         v1 = res.velocities[res.index]
         assert np.linalg.norm(v1 - v0) <= 2.5 + 1e-9 and np.linalg.norm(v1) <= 10.0 + 1e-9
         # the move is the one the velocities imply (constant acceleration over the tick)
@@ -100,8 +103,8 @@ def test_lookahead_approaches_distant_targets_where_greedy_only_crosses(rng):
     here = np.array([0.0, 0.0])
     greedy = choose_next_position(particles, logw, here, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
                                   "position_trace")
-    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, UavMotion("jump"), MODEL,
-                            math.radians(1.0), 0.95, *AREA, Obstacles.empty())
+    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, JUMP, MODEL,
+                            math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)
     assert look.position[1] > 10.0  # toward the targets
     assert look.position[1] > greedy.position[1] + 5.0
     # and the route it scores keeps approaching, then turns (diversifies the geometry)
@@ -119,9 +122,9 @@ def test_lookahead_routes_around_a_wall_it_cannot_overfly(rng):
     wall = wall.inflate(10.0)
     particles, logw, plans = _still_targets(rng, [[0.0, 400.0]])
     here = np.array([0.0, 0.0])
-    for motion in (UavMotion("jump"), VEHICLE):
+    for motion in (JUMP, VEHICLE):
         res = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, motion, MODEL, math.radians(1.0),
-                               0.95, *AREA, wall)
+                               0.95, *AREA, wall, params=LOOKAHEAD)
         path = np.concatenate([[[0.0, 0.0, 40.0]], res.paths[res.index]])
         assert not wall.segments_cross(path[:-1], path[1:]).any()
         assert path[:, 1].max() > 180.0  # it got past the wall within the horizon
@@ -143,9 +146,8 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     from onboard.config import load_scenario
     from onboard.core.monitor import MonitorSetup
 
-    sc = load_scenario("paper", {})
-    setup = MonitorSetup.from_scenario(sc, planner="lookahead", motion=UavMotion(
-        motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+    setup = MonitorSetup.from_scenario(load_scenario("paper", {"planning.planner": "lookahead",
+                                                               "planning.motion": motion}))
     [(_, particles, log_w, plans, planning, _)] = list(snapshots(setup, {1}, 7, start_xy))
     assert planning.admissible.sum() > 100
     rng = np.random.default_rng(0)
@@ -176,9 +178,9 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
     assert isinstance(setup.uav_planner, GreedyPlanner) and setup.uav_planner is setup.uav_planner
     for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
                        ("random", RandomPlanner)):
-        assert isinstance(MonitorSetup.from_scenario(paper, planner=name).uav_planner, kind)
+        assert isinstance(MonitorSetup.from_scenario(override(paper, {"planning.planner": name})).uav_planner, kind)
     with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
-        make_planner(MonitorSetup.from_scenario(paper, planner="spiral"))
+        make_planner(dc_replace(setup, planner="spiral"))
     assert isinstance(setup.steering, FreeSteering)
 
     def steering(**tr):
@@ -195,7 +197,7 @@ def test_a_planners_draws_never_shift_the_filters(paper):
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
     def run(planner, separate):
-        setup = MonitorSetup.from_scenario(paper, planner=planner)
+        setup = MonitorSetup.from_scenario(override(paper, {"planning.planner": planner}))
         rng, prng = np.random.default_rng(5), np.random.default_rng(6)
         state, ws = initial_state(setup, rng), GuidanceWorkspace()
         uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []

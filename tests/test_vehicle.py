@@ -1,4 +1,4 @@
-"""sim.vehicle and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
+"""sim.multicopter and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
 
 The reference is tests/data/sitl_response.json.gz: what ``python bench/sitl_response.py --save
 tests/data/sitl_response.json.gz`` recorded on the real SITL, at ArduCopter's stock limits and
@@ -25,7 +25,7 @@ from bench.sitl_response import (
 )
 from sim.copter import Copter, GuidedTarget, Mode, Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
-from sim.vehicle import (
+from sim.multicopter import (
     Setpoint,
     VehicleLimits,
     VehicleState,

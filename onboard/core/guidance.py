@@ -57,16 +57,19 @@ __all__ = ["GuidanceParams", "Plan", "plan_guidance", "GuidanceWorkspace", "Loca
 
 @dataclass(frozen=True)
 class GuidanceParams:
-    horizon: int = 50
-    u_max_n: float = 6000.0
-    speed_max_mps: float = 16.0
-    speed_polygon_sides: int = 16
-    terminal_weight: float = 1.0  # per m^2
-    stage_weight: float = 1.0  # per m^2
-    smooth_weight: float = 1000.0  # per kN^2
-    obstacle_margin_m: float = 5.0
-    max_qp_solves: int = 80
-    max_solve_time_s: float | None = None  # per plan; None: no limit (deterministic, for evaluation)
+    """Problem P1's settings, each from the scenario (onboard/settings.py ``Guidance`` declares
+    their defaults, units and ranges; no defaults here that could disagree)."""
+
+    horizon: int
+    u_max_n: float
+    speed_max_mps: float
+    speed_polygon_sides: int
+    terminal_weight: float  # per m^2
+    stage_weight: float  # per m^2
+    smooth_weight: float  # per kN^2
+    obstacle_margin_m: float
+    max_qp_solves: int
+    max_solve_time_s: float | None  # per plan; None: no limit (deterministic, for evaluation)
 
     @classmethod
     def from_config(cls, g) -> "GuidanceParams":

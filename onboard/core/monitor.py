@@ -28,7 +28,7 @@ from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import FreeLaw, GuidanceParams, GuidanceWorkspace, Plan, free_law, plan_guidance
 from onboard.core.obstacles import Obstacles
 from onboard.core.planners import Planner, PlanningInputs, make_planner
-from onboard.core.planning import LOOKAHEAD_DEFAULT, CandidateGrid, LookaheadParams, PlanningResult, UavMotion
+from onboard.core.planning import CandidateGrid, LookaheadParams, PlanningResult, UavMotion
 from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
                                    SideMode, SideSteering, TargetTick)
 
@@ -47,19 +47,20 @@ class PlanSteering:
     all of them). Used while the mean's plan has an active row (rounding an obstacle, or at an
     input or speed limit): elsewhere the free law is exact."""
 
-    references: int = 2
-    spread_sigma: float = 1.5
-    steered_share: float = 0.7
-    trust_sigma: float = 2.0
-    max_qp_solves: int = 80  # per reference plan (capped by the guidance's budget, which the mean's has)
+    references: int
+    spread_sigma: float
+    steered_share: float
+    trust_sigma: float
+    max_qp_solves: int  # per reference plan (capped by the guidance's budget, which the mean's has)
     # each particle carries the side of each obstacle its target takes, and each side present has
     # its own mean's plan and spread pairs (``_side_modes``); a side costing P1 d more (relative)
     # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
-    sides: bool = False
-    side_temperature: float = 0.05
+    sides: bool
+    side_temperature: float
 
     @classmethod
     def from_config(cls, tr) -> "PlanSteering | None":
+        """From the scenario's ``tracking.plan_*`` (onboard/settings.py declares the defaults)."""
         if not tr.plan_steering:
             return None
         return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
@@ -73,7 +74,8 @@ SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets
 
 @dataclass(frozen=True, eq=False)
 class MonitorSetup:
-    """Everything static about a mission, built once from a scenario."""
+    """Everything static about a mission, built once from a scenario (``from_scenario``: every
+    value from it; onboard/settings.py declares the defaults, so none here)."""
 
     model: MotionModel
     sensor: tracking.SensorModel
@@ -89,21 +91,22 @@ class MonitorSetup:
     n_particles: int
     resample_fraction: float
     objective: str
-    control_mix: float = 0.0  # fraction of particles predicted with a random control
-    regularise_bandwidth: float = 0.0  # h of the regularised resampling (tracking.resample_if_needed)
-    free_steering: FreeLaw | None = None  # particles whose own plan is the free optimum steer by it
-    plan_steering: PlanSteering | None = None  # the others, while the plan is constrained, by reference plans
-    planner: str = "greedy"  # greedy | lookahead
-    lookahead_steps: int = 10
-    motion: UavMotion = UavMotion()
-    lookahead: LookaheadParams = LOOKAHEAD_DEFAULT
+    control_mix: float  # fraction of particles predicted with a random control
+    regularise_bandwidth: float  # h of the regularised resampling (tracking.resample_if_needed)
+    free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
+    plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
+    planner: str  # greedy | lookahead
+    lookahead_steps: int
+    motion: UavMotion
+    lookahead: LookaheadParams
 
     @classmethod
-    def from_scenario(cls, sc, **overrides) -> "MonitorSetup":
+    def from_scenario(cls, sc) -> "MonitorSetup":
+        """From a scenario; to change a setting, change the scenario (``onboard.config.override``)."""
         obstacles = Obstacles.from_boxes(sc.obstacles)
         d = sc.dynamics
         model = MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag)
-        fields = dict(
+        return cls(
             model=model,
             sensor=tracking.SensorModel.from_config(sc.sensor),
             guidance=GuidanceParams.from_config(sc.guidance),
@@ -126,8 +129,6 @@ class MonitorSetup:
             motion=UavMotion.from_config(sc.planning),
             lookahead=LookaheadParams.from_config(sc.planning.lookahead),
         )
-        fields.update(overrides)
-        return cls(**fields)
 
     @property
     def n_targets(self) -> int:

@@ -3,6 +3,7 @@ bearings (eq:measurement_model2) and the argmin of summed traces (eq:optimizatio
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,7 +105,7 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center:
                          dt: float = 1.0) -> PlanningResult:
     """eq:optimization over the admissible next positions around ``center``: the paper's
     S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick."""
-    motion = motion or UavMotion()
+    motion = motion or JUMP
     velocity = np.zeros(2) if velocity is None else velocity
     paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt)
     cand = paths[:, 0]
@@ -124,19 +125,23 @@ class UavMotion:
     """How the UAV moves between ticks.
 
     ``jump``: the paper's model, any point of the polar grid S_(t+1) is reached in one tick.
-    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator; the
-    defaults are ArduCopter's WPNAV_SPEED and WPNAV_ACCEL, which reproduce the measured 5.6 s
+    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator;
+    ArduCopter's WPNAV_SPEED and WPNAV_ACCEL defaults, the scenario's, reproduce the measured 5.6 s
     for a 20 m step from hover); the next positions are those reached in one tick under a
     constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
     """
 
-    kind: str = "jump"
-    speed_max_mps: float = 10.0
-    accel_max_mps2: float = 2.5
+    kind: str  # jump | vehicle
+    speed_max_mps: float  # vehicle only
+    accel_max_mps2: float  # vehicle only
 
     @classmethod
     def from_config(cls, planning) -> "UavMotion":
+        """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
         return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2)
+
+
+JUMP = UavMotion("jump", math.inf, math.inf)  # the paper's motion: no speed or acceleration limit applies
 
 
 def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
@@ -225,22 +230,20 @@ class LookaheadParams:
     per tick were measured and not adopted).
     """
 
-    ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
-    n_headings: int = 16
-    loiter_radius_m: float = 40.0
-    corner_clearance_m: float = 3.0
-    spacing_m: float = 2.0  # arc-length resolution of the sampled routes
+    ranges_m: tuple[float, ...]  # m
+    n_headings: int
+    loiter_radius_m: float
+    corner_clearance_m: float
+    spacing_m: float  # arc-length resolution of the sampled routes, m
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
-        """From ``onboard.config.Lookahead`` (the scenario's ``planning.lookahead``)."""
+        """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
+        the defaults, units and ranges)."""
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
-LOOKAHEAD_DEFAULT = LookaheadParams()
-
-
-def _blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
+def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Lateral faces (K, 4, 2), offsets (K, 4) of the obstacles the UAV cannot overfly at its altitude."""
     if not len(uav_obstacles):
         return np.zeros((0, 4, 2)), np.zeros((0, 4))
@@ -402,7 +405,7 @@ def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: Loo
 def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, params: LookaheadParams | None = None) -> PlanningResult:
+                     uav_obstacles: Obstacles, *, params: LookaheadParams) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -421,7 +424,6 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     admissible point of S_(t+1) nearest to it; vehicle, the route's own first step, which is in
     the reachable set by construction.
     """
-    params = params or LOOKAHEAD_DEFAULT
     H = target_paths.shape[1]
     dt = model.dt_s
     alt = grid.altitude_m
@@ -450,7 +452,7 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     """The candidate routes (C, S, 2), sampled every ``spacing_m``: to each waypoint the shortest
     polyline around the obstacles the UAV cannot overfly, then a circle turning left or right."""
     H = target_paths.shape[1]
-    normals, offsets = _blocking_2d(uav_obstacles, grid.altitude_m)
+    normals, offsets = blocking_2d(uav_obstacles, grid.altitude_m)
     wp = _route_waypoints(p0, target_paths, params, area_min, area_max, normals, offsets,
                           params.corner_clearance_m)
     clearance = params.corner_clearance_m
