@@ -76,6 +76,8 @@ def tiny_serial(tiny):
 def test_harness_is_deterministic_for_a_seed_and_across_workers(tiny, tiny_serial):
     assert _same(tiny_serial, ev.run_trials(tiny, workers=1, progress=False))
     assert _same(tiny_serial, ev.run_trials(tiny, workers=2, progress=False))
+    # chosen trials (bench/consistency.py --trial-ids) are those trials of the whole run
+    assert _same(tiny_serial[1:], ev.run_trials(tiny, workers=1, progress=False, trials=[1]))
     other = ev.run_trials(replace(tiny, seed=43), workers=1, progress=False)
     assert not np.array_equal(other[0].traces["greedy_l1"].error_m, tiny_serial[0].traces["greedy_l1"].error_m)
 
