@@ -224,7 +224,7 @@ def load_run(run_path: Path, truth_path: Path):
 WINDOW_S = 10.0  # pmon eval scores a mission from 10 s after its first scan (sim/evaluation.py)
 # What one demo mission's figure is worth: pmon eval paper's 100 missions of the same scenario,
 # the per-mission RMSE from 10 s on over all targets (r_n), median and 10th-90th percentile, from
-# the files named (docs/RESULTS.md; tests/test_demo.py holds these figures to the files)
+# the files named (docs/RESULTS.md; tests/sim/test_demo.py holds these figures to the files)
 SCALE = {
     "flight": ("the flight default on this vehicle (flight@demo)", "docs/results_flight/per_trial.csv",
                "flight@demo", 26.0, 18.9, 45.1),
