@@ -309,12 +309,9 @@ def _area(sc: Scenario) -> None:
 
 
 def _settings(sc: Scenario) -> None:
-    g, tr, pl = sc.guidance, sc.tracking, sc.planning
+    g, pl = sc.guidance, sc.planning
     if g.terminal_weight == 0 and g.stage_weight == 0:
         raise ConfigError("guidance.stage_weight: stage_weight and terminal_weight cannot both be 0")
-    if tr.plan_sides and not tr.plan_steering:
-        raise ConfigError("tracking.plan_sides: needs tracking.plan_steering: true (the sides choose "
-                          "among its reference plans)")
     if pl.planner == "lookahead" and pl.lookahead_steps > g.horizon:
         raise ConfigError(f"planning.lookahead_steps: must be <= guidance.horizon ({g.horizon}) with the "
                           f"lookahead planner, got {pl.lookahead_steps}: it follows the guidance plans")

@@ -272,7 +272,8 @@ class Tracking:
     regularise_bandwidth: float = number(0.2, 0, 1, "", "h of the regularised resampling, jitter N(0, h^2 C); "
                                          "0: plain resampling")
     plan_steering: bool = flag(False, "particles steer by the affine law of the nearest reference plan "
-                               "while the plan is constrained (opt-in)")
+                               "while the plan is constrained (the flight policy's; false: the free steering "
+                               "alone, and the plan_* settings below unused)")
     plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True)
     plan_spread_sigma: float = number(1.5, 0, 5, "sigma", "the references' spread along the cloud's major axis",
                                       lo_open=True)
@@ -282,7 +283,7 @@ class Tracking:
                                      "reference are steered", lo_open=True)
     plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan")
     plan_sides: bool = flag(False, "with plan_steering: a side of each obstacle per particle, reference "
-                            "plans per side present")
+                            "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
 

@@ -69,8 +69,6 @@ def test_the_builtin_scenario_is_the_example_file_not_a_copy():
      "tracking.plan_steering: must be true or false, got str"),
     (lambda d: d.setdefault("tracking", {}).update(plan_references=3), "tracking.plan_references: must be even"),
     (lambda d: d.setdefault("tracking", {}).update(plan_max_qp_solves=0), "tracking.plan_max_qp_solves"),
-    (lambda d: d.setdefault("tracking", {}).update(plan_sides=True),
-     "tracking.plan_sides: needs tracking.plan_steering"),
     (lambda d: d.setdefault("tracking", {}).update(plan_side_temperature=0), "tracking.plan_side_temperature"),
     (lambda d: d["planning"].update(planner="lookahead", lookahead_steps=60),
      "planning.lookahead_steps: must be <= guidance.horizon (50)"),

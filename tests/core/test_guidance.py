@@ -454,3 +454,83 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
         sel = nxt.labels == i
         centre = nxt.weights[sel] @ nxt.particles[sel] / nxt.weights[sel].sum()
         np.testing.assert_allclose(modes2[i].plan.law.x_ref, centre[[0, 1, 3, 4]], atol=1e-6)
+
+
+def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
+    """Plan.shifted (the side-aware tracker's reuse of last tick's plans): the plan one tick on,
+    from the state it predicted, with its second control as the law's reference and that
+    control's gain (``ahead``), which is the law of the plan P1 makes from there while the active
+    set holds (the principle of optimality); two shifts use both ``ahead`` laws, a third has none."""
+    from onboard.core.guidance import GuidanceWorkspace
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    ws = GuidanceWorkspace()
+    exact = 0
+    for target in paper.targets:
+        goal = np.array(paper.goal_of(target).center_m)
+        x, plan = np.array(target.mean, float), None
+        for _ in range(12):  # every target is rounding an obstacle or cruising at its speed limit
+            plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+            x = plan.means[0]
+        p = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True, ahead=2)
+        assert not p.unconstrained and len(p.ahead) == 2
+        s = p.shifted()
+        assert s.status == "shifted" and s.feasible and s.law is p.ahead[0] and s.ahead == p.ahead[1:]
+        np.testing.assert_array_equal(s.law.u_ref, p.controls[1])
+        np.testing.assert_array_equal(s.law.x_ref, p.means[0][[0, 1, 3, 4]])
+        np.testing.assert_array_equal(s.faces[:-1], p.faces[1:])
+        fresh = plan_guidance(model, params, obs, p.means[0], goal, previous=p, workspace=ws, with_feedback=True)
+        start = np.zeros(6)
+        start[[0, 1, 3, 4]] = fresh.law.x_ref
+        u = s.law.controls(start[None])[0]
+        assert np.linalg.norm(u - fresh.next_control) <= 0.02 * np.linalg.norm(fresh.next_control)
+        exact += np.linalg.norm(s.law.gain - fresh.law.gain) <= 1e-6 * np.linalg.norm(fresh.law.gain)
+        twice = s.shifted()
+        assert twice.law is p.ahead[1] and twice.shifted().law is None
+    assert exact >= 2  # where the plan keeps its active set one tick on, the gain is exact
+
+
+def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monkeypatch):
+    """plan_sides: the steering's plans are held to a count of QP solves per tick, never wall
+    time: the same inputs give the same estimates whatever the clock says, and the tracker's own
+    plans (modes, births, references) spend at most the tick's budget and a bounded overshoot."""
+    import time
+    from dataclasses import replace as dc_replace
+    from onboard.core import monitor, steering
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_sides=True))
+    setup = MonitorSetup.from_scenario(sc)
+    spent: list[int] = []
+    plan = monitor.plan_guidance
+
+    def counting(*a, **k):
+        p = plan(*a, **k)
+        if k.get("with_feedback") is True:  # the steering's own plans (replanner)
+            spent[-1] += p.qp_solves + (steering.LAW_COST if p.law is not None else 0)
+        return p
+    monkeypatch.setattr(monitor, "plan_guidance", counting)
+
+    def run(timer):
+        rng = np.random.default_rng(3)
+        state, ws, out = initial_state(setup, rng), GuidanceWorkspace(), []
+        uav = np.array([300.0, 300.0, setup.grid.altitude_m])
+        truth = setup.initial_means.copy()
+        for _ in range(8):
+            spent.append(0)
+            bearings = tuple(np.array([np.arctan2(truth[j, 0] - uav[0], truth[j, 1] - uav[1]) + rng.normal(0, 0.017)])
+                             for j in range(setup.n_targets))
+            state, res = tick(setup, state, [Scan(uav, bearings)], rng, workspace=ws, timer=timer)
+            shares = [b for b in setup.steering.budgets(res.plans) if b is not None]
+            # each target's steering stops when its share is spent; one plan (a search that gave up
+            # the margin once) can overshoot it by its own cap, and each mode whose plan cannot be
+            # shifted again is re-planned with its own cap past the budget
+            over = (1 + steering.MAX_SIDE_MODES) * (max(steering.MODE_QPS, steering.BIRTH_QPS) + steering.LAW_COST)
+            assert spent[-1] <= sum(shares) + len(shares) * over
+            out.append(res.means)
+            truth = np.array([p.means[0] for p in res.plans])
+        return np.stack(out)
+
+    clock = iter(np.cumsum(np.random.default_rng(0).uniform(0, 10, 100000)))
+    a, b = run(time.perf_counter), run(lambda: float(next(clock)))
+    np.testing.assert_array_equal(a, b)

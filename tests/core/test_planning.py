@@ -166,6 +166,13 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
         return MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))).steering
     assert isinstance(steering(plan_steering=True), ReferenceSteering)
     assert isinstance(steering(plan_steering=True, plan_sides=True), SideSteering)
+    # the flight policy flies the side-aware filter; one user setting gives back the free steering
+    # (plan_sides, as every plan_* setting, is unused without plan_steering); --policy paper keeps it
+    from onboard.policy import with_policy
+    assert isinstance(MonitorSetup.from_scenario(with_policy(paper, "flight")).steering, SideSteering)
+    user = override(paper, {"tracking.plan_steering": False})
+    assert isinstance(MonitorSetup.from_scenario(with_policy(user, "flight")).steering, FreeSteering)
+    assert isinstance(MonitorSetup.from_scenario(with_policy(paper, "paper")).steering, FreeSteering)
 
 
 def test_a_planners_draws_never_shift_the_filters(paper):

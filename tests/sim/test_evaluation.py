@@ -76,6 +76,8 @@ def tiny_serial(tiny):
 def test_harness_is_deterministic_for_a_seed_and_across_workers(tiny, tiny_serial):
     assert _same(tiny_serial, ev.run_trials(tiny, workers=1, progress=False))
     assert _same(tiny_serial, ev.run_trials(tiny, workers=2, progress=False))
+    # chosen trials (bench/consistency.py --trial-ids) are those trials of the whole run
+    assert _same(tiny_serial[1:], ev.run_trials(tiny, workers=1, progress=False, trials=[1]))
     other = ev.run_trials(replace(tiny, seed=43), workers=1, progress=False)
     assert not np.array_equal(other[0].traces["greedy_l1"].error_m, tiny_serial[0].traces["greedy_l1"].error_m)
 
@@ -199,11 +201,13 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
 
 
 def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
-    """``flight`` is onboard/policy.py's flight default, planned with the autopilot's WPNAV_SPEED /
-    WPNAV_ACCEL capped by what the airframe flies; ``NAME@demo`` flies a vehicle method with the
-    demo's parameters. A plan faster than the airframe (20 m/s on the demo's WPNAV_SPEED) is not
-    flown: the copter tops out near 10 m/s (its drag at ANGLE_MAX) and falls behind its plan."""
+    """``flight`` is onboard/policy.py's flight default (with the side-aware filter), planned with the
+    autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies; ``NAME@demo`` flies a
+    vehicle method with the demo's parameters. A plan faster than the airframe (20 m/s on the demo's
+    WPNAV_SPEED) is not flown: the copter tops out near 10 m/s (its drag at ANGLE_MAX) and falls
+    behind its plan."""
     from onboard.config import load_scenario
+    from onboard.core.steering import SideSteering
     from onboard.policy import POLICIES
 
     user = {"guidance.horizon": 20, "planning.lookahead_steps": 20, "tracking.particles": 300}
@@ -221,6 +225,7 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         if m is not fast_plan:  # the policy's settings, the user's own on top
             assert setup.planner == policy.planning.planner == "lookahead"
             assert setup.regularise_bandwidth == policy.tracking.regularise_bandwidth
+            assert isinstance(setup.steering, SideSteering)  # the side-aware filter (docs/TRACKING.md)
             assert setup.n_particles == 300 and setup.lookahead_steps == 20
     # the airframe's cap applies: the flight default on the demo's 20 m/s plans at its cap
     capped, _, _ = ev._setup_for(ev.make_config(sc, 1, 5, ["flight@demo"]), demo)
