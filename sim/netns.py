@@ -42,7 +42,7 @@ import time
 CLONE_NEWNET = 0x40000000
 CLONE_NEWUSER = 0x10000000
 SIOCGIFFLAGS, SIOCSIFFLAGS, IFF_UP = 0x8913, 0x8914, 0x1
-PEER_TTL_S = 10.0  # wall s: a talk-first client silent this long is no longer sent to
+PEER_TTL_S = 120.0  # wall s: a talk-first client silent this long is no longer sent to
 MAX_DATAGRAM = 65535
 PR_SET_PDEATHSIG = 1
 

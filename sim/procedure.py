@@ -11,6 +11,8 @@ What runs, each as a process, as on a vehicle:
 - ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), five MAVLink TCP
   ports: SERIAL0 the app, SERIAL1 the DF feed, SERIAL2 the operator's ``pmon gcs`` commands,
   SERIAL5 an observer, SERIAL6 a second ground station (``Mission.spare_url``: the live view);
+  or (``autopilot="px4"``) PX4 SITL (sim/px4.py): the app on PX4's offboard/API link, the rest
+  on its ground-station link (each a loopback port of its own through the driver's relay);
 - ``pmon run`` (optionally through ``TcpProxy``, a telemetry link that a test can cut);
 - ``pmon feed live``;
 - ``pmon gcs ...`` per command (``Mission.gcs``; every call is kept: exit code, output, wall s).
@@ -41,11 +43,24 @@ from onboard.app.link import Link, mavlink
 from onboard.app.pose import Frame
 from onboard.demo import DEMO_VEHICLE_PARAMS
 from sim.ardupilot import ArduPilotSitl, find_binary, home_of
+from sim.px4 import Px4Sitl, find_sitl
 from sim.processes import MockProcess, Proc
 from sim.tick_account import TickAccount, scan_times
 
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
 GUIDED = 4  # ArduCopter's custom_mode
+PX4_OFFBOARD = 6  # PX4's main mode (custom_mode bits 16-23)
+# where each program connects: an index of ArduPilotSitl.url / MockProcess.url, or PX4's
+# (link, listener index; None: a client that sends first)
+ROLES = {"app": (0, ("api", 0)), "feed": (1, ("gcs", 1)), "gcs": (2, ("gcs", 0)),
+         "observer": (3, ("gcs", None)), "spare": (4, ("gcs", 2))}
+
+
+def app_mode(autopilot: str) -> Callable[[int], bool]:
+    """Whether a HEARTBEAT custom_mode is the mode the app flies in (GUIDED; PX4's OFFBOARD)."""
+    if autopilot == "px4":
+        return lambda m: m is not None and (m >> 16) & 0xFF == PX4_OFFBOARD
+    return lambda m: m == GUIDED
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
 # ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
 # paper's 20 m steps: the demo's vehicle's
@@ -54,7 +69,7 @@ RECOMMENDED_PARAMS = DEMO_VEHICLE_PARAMS
 
 @dataclass(frozen=True)
 class MissionConfig:
-    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | mock (python -m sim.autopilot)
+    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | px4 (PX4's SITL) | mock (python -m sim.autopilot)
     speedup: float = 2.0  # SITL --speedup (simulated s per wall s)
     params: Mapping[str, float] = field(default_factory=dict)  # autopilot params over copter.parm
     scenario: str = "paper"
@@ -268,6 +283,10 @@ class Mission:
         home = home_of(self.sc)
         if cfg.autopilot == "mock":
             self.sitl = MockProcess(home, cfg.speedup, cfg.params, 5, self.out / "autopilot.log")
+        elif cfg.autopilot == "px4":
+            self.sitl = Px4Sitl(binary or find_sitl(), home[:3], cfg.speedup, dict(cfg.params),
+                                workdir=self.out / "px4", log_path=self.out / "autopilot.log",
+                                listeners={"gcs": 3, "api": 1})
         else:
             self.sitl = ArduPilotSitl(binary or find_binary(), home, cfg.speedup, dict(cfg.params),
                                       ports=5, log_path=self.out / "autopilot.log")
@@ -290,8 +309,8 @@ class Mission:
 
     def start(self) -> "Mission":
         self.sitl.start()
-        self.observer = Observer(self.sitl.url(3))
-        url = self.sitl.url(0)
+        self.observer = Observer(self.url("observer"))
+        url = self.url("app")
         if self.cfg.link_proxy:
             self.proxy = TcpProxy(("127.0.0.1", self.sitl.port(0)))
             url = f"tcp:127.0.0.1:{self.proxy.port}"
@@ -303,7 +322,7 @@ class Mission:
             argv.append("--auto-launch")
         self.app = Proc("app", argv, self.out / "app.log")
         self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
-        self.feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", self.sitl.url(1),
+        self.feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", self.url("feed"),
                                   "--to", f"127.0.0.1:{self.df_port}", "--scenario", self.cfg.scenario,
                                   "--truth", str(self.out / "truth.jsonl"), "--seed", str(self.cfg.seed + 1),
                                   "--duration", f"{self.cfg.feed_duration_s:g}"], self.out / "feed.log")
@@ -327,12 +346,19 @@ class Mission:
     @property
     def spare_url(self) -> str:
         """A MAVLink port of its own for a second ground station (one TCP client)."""
-        return self.sitl.url(4)
+        return self.url("spare")
+
+    def url(self, role: str) -> str:
+        """The MAVLink URL of a program of the flight (``ROLES``)."""
+        serial, (link, i) = ROLES[role]
+        if self.cfg.autopilot != "px4":
+            return self.sitl.url(serial)
+        return self.sitl.talk_url(link) if i is None else self.sitl.url(link, i)
 
     # ----- the operator
     def gcs(self, *args: str, timeout: float = 10.0, wall_limit: float = 300.0) -> GcsCall:
         """``pmon gcs --connect SERIAL2 --timeout T ARGS...`` as a process, run once."""
-        argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.sitl.url(2),
+        argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.url("gcs"),
                 "--timeout", f"{timeout:g}", *args]
         t0 = time.monotonic()
         p = subprocess.run(argv, capture_output=True, text=True, timeout=wall_limit,
@@ -404,7 +430,7 @@ class Mission:
         """The autopilot was in GUIDED at autopilot time t (the observer's heartbeats)."""
         with self.observer.lock:
             modes = [m for m in self.observer.modes if m[0] is not None and m[0] <= t]
-        return bool(modes) and modes[-1][1] == GUIDED
+        return bool(modes) and app_mode(self.cfg.autopilot)(modes[-1][1])
 
     def follow_errors_m(self) -> list[float]:
         """How well the vehicle flies the plan: for each monitoring tick that sent a setpoint,
@@ -445,7 +471,7 @@ class Mission:
         none), from the app's own tlog (its setpoints carry its autopilot clock)."""
         with self.observer.lock:
             modes = list(self.observer.modes)
-        return takeover_reactions(self.out / "app.tlog", modes)
+        return takeover_reactions(self.out / "app.tlog", modes, app_mode(self.cfg.autopilot))
 
     def autopilot_crashes(self) -> int:
         """Floating point exceptions and other aborts the firmware printed (the mock: the
@@ -455,15 +481,17 @@ class Mission:
                                           "defect that crashes"))
 
 
-def takeover_reactions(tlog: Path, modes: list[tuple]) -> list[float]:
-    """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes."""
+def takeover_reactions(tlog: Path, modes: list[tuple], in_app_mode: Callable[[int], bool] = app_mode("ardupilot")
+                       ) -> list[float]:
+    """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes;
+    ``in_app_mode``: whether a custom_mode is the app's (``app_mode``)."""
     from pymavlink import mavutil
 
     episodes = []  # (left GUIDED, back in GUIDED or inf), autopilot s
     for i, (t0, mode, _) in enumerate(modes):
-        if t0 is None or mode == GUIDED or i == 0 or modes[i - 1][1] != GUIDED:
+        if t0 is None or in_app_mode(mode) or i == 0 or not in_app_mode(modes[i - 1][1]):
             continue
-        back = next((t for t, m, _ in modes[i + 1:] if m == GUIDED and t is not None), math.inf)
+        back = next((t for t, m, _ in modes[i + 1:] if in_app_mode(m) and t is not None), math.inf)
         episodes.append((t0, back))
     last = [None] * len(episodes)
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")

@@ -21,18 +21,19 @@ link is relayed to a UDP socket on the host's 127.0.0.1 that this process binds 
 and keeps across restarts. Nothing of PX4 is reachable from outside the machine, parallel
 instances cannot collide, and clients use plain loopback URLs. A link's datagrams go to each of
 its ``listeners`` ports (clients that wait for the autopilot, as a companion does on PX4's
-14540: ``url(link, i)``) and to every client that sent to the link's own port in the last 10 s
-(``talk_url``: MAVProxy, ``pmon gcs``, anything that sends a heartbeat first); PX4 sees one
+14540: ``url(link, i)``) and to every client that sent to the link's own port in the last 120 s
+(``talk_url``: MAVProxy, anything that sends a heartbeat first); PX4 sees one
 peer per link, as behind mavlink-router on a vehicle.
 
 **Parameters.** ``params`` go to PX4's rcS as ``PX4_PARAM_NAME`` and again after rcS's own
-settings, through the ``px4-rc.mavlink`` that rcS looks for on the PATH (the driver writes one
-into the working directory's ``bin/`` that sources PX4's own): so they win over rcS's
-multi-instance and speed-factor settings. That file also sets MAV_SYS_ID (``sysid``, default 1
-as on a vehicle, not SITL's N + 1) and, by default, sets back the four link-loss timeouts that rcS
-multiplies by the speed factor (COM_DL_LOSS_T, COM_RC_LOSS_T, COM_OF_LOSS_T, COM_OBC_LOSS_T):
-PX4's clock is the simulation's (lockstep), so the stock values are already faithful for a
-client that runs on the autopilot's clock, as pmon does.
+settings, before any flight module starts: rcS sources ``px4-rc.sihsim`` through the PATH, whose
+first entry is the working directory's ``bin/``, so the driver writes one there that sets them and
+then sources PX4's own. They win over rcS's multi-instance and speed-factor settings. That file
+also sets MAV_SYS_ID (``sysid``, default 1 as on a vehicle, not SITL's N + 1: set any later and
+commander keeps N + 1 and ignores commands to 1) and, at a speed factor other than 1, resets to
+PX4's defaults the four link-loss timeouts rcS multiplies by the factor (COM_DL_LOSS_T,
+COM_RC_LOSS_T, COM_OF_LOSS_T, COM_OBC_LOSS_T): PX4's clock is the simulation's (lockstep), so
+its defaults are already faithful for a client that runs on the autopilot's clock, as pmon does.
 
 As a program, for a terminal session (docs/SITL.md)::
 
@@ -68,8 +69,8 @@ FIRST_INSTANCE = 20  # tried from here up: leaves 0.. to a developer's own PX4 S
 LAST_INSTANCE = 99
 BOOT_LINE = "Startup script returned successfully"
 BOOT_TIMEOUT_S = 30.0  # wall s from the process to PX4's startup script done
-# the link-loss timeouts rcS multiplies by PX4_SIM_SPEED_FACTOR, at their stock (simulated-time) values
-SPEED_SCALED_PARAMS = {"COM_DL_LOSS_T": 10, "COM_RC_LOSS_T": 1.0, "COM_OF_LOSS_T": 1.0, "COM_OBC_LOSS_T": 5.0}
+# the link-loss timeouts rcS multiplies by PX4_SIM_SPEED_FACTOR (etc/init.d-posix/rcS)
+SPEED_SCALED_PARAMS = ("COM_DL_LOSS_T", "COM_RC_LOSS_T", "COM_OF_LOSS_T", "COM_OBC_LOSS_T")
 
 
 class SitlError(RuntimeError):
@@ -285,16 +286,16 @@ class Px4Sitl:
             self._push[link] = ports
 
     def _write_rc(self) -> None:
-        """workdir/bin/px4-rc.mavlink, found by rcS on the PATH before PX4's own (see the module)."""
-        lines = ["#!/bin/sh", "# written by pmon's sim/px4.py: MAV_SYS_ID, PX4's own links, then its parameters"]
+        """workdir/bin/px4-rc.sihsim, found by rcS on the PATH before PX4's own (see the module)."""
+        lines = ["#!/bin/sh", "# written by pmon's sim/px4.py: after rcS's settings, before the flight modules start"]
         if self.sysid is not None:
             lines.append(f"param set MAV_SYS_ID {int(self.sysid)}")
-        lines.append(". ${R}etc/init.d-posix/px4-rc.mavlink")
-        after = dict(SPEED_SCALED_PARAMS) if self.stock_timeouts else {}
-        after.update(self.params)
-        lines += [f"param set {k} {_value(v)}" for k, v in after.items()]
+        if self.stock_timeouts and self.speed != 1:
+            lines.append("param reset " + " ".join(SPEED_SCALED_PARAMS))
+        lines += [f"param set {k} {_value(v)}" for k, v in self.params.items()]
+        lines.append(". ${R}etc/init.d-posix/px4-rc.sihsim")
         (self.workdir / "bin").mkdir(exist_ok=True)
-        (self.workdir / "bin" / "px4-rc.mavlink").write_text("\n".join(lines) + "\n")
+        (self.workdir / "bin" / "px4-rc.sihsim").write_text("\n".join(lines) + "\n")
 
     def _boot(self) -> None:
         self._write_rc()
@@ -358,6 +359,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", help="PX4's working directory (default: a new temporary one)")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", type=param_item,
                     help="PX4 parameter at every boot; repeatable (e.g. COM_OBL_RC_ACT=5)")
+    ap.add_argument("--gcs-listeners", type=int, default=1, metavar="N",
+                    help="udpin ports on the ground-station link (default 1; e.g. 2: pmon gcs and pmon feed live)")
     args = ap.parse_args(argv)
     from onboard.config import ConfigError, load_scenario
     folder = Path(args.sitl) if args.sitl else find_sitl()
@@ -374,8 +377,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m sim.px4: {exc}", file=sys.stderr)
         return 2
     home = home_of(sc)
+    if not 1 <= args.gcs_listeners <= 8:
+        ap.error(f"--gcs-listeners must be in 1..8, got {args.gcs_listeners}")
     sitl = Px4Sitl(folder, home, args.speed, dict(args.param), instance=args.instance,
-                   workdir=Path(args.workdir) if args.workdir else None)
+                   workdir=Path(args.workdir) if args.workdir else None,
+                   listeners={"gcs": args.gcs_listeners, "api": 1})
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(1))
@@ -389,7 +395,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{home[2]:.1f} m ({sc.name}'s UAV start), {args.speed:g}x; console log {sitl.log_file}, "
               f"ULogs {sitl.workdir / 'log'}", flush=True)
         print(f"  companion (PX4's offboard/API link): {sitl.url('api')}", flush=True)
-        print(f"  ground station: {sitl.url('gcs')}  (or, sending first: {sitl.talk_url('gcs')})", flush=True)
+        gcs = ", ".join(sitl.url("gcs", i) for i in range(args.gcs_listeners))
+        print(f"  ground station (PX4's GCS link): {gcs}  (or, sending first: {sitl.talk_url('gcs')})",
+              flush=True)
         while not stop and sitl.running:
             time.sleep(0.2)
         if not sitl.running and not stop:
