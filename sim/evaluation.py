@@ -65,7 +65,7 @@ from sim.guided import enu, fly_plan, ned
 from sim.numerics import numerics_description, pin_kernels
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
-from sim.vehicle import VehicleLimits, VehicleState, limits_from_params
+from sim.vehicle import PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
 ORBIT_RADIUS_M = 150.0  # radius of the "orbit" baseline around the targets' initial centroid
@@ -73,8 +73,9 @@ REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
 BOOTSTRAP_RESAMPLES = 2000
 # the ArduCopter parameters a vehicle method's copter flies with (sim.vehicle.limits_from_params):
-# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: onboard/demo.py's)
-AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS)}
+# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: onboard/demo.py's;
+# px4: PX4 v1.16's stock MPC_* parameters, its controller and SIH airframe)
+AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS), "px4": dict(PX4_DEFAULTS)}
 
 
 # --------------------------------------------------------------------------- methods
