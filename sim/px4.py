@@ -126,8 +126,15 @@ def home_of(scenario) -> tuple[float, float, float]:
 
 
 def _px4_lock_free(instance: int) -> bool:
-    """PX4 holds a POSIX record lock on /tmp/px4_lock-N while instance N runs: probe it."""
+    """PX4 holds a POSIX record lock on /tmp/px4_lock-N while instance N runs: probe it (and
+    leave N to its owner where another user's PX4 left its lock or socket file there)."""
     path = Path(tempfile.gettempdir()) / f"px4_lock-{instance}"
+    if path.exists() and not os.access(path, os.W_OK):  # another user's: PX4 could not open it
+        return False
+    sock = path.with_name(f"px4-sock-{instance}")  # left by a run of another user: PX4 cannot replace it
+    with contextlib.suppress(OSError):
+        if sock.lstat().st_uid != os.getuid():
+            return False
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
     except OSError:
@@ -261,7 +268,10 @@ class Px4Sitl:
         lock_dir = Path(tempfile.gettempdir())
         candidates = [self.instance] if self.instance is not None else range(FIRST_INSTANCE, LAST_INSTANCE + 1)
         for n in candidates:
-            f = open(lock_dir / f"pmon-px4-sitl-i{n}.lock", "w")
+            try:  # read-only: another user's lock file locks as well
+                f = os.fdopen(os.open(lock_dir / f"pmon-px4-sitl-i{n}.lock", os.O_RDONLY | os.O_CREAT, 0o666))
+            except OSError:
+                continue
             try:
                 fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
