@@ -18,6 +18,7 @@ import json  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -49,7 +50,8 @@ def _latest_time(conn) -> tuple[float, float]:
 
 
 def ratio(speed: float, seconds: float) -> dict:
-    s = Px4Sitl(find_sitl(), speed=speed).start()
+    wd = tempfile.TemporaryDirectory(prefix="pmon-px4-bench-")  # not the ULogs: a bench of its own
+    s = Px4Sitl(find_sitl(), speed=speed, workdir=Path(wd.name)).start()
     try:
         conn = mavutil.mavlink_connection(s.url("api"), source_system=245, source_component=191)
         relay, px4 = s.proc.pid, _px4_pid(s)
@@ -68,6 +70,7 @@ def ratio(speed: float, seconds: float) -> dict:
                 "px4_cpu_pct": round(100 * (c1[1] - c0[1]) / span, 1)}
     finally:
         s.stop()
+        wd.cleanup()
 
 
 PING = r"""
@@ -93,7 +96,8 @@ print(json.dumps(rtts))
 def round_trip(path: str, pings: int) -> dict:
     """TIMESYNC round trips (ms) from a client on the host through the relay, or from one inside
     PX4's namespace straight to its port (``nsenter``), on a fresh PX4 at 1x."""
-    s = Px4Sitl(find_sitl(), speed=1).start()
+    wd = tempfile.TemporaryDirectory(prefix="pmon-px4-bench-")
+    s = Px4Sitl(find_sitl(), speed=1, workdir=Path(wd.name)).start()
     try:
         time.sleep(3.0)
         if path == "relay":
@@ -113,6 +117,7 @@ def round_trip(path: str, pings: int) -> dict:
                 "p95_ms": round(rtts[int(0.95 * (len(rtts) - 1))], 3)}
     finally:
         s.stop()
+        wd.cleanup()
 
 
 def main() -> int:

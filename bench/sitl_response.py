@@ -64,6 +64,7 @@ import json  # noqa: E402
 import math  # noqa: E402
 import struct  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -631,7 +632,9 @@ def fly_limits(label: str, binary: Path, speedup: float, cases: list[str], laten
                log=print, autopilot: str = "ardupilot") -> tuple[dict, dict, list[Trace]]:
     px4 = autopilot == "px4"
     params_in = {**LIMITS[label], **(extra or {})}
-    sitl = px4_sitl.Px4Sitl(binary, HOME, speed=speedup, params=params_in) if px4 else \
+    # PX4's ULog of a full run is ~200 MB: its working directory goes with the bench
+    workdir = tempfile.TemporaryDirectory(prefix="pmon-px4-bench-") if px4 else None
+    sitl = px4_sitl.Px4Sitl(binary, HOME, speed=speedup, params=params_in, workdir=Path(workdir.name)) if px4 else \
         ArduPilotSitl(binary, HOME, speedup=speedup, params=params_in)
     sitl.start()
     try:
@@ -678,6 +681,8 @@ def fly_limits(label: str, binary: Path, speedup: float, cases: list[str], laten
             f.conn.close()
     finally:
         sitl.stop()
+        if workdir is not None:
+            workdir.cleanup()
     return params, figures, traces
 
 
@@ -762,7 +767,7 @@ def main(argv: list[str] | None = None) -> int:
         saved[key] = {"params": params, "traces": [t.as_dict() for t in traces]}
         for name, fig in figures.items():
             if isinstance(fig, dict):
-                print(f"{lab:6s} {name:18s} " + "  ".join(f"{k}={v}" for k, v in fig.items()))
+                print(f"{key:6s} {name:18s} " + "  ".join(f"{k}={v}" for k, v in fig.items()))
     if args.save:
         with gzip.GzipFile(args.save, "wb", mtime=0) as fh:  # mtime 0: the same flight, the same bytes
             fh.write(json.dumps(saved, separators=(",", ":")).encode())

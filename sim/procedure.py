@@ -289,7 +289,7 @@ class Mission:
                                 listeners={"gcs": 3, "api": 1})
         else:
             self.sitl = ArduPilotSitl(binary or find_binary(), home, cfg.speedup, dict(cfg.params),
-                                      ports=5, log_path=self.out / "autopilot.log")
+                                      ports=5, log_path=self.out / "autopilot.log", workdir=self.out / "ardupilot")
         self.proxy: TcpProxy | None = None
         self.app = self.feed = None
         self.observer: Observer | None = None
