@@ -28,7 +28,7 @@ from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, figures, f
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--params", choices=("stock", "recommended"), default="stock",
                     help="autopilot parameters: copter.parm as is, or docs/SITL.md's recommended")
     ap.add_argument("--monitor", type=float, default=100.0, help="autopilot s of monitoring (default 100)")

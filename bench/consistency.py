@@ -75,7 +75,7 @@ def report(res: dict, label: str = "") -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", nargs="?", default="paper")
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)

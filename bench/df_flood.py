@@ -140,7 +140,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
             log(f"phase {ph['name']}: {ph['rate_hz']:g} datagrams/s from {ph['src']} for {ph['seconds']:g} s "
                 f"(mission t {app.clock.now():.0f} s)")
             return
-        st["hb_age"] = max(st["hb_age"], app.mono() - app._hb_local)
+        st["hb_age"] = max(st["hb_age"], app.mono() - app.publisher.heartbeat_local)
         if proc.poll() is None:
             return
         time.sleep(1.0)  # let the app drain what is queued
@@ -172,7 +172,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
         out["app_errors"] = dict(app.errors.counts)
         out["io_errors"] = app.counters.get("io_errors", 0)
         out["tick_errors"] = app.counters.get("tick_errors", 0)
-        out["watchdog"] = dict(app.watchdog)
+        out["watchdog"] = dict(app.watchdog.counts)
         out["state_end"] = State(app.state).name
 
     # mission s from arming (the feed's duration): the launch (monitoring ~20 s after boot,
@@ -205,7 +205,7 @@ PHASES = [
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd")
     s = sub.add_parser("send", help="the hostile sender (one phase); prints one JSON line")
     s.add_argument("--to", required=True, metavar="HOST:PORT")

@@ -71,7 +71,7 @@ def daqp_forms(calls: int = 200) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trial", type=int, default=0)
     ap.add_argument("--methods", default=",".join(ev.DEFAULT_METHODS))
     add_set_option(ap)

@@ -41,7 +41,7 @@ def variant(name: str, items: list[str], autopilot: str) -> ev.Method:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/flight_choice.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python bench/flight_choice.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--workers", type=int, default=None)

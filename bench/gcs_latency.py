@@ -95,7 +95,7 @@ def run(repeat: int) -> dict:
 
 
 def main_(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeat", type=int, default=5)
     args = p.parse_args(argv)
     res = run(args.repeat)

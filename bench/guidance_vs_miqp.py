@@ -28,7 +28,7 @@ from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, plan_guidan
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--instances", type=int, default=100)
     ap.add_argument("--horizon", type=int, default=10)
     ap.add_argument("--seed", type=int, default=11)

@@ -27,7 +27,6 @@ import argparse
 import json
 import os
 import re
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,12 +36,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sim.autopilot import MockAutopilot  # noqa: E402  (sets MAVLINK20 first)
-from onboard.app.app import AppConfig, OnboardApp  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
-from onboard.demo import DEMO_READY_S  # noqa: E402
-from sim.autopilot import BootTimeline  # noqa: E402
+from sim.autopilot import MockAutopilot  # noqa: E402,F401  (sets MAVLINK20 first)
+from sim.demo import DEMO_READY_S  # noqa: E402
+from sim.rig import Rig, RigConfig  # noqa: E402
 from sim.tick_account import TickAccount, scan_times  # noqa: E402
 
 
@@ -52,58 +48,44 @@ def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = Non
 
     ``on_app(app)`` every 0.5 s wall, ``on_setpoint(msg)`` per setpoint the autopilot receives,
     ``after(app)`` when the mission is over (before anything is torn down or read back)."""
-    sc = load_scenario("paper")
-    o = sc.origin
     account = TickAccount()
-    with tempfile.TemporaryDirectory() as tmp, \
-            MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=speedup, seed=seed,
-                          endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS,
-                          max_lag_s=0.1, boot=BootTimeline.scaled(DEMO_READY_S)) as ap:
-        orig = ap._on_set_position_target_local_ned
 
-        def spy(link, msg):
-            account.on_setpoint(ap.copter.t, (msg.x, msg.y, msg.z))
-            if on_setpoint is not None:
-                on_setpoint(msg)
-            orig(link, msg)
-        ap._on_set_position_target_local_ned = spy
-        app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=seed, **(cfg_extra or {})), sc)
-        app.tick_listeners.append(lambda rec: account.on_tick(rec, app.params["PMON_BUDGET"]))
-        app.start()
+    def received(t, msg):
+        account.on_setpoint(t, (msg.x, msg.y, msg.z))
+        if on_setpoint is not None:
+            on_setpoint(msg)
+    with tempfile.TemporaryDirectory() as tmp:
         truth = Path(tmp) / "truth.jsonl"
-        feed_out = Path(tmp) / "feed.out"
-        wall0, t0 = time.monotonic(), ap.sim_time
-        with open(feed_out, "w") as fo:
-            feed = subprocess.Popen(
-                [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
-                 "--to", f"127.0.0.1:{app.sensor_port}", "--seed", str(seed + 1), "--duration", str(int(duration)),
-                 "--truth", str(truth)], cwd=ROOT, stdout=fo)
-        try:
-            while feed.poll() is None:
+        # the paper scenario as written (its policy), the demo's vehicle and boot, at the mission
+        # origin (the fence checks read the mock's local NED as the mission's ENU), mock and app
+        # in this process, the feed a process
+        rig = Rig(RigConfig(policy="paper", seed=seed, speedup=speedup, home="origin", ready_s=DEMO_READY_S,
+                            ports=2, in_process=True, auto_launch=True, app_config=cfg_extra or {},
+                            feed_duration_s=int(duration), out_dir=tmp, truth_path=str(truth)),
+                  on_tick=lambda rec: account.on_tick(rec, rig.app.params["PMON_BUDGET"]), on_setpoint=received)
+        with rig:
+            ap, app = rig.ap, rig.app
+            wall0, t0 = time.monotonic(), ap.sim_time
+            while rig.feed.p.poll() is None:
                 if on_app is not None:
                     on_app(app)
                 time.sleep(0.5)
             # the last scan's tick: wait until nothing is pending or running (bounded)
             deadline = time.monotonic() + 10
-            while (app.scans.pending or app._worker_busy) and time.monotonic() < deadline:
+            while (app.scans.pending or app.worker.busy) and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(1.5 / speedup)
             if after is not None:
                 after(app)
-        finally:
-            if feed.poll() is None:
-                feed.terminate()
-            feed.wait(timeout=10)
-            app.stop()
-        wall = time.monotonic() - wall0
-        achieved = (ap.sim_time - t0) / wall
-        figures = account.finish(scan_times(truth))
-        done = re.search(r"(\d+) sent > [\d.]+ s late \(max ([\d.]+) s", feed_out.read_text())
-        return {"app": app, "figures": figures, "ap_counters": ap.counters(),
-                "achieved_speedup": achieved, "wall_s": wall, "feed_rc": feed.returncode,
-                "feed_late_scans": int(done.group(1)) if done else None,
-                "feed_send_lag_s_max": float(done.group(2)) if done else None}
+            rig.stop_programs()
+            wall = time.monotonic() - wall0
+            achieved = (ap.sim_time - t0) / wall
+            figures = account.finish(scan_times(truth))
+            done = re.search(r"(\d+) sent > [\d.]+ s late \(max ([\d.]+) s", (Path(tmp) / "feed.log").read_text())
+            return {"app": app, "figures": figures, "ap_counters": ap.counters(),
+                    "achieved_speedup": achieved, "wall_s": wall, "feed_rc": rig.feed.p.returncode,
+                    "feed_late_scans": int(done.group(1)) if done else None,
+                    "feed_send_lag_s_max": float(done.group(2)) if done else None}
 
 
 def figures(run: dict, duration: float, speedup: float) -> dict:
@@ -126,7 +108,7 @@ def figures(run: dict, duration: float, speedup: float) -> dict:
 
 
 def main() -> int:
-    ap_ = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap_ = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap_.add_argument("--duration", type=float, default=60.0, help="mission seconds (default 60: smoke)")
     ap_.add_argument("--speedup", type=float, default=5.0)
     ap_.add_argument("--seed", type=int, default=1)

@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from onboard.core import monitor as _monitor  # noqa: E402
+from onboard.core import steering as _steering  # noqa: E402
 from sim import evaluation as _ev  # noqa: E402
 from sim import truth as _truth  # noqa: E402
 
@@ -28,8 +28,8 @@ _NOW = {"tick": 0, "target": 0}  # which prediction the filter is making (ticks 
 _TRUE: dict[str, np.ndarray] = {}  # the current trial's true states, controls and gains
 
 _truth_step = _truth.TruthWorld.step
-_tick = _monitor.tick
-_controls = _monitor._particle_controls
+_tick = _ev.tick
+_controls = _steering.particle_controls
 
 
 def _step_recording(self):
@@ -71,12 +71,12 @@ def _oracle_controls(plan, particles, goal, setup, rng, *args, **kwargs):
 _truth.TruthWorld.step = _step_recording
 _ev.simulate_truth = _simulate_truth
 _ev.tick = _tick_counting
-_monitor._particle_controls = _oracle_controls
+_steering.particle_controls = _oracle_controls
 
 
 def main() -> int:
     from bench.consistency import consistency, report
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--methods", default="lookahead,greedy_l1,orbit")
     ap.add_argument("--trials", type=int, default=16)
     ap.add_argument("--workers", type=int, default=None)

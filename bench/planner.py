@@ -31,28 +31,28 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
-from onboard.config import load_scenario, with_overrides  # noqa: E402
+from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.core.planning import UavMotion  # noqa: E402
-from onboard.policy import POLICIES, vehicle_motion  # noqa: E402
+from onboard.policy import vehicle_motion, with_policy  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
-from sim.vehicle import VehicleLimits  # noqa: E402
+from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
 
 
 def setup_for(sc, case: str) -> MonitorSetup:
     if case == "flight":
-        fl = with_overrides(sc, POLICIES["flight"])
+        fl = with_policy(sc, "flight")
         stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
-        return MonitorSetup.from_scenario(fl, motion=vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy))
+        m = vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy)
+        return MonitorSetup.from_scenario(override(fl, {"planning.speed_max_mps": m.speed_max_mps,
+                                                        "planning.accel_max_mps2": m.accel_max_mps2}))
     planner, motion = case.split("/")
-    return MonitorSetup.from_scenario(sc, planner=planner, motion=UavMotion(
-        motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+    return MonitorSetup.from_scenario(override(sc, {"planning.planner": planner, "planning.motion": motion}))
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
@@ -69,7 +69,7 @@ def main() -> None:
     for case in cases:
         results[case] = tick_timings(setup_for(sc, case), args.ticks, args.seed)
     print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
-          f"{sc.planning.lookahead_steps} ticks (flight: {with_overrides(sc, POLICIES['flight']).planning.lookahead_steps}), "
+          f"{sc.planning.lookahead_steps} ticks (flight: {with_policy(sc, 'flight').planning.lookahead_steps}), "
           f"BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
     print(f"numerics: {numerics_description()}")
     print(f"{'planner/motion':20s} {'tick med':>9s} {'tick p95':>9s} {'planning med':>13s} {'planning p95':>13s}")

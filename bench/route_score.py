@@ -43,12 +43,11 @@ from scipy.special import logsumexp  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.bearings import bearing, wrap  # noqa: E402
 from onboard.core.dynamics import PLANAR  # noqa: E402
 from onboard.core.information import information_reduction_factor, planar_model  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.core.planning import UavMotion  # noqa: E402
 from onboard.core.tracking import systematic_indices  # noqa: E402
 
 
@@ -112,7 +111,7 @@ def compare_routes(setup: MonitorSetup, particles: np.ndarray, log_w: np.ndarray
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", default="10,25,40,60,80", help="ticks of the closed loop to compare at")
     ap.add_argument("--particles", type=int, default=2000, help="particles per target in the rollout")
     ap.add_argument("--rollouts", type=int, default=2,
@@ -130,8 +129,7 @@ def main() -> None:
     if args.particles < 100 or args.rollouts < 1:
         ap.error("--particles: at least 100; --rollouts: at least 1")
     sc = load_scenario("paper", set_overrides(ap, args))
-    setup = MonitorSetup.from_scenario(sc, planner="lookahead", motion=UavMotion(
-        args.motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+    setup = MonitorSetup.from_scenario(override(sc, {"planning.planner": "lookahead", "planning.motion": args.motion}))
     rng = np.random.default_rng(args.seed + 1000)
     print(f"paper scenario{set_label(args)}, lookahead/{args.motion}, H = {setup.lookahead_steps}, "
           f"{args.rollouts} rollouts of {args.particles} particles per target, seed {args.seed}")

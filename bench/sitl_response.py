@@ -1,5 +1,5 @@
 """How the real ArduCopter SITL follows GUIDED setpoints (PX4's SITL, OFFBOARD ones), and how
-sim/vehicle.py does on the same ones.
+sim/multicopter.py does on the same ones.
 
     python bench/sitl_response.py [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
                                   [--speedup 4] [--param NAME=VALUE ...] [--save FILE.json.gz]
@@ -40,7 +40,7 @@ next point, resent), ``posvel`` (the plan's position and velocity at the moment 
 setpoint until the next, as PX4 does (sim.guided.fly_timeline(offboard=True)).
 
 Limits: ``stock`` is what the binary boots with (copter.parm over the firmware's defaults: read
-back and printed), ``demo`` is onboard/demo.py's DEMO_VEHICLE_PARAMS. The copter's
+back and printed), ``demo`` is sim/multicopter.py's DEMO_VEHICLE_PARAMS. The copter's
 LOCAL_POSITION_NED is recorded at ~40 Hz (50 Hz asked) on the firmware's clock (time_boot_ms);
 a setpoint's time is the firmware time of the last message received when it was sent.
 
@@ -77,7 +77,7 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from onboard.core.setpoint import plan_setpoint  # noqa: E402
-from onboard.demo import DEMO_VEHICLE_PARAMS  # noqa: E402
+from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
 from sim import px4 as px4_sitl  # noqa: E402
 from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
 
@@ -546,11 +546,11 @@ def guided_setpoint(mask: int, pos, vel, acc):
 
 
 def replay(trace: dict, limits=None, rate_hz: float = 400.0) -> np.ndarray:
-    """The model (sim.vehicle, sim.guided) given the trace's setpoints at their firmware times,
+    """The model (sim.multicopter, sim.guided) given the trace's setpoints at their firmware times,
     from the trace's first sample (hovering at its start, GUIDED position-only): its horizontal
     positions at the trace's sample times, (N, 2)."""
     from sim.guided import fly_timeline
-    from sim.vehicle import VehicleLimits, VehicleState
+    from sim.multicopter import VehicleLimits, VehicleState
 
     limits = limits or VehicleLimits()
     t = np.asarray(trace["t"], float)
@@ -589,7 +589,7 @@ def fit_airframe(data: dict, rate_hz: float = 400.0, evaluations: int = 60) -> d
     SITL, lean_tc and drag_lin (linear, as SIH's) for PX4's."""
     from scipy.optimize import minimize
 
-    from sim.vehicle import is_px4
+    from sim.multicopter import is_px4
 
     px4 = any(is_px4(data[lab]["params"]) for lab in data)
     names = ("lean_tc", "drag_lin") if px4 else ("lean_tc", "drag")
@@ -612,8 +612,8 @@ def load(path: str) -> dict:
 
 
 def limits_for(params: dict, **airframe):
-    """sim.vehicle's limits for the parameters a flight read back (and airframe terms, if given)."""
-    from sim.vehicle import limits_from_params
+    """sim.multicopter's limits for the parameters a flight read back (and airframe terms, if given)."""
+    from sim.multicopter import limits_from_params
 
     return replace(limits_from_params(params), **airframe)
 
@@ -716,7 +716,7 @@ def offline(path: str, fit: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
                     help="ArduCopter SITL (default) or PX4 SITL (SIH quad, OFFBOARD)")
     ap.add_argument("--limits", default=None, help="comma-separated: stock, demo (default stock,demo; PX4: stock)")
@@ -733,7 +733,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", help="write the traces here (gzipped JSON)")
     ap.add_argument("--replay", metavar="FILE", help="fly nothing: the model's RMS error (m) on each "
                     "trace of a saved flight, and its distance at the next tick beside the SITL's")
-    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.vehicle's lean_tc and drag to "
+    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.multicopter's lean_tc and drag to "
                     "a saved flight's in-envelope traces (a few minutes)")
     args = ap.parse_args(argv)
     if args.replay or args.fit:

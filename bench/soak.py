@@ -96,7 +96,7 @@ def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict
         "exceptions": c.get("io_errors", 0) + c.get("tick_errors", 0) + c.get("listener_errors", 0)
         + ac.get("loop_errors", 0) + ac.get("handler_errors", 0),
         "setpoints_received": fence["received"], "setpoints_outside_fence": fence["outside"],
-        "outside_examples": fence["examples"], "watchdog": dict(run["app"].watchdog),
+        "outside_examples": fence["examples"], "watchdog": dict(run["app"].watchdog.counts),
         "guidance_timeouts": f["guidance_timeouts"], "fallbacks": f["fallbacks"],
         "datagrams_rejected": f["datagrams_rejected"], "feed_late_scans": f["feed_late_scans"],
         "feed_send_lag_s_max": f["feed_send_lag_s_max"], "latency_ms_median": f["latency_ms_median"],
@@ -110,7 +110,7 @@ def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=7200.0, help="mission seconds (default 7200)")
     ap.add_argument("--speedup", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=1)

@@ -47,7 +47,7 @@ def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=30)
     ap.add_argument("--large-ticks", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)

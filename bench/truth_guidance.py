@@ -49,7 +49,7 @@ def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> lis
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)

@@ -13,13 +13,17 @@ import math
 import os
 import sys
 
+from groundstation.errors import INTERRUPTED, OK, USAGE, GcsError, UsageError
+
 DEFAULT_URL = "udpin:127.0.0.1:14550"  # where ArduPilot SITL's --out and MAVProxy's outputs go
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_TIMEOUT = 0, 1, 2, 3
 
 COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
   watch [--count N] [--duration S] [--png FILE] [--scenario NAME]   live table of every target
   view [--port N] [--open] [--duration S] [--scenario NAME]   the mission live in a browser
+  hub [--serve udp:H:P] [--out udp:H:P] [--tak URL] [--view PORT] ...   one vehicle link shared by
+                              ground stations (QGroundControl, Mission Planner, MAVProxy, pmon gcs),
+                              the targets as their traffic (ADSB_VEHICLE) and as CoT to TAK
   arm [--wait]                GUIDED, then arm (--wait: until the autopilot is ready and arms)
   takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
                               bounds the time without climbing)
@@ -35,7 +39,9 @@ COMMANDS = """commands:
 """
 
 
-def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
+def _connection(p: argparse.ArgumentParser, suppress: bool) -> None:
+    """The link's options (every command that talks to a vehicle); on a command's own parser
+    too (``suppress``: not reset there when given before the command)."""
     d = (lambda v: argparse.SUPPRESS) if suppress else (lambda v: v)
     p.add_argument("--connect", metavar="URL", default=d(None),
                    help=f"MAVLink URL: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, serial device "
@@ -46,19 +52,26 @@ def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
                    help="MAVLink 2 signing key file (64 hex chars, mode 0600), the vehicle's: sign "
                         "every command and parameter write, accept only signed packets "
                         "(default: $PMON_GCS_SIGNING_KEY, else unsigned)")
-    p.add_argument("--json", action="store_true", default=d(False), help="machine-readable output")
+    _output(p, suppress)
+
+
+def _output(p: argparse.ArgumentParser, suppress: bool) -> None:
+    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS if suppress else False,
+                   help="machine-readable output")
 
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="pmon gcs", description="Ground station: operate the Passive Monitor "
                                  "mission over MAVLink.", epilog=COMMANDS,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    _common(ap, suppress=False)
+    from onboard.argcheck import Version
+    ap.add_argument("--version", action=Version)
+    _connection(ap, suppress=False)
     sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
-    def add(name, help_):
-        p = sub.add_parser(name, help=help_)
-        _common(p, suppress=True)
+    def add(name, help_, link=True):
+        p = sub.add_parser(name, help=help_, description=help_)
+        (_connection if link else _output)(p, suppress=True)  # files need no link
         return p
     add("status", "vehicle and onboard-app status")
     w = add("watch", "live table of every target")
@@ -72,6 +85,8 @@ def parser() -> argparse.ArgumentParser:
     vw.add_argument("--duration", type=float, help="stop after S seconds (default: until Ctrl-C)")
     vw.add_argument("--scenario", default="paper", help="the mission's scenario: area, obstacles, goals, "
                     "origin (name or YAML file; default paper)")
+    from groundstation.hub_options import add_arguments as hub_arguments  # the hub's options live with it
+    hub_arguments(add("hub", "share the vehicle link; targets to QGC/MP/MAVProxy (ADSB) and TAK (CoT)"))
     a = add("arm", "GUIDED, then arm the motors")
     a.add_argument("--wait", action="store_true",
                    help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
@@ -88,22 +103,24 @@ def parser() -> argparse.ArgumentParser:
     add("land", "land where it is")
     pp = add("params", "the onboard app's parameters")
     psub = pp.add_subparsers(dest="pcmd", required=True, metavar="list|get|set")
-    psub.add_parser("list")
-    g = psub.add_parser("get")
-    g.add_argument("name")
-    s = psub.add_parser("set")
-    s.add_argument("name")
-    s.add_argument("value")
+    _connection(psub.add_parser("list", help="every PMON_* parameter with its value, range and doc"), True)
+    g = psub.add_parser("get", help="one parameter's value")
+    _connection(g, True)
+    g.add_argument("name", metavar="NAME", help="e.g. PMON_PD")
+    s = psub.add_parser("set", help="set a parameter (the app checks its range and answers with the value it keeps)")
+    _connection(s, True)
+    s.add_argument("name", metavar="NAME")
+    s.add_argument("value", metavar="VALUE", help="a finite number")
     r = add("record", "record a tlog")
-    r.add_argument("file")
+    r.add_argument("file", metavar="FILE")
     r.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
-    pl = add("plot", "plot a flight from a tlog or the app's JSONL run log")
-    pl.add_argument("log")
+    pl = add("plot", "plot a flight from a tlog or the app's JSONL run log", link=False)
+    pl.add_argument("log", metavar="LOG")
     pl.add_argument("--out", help="PNG to write (default: LOG with .png)")
     pl.add_argument("--truth", help="the feed's truth JSONL (default: truth.jsonl next to LOG, if any)")
     pl.add_argument("--scenario", default="paper", help="the scene drawn: area, obstacles, goals (default paper)")
-    ex = add("export", "the flight as GeoJSON and KML (tlog or the app's JSONL run log)")
-    ex.add_argument("log")
+    ex = add("export", "the flight as GeoJSON and KML (tlog or the app's JSONL run log)", link=False)
+    ex.add_argument("log", metavar="LOG")
     ex.add_argument("--out", help="BASE of BASE.geojson and BASE.kml (default: LOG without its extension)")
     ex.add_argument("--format", choices=("geojson", "kml", "both"), default="both")
     ex.add_argument("--at", help="ellipses at these tick times, s, comma-separated (default: every --every s)")
@@ -115,14 +132,10 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-class UsageError(Exception):
-    pass
-
-
 def run(args, console) -> tuple[str, dict]:
-    from groundstation import commands as C
+    from groundstation import gcs_commands as C
     from groundstation import protocol as P
-    from groundstation.link import GcsLink
+    from groundstation.gcs_link import GcsLink
 
     sc = _scenario(args.scenario) if getattr(args, "scenario", None) else None
     if args.cmd in ("plot", "export"):
@@ -154,6 +167,10 @@ def run(args, console) -> tuple[str, dict]:
             key = load_key(args.signing_key)
         except KeyFileError as exc:
             raise UsageError(f"--signing-key {exc}")
+    if args.cmd == "hub":
+        from groundstation.hub import run_cli
+        o = run_cli(args, key, sc, console)
+        return o.text, o.data
     with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key) as gl:
         gl.connect()
         cmd = args.cmd
@@ -176,10 +193,10 @@ def run(args, console) -> tuple[str, dict]:
         elif cmd == "mode":
             o = C.set_mode(gl, f"mode {args.name.upper()}", P.mode_number(args.name))
         elif cmd == "rtl":
-            from onboard.app.link import mavlink
+            from onboard.app.mavlink_connection import mavlink
             o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
         elif cmd == "land":
-            from onboard.app.link import mavlink
+            from onboard.app.mavlink_connection import mavlink
             o = C.set_mode(gl, "land", P.LAND, mavlink.MAV_CMD_NAV_LAND)
         elif cmd == "params":
             o = {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),
@@ -202,7 +219,7 @@ def _scenario(name):
 def _record(gl, duration, path):
     import time
 
-    from groundstation.commands import Outcome
+    from groundstation.gcs_commands import Outcome
     t0 = time.monotonic()
     try:
         while duration is None or time.monotonic() - t0 < duration:
@@ -214,14 +231,8 @@ def _record(gl, duration, path):
                    {"file": path, "messages": gl.received, "seconds": round(dt, 2)})
 
 
-def _fail(msg, code):
-    from groundstation.link import GcsError
-    return GcsError(msg, code)
-
-
 def main(argv: list[str] | None = None) -> int:
-    from groundstation.link import GcsError
-
+    """ground station: status, watch, commands, parameters over MAVLink (pmon gcs --help)"""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = parser().parse_args(argv)
@@ -230,25 +241,34 @@ def main(argv: list[str] | None = None) -> int:
     args.connect = args.connect or os.environ.get("PMON_GCS_CONNECT") or DEFAULT_URL
     args.signing_key = args.signing_key or os.environ.get("PMON_GCS_SIGNING_KEY") or None
     if not args.timeout > 0:
-        return _error(args, UsageError(f"--timeout must be > 0, got {args.timeout:g}"), EXIT_USAGE)
+        return _error(args, UsageError(f"--timeout must be > 0, got {args.timeout:g}"), USAGE)
     if args.sysid is not None and not 1 <= args.sysid <= 255:
-        return _error(args, UsageError(f"--sysid must be in 1..255, got {args.sysid}"), EXIT_USAGE)
+        return _error(args, UsageError(f"--sysid must be in 1..255, got {args.sysid}"), USAGE)
     from rich.console import Console
     console = Console(file=sys.stdout, highlight=False)
     try:
         text, data = run(args, console)
     except UsageError as exc:
-        return _error(args, exc, EXIT_USAGE)
+        return _error(args, exc, USAGE)
     except GcsError as exc:
         return _error(args, exc, exc.code)
     except KeyboardInterrupt:
-        return _error(args, KeyboardInterrupt("interrupted"), 130)
+        return _error(args, KeyboardInterrupt("interrupted"), INTERRUPTED)
     if args.json:
         if args.cmd != "watch":  # watch has printed one JSON line per update
             print(json.dumps({"ok": True, **data, "command": args.cmd}, default=str), flush=True)
     elif text:
         print(text, flush=True)
-    return EXIT_OK
+    return OK
+
+
+def script() -> int:
+    """``pmon-gcs``: ``pmon gcs`` as a program of its own, its extra checked as ``pmon`` does."""
+    from onboard.cli import refusal
+    if (why := refusal("pmon-gcs", ("gcs",))):
+        print(why, file=sys.stderr)
+        return USAGE
+    return main()
 
 
 def _error(args, exc, code: int) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import os
 
-from groundstation.cli import EXIT_FAILED, UsageError, _fail
+from groundstation.errors import GcsError, UsageError
 
 
 def from_log(args, sc) -> tuple[str, dict]:
@@ -14,7 +14,7 @@ def from_log(args, sc) -> tuple[str, dict]:
     try:
         flight = load(args.log, args.truth)
     except (LogError, OSError, ValueError) as exc:
-        raise _fail(f"{args.cmd}: {exc}", EXIT_FAILED)
+        raise GcsError(f"{args.cmd}: {exc}")
     stem = os.path.splitext(args.log)[0]
     what = f"{len(flight.uav)} UAV positions, {len(flight.tracks)} tracks{', with truth' if flight.truth else ''}"
     data = {"uav_points": len(flight.uav), "tracks": len(flight.tracks), "truth": bool(flight.truth)}
@@ -33,5 +33,5 @@ def from_log(args, sc) -> tuple[str, dict]:
     try:
         paths = write(flight, sc, args.out or stem, formats, at, args.every)
     except OSError as exc:
-        raise _fail(f"export: cannot write: {exc.strerror or exc}", EXIT_FAILED)
+        raise GcsError(f"export: cannot write: {exc.strerror or exc}")
     return f"export: {', '.join(map(str, paths))} ({what})", {"files": [str(p) for p in paths], **data}

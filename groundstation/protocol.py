@@ -1,43 +1,40 @@
 """The onboard app's wire contract as a ground station sees it (docs/MAVLINK.md), decoded into
-frozen dataclasses.
-
-The numbers are repeated here rather than imported from ``onboard.app.app``: that module pulls
-in the whole core (~0.5 s of imports per CLI call). tests/test_gcs.py checks they match.
+frozen dataclasses. The numbers and layouts are the app's own (onboard/app/contract.py, a light
+module: no core, no app); the words for them and the decoding are here.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-from onboard.app.link import mavlink  # sets MAVLINK20 before pymavlink loads
+from onboard.app import contract as C  # sets MAVLINK20 before pymavlink loads
+from onboard.app.autopilot_profiles import ARDUPILOT
+from onboard.app.launch import PHASES
+from onboard.app.mavlink_connection import mavlink
 
 GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190
-APP_COMPID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
-APP_COMMAND = mavlink.MAV_CMD_USER_1  # param1 = action
+APP_COMPID = C.APP_COMPID  # 191
+APP_COMMAND = C.MAV_CMD_PMON  # param1 = action
 
-ACTIONS = {"start": 1, "pause": 2, "resume": 3, "stop": 4, "launch": 5}
-APP_STATES = ("idle", "monitoring", "paused", "pilot override", "fault")
+ACTIONS = {a.name.lower(): int(a) for a in C.Action}
+APP_STATES = tuple(s.name.lower().replace("_", " ") for s in C.State)  # by value
 # COMMAND_ACK.result_param2 of the app's refusals
-REASONS = {1: "vehicle not armed", 2: "vehicle not flying", 3: "no DF data in the last 3 s",
-           4: "no valid position or local origin yet", 5: "no autopilot heartbeat",
-           6: "unknown action", 7: "not possible in this state", 8: "already flying: use start",
-           9: "launch in progress"}
+REASONS = {int(r): text for r, text in C.REASON_TEXT.items()}
 
 # ArduCopter modes the CLI commands (HEARTBEAT.custom_mode)
-GUIDED, LOITER, RTL, LAND, BRAKE = 4, 5, 6, 9, 17
+GUIDED, LOITER, RTL, LAND, BRAKE = (ARDUPILOT.mode_number(m) for m in ("GUIDED", "LOITER", "RTL", "LAND", "BRAKE"))
 
 
 def mode_names() -> list[str]:
     """ArduCopter's flight mode names, as pymavlink maps them."""
-    from pymavlink import mavutil
-    return sorted(mavutil.mode_mapping_acm.values())
+    return ARDUPILOT.mode_names()
 
 
 def mode_number(name: str) -> int | None:
     """ArduCopter's custom_mode for a mode name (any case), or None."""
-    from pymavlink import mavutil
-    return {v: k for k, v in mavutil.mode_mapping_acm.items()}.get(name.strip().upper())
+    return ARDUPILOT.mode_number(name)
+
 
 RESULTS = {k: e.name.removeprefix("MAV_RESULT_") for k, e in mavlink.enums["MAV_RESULT"].items()
            if e.name != "MAV_RESULT_ENUM_END"}
@@ -71,19 +68,22 @@ class TargetEstimate:
 
     @staticmethod
     def from_msg(msg) -> "TargetEstimate":
-        d = msg.data
-        return TargetEstimate(int(msg.array_id), d[0], d[1], d[3], d[4], d[6], d[7], d[9],
-                              None if d[8] == -1 else d[8], bool(d[12]), d[13])
+        d = dict(zip(C.TGT_FIELDS, msg.data))
+        since = d["since_scan_s"]
+        return TargetEstimate(int(msg.array_id), d["x_east_m"], d["y_north_m"], d["vx_mps"], d["vy_mps"],
+                              d["sigma_x_m"], d["sigma_y_m"], d["cov_xy_m2"], None if since == -1 else since,
+                              bool(d["degenerate"]), d["tick_time_s"])
 
     @property
     def name(self) -> str:
         return f"T{self.index + 1}"
 
 
-# PMON_STAT "warnings" bits (onboard/app/app.py WARN_*) and launch phases (onboard/app/launch.py)
-WARN_SPEED, WARN_ACCEL = 1, 2
-LAUNCH_PHASES = ("waiting for the autopilot to be ready", "switching to GUIDED", "arming",
-                 "taking off", "climbing", "starting")
+WARN_SPEED, WARN_ACCEL = C.WARN_SPEED, C.WARN_ACCEL  # PMON_STAT "warnings" bits
+# the launch sequence's phases (onboard/app/launch.py) in words, by PMON_STAT launch_phase
+_PHASE_WORDS = {"ready": "waiting for the autopilot to be ready", "mode": "switching to GUIDED",
+                "arm": "arming", "takeoff": "taking off", "climb": "climbing", "start": "starting"}
+LAUNCH_PHASES = tuple(_PHASE_WORDS[p] for p in PHASES)
 
 
 @dataclass(frozen=True)
@@ -109,24 +109,29 @@ class AppStatus:
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
-        d = msg.data
-        nxt = tuple(d[4:7]) if all(math.isfinite(v) for v in d[4:7]) else None
-        uav = tuple(d[14:17]) if all(math.isfinite(v) for v in d[14:17]) else None
-        bits = _int(d[20])
+        d = dict(zip(C.STAT_FIELDS, msg.data))
+        nxt = tuple(d[k] for k in ("next_e_m", "next_n_m", "next_u_m"))
+        uav = tuple(d[k] for k in ("uav_e_m", "uav_n_m", "uav_u_m"))
+        speed, speed_plan = d["speed_limit_mps"], d["speed_plan_mps"]
+        accel, accel_plan = d["accel_limit_mps2"], d["accel_plan_mps2"]
+        bits = _int(d["warnings"])
         warnings = []
         if bits & WARN_SPEED:
-            warnings.append(f"autopilot speed limit {_fmt(d[21])} m/s < {_fmt(d[22])} m/s planned: "
+            warnings.append(f"autopilot speed limit {_fmt(speed)} m/s < {_fmt(speed_plan)} m/s planned: "
                             "the vehicle lags its setpoints")
         if bits & WARN_ACCEL:
-            warnings.append(f"autopilot acceleration limit {_fmt(d[23])} m/s^2 < {_fmt(d[24])} m/s^2 planned")
-        phase = _int(d[25], -1)
+            warnings.append(f"autopilot acceleration limit {_fmt(accel)} m/s^2 < {_fmt(accel_plan)} m/s^2 planned")
+        phase = _int(d["launch_phase"], -1)
         limits = None
-        if math.isfinite(d[22]):
-            accel = f", {_fmt(d[24])} m/s^2" if math.isfinite(d[24]) else ""
-            limits = (f"planned at {_fmt(d[22])} m/s{accel} (autopilot {_fmt(d[21])} m/s, "
-                      f"{_fmt(d[23])} m/s^2)")
-        return AppStatus(app_state_name(d[0]), d[1], _num(d[2]), _num(d[3]), nxt, _int(d[7]), _int(d[8]),
-                         _int(d[9]), _int(d[10]), _int(d[18]), _int(d[19]), _num(d[11]), uav,
+        if math.isfinite(speed_plan):
+            accel_text = f", {_fmt(accel_plan)} m/s^2" if math.isfinite(accel_plan) else ""
+            limits = (f"planned at {_fmt(speed_plan)} m/s{accel_text} (autopilot {_fmt(speed)} m/s, "
+                      f"{_fmt(accel)} m/s^2)")
+        return AppStatus(app_state_name(d["state"]), d["tick_rate_hz"], _num(d["last_tick_time_s"]),
+                         _num(d["tick_ms"]), nxt if all(math.isfinite(v) for v in nxt) else None,
+                         _int(d["dgram_accepted"]), _int(d["dgram_rejected"]), _int(d["ticks"]),
+                         _int(d["ticks_skipped"]), _int(d["ticks_late"]), _int(d["setpoints_refused"]),
+                         _num(d["latency_ms"]), uav if all(math.isfinite(v) for v in uav) else None,
                          tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None,
                          limits)
 

@@ -117,11 +117,12 @@ def scene_legend_handles(sc, altitude_m: float | None = None) -> list:
     return out
 
 
-def legend_outside(ax, extra_handles=(), fontsize: float = 7):
-    """The legend to the right of the axes, where it covers nothing (save with
-    bbox_inches='tight', or leave room with fig.subplots_adjust)."""
+def legend_outside(ax, extra_handles=(), fontsize: float = 7, bottom: bool = False):
+    """The legend to the right of the axes (at its top, or its ``bottom``), where it covers
+    nothing (save with bbox_inches='tight', or leave room with fig.subplots_adjust)."""
     handles, labels = ax.get_legend_handles_labels()
     handles = list(handles) + list(extra_handles)
     labels = list(labels) + [h.get_label() for h in extra_handles]
-    return ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0,
-                     fontsize=fontsize, frameon=False)
+    return ax.legend(handles, labels, loc="lower left" if bottom else "upper left",
+                     bbox_to_anchor=(1.02, 0.0 if bottom else 1.0), borderaxespad=0.0, fontsize=fontsize,
+                     frameon=False)

@@ -22,9 +22,10 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
 from groundstation import protocol as P
-from groundstation.commands import Outcome
+from groundstation.gcs_commands import Outcome
 from groundstation.export import lonlat
-from groundstation.link import GcsError, GcsLink
+from groundstation.errors import FAILED, GcsError
+from groundstation.gcs_link import GcsLink
 from groundstation.scene import (BLOCKING_COLOUR, GOAL_COLOUR, OVERFLOWN_COLOUR, UAV_COLOUR, area_outline,
                                  blocks_uav, footprint, target_colour)
 
@@ -290,7 +291,10 @@ def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, con
     try:
         srv = ViewServer(sc, port).start()
     except OSError as exc:
-        raise GcsError(f"view: cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}", 1) from exc
+        from groundstation.ports import bound_by
+        who = bound_by("tcp", port) if port else None
+        raise GcsError(f"view: cannot serve on 127.0.0.1:{port}: {exc.strerror or exc}"
+                       + (f" (held by {who})" if who else ""), FAILED) from exc
     state = ViewState(gl, sc, srv.bus.publish)
     try:
         if as_json:

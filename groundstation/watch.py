@@ -7,8 +7,9 @@ import math
 import time
 
 from groundstation import protocol as P
-from groundstation.commands import Outcome, _enu
-from groundstation.link import TIMEOUT, GcsError, GcsLink
+from groundstation.gcs_commands import Outcome, _enu
+from groundstation.errors import TIMEOUT, GcsError
+from groundstation.gcs_link import GcsLink
 from groundstation.plot import Estimate, Flight, draw
 
 

@@ -32,6 +32,24 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message.splitlines()[0] if message else 'bad arguments'}\n")
 
 
+class Version(argparse.Action):
+    """``--version``: the installed distribution's version, read only when asked (importlib.metadata
+    is not loaded for a flight program's start)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show the installed version and exit"):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib import metadata
+        try:
+            version = metadata.version("passive-monitor")
+        except metadata.PackageNotFoundError:
+            version = "(not installed)"
+        print(f"{parser.prog} {version}")
+        parser.exit(0)
+
+
 def _port(text: str, lo: int) -> int:
     if not (text.isascii() and text.isdigit()) or not lo <= int(text) <= 65535:
         raise ValueError(f"port must be {lo}..65535, got {text!r}")

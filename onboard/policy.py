@@ -1,5 +1,6 @@
-"""Flight policies: how the app decides where to fly, as overrides of a scenario's settings
-(``onboard.config.load_scenario(..., overrides)``).
+"""Flight policies: how the app decides where to fly, as changes of a scenario's settings
+(keys and values as onboard/settings.py declares them, applied by ``onboard.config.override``
+and so checked as a file is).
 
 - ``flight`` (the default of ``pmon run`` and ``pmon demo``): the best measured; each value's
   measurement is in docs/PLANNING.md.
@@ -22,6 +23,14 @@ POLICIES: dict[str, dict[str, Any]] = {
     "paper": {},
 }
 DEFAULT = "flight"
+
+
+def with_policy(sc, name: str):
+    """Scenario ``sc`` flown under policy ``name``: the policy's settings beneath the scenario's
+    own changes (a user's ``--set`` wins over the policy)."""
+    from onboard.config import override
+
+    return override(sc, POLICIES[name], beneath=True)
 
 
 def vehicle_motion(planning, speed_mps: float, accel_mps2: float) -> UavMotion:

@@ -19,11 +19,11 @@ clients (pymavlink, MAVProxy, MAVSDK) can tell:
   (``defects``) and goes silent like the crashed firmware;
 - modes GUIDED, LOITER, BRAKE, POSHOLD, ALT_HOLD, STABILIZE (hold), RTL, LAND;
 - its own clock: time_boot_ms runs at `speedup` x wall time and the kinematic model
-  (sim.vehicle, local NED with origin = home) is stepped at a fixed rate on that clock.
+  (sim.multicopter, local NED with origin = home) is stepped at a fixed rate on that clock.
 
-The parts: sim/copter.py (modes, parameters, boot, the flight state machine), sim/mav_links.py
-(endpoints and links), sim/autopilot_commands.py (commands and position targets),
-sim/autopilot_messages.py (streams and the messages built); this module the protocol around
+The parts: sim/copter.py (modes, parameters, boot, the flight state machine), sim/mock_links.py
+(endpoints and links), sim/mock_commands.py (commands and position targets),
+sim/mock_messages.py (streams and the messages built); this module the protocol around
 them (routing, parameters, missions, FTP, fault injection) and the program.
 
 Geodetic <-> local conversions use pymap3d; the local frame is NED (MAVLink's), and
@@ -56,12 +56,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from sim.autopilot_commands import Commands  # noqa: E402
-from sim.autopilot_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry  # noqa: E402
+from sim.mock_commands import Commands  # noqa: E402
+from sim.mock_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry  # noqa: E402
 from sim.copter import BootTimeline, Copter, Params  # noqa: E402
 from sim.copter import Mode  # noqa: E402,F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
-from sim.mav_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _check_loopback  # noqa: E402
-from sim.vehicle import Vec3  # noqa: E402
+from sim.mock_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _check_loopback  # noqa: E402
+from sim.multicopter import Vec3  # noqa: E402
 
 log = logging.getLogger("sim.autopilot")
 
@@ -681,7 +681,7 @@ def _parse_home(text: str) -> tuple[float, float, float]:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     from onboard.argcheck import HOST_PORT, HOST_PORT_BIND, SEED, SPEEDUP, OneLineParser, fail, number, param_item
 
-    ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n")[0])
+    ap = OneLineParser(prog="python -m sim.autopilot", description=__doc__.split("\n\n")[0])
     ap.add_argument("--udp", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT,
                     help="send to a UDP listener (like SITL --out); repeatable")
     ap.add_argument("--udpin", action="append", default=[], metavar="HOST:PORT", type=HOST_PORT_BIND,

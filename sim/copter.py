@@ -1,5 +1,5 @@
 """The mock ArduCopter's flight side: its modes, parameters, boot and the flight state machine
-around the kinematic model (sim/vehicle.py). No I/O: sim/autopilot.py speaks MAVLink for it."""
+around the kinematic model (sim/multicopter.py). No I/O: sim/autopilot.py speaks MAVLink for it."""
 from __future__ import annotations
 
 import math
@@ -15,8 +15,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
 
-from sim import vehicle  # noqa: E402
-from sim.vehicle import Setpoint, Vec3, VehicleState, limits_from_params  # noqa: E402
+from sim import multicopter  # noqa: E402
+from sim.multicopter import Setpoint, Vec3, VehicleState, limits_from_params  # noqa: E402
 
 FIRMWARE = "ArduCopter V4.5.7 (pmon mock)"
 FW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # major.minor.patch, type OFFICIAL
@@ -291,7 +291,7 @@ class Copter:
         return mavlink.MAV_LANDED_STATE_IN_AIR
 
     def _stopping_point(self) -> Vec3:
-        return vehicle.stopping_point(self.state, self.limits)
+        return multicopter.stopping_point(self.state, self.limits)
 
     # ----- commands
     def set_mode(self, number: int) -> bool:
@@ -394,7 +394,7 @@ class Copter:
         current_a = 0.3
         if not self.armed:
             if self.state.pos[2] < -0.01 or any(self.state.vel):
-                self.state = vehicle.fall(self.state, dt, self._ground_z())
+                self.state = multicopter.fall(self.state, dt, self._ground_z())
             if self.state.pos[2] >= self._ground_z() - 0.01 and not self.land_complete:
                 self.land_complete = True
                 self.landed_since = self.t
@@ -411,8 +411,8 @@ class Copter:
         else:
             current_a = 15.0
             sp = self._setpoint(dt)
-            self.state = vehicle.on_ground(
-                vehicle.step(self.state, sp, dt, self.limits, self.rng), self._ground_z()
+            self.state = multicopter.on_ground(
+                multicopter.step(self.state, sp, dt, self.limits, self.rng), self._ground_z()
             )
             self._update_takeoff_and_landing(sp)
         self.battery_used_mah += current_a * dt / 3.6
@@ -468,7 +468,7 @@ class Copter:
             vel = (0.0, 0.0, 0.0) if timed_out else g.vel
             acc = None if timed_out else g.acc
             # The firmware moves the target on between messages (input_pos_vel_accel_xy).
-            pos, moved = vehicle.advance_input(g.pos, vel, acc, dt)
+            pos, moved = multicopter.advance_input(g.pos, vel, acc, dt)
             self.guided = replace(g, pos=pos, vel=g.vel if timed_out else moved)
             return Setpoint(pos=g.pos, vel=vel, acc=acc, yaw=yaw, yaw_rate=yaw_rate, **speeds)
         if g.kind == "vel":

@@ -18,8 +18,9 @@ UAV there. So the UAV moves at most N_r Delta_r per tick and the estimates at ti
 posterior estimates given the scans up to k.
 
 Methods are registered by name in ``METHODS`` (name -> ``Method``); a method is a sensing mode
-and a policy function ``policy(ctx) -> next UAV position``. A new planner registers itself with
-``register_method``.
+and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: the paper's
+greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
+itself with ``register_method``.
 
 Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 
@@ -41,39 +42,41 @@ Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 from __future__ import annotations
 
 import contextlib
-import math
 import os
-import platform
 import signal
 import time
 import zlib
-from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Sequence
 
 import numpy as np
-from scipy import stats
 
-from onboard.config import with_overrides
-from onboard.core import tracking
+from onboard.config import ConfigError, override
 from onboard.core.guidance import GuidanceWorkspace
-from onboard.core.information import PLANAR, bearing_information, information_reduction_factor, pcrb, planar_model
-from onboard.core.monitor import MonitorSetup, MonitorState, Scan, TickResult, initial_state, tick
-from onboard.core.planning import UavMotion, admissible, candidate_positions
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from onboard.core.information import information_reduction_factor
+from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.core.planners import ORBIT_RADIUS_M, PLANNERS, orbit_centre
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
-from sim.numerics import numerics_description, pin_kernels
+from sim.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
+from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
+                         motion_stats, nees_band, paired_ratio, pcrb_position, seeded_rng, t_interval)
+from sim.numerics import pin_kernels
+from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
-from sim.vehicle import PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
+
+# the evaluation's interface, wherever its parts are held (sim.metrics: the statistics; sim.report:
+# the outputs)
+__all__ = ["AUTOPILOTS", "DEFAULT_METHODS", "DEFAULT_WINDOW_S", "METHODS", "Method", "register_method", "EvalConfig",
+           "make_config", "method_named", "MethodTrace", "TrialResult", "draw_start", "run_method", "run_trial",
+           "run_trials", "summarise", "REFERENCE", "FIXED", "BOOTSTRAP_RESAMPLES", "MethodSummary", "Summary",
+           "nees_band", "t_interval", "pcrb_position", "is_flight", "headline", "write_csv", "write_per_trial_csv",
+           "machine_description", "results_markdown", "write_outputs"]
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
-ORBIT_RADIUS_M = 150.0  # radius of the "orbit" baseline around the targets' initial centroid
-REFERENCE = "greedy_l1"  # paired differences are taken against this method
-FIXED = "fixed3"
-BOOTSTRAP_RESAMPLES = 2000
-# the ArduCopter parameters a vehicle method's copter flies with (sim.vehicle.limits_from_params):
-# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: onboard/demo.py's;
+# the ArduCopter parameters a vehicle method's copter flies with (sim.multicopter.limits_from_params):
+# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS;
 # px4: PX4 v1.16's stock MPC_* parameters, its controller and SIH airframe)
 AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS), "px4": dict(PX4_DEFAULTS)}
 
@@ -82,32 +85,16 @@ AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICL
 
 
 @dataclass(frozen=True, eq=False)
-class PolicyContext:
-    """What a UAV policy may look at after tick k to choose the UAV position for tick k+1."""
-
-    step: int
-    uav: np.ndarray  # (3,) ENU m, where the scan of tick k was taken
-    setup: MonitorSetup
-    state: MonitorState  # predicted beliefs for tick k+1 and the targets' plans
-    result: TickResult  # tick k's estimates, plans and (greedy) planning result
-    rng: np.random.Generator  # the method's own policy stream
-    config: "EvalConfig"
-
-
-Policy = Callable[[PolicyContext], np.ndarray]
-
-
-@dataclass(frozen=True, eq=False)
 class Method:
     """A sensing mode and, for a UAV, how it moves.
 
     sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter) or ``fixed`` (the paper's three
     ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
-    filter's likelihood (None: the scenario's). greedy: let the monitor's tick run the paper's
-    one-step rule (eq:optimization) from the UAV position; ``policy`` is then not called.
-    (With ``setup`` overrides such as ``planner="lookahead"`` the tick runs that planner
-    instead: ``greedy`` means "the monitor's tick plans the UAV".)
-    setup: MonitorSetup field overrides for this method only (applied after the config's).
+    filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
+    from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
+    random); None: the scenario's ``planning.planner``.
+    settings: scenario settings that make this method what it is (``onboard.config.override``,
+    over the run's own ``--set``, as sensing, clutter_rate, planner and motion are).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
     ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
     A UAV that the monitor's tick plans on the vehicle motion is *flown*: at each tick the app's
@@ -117,7 +104,7 @@ class Method:
     jump_twin: for a vehicle method, the method with the same planner and the jump model; when
     both run, the summary reports this method's RMSE over the twin's, paired, with its CI.
     scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
-    the run's own ``--set`` (``onboard.config.with_overrides``).
+    the run's own ``--set`` (``onboard.config.override(..., beneath=True)``).
     autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
     (None: stock). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
     WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
@@ -129,9 +116,8 @@ class Method:
     description: str
     sensing: str = "uav"
     clutter_rate: float | None = None
-    greedy: bool = False
-    policy: Policy | None = None
-    setup: tuple[tuple[str, Any], ...] = ()
+    planner: str | None = None
+    settings: tuple[tuple[str, Any], ...] = ()
     motion: str | None = None
     jump_twin: str | None = None
     scenario_overrides: tuple[tuple[str, Any], ...] = ()
@@ -141,61 +127,12 @@ class Method:
     def __post_init__(self):
         if self.sensing not in ("uav", "fixed"):
             raise ValueError(f"method {self.name}: sensing must be 'uav' or 'fixed'")
-        if self.sensing == "uav" and not self.greedy and self.policy is None:
-            raise ValueError(f"method {self.name}: a UAV method needs greedy=True or a policy")
+        if self.planner is not None and self.planner not in PLANNERS:
+            raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
         if self.motion not in (None, "jump", "vehicle"):
             raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
         if self.autopilot is not None and self.autopilot not in AUTOPILOTS:
             raise ValueError(f"method {self.name}: autopilot must be one of {', '.join(AUTOPILOTS)}")
-
-
-def hover_policy(ctx: PolicyContext) -> np.ndarray:
-    """Stay at the start position."""
-    return ctx.uav
-
-
-def random_policy(ctx: PolicyContext) -> np.ndarray:
-    """A uniformly random admissible candidate of S_(t+1) ("stay" included)."""
-    s = ctx.setup
-    cand = candidate_positions(ctx.uav, s.grid)
-    ok = np.flatnonzero(admissible(cand, ctx.uav, s.area_min, s.area_max, s.uav_obstacles))
-    return ctx.uav if ok.size == 0 else cand[ctx.rng.choice(ok)]
-
-
-def orbit_policy(ctx: PolicyContext) -> np.ndarray:
-    """Counter-clockwise circle of radius ``config.orbit_radius_m`` around the targets' initial
-    centroid, at the UAV's speed limit N_r Delta_r per tick.
-
-    Far from the circle the UAV flies straight to its nearest point; on it, it advances by one
-    step of arc. The move goes where it should when that is admissible (area, obstacles), else
-    to the admissible grid candidate nearest to that point: the same limits as every method.
-    """
-    s, cfg = ctx.setup, ctx.config
-    c = cfg.orbit_center
-    r = cfg.orbit_radius_m
-    step = s.grid.n_radial * s.grid.step_m
-    p = ctx.uav[:2]
-    d = p - c
-    dist = float(np.hypot(*d))
-    if dist < 1e-9:
-        d, dist = np.array([1.0, 0.0]), 1.0
-    if abs(dist - r) > step:
-        target = c + r * d / dist
-    else:
-        ang = math.atan2(d[1], d[0]) + step / r
-        target = c + r * np.array([math.cos(ang), math.sin(ang)])
-    move = target - p
-    n = float(np.hypot(*move))
-    want = p + (move if n <= step else move * (step / n))
-    want3 = np.array([want[0], want[1], s.grid.altitude_m])
-    if admissible(want3[None], ctx.uav, s.area_min, s.area_max, s.uav_obstacles)[0]:
-        return want3
-    cand = candidate_positions(ctx.uav, s.grid)
-    ok = admissible(cand, ctx.uav, s.area_min, s.area_max, s.uav_obstacles)
-    if not ok.any():
-        return ctx.uav
-    dist_c = np.where(ok, np.linalg.norm(cand[:, :2] - want, axis=1), np.inf)
-    return cand[int(np.argmin(dist_c))]
 
 
 METHODS: dict[str, Method] = {}
@@ -208,25 +145,26 @@ def register_method(method: Method) -> Method:
 
 
 for _m in (
-    Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", greedy=True, clutter_rate=1.0),
+    Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", planner="greedy",
+           clutter_rate=1.0),
     Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           greedy=True, clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="jump"),
+           planner="lookahead", clutter_rate=1.0, motion="jump"),
     Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
-           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", greedy=True,
-           clutter_rate=1.0, setup=(("planner", "lookahead"),), motion="vehicle", jump_twin="lookahead"),
+           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", planner="lookahead",
+           clutter_rate=1.0, motion="vehicle", jump_twin="lookahead"),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", greedy=True, clutter_rate=1.0, setup=(("planner", "greedy"),), motion="vehicle",
-           jump_twin="greedy_l1"),
+           "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1"),
     Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
            "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
-           "flies, Lambda = 1", greedy=True, clutter_rate=1.0, motion="vehicle",
+           "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", greedy=True, clutter_rate=8.0),
+    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
-    Method("hover", "single UAV hovering at its start, Lambda = 1", policy=hover_policy, clutter_rate=1.0),
-    Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1",
-           policy=orbit_policy, clutter_rate=1.0),
-    Method("random", "single UAV, uniformly random admissible move, Lambda = 1", policy=random_policy,
+    # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
+    Method("hover", "single UAV hovering at its start, Lambda = 1", planner="hover", motion="jump", clutter_rate=1.0),
+    Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1", planner="orbit",
+           motion="jump", clutter_rate=1.0),
+    Method("random", "single UAV, uniformly random admissible move, Lambda = 1", planner="random", motion="jump",
            clutter_rate=1.0),
 ):
     register_method(_m)
@@ -244,16 +182,20 @@ class EvalConfig:
     methods: tuple[Method, ...]
     n_ticks: int
     window_start: int  # first tick of the convergence window
-    orbit_radius_m: float = ORBIT_RADIUS_M
-    overrides: tuple[tuple[str, Any], ...] = ()  # MonitorSetup overrides for every method
 
     @property
     def method_names(self) -> tuple[str, ...]:
         return tuple(m.name for m in self.methods)
 
     @property
+    def orbit_radius_m(self) -> float:
+        """The orbit baseline's radius (``onboard.core.planners.OrbitPlanner``), m."""
+        return ORBIT_RADIUS_M
+
+    @property
     def orbit_center(self) -> np.ndarray:
-        return np.mean([t.position_m[:2] for t in self.scenario.targets], axis=0)
+        """The orbit baseline's centre, the targets' initial centroid (ENU m, planar)."""
+        return orbit_centre(MonitorSetup.from_scenario(self.scenario))
 
     @property
     def dt_s(self) -> float:
@@ -278,19 +220,26 @@ def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_M
     if len(set(names)) != len(names):
         raise ValueError("--methods names a method twice")
     chosen = tuple(method_named(m, sc) for m in names)
+    for option, key, value in (("--duration", "mission.duration_s", duration_s),
+                               ("--particles", "tracking.particles", particles)):
+        if value is not None:  # a setting of every method's scenario, checked as a file is
+            try:
+                sc = override(sc, {key: value})
+            except ConfigError as exc:
+                raise ValueError(f"{option} {value}: {exc}") from None
+    for m in chosen:
+        try:
+            method_scenario(sc, m)
+        except ConfigError as exc:
+            raise ValueError(f"method {m.name}: {exc}") from None
     dt = sc.dynamics.dt_s
-    duration = sc.mission.duration_s if duration_s is None else float(duration_s)
-    if not (math.isfinite(duration) and duration >= 2 * dt):
+    duration = sc.mission.duration_s
+    if not duration >= 2 * dt:
         raise ValueError(f"--duration must be at least 2 time steps ({2 * dt:g} s), got {duration_s}")
     n_ticks = int(round(duration / dt))
     # the window starts at window_s, or halfway when the mission is too short for that
     window_start = min(int(round(window_s / dt)), n_ticks // 2)
-    overrides: tuple = ()
-    if particles is not None:
-        if particles < 10:
-            raise ValueError(f"--particles must be >= 10, got {particles}")
-        overrides = (("n_particles", int(particles)),)
-    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start, overrides=overrides)
+    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start)
 
 
 def method_named(name: str, sc=None) -> Method:
@@ -304,7 +253,7 @@ def method_named(name: str, sc=None) -> Method:
     if label not in AUTOPILOTS:
         raise ValueError(f"method {name!r}: unknown autopilot parameters {label!r} (one of {', '.join(AUTOPILOTS)})")
     motion = m.motion or (None if sc is None else sc.planning.motion)
-    if m.sensing != "uav" or not m.greedy or motion == "jump":
+    if m.sensing != "uav" or motion == "jump":
         raise ValueError(f"method {name!r}: {base} flies no vehicle (only vehicle-motion methods take @{label})")
     return replace(m, name=name, autopilot=label, description=f"{m.description}; autopilot: {label}")
 
@@ -340,8 +289,7 @@ class TrialResult:
     gains: np.ndarray | None = None  # (K-1, M, 3, 6) closed-loop guidance gains at the true states
 
 
-def _rng(seed: int, *key: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=tuple(int(k) for k in key)))
+_rng = seeded_rng
 
 
 def _method_key(name: str) -> int:
@@ -359,29 +307,34 @@ def draw_start(cfg: EvalConfig, rng: np.random.Generator) -> np.ndarray:
     raise RuntimeError("could not draw a UAV start outside the obstacles in 1000 tries")
 
 
+def method_scenario(sc, method: Method):
+    """The scenario a method runs: the run's (with its ``--set``) under the method's policy
+    (``scenario_overrides``, beneath the run's own settings), then the settings that make the
+    method what it is (over them)."""
+    sc = override(sc, dict(method.scenario_overrides), beneath=True)
+    own = dict(method.settings)
+    if method.sensing == "fixed":  # the baseline's sensors: no clutter, every target seen; the filter must know it
+        own.update({"sensor.p_detect": 1.0, "sensor.clutter_rate": 0.0})
+    elif method.clutter_rate is not None:
+        own["sensor.clutter_rate"] = method.clutter_rate
+    if method.planner is not None:
+        own["planning.planner"] = method.planner
+    if method.motion is not None:
+        own["planning.motion"] = method.motion
+    return override(sc, own)
+
+
 def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None, VehicleLimits | None]:
     """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
     limits from its autopilot's parameters."""
-    sc = cfg.scenario
-    if method.scenario_overrides:
-        sc = with_overrides(sc, dict(method.scenario_overrides))
-    sigma = sc.sensor.sigma_rad
-    if method.sensing == "fixed":
-        # the baseline's sensors: no clutter, every target seen; the filter must know it
-        sensor, df = tracking.SensorModel(sigma, 1.0, 0.0), None
-    else:
-        lam = sc.sensor.clutter_rate if method.clutter_rate is None else method.clutter_rate
-        sensor = tracking.SensorModel(sigma, sc.sensor.p_detect, lam)
-        df = DirectionFinder(sigma, sc.sensor.p_detect, lam)
-    fields = {**dict(cfg.overrides), **dict(method.setup)}
-    motion = method.motion or sc.planning.motion
-    flown = method.sensing == "uav" and method.greedy and motion == "vehicle"
+    sc = method_scenario(cfg.scenario, method)
+    flown = method.sensing == "uav" and sc.planning.motion == "vehicle"
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
-        fields["motion"] = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
-    elif method.motion is not None:
-        fields["motion"] = replace(UavMotion.from_config(sc.planning), kind=method.motion)
-    return MonitorSetup.from_scenario(sc, **fields, sensor=sensor), df, limits
+        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
+        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
+    df = None if method.sensing == "fixed" else DirectionFinder.from_config(sc.sensor)
+    return MonitorSetup.from_scenario(sc), df, limits
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
@@ -409,8 +362,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav_track[k] = uav
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav if method.greedy else None, workspace=ws,
-                          uav_velocity=uav_vel)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=uav, workspace=ws, uav_velocity=uav_vel,
+                          planner_rng=policy_rng)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]
@@ -429,15 +382,12 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             plan_speed[k] = 0.0 if v_next is None else float(np.linalg.norm(v_next))
             speed[k + 1] = float(np.linalg.norm(uav_vel))
         elif uav is not None and k < K - 1:
-            if method.greedy:
-                nxt = res.next_position
-                p = res.planning
-                if p is not None and p.index is not None and p.velocities is not None:
-                    uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
-                else:
-                    uav_vel = np.zeros(2)  # no admissible move: the vehicle stops where it is
+            nxt = res.next_position
+            p = res.planning
+            if p is not None and p.index is not None and p.velocities is not None:
+                uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
             else:
-                nxt = method.policy(PolicyContext(k, uav, setup, state, res, policy_rng, cfg))
+                uav_vel = np.zeros(2)  # no admissible move (or a baseline's): the vehicle stops where it is
             uav = uav if nxt is None else np.asarray(nxt, float).copy()
     bound = None
     if gains is not None:
@@ -572,139 +522,7 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
     return sorted(results, key=lambda r: r.trial)
 
 
-# --------------------------------------------------------------------------- metrics
-
-
-def nees_band(n_trials: int, dof: int = 2, level: float = 0.95) -> tuple[float, float]:
-    """95 % band of the average of n_trials NEES values of a consistent filter (dof each)."""
-    a = (1.0 - level) / 2.0
-    return (float(stats.chi2.ppf(a, dof * n_trials) / n_trials), float(stats.chi2.ppf(1 - a, dof * n_trials) / n_trials))
-
-
-def t_interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
-    """Mean and its two-sided t confidence interval (nan for fewer than two values)."""
-    x = np.asarray(x, float)
-    m = float(x.mean()) if x.size else float("nan")
-    if x.size < 2:
-        return m, float("nan"), float("nan")
-    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
-    return m, m - half, m + half
-
-
-def pcrb_position(model, initial_cov: np.ndarray, truth: np.ndarray, gains: np.ndarray, sensors: np.ndarray,
-                  sigma_rad: float, reduction: float = 1.0) -> np.ndarray:
-    """Posterior Cramer-Rao bound of each target's horizontal position along a trial: (K, M),
-    the trace of the (x, y) block of the bound, m^2.
-
-    ``onboard.core.information.pcrb`` on the planar state [px, py, vx, vy] with, per step, the
-    closed-loop transition Jacobian F_k = A + B du/dx of the target's guidance at its true state
-    (``gains`` (K-1, M, 3, 6) from ``sim.truth``: the targets steer by feedback toward a known
-    goal, so treating the control as a known input would give a bound above what a filter that
-    knows the policy achieves), process noise Q, prior Sigma_0, and the measurement information
-    of one bearing per sensor and tick, q h h^T / sigma^2 at the true position (``reduction`` q:
-    p_D and clutter, ``information_reduction_factor``). truth (K, M, 6); sensors (K, S, 2) the
-    sensor positions at each tick (the flown UAV path, or the fixed DFs repeated).
-    """
-    A, B, Q = planar_model(model)
-    P0 = np.asarray(initial_cov, float)[np.ix_(PLANAR, PLANAR)]
-    K, M = truth.shape[:2]
-    out = np.zeros((K, M))
-    for j in range(M):
-        info = bearing_information(truth[:, None, j, :2], sensors[:, :, :2], sigma_rad, reduction).sum(axis=1)
-        F = A[None] + B[None] @ np.asarray(gains, float)[:K - 1, j, :2][:, :, PLANAR]  # (K-1, 4, 4)
-        bound = pcrb(np.linalg.inv(P0), F, Q, info)
-        out[:, j] = bound[:, 0, 0] + bound[:, 1, 1]
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class MethodSummary:
-    name: str
-    description: str
-    rmse_t: np.ndarray  # (K, M) eps_t per target
-    rmse_t_mean: np.ndarray  # (K,) averaged over targets
-    rmse_mean_m: float  # time average of rmse_t_mean over the window
-    rmse_target_m: np.ndarray  # (M,) time average per target over the window
-    per_trial_rmse: np.ndarray  # (N,) r_n over the window
-    anees_t: np.ndarray  # (K, M)
-    nees_mean: float
-    nees_in_band: float  # fraction of (step, target) cells in the N-trial band
-    diff_vs_ref: tuple[float, float, float] | None  # mean, lo, hi of r_n - r_n(ref)
-    ratio_vs_ref: tuple[float, float, float] | None  # rmse_mean_m(ref) / rmse_mean_m, 95 % bootstrap CI
-    motion: dict  # UAV motion statistics (empty for fixed sensors)
-    tick_ms: float
-    degenerate: int
-    bound_mean_m: float = float("nan")  # the PCRB, averaged like rmse_mean_m (sqrt of the trial mean)
-    bound_t_mean: np.ndarray | None = None  # (K,) the bound per step, averaged over targets
-    # vehicle method whose jump twin ran: (twin, rmse_mean_m / twin's with its 95 % paired CI)
-    vs_jump: tuple[str, tuple[float, float, float]] | None = None
-    flown: dict = field(default_factory=dict)  # a flown method: how the vehicle flew its plans (_flown_stats)
-
-    @property
-    def rmse_over_bound(self) -> float:
-        return self.rmse_mean_m / self.bound_mean_m
-
-
-@dataclass(frozen=True, eq=False)
-class Summary:
-    config: EvalConfig
-    methods: dict[str, MethodSummary]
-    nees_band: tuple[float, float]
-    ratio: float | None  # greedy_l1 / fixed3
-    ratio_ci: tuple[float, float] | None
-    wall_s: float
-    n_trials: int
-    target_speed_10s: tuple[float, ...] = ()  # the true targets' mean speed per 10 s of mission, m/s
-    # the flight default (a method named flight, flight@..., flight~...) against every other method
-    # of the run: {(flight method, other): ((ratio, lo, hi) of RMSEs, (mean, lo, hi) of per-trial
-    # differences)}, paired over the trials
-    pairs: dict = field(default_factory=dict)
-
-
-def is_flight(name: str) -> bool:
-    """The flight default, with its autopilot (``@``) or a variant of it (``~``)."""
-    return name.partition("@")[0].partition("~")[0] == "flight"
-
-
-def _paired_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[float, float, float]:
-    """rmse_mean_m(a) / rmse_mean_m(b) for error arrays (N, K, M) of the same trials, with a 95 %
-    paired percentile bootstrap CI (trials resampled with replacement, both methods together)."""
-    ratio = _window_mean_rmse(a, w0) / _window_mean_rmse(b, w0)
-    N = len(a)
-    if N < 2:
-        return ratio, float("nan"), float("nan")
-    boot_rng = _rng(seed, 2**31 - 2)  # its own stream: does not touch any trial's
-    rs = [_window_mean_rmse(a[idx], w0) / _window_mean_rmse(b[idx], w0)
-          for idx in (boot_rng.integers(0, N, N) for _ in range(BOOTSTRAP_RESAMPLES))]
-    return ratio, float(np.percentile(rs, 2.5)), float(np.percentile(rs, 97.5))
-
-
-def _bound_summary(bounds: list, w0: int) -> tuple[float, np.ndarray | None]:
-    if any(b is None for b in bounds):
-        return float("nan"), None
-    b = np.sqrt(np.mean(np.stack(bounds), axis=0)).mean(axis=1)  # (K,): like eps_t, over targets
-    return float(b[w0:].mean()), b
-
-
-def _window_mean_rmse(err: np.ndarray, w0: int) -> float:
-    """err (N, K, M) -> time average over the window of the target-averaged eps_t."""
-    eps = np.sqrt(np.mean(err ** 2, axis=0))  # (K, M)
-    return float(eps[w0:].mean())
-
-
-def _motion_stats(trace: MethodTrace, truth: np.ndarray) -> dict:
-    """How a UAV moved: step lengths, and the step's component toward/away from and across the
-    lines of sight to the true targets (averaged over targets)."""
-    u = trace.uav[:, :2]
-    move = np.diff(u, axis=0)  # (K-1, 2)
-    length = np.linalg.norm(move, axis=1)
-    los = truth[:-1, :, :2] - u[:-1, None, :]  # (K-1, M, 2) UAV -> target
-    rng_m = np.linalg.norm(los, axis=2)
-    unit = los / np.maximum(rng_m, 1e-9)[..., None]
-    along = np.einsum("kd,kmd->km", move, unit)  # + toward the target
-    across = np.abs(unit[..., 0] * move[:, None, 1] - unit[..., 1] * move[:, None, 0])
-    return dict(step_m=length, away_m=-along.mean(axis=1), across_m=across.mean(axis=1),
-                range_m=np.linalg.norm(truth[:, :, :2] - u[:, None, :], axis=2).mean(axis=1))
+# --------------------------------------------------------------------------- the summary
 
 
 def _flown_stats(cfg: EvalConfig, method: Method, traces: Sequence[MethodTrace]) -> dict:
@@ -743,10 +561,10 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
         anees = nees.mean(axis=0)
         per_trial = np.sqrt(np.mean(err[:, w0:] ** 2, axis=(1, 2)))
         diff = None if ref_r is None else t_interval(per_trial - ref_r)
-        ratio_ref = None if ref_r is None else _paired_ratio(ref_err, err, w0, cfg.seed)
+        ratio_ref = None if ref_r is None else paired_ratio(ref_err, err, w0, cfg.seed)
         motion: dict = {}
         if m.sensing == "uav":
-            st = [_motion_stats(t.traces[m.name], t.truth) for t in trials]
+            st = [motion_stats(t.traces[m.name], t.truth) for t in trials]
             steps = np.concatenate([s["step_m"] for s in st])
             motion = dict(
                 mean_step_m=float(steps.mean()),
@@ -762,8 +580,8 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             float(np.mean((anees[w0:] >= band[0]) & (anees[w0:] <= band[1]))), diff, ratio_ref, motion,
             1e3 * float(np.mean([t.traces[m.name].tick_s for t in trials])),
             int(sum(t.traces[m.name].degenerate for t in trials)),
-            *_bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
-            vs_jump=None if m.jump_twin not in errs else (m.jump_twin, _paired_ratio(err, errs[m.jump_twin], w0,
+            *bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
+            vs_jump=None if m.jump_twin not in errs else (m.jump_twin, paired_ratio(err, errs[m.jump_twin], w0,
                                                                                        cfg.seed)),
             flown=_flown_stats(cfg, m, [t.traces[m.name] for t in trials]))
     ratio = ratio_ci = None
@@ -774,195 +592,7 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
     per10 = int(round(10.0 / cfg.dt_s))
     speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
-    pairs = {(a, b): (_paired_ratio(errs[a], errs[b], w0, cfg.seed),
+    pairs = {(a, b): (paired_ratio(errs[a], errs[b], w0, cfg.seed),
                       t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
              for a in cfg.method_names if is_flight(a) for b in cfg.method_names if b != a}
     return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs)
-
-
-def headline(summary: Summary) -> dict:
-    """The JSON line ``pmon eval`` ends with."""
-    def r(x):
-        return None if x is None or not math.isfinite(x) else round(float(x), 4)
-    return {
-        "methods": {n: {"rmse_mean_m": r(s.rmse_mean_m), "nees_mean": r(s.nees_mean),
-                        "bound_m": r(s.bound_mean_m), "rmse_over_bound": r(s.rmse_over_bound),
-                        "ratio_vs_ref": None if s.ratio_vs_ref is None else [r(v) for v in s.ratio_vs_ref],
-                        **({} if s.vs_jump is None else {"ratio_vs_jump": [r(v) for v in s.vs_jump[1]]}),
-                        **({} if not s.flown else {"from_plan_median_m": r(s.flown["miss_median_m"]),
-                                                   "speed_peak_mps": r(s.flown["speed_peak_mps"])})}
-                    for n, s in summary.methods.items()},
-        "uav_vs_fixed_ratio": r(summary.ratio),
-        "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
-        **({} if not summary.pairs else {"flight_over": {f"{a} / {b}": [r(v) for v in ratio]
-                                                          for (a, b), (ratio, _) in summary.pairs.items()}}),
-    }
-
-
-# --------------------------------------------------------------------------- outputs
-
-
-def write_csv(summary: Summary, path) -> None:
-    """step, method, target, rmse_m: per target (names from the scenario) and ``mean``."""
-    names = [t.name for t in summary.config.scenario.targets]
-    dt = summary.config.dt_s
-    lines = ["step,time_s,method,target,rmse_m"]
-    for mname, s in summary.methods.items():
-        for k in range(s.rmse_t.shape[0]):
-            for j, tn in enumerate(names):
-                lines.append(f"{k},{k * dt:g},{mname},{tn},{s.rmse_t[k, j]:.4f}")
-            lines.append(f"{k},{k * dt:g},{mname},mean,{s.rmse_t_mean[k]:.4f}")
-    with open(path, "w", encoding="utf-8") as f:
-        f.write("\n".join(lines) + "\n")
-
-
-def write_per_trial_csv(summary: Summary, path) -> None:
-    """trial, method, rmse_window_m (r_n): the numbers the paired differences are made of."""
-    lines = ["trial,method,rmse_window_m"]
-    for mname, s in summary.methods.items():
-        lines += [f"{n},{mname},{v:.4f}" for n, v in enumerate(s.per_trial_rmse)]
-    with open(path, "w", encoding="utf-8") as f:
-        f.write("\n".join(lines) + "\n")
-
-
-def machine_description() -> str:
-    return f"{platform.node() or 'host'}: {platform.machine()}, {os.cpu_count()} cores, {platform.system()} " \
-           f"{platform.release()}, Python {platform.python_version()}"
-
-
-def results_markdown(summary: Summary, command: str) -> str:
-    cfg = summary.config
-    dt = cfg.dt_s
-    lo, hi = summary.nees_band
-    names = [t.name for t in cfg.scenario.targets]
-    L = [f"# Evaluation results: scenario `{cfg.scenario.name}`", "",
-         f"- Command: `{command}`",
-         f"- Trials: {summary.n_trials}, seed {cfg.seed}, {cfg.n_ticks} ticks of {dt:g} s "
-         f"({cfg.n_ticks * dt:g} s missions); particles per target: "
-         f"{dict(cfg.overrides).get('n_particles', cfg.scenario.tracking.particles)}",
-         f"- Convergence window: ticks {cfg.window_start}..{cfg.n_ticks - 1} "
-         f"(t = {cfg.window_start * dt:g} s to the end)",
-         f"- Machine: {machine_description()}; wall time {summary.wall_s:.0f} s",
-         f"- Numerics: {numerics_description()} (figures reproduce exactly where these match)", "",
-         "## Time-averaged RMSE and consistency", "",
-         f"RMSE: the paper's eps_t (root mean square over trials of the horizontal position error), "
-         f"averaged over the {len(names)} targets and over the window. Paired difference: per-trial "
-         f"window RMSE minus {REFERENCE}'s on the same trial, mean and 95 % t-interval. ANEES: 2-D "
-         f"position NEES averaged over trials (consistent: 2; 95 % band for N = {summary.n_trials}: "
-         f"[{lo:.2f}, {hi:.2f}]), then over targets and the window; 'in band' is the share of "
-         f"(step, target) cells inside the band. Ratio: {REFERENCE}'s time-averaged RMSE over the "
-         f"method's, 95 % paired percentile bootstrap CI ({BOOTSTRAP_RESAMPLES} resamples). PCRB: the posterior "
-         f"Cramér-Rao bound of the position along each trial's truth and flown path (closed-loop guidance "
-         f"Jacobian in the transition, information reduced by q for p_D and clutter), averaged like the RMSE; "
-         f"RMSE / bound >= 1 for any estimator.", "",
-         "| method | RMSE [m] | " + " | ".join(f"{n} [m]" for n in names)
-         + f" | minus {REFERENCE} [m] (95 % CI) | {REFERENCE} / method (95 % CI) | PCRB [m] | RMSE / bound "
-           f"| ANEES | in band | ms/tick |",
-         "|---|---:|" + "---:|" * len(names) + "---|---|---:|---:|---:|---:|---:|"]
-    for n, s in summary.methods.items():
-        if s.diff_vs_ref is None or n == REFERENCE:
-            d = "—"
-        else:
-            d = f"{s.diff_vs_ref[0]:+.1f} ({s.diff_vs_ref[1]:+.1f}, {s.diff_vs_ref[2]:+.1f})"
-        if s.ratio_vs_ref is None or n == REFERENCE:
-            rr = "—"
-        else:
-            rr = f"{s.ratio_vs_ref[0]:.2f} ({s.ratio_vs_ref[1]:.2f}, {s.ratio_vs_ref[2]:.2f})"
-        L.append(f"| {n} | {s.rmse_mean_m:.1f} | " + " | ".join(f"{v:.1f}" for v in s.rmse_target_m)
-                 + f" | {d} | {rr} | {s.bound_mean_m:.1f} | {s.rmse_over_bound:.2f} | {s.nees_mean:.2f} "
-                   f"| {100 * s.nees_in_band:.0f} % | {s.tick_ms:.0f} |")
-    L.append("")
-    if summary.ratio is not None:
-        ci = "" if summary.ratio_ci is None else f", 95 % CI [{summary.ratio_ci[0]:.2f}, {summary.ratio_ci[1]:.2f}] " \
-                                                  f"(paired percentile bootstrap over trials, {BOOTSTRAP_RESAMPLES} resamples)"
-        L += [f"**Single UAV (Lambda = 1) over fixed sensors:** RMSE ratio {REFERENCE} / {FIXED} = "
-              f"{summary.ratio:.2f}{ci}.", ""]
-    pl, u = cfg.scenario.planning, cfg.scenario.uav
-    jump_m = u.n_radial * u.step_m
-    equal_step = pl.speed_max_mps * dt / u.n_radial  # the grid step that makes the jump as fast
-    for n, s in summary.methods.items():
-        if s.vs_jump is not None:
-            twin, (v, a, b) = s.vs_jump
-            tb = summary.methods[twin].bound_mean_m
-            L += [f"**Vehicle limits:** {n} / {twin} (the same planner, jump model): RMSE ratio {v:.2f}, "
-                  f"95 % CI [{a:.2f}, {b:.2f}] (paired bootstrap); PCRB ratio {s.bound_mean_m / tb:.2f}. "
-                  f"The jump model moves up to {jump_m:g} m per tick, the vehicle at most {pl.speed_max_mps:g} m/s "
-                  f"({pl.accel_max_mps2:g} m/s^2); the same comparison at equal speed: "
-                  f"`--set uav.step_m={equal_step:g}`.", ""]
-    uav = {n: s for n, s in summary.methods.items() if s.motion}
-    if uav:
-        L += ["## How the UAV moved", "",
-              "Per step (tick to tick), averaged over trials: step length; share of steps at the full "
-              f"N_r Delta_r = {cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m:g} m and of 'stay'; "
-              "the component of the step away from the targets (+: away) and across the lines of sight "
-              "(both averaged over targets); mean UAV-target range over the window.", "",
-              "| method | step [m] | full steps | stays | away [m/step] | across [m/step] | range [m] |",
-              "|---|---:|---:|---:|---:|---:|---:|"]
-        for n, s in uav.items():
-            mo = s.motion
-            L.append(f"| {n} | {mo['mean_step_m']:.1f} | {100 * mo['full_step_fraction']:.0f} % | "
-                     f"{100 * mo['stay_fraction']:.0f} % | {mo['mean_away_m']:+.2f} | {mo['mean_across_m']:.2f} | "
-                     f"{mo['mean_range_m']:.0f} |")
-        L.append("")
-        if summary.target_speed_10s:
-            L += ["The targets' mean true speed per 10 s of the mission [m/s]: "
-                  + ", ".join(f"{v:.1f}" for v in summary.target_speed_10s) + ".", ""]
-    if summary.pairs:
-        L += ["## The flight default against each method", "",
-              "Paired over the same trials: the ratio of time-averaged RMSEs (flight / other; 95 % paired "
-              f"percentile bootstrap CI, {BOOTSTRAP_RESAMPLES} resamples) and the mean per-trial difference of "
-              "window RMSE (flight minus other; 95 % t-interval).", "",
-              "| flight method | other | flight / other (95 % CI) | other / flight | flight minus other [m] (95 % CI) |",
-              "|---|---|---|---:|---|"]
-        for (a, b), ((v, lo, hi), (d, dlo, dhi)) in summary.pairs.items():
-            L.append(f"| {a} | {b} | {v:.2f} ({lo:.2f}, {hi:.2f}) | {1 / v:.2f} | {d:+.1f} ({dlo:+.1f}, {dhi:+.1f}) |")
-        L.append("")
-    flown = {n: s.flown for n, s in summary.methods.items() if s.flown}
-    if flown:
-        L += ["## How the vehicle flew its plans", "",
-              "Flown methods: at each tick the plan's position, velocity and acceleration are sent to the "
-              "vehicle model fitted to ArduCopter SITL (sim/guided.py), which flies with its autopilot's "
-              "parameters; the next scan is where it is a tick later. Autopilot: WPNAV_SPEED, WPNAV_ACCEL "
-              "of its parameter set; planned with: the planner's speed and acceleration limits; from the plan: "
-              "the flown position's distance from the planned one at the next tick (median, p95, max over "
-              "ticks and trials); speeds: mean over ticks / peak.", "",
-              "| method | autopilot | planned with | from the plan [m] | planned speed [m/s] | flown speed [m/s] |",
-              "|---|---|---|---|---|---|"]
-        for n, f in flown.items():
-            L.append(f"| {n} | {f['autopilot']}: {f['wpnav_speed_mps']:g} m/s, {f['wpnav_accel_mps2']:g} m/s² | "
-                     f"{f['plan_speed_max_mps']:g} m/s, {f['plan_accel_max_mps2']:g} m/s² | "
-                     f"{f['miss_median_m']:.2f} / {f['miss_p95_m']:.2f} / {f['miss_max_m']:.2f} | "
-                     f"{f['planned_speed_mean_mps']:.1f} / {f['planned_speed_peak_mps']:.1f} | "
-                     f"{f['speed_mean_mps']:.1f} / {f['speed_peak_mps']:.1f} |")
-        L.append("")
-    L += ["## Methods", ""] + [f"- `{m.name}`: {m.description}" for m in cfg.methods]
-    L += ["", f"Orbit: radius {cfg.orbit_radius_m:g} m around the targets' initial centroid "
-              f"({cfg.orbit_center[0]:.0f}, {cfg.orbit_center[1]:.0f}) m, counter-clockwise.",
-          "", "Files: rmse.csv (step, method, target, rmse_m), per_trial.csv, rmse_vs_time.png, "
-              "nees_vs_time.png, scenario_3d.png, scenario_top.png, flight.png, "
-              "flown_paths.png (the UAV methods' paths side by side on the first trials).", ""]
-    deg = {n: s.degenerate for n, s in summary.methods.items() if s.degenerate}
-    if deg:
-        L += [f"Degenerate updates (no finite weight; prior kept): {deg}", ""]
-    return "\n".join(L)
-
-
-def write_outputs(summary: Summary, trials: Sequence[TrialResult], out_dir, command: str,
-                  figures: bool = True) -> dict:
-    """rmse.csv, per_trial.csv, results.md and the figures in out_dir; returns the headline dict."""
-    from pathlib import Path
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(summary, out / "rmse.csv")
-    write_per_trial_csv(summary, out / "per_trial.csv")
-    (out / "results.md").write_text(results_markdown(summary, command), encoding="utf-8")
-    if figures:
-        from sim import figures as figs
-
-        figs.rmse_vs_time(summary, out / "rmse_vs_time.png")
-        figs.nees_vs_time(summary, out / "nees_vs_time.png")
-        figs.scenario(summary.config.scenario, out / "scenario_3d.png", out / "scenario_top.png")
-        figs.flight(summary.config, trials[0], out / "flight.png")
-        figs.flown_paths(summary.config, trials, out / "flown_paths.png")
-    return headline(summary)

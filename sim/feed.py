@@ -44,7 +44,7 @@ import numpy as np
 
 from onboard.app import datagram as dg
 from onboard.app.clock import AutopilotClock
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
 
 READY_STATES = 5  # truth states computed before the first scan is sent

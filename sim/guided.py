@@ -32,7 +32,7 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 
 from onboard.core.setpoint import plan_setpoint
-from sim.vehicle import Setpoint, Vec3, VehicleLimits, VehicleState, advance_input, step
+from sim.multicopter import Setpoint, Vec3, VehicleLimits, VehicleState, advance_input, step
 
 FIRMWARE_HZ = 400.0  # ArduCopter's main loop (SCHED_LOOP_RATE) runs the position controller
 GUID_TIMEOUT_S = 3.0  # GUID_TIMEOUT's default

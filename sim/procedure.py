@@ -7,13 +7,14 @@ SITL firmware: the conformance tests (tests/test_ardupilot.py) and bench/ardupil
         ...
     figures = m.figures()
 
-What runs, each as a process, as on a vehicle:
+What runs, each as a process, as on a vehicle (the rig of sim/rig.py, and the operator):
 - ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), five MAVLink TCP
   ports: SERIAL0 the app, SERIAL1 the DF feed, SERIAL2 the operator's ``pmon gcs`` commands,
   SERIAL5 an observer, SERIAL6 a second ground station (``Mission.spare_url``: the live view);
   or (``autopilot="px4"``) PX4 SITL (sim/px4.py): the app on PX4's offboard/API link, the rest
   on its ground-station link (each a loopback port of its own through the driver's relay);
-- ``pmon run`` (optionally through ``TcpProxy``, a telemetry link that a test can cut);
+- ``pmon run`` (optionally through sim/tcp_proxy.py's ``TcpProxy``, a telemetry link that a test
+  can cut);
 - ``pmon feed live``;
 - ``pmon gcs ...`` per command (``Mission.gcs``; every call is kept: exit code, output, wall s).
 The observer (this process, a MAVLink client of its own on SERIAL5, like a second ground
@@ -28,7 +29,6 @@ import json
 import math
 import os
 import select
-import socket
 import subprocess
 import sys
 import threading
@@ -39,21 +39,16 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from onboard.app.link import Link, mavlink
+from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame
-from onboard.demo import DEMO_VEHICLE_PARAMS
-from sim.ardupilot import ArduPilotSitl, find_binary, home_of
-from sim.px4 import Px4Sitl, find_sitl
-from sim.processes import MockProcess, Proc
+from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim.rig import Rig, RigConfig
 from sim.tick_account import TickAccount, scan_times
 
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
+OBSERVER_PORT, SPARE_PORT = 3, 4  # the autopilot's MAVLink ports after the rig's app, feed, GCS
 GUIDED = 4  # ArduCopter's custom_mode
 PX4_OFFBOARD = 6  # PX4's main mode (custom_mode bits 16-23)
-# where each program connects: an index of ArduPilotSitl.url / MockProcess.url, or PX4's
-# (link, listener index; None: a client that sends first)
-ROLES = {"app": (0, ("api", 0)), "feed": (1, ("gcs", 1)), "gcs": (2, ("gcs", 0)),
-         "observer": (3, ("gcs", None)), "spare": (4, ("gcs", 2))}
 
 
 def app_mode(autopilot: str) -> Callable[[int], bool]:
@@ -61,6 +56,8 @@ def app_mode(autopilot: str) -> Callable[[int], bool]:
     if autopilot == "px4":
         return lambda m: m is not None and (m >> 16) & 0xFF == PX4_OFFBOARD
     return lambda m: m == GUIDED
+
+
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
 # ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
 # paper's 20 m steps: the demo's vehicle's
@@ -78,79 +75,6 @@ class MissionConfig:
     auto_launch: bool = False  # pmon run --auto-launch
     link_proxy: bool = False  # the app reaches SERIAL0 through a TcpProxy (Mission.proxy)
     app_args: tuple[str, ...] = ()
-
-
-class TcpProxy:
-    """A TCP relay standing in for a telemetry link between the companion and the autopilot:
-    ``cut(s)`` drops the connection and refuses new ones for s wall seconds (a radio or cable
-    outage), then relays again with a new upstream connection."""
-
-    def __init__(self, upstream: tuple[str, int]):
-        self.upstream = upstream
-        self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._lsock.bind(("127.0.0.1", 0))
-        self._lsock.listen(1)
-        self.port = self._lsock.getsockname()[1]
-        self._down_until = 0.0
-        self._stop = threading.Event()
-        self._pair: list[socket.socket] = []
-        self._lock = threading.Lock()
-        self.connections = 0
-        self._thread = threading.Thread(target=self._run, name="tcp-proxy", daemon=True)
-        self._thread.start()
-
-    def cut(self, seconds: float) -> None:
-        with self._lock:
-            self._down_until = time.monotonic() + seconds
-            self._drop()
-
-    def _drop(self) -> None:
-        for s in self._pair:
-            with contextlib.suppress(OSError):
-                s.close()
-        self._pair = []
-
-    def close(self) -> None:
-        self._stop.set()
-        self.cut(0)
-        self._thread.join(timeout=5)
-        self._lsock.close()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            with self._lock:
-                pair = list(self._pair)
-            if not pair:
-                r, _, _ = select.select([self._lsock], [], [], 0.05)
-                if not r:
-                    continue
-                client, _ = self._lsock.accept()
-                if time.monotonic() < self._down_until:
-                    client.close()  # the link is down: the companion's reconnect fails
-                    continue
-                try:
-                    up = socket.create_connection(self.upstream, timeout=2)
-                except OSError:
-                    client.close()
-                    continue
-                with self._lock:
-                    self._pair = [client, up]
-                    self.connections += 1
-                continue
-            try:
-                r, _, _ = select.select(pair, [], [], 0.05)
-                for s in r:
-                    data = s.recv(65536)
-                    if not data:
-                        raise OSError("closed")
-                    (pair[1] if s is pair[0] else pair[0]).sendall(data)
-            except (OSError, ValueError):  # either side closed (or cut() closed both)
-                with self._lock:
-                    if self._pair == pair:
-                        self._drop()
-
-
 
 
 class Observer:
@@ -269,32 +193,35 @@ class GcsCall:
 
 
 class Mission:
-    """SITL, app, feed and observer for one flight; ``out`` keeps every log."""
+    """The rig (sim/rig.py: SITL, app, feed, five autopilot ports) and an observer for one flight;
+    ``out`` keeps every log."""
 
     def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None):
-        from onboard.config import load_scenario
-
         self.cfg = cfg
         self.out = Path(out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.sc = load_scenario(cfg.scenario)
+        self.rig = Rig(RigConfig(scenario=cfg.scenario, seed=cfg.seed, autopilot_seed=1, autopilot=cfg.autopilot,
+                                 binary=str(binary) if binary else None, speedup=cfg.speedup, params=cfg.params,
+                                 ports=5, auto_launch=cfg.auto_launch, app_args=cfg.app_args,
+                                 link_proxy=cfg.link_proxy, feed_duration_s=cfg.feed_duration_s
+                                 ).records_in(self.out))
+        self.sc = self.rig.sc
         o = self.sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
-        home = home_of(self.sc)
-        if cfg.autopilot == "mock":
-            self.sitl = MockProcess(home, cfg.speedup, cfg.params, 5, self.out / "autopilot.log")
-        elif cfg.autopilot == "px4":
-            self.sitl = Px4Sitl(binary or find_sitl(), home[:3], cfg.speedup, dict(cfg.params),
-                                workdir=self.out / "px4", log_path=self.out / "autopilot.log",
-                                listeners={"gcs": 3, "api": 1})
-        else:
-            self.sitl = ArduPilotSitl(binary or find_binary(), home, cfg.speedup, dict(cfg.params),
-                                      ports=5, log_path=self.out / "autopilot.log", workdir=self.out / "ardupilot")
-        self.proxy: TcpProxy | None = None
-        self.app = self.feed = None
         self.observer: Observer | None = None
         self.commands: list[GcsCall] = []
-        self.df_port: int | None = None
+
+    @property
+    def sitl(self):
+        """The autopilot: ArduPilotSitl, or the mock as a process (sim.processes.MockProcess)."""
+        return self.rig.ap
+
+    @property
+    def app(self):
+        return self.rig.app
+
+    @property
+    def proxy(self):
+        return self.rig.proxy
 
     # ----- lifecycle
     def __enter__(self) -> "Mission":
@@ -308,30 +235,15 @@ class Mission:
         self.stop()
 
     def start(self) -> "Mission":
-        self.sitl.start()
-        self.observer = Observer(self.url("observer"))
-        url = self.url("app")
-        if self.cfg.link_proxy:
-            self.proxy = TcpProxy(("127.0.0.1", self.sitl.port(0)))
-            url = f"tcp:127.0.0.1:{self.proxy.port}"
-        py = sys.executable
-        argv = [py, "-m", "onboard.cli", "run", "--mavlink", url, "--df", "127.0.0.1:0",
-                "--scenario", self.cfg.scenario, "--runlog", str(self.out / "run.jsonl"),
-                "--tlog", str(self.out / "app.tlog"), "--seed", str(self.cfg.seed), *self.cfg.app_args]
-        if self.cfg.auto_launch:
-            argv.append("--auto-launch")
-        self.app = Proc("app", argv, self.out / "app.log")
-        self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
-        self.feed = Proc("feed", [py, "-m", "sim.feed", "live", "--mavlink", self.url("feed"),
-                                  "--to", f"127.0.0.1:{self.df_port}", "--scenario", self.cfg.scenario,
-                                  "--truth", str(self.out / "truth.jsonl"), "--seed", str(self.cfg.seed + 1),
-                                  "--duration", f"{self.cfg.feed_duration_s:g}"], self.out / "feed.log")
+        """The autopilot, the observer from its boot on, then the app and the feed."""
+        self.rig.start_autopilot()
+        self.observer = Observer(self.rig.url(OBSERVER_PORT))
+        self.rig.start_app()
+        self.rig.start_feed()
         return self
 
     def stop(self) -> None:
-        for p in (self.feed, self.app):
-            if p is not None:
-                p.stop(timeout=10)
+        self.rig.stop_programs()
         if self.observer is not None:
             self.observer.close()
             with self.observer.lock, open(self.out / "observer.json", "w") as f:
@@ -339,26 +251,17 @@ class Mission:
                 json.dump({"origin": o.origin, "boots": o.boots, "positions": o.positions,
                            "targets": o.targets, "modes": o.modes, "texts": o.texts,
                            "estimates": o.estimates}, f)
-        if self.proxy is not None:
-            self.proxy.close()
-        self.sitl.stop()
+        self.rig.stop()
 
     @property
     def spare_url(self) -> str:
         """A MAVLink port of its own for a second ground station (one TCP client)."""
-        return self.url("spare")
-
-    def url(self, role: str) -> str:
-        """The MAVLink URL of a program of the flight (``ROLES``)."""
-        serial, (link, i) = ROLES[role]
-        if self.cfg.autopilot != "px4":
-            return self.sitl.url(serial)
-        return self.sitl.talk_url(link) if i is None else self.sitl.url(link, i)
+        return self.rig.url(SPARE_PORT)
 
     # ----- the operator
     def gcs(self, *args: str, timeout: float = 10.0, wall_limit: float = 300.0) -> GcsCall:
         """``pmon gcs --connect SERIAL2 --timeout T ARGS...`` as a process, run once."""
-        argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.url("gcs"),
+        argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.rig.gcs_url,
                 "--timeout", f"{timeout:g}", *args]
         t0 = time.monotonic()
         p = subprocess.run(argv, capture_output=True, text=True, timeout=wall_limit,
@@ -371,17 +274,14 @@ class Mission:
         return call
 
     def wait(self, pred: Callable[[Observer], bool], timeout: float, what: str = "") -> bool:
-        """Wait (wall s) until ``pred(observer)``; also fails early when a process died."""
+        """Wait (wall s) until ``pred(observer)``; also fails early when the app or the autopilot
+        ended (the feed may: its scans ran out)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if pred(self.observer):
                 return True
-            if self.app is not None and self.app.p.poll() is not None:  # the feed may end: its scans ran out
-                raise RuntimeError(f"the app exited ({self.app.p.returncode}) while waiting for {what}; "
-                                   f"see {self.app.log.name}")
-            if not self.sitl.running:
-                raise RuntimeError(f"the autopilot exited while waiting for {what}; see "
-                                   f"{self.out / 'autopilot.log'}")
+            if (why := self.rig.problem()):
+                raise RuntimeError(f"{why} (while waiting for {what})")
             time.sleep(0.05)
         return False
 
@@ -461,8 +361,8 @@ class Mission:
                 "max_xy_m": enu[:, :2].max(axis=0).round(1).tolist()}
 
     def estimate_errors(self) -> dict:
-        """The app's estimates against the feed's truth at the same scan times (onboard.demo)."""
-        from onboard.demo import score
+        """The app's estimates against the feed's truth at the same scan times (sim.demo)."""
+        from sim.demo import score
         return score(self.out / "run.jsonl", self.out / "truth.jsonl", self.sc)
 
     def takeover_reactions(self) -> list[float]:

@@ -1,7 +1,7 @@
 """The programs of a SITL flight as child processes: ``Proc`` (any program, its output collected
 and logged), ``MockProcess`` (the mock autopilot, ``python -m sim.autopilot``, with the interface
-and port layout of sim.ardupilot.ArduPilotSitl, so a flight starts either the same way). Used by
-``pmon demo`` and sim/procedure.py."""
+and port layout of sim.ardupilot.ArduPilotSitl, so a flight starts either the same way). The
+parts of sim/rig.py's stack of processes."""
 from __future__ import annotations
 
 import os
@@ -66,13 +66,16 @@ class MockProcess:
 
     def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
                  ports: int, log_path: Path, seed: int = 1, ready_s: float | None = None,
-                 udp_out: int | None = None):
+                 udp_out: int | None = None, udpin: bool = False, signing_key_path: str | None = None):
         """``ready_s``: autopilot s until it can arm (None: ArduCopter's); ``udp_out``: also stream
-        to a ground station listening on udp 127.0.0.1:PORT (not counted in ``ports``)."""
+        to a ground station listening on udp 127.0.0.1:PORT, ``udpin``: also listen on a UDP port
+        (``udpin_port``), neither counted in ``ports``; ``signing_key_path``: MAVLink 2 signing."""
         self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
         self.log_path, self.seed, self.ready_s, self.udp_out = log_path, seed, ready_s, udp_out
+        self.udpin, self.signing_key_path = udpin, signing_key_path
         self.proc = None
         self._ports: list[int] = []
+        self.udpin_port: int | None = None
         self.boots = 0
 
     def start(self) -> "MockProcess":
@@ -85,9 +88,15 @@ class MockProcess:
             argv += ["--ready-after", f"{self.ready_s:g}"]
         if self.udp_out is not None:
             argv += ["--udp", f"127.0.0.1:{self.udp_out}"]
+        if self.udpin:
+            argv += ["--udpin", "127.0.0.1:0"]
+        if self.signing_key_path is not None:
+            argv += ["--signing-key", str(self.signing_key_path)]
         self.proc = Proc("mock autopilot", argv, self.log_path)
         m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
         self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
+        udpin = re.search(r"udpin:127\.0\.0\.1:(\d+)", m.group(1))
+        self.udpin_port = int(udpin.group(1)) if udpin else None
         self.boots += 1
         return self
 

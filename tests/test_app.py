@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -17,7 +16,8 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import Reason, State
 from onboard.app.params import SPECS
 from onboard.config import load_scenario
-from tests.test_app_sitl import Gcs
+from conftest import Gcs
+from app_helpers import wait_for
 
 pytestmark = pytest.mark.sitl
 USER_1 = mavlink.MAV_CMD_USER_1
@@ -32,10 +32,8 @@ def rig():
     app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0), sc).start()
     gcs = Gcs(ap.port("tcpin", 1))
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    deadline = time.monotonic() + 10
-    while (app.vehicle.ned_origin is None or app.poses.latest() is None or not ap.copter.position_ok) \
-            and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_for(lambda: app.vehicle.ned_origin is not None and app.poses.latest() is not None
+             and ap.copter.position_ok, 10)
     try:
         yield ap, app, gcs, sock
     finally:
@@ -98,7 +96,7 @@ def test_commands_are_acknowledged_with_reasons(rig):
     assert gcs.command(1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 20).result == 0
     assert ap.wait_until(lambda s: s.alt_rel > 19.5, 20)
     assert gcs.command(1, mavlink.MAV_CMD_DO_SET_MODE, 1, Mode.LOITER).result == 0
-    time.sleep(0.3)
+    assert wait_for(lambda: app.vehicle.custom_mode == Mode.LOITER and app.vehicle.flying(), 5)
     ack = gcs.command(191, USER_1, 1)
     assert ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED and ack.result_param2 == Reason.NO_SENSOR_DATA
     # DF data flowing: good and bad datagrams, each bad one counted by its reason
@@ -125,9 +123,10 @@ def test_commands_are_acknowledged_with_reasons(rig):
     assert all(tk["channels"] == [0, 1, 2, 3] for tk in app.ticks if tk["channels"])
     # start: accepted, takes GUIDED back from the pilot; a second start is a no-op
     n = len(gcs.msgs)
+    accepted = app.scans.accepted
     for ch in range(4):  # a fresh scan: start needs DF data from the last 3 s
         sock.sendto(dg.encode(np.ceil(app.clock.now()), ch, []), ("127.0.0.1", app.sensor_port))
-    time.sleep(0.05)
+    assert wait_for(lambda: app.scans.accepted == accepted + 4, 5), app.scans.rejected
     ack = gcs.command(191, USER_1, 1)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, (ack.result_param2, app.scans.rejected, list(app.events)[-3:])
     assert ap.wait_until(lambda s: s.mode == Mode.GUIDED, 5) and app.state == State.MONITORING
@@ -155,10 +154,7 @@ def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
     model assumes no acceleration limit, so none about that. A limit or PMON_REACH changed in
     flight is checked again."""
     ap, app, gcs, _ = rig
-    deadline = time.monotonic() + 5
-    while (app.vehicle.speed_limit_mps is None or app.vehicle.accel_limit_mps2 is None) \
-            and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_for(lambda: app.vehicle.speed_limit_mps is not None and app.vehicle.accel_limit_mps2 is not None, 5)
     assert app.vehicle.speed_limit_mps == pytest.approx(10.0)
     assert app.vehicle.accel_limit_mps2 == pytest.approx(2.5)
     assert _warned(app, "WPNAV_SPEED 10 m/s < 20 planned")
@@ -203,17 +199,16 @@ def test_vehicle_motion_plans_at_the_autopilots_limits_capped_by_the_airframes()
         told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "planning at" in m.text
                         and "2.5 m/s^2" in m.text, 10)
         assert told is not None and told.text == "PMON: planning at 8 m/s, 2.5 m/s^2", told
-        assert app._limits == (8.0, 2.5) and app.speed_warning is None and app._warnings == 0
+        assert app.limits.planner == (8.0, 2.5) and app.limits.warning is None and app.limits.warnings == 0
         with app.lock:
-            app._build_setup()
-            assert (app.setup.motion.speed_max_mps, app.setup.motion.accel_max_mps2) == (8.0, 2.5)
+            motion = app.core.build_setup().motion
+            assert (motion.speed_max_mps, motion.accel_max_mps2) == (8.0, 2.5)
         since = len(gcs.msgs)
         assert gcs.param_set("WPNAV_SPEED", 500, comp=1) is not None  # the autopilot tells every link
         assert gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and m.text == "PMON: planning at 5 m/s, 2.5 m/s^2",
                         10, since) is not None
         with app.lock:
-            app._build_setup()
-            assert app.setup.motion.speed_max_mps == 5.0
+            assert app.core.build_setup().motion.speed_max_mps == 5.0
         assert not any("WPNAV" in t for t in gcs.texts())  # no warning: plans never outrun the autopilot
         assert app.counters.get("io_errors", 0) == 0  # one limit known before the other: no handler error
     finally:

@@ -23,19 +23,15 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from sim.autopilot import Mode  # sets MAVLINK20 before mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
 
-from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
-from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.rig import GCS_PORT, Rig, RigConfig
 import json
-import subprocess
-import sys
 
 pytestmark = pytest.mark.sitl
 
@@ -51,78 +47,64 @@ RMSE_MAX_M = 50.0
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    sc = load_scenario("paper")
-    o = sc.origin
-    out = {"sc": sc, "positions": [], "setpoints_rx": []}
-    ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=3,
-                       endpoints=["tcpin:127.0.0.1:0"] * 3, params=DEMO_VEHICLE_PARAMS,
-                       max_lag_s=0.1, boot=BootTimeline.scaled(4.0))
-    # record every setpoint the autopilot receives, with its own clock
-    orig = ap._on_set_position_target_local_ned
-
-    def spy(link, msg):
-        out["setpoints_rx"].append((ap.copter.t, ap.copter.mode, (msg.x, msg.y, msg.z)))
-        orig(link, msg)
-    ap._on_set_position_target_local_ned = spy
-    ap.start()
-    app = feed = gcs = None
+    out = {"positions": [], "setpoints_rx": []}
+    truth_path = tmp_path_factory.mktemp("sitl") / "truth.jsonl"
+    # the scenario as written (the paper policy: position-only setpoints), at the mission origin
+    rig = Rig(RigConfig(policy="paper", seed=2, autopilot_seed=3, feed_seed=4, speedup=SPEEDUP, home="origin",
+                        ready_s=4.0, in_process=True, auto_launch=True, feed_duration_s=300,
+                        truth_path=str(truth_path)),
+              # every setpoint the autopilot receives, with its own clock
+              on_setpoint=lambda t, msg: out["setpoints_rx"].append((t, rig.ap.copter.mode, (msg.x, msg.y, msg.z))))
+    out["sc"] = rig.sc
+    gcs = None
     stop_sampler = threading.Event()
-    try:
-        app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=2), sc)
-        app.start()
-        truth_path = tmp_path_factory.mktemp("sitl") / "truth.jsonl"
-        feed = subprocess.Popen(
-            [sys.executable, "-m", "sim.feed", "live", "--mavlink", f"tcp:127.0.0.1:{ap.port('tcpin', 1)}",
-             "--to", f"127.0.0.1:{app.sensor_port}", "--seed", "4", "--duration", "300",
-             "--truth", str(truth_path)], stdout=subprocess.DEVNULL)
-        gcs = Gcs(ap.port("tcpin", 2))
+    with rig:
+        ap, app = rig.ap, rig.app
+        try:
+            gcs = Gcs(rig.port(GCS_PORT))
 
-        def sample():
-            while not stop_sampler.is_set():
-                s = ap.state()
-                out["positions"].append((s.time_boot_ms / 1000, s.pos_enu, s.armed, s.mode))
-                time.sleep(0.01)
-        threading.Thread(target=sample, daemon=True).start()
+            def sample():
+                while not stop_sampler.is_set():
+                    s = ap.state()
+                    out["positions"].append((s.time_boot_ms / 1000, s.pos_enu, s.armed, s.mode))
+                    time.sleep(0.01)
+            sampler = threading.Thread(target=sample, daemon=True)
+            sampler.start()
 
-        def monitoring_ticks():
-            return sum(1 for t in app.ticks if t["planned"] and t["channels"])
-        deadline = time.monotonic() + 140
-        while monitoring_ticks() < MONITOR_S and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert monitoring_ticks() >= MONITOR_S, f"only {monitoring_ticks()} monitoring ticks: {app.events}"
-        out["ticks_before"] = [dict(t) for t in app.ticks]
-        # the pilot takes over: LOITER from the ground station, via the autopilot
-        ack = gcs.command(1, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, Mode.LOITER)
-        assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED
-        assert ap.wait_until(lambda s: s.mode == Mode.LOITER, 5)
-        out["t_mode_change"] = next(p[0] for p in reversed(out["positions"]) if p[3] != Mode.LOITER)
-        assert ap.wait_until(lambda s: s.time_boot_ms / 1000 > out["t_mode_change"] + 3.0, 10)
-        out["state_after_override"] = app.state
-        out["statustexts"] = [m.text for m in gcs.msgs if m.get_type() == "STATUSTEXT"]
-        out["resume_ack"] = gcs.command(191, mavlink.MAV_CMD_USER_1, 3)
-        t_resume = ap.sim_time
-        assert ap.wait_until(lambda s: s.time_boot_ms / 1000 > t_resume + 3.0, 10)
-        out["t_resume"] = t_resume
-        out["state_after_resume"] = app.state
-        out["mode_after_resume"] = ap.state().mode
-        out["ticks"] = list(app.ticks)
-        with open(truth_path) as f:
-            out["records"] = [r for r in map(json.loads, f) if "header" not in r]
-        out["counters"] = dict(app.counters)
-        out["ap_counters"] = ap.counters()
-        out["rejected"] = app.scans.rejected_total
-        yield out
-    finally:
-        stop_sampler.set()
-        if feed is not None:
-            feed.terminate()
-            feed.wait(timeout=10)
-        if gcs is not None:
-            gcs.close()
-        if app is not None:
-            app.stop()
-        ap.stop()
+            def monitoring_ticks():
+                return sum(1 for t in app.ticks if t["planned"] and t["channels"])
+            deadline = time.monotonic() + 140
+            while monitoring_ticks() < MONITOR_S and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert monitoring_ticks() >= MONITOR_S, f"only {monitoring_ticks()} monitoring ticks: {app.events}"
+            out["ticks_before"] = [dict(t) for t in app.ticks]
+            # the pilot takes over: LOITER from the ground station, via the autopilot
+            ack = gcs.command(1, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, Mode.LOITER)
+            assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED
+            assert ap.wait_until(lambda s: s.mode == Mode.LOITER, 5)
+            out["t_mode_change"] = next(p[0] for p in reversed(out["positions"]) if p[3] != Mode.LOITER)
+            assert ap.wait_until(lambda s: s.time_boot_ms / 1000 > out["t_mode_change"] + 3.0, 10)
+            out["state_after_override"] = app.state
+            out["statustexts"] = [m.text for m in gcs.msgs if m.get_type() == "STATUSTEXT"]
+            out["resume_ack"] = gcs.command(191, mavlink.MAV_CMD_USER_1, 3)
+            t_resume = ap.sim_time
+            assert ap.wait_until(lambda s: s.time_boot_ms / 1000 > t_resume + 3.0, 10)
+            out["t_resume"] = t_resume
+            out["state_after_resume"] = app.state
+            out["mode_after_resume"] = ap.state().mode
+            out["ticks"] = list(app.ticks)
+            with open(truth_path) as f:
+                out["records"] = [r for r in map(json.loads, f) if "header" not in r]
+            out["counters"] = dict(app.counters)
+            out["ap_counters"] = ap.counters()
+            out["rejected"] = app.scans.rejected_total
+            stop_sampler.set()  # the tests read the positions as they are now (a list still growing
+            sampler.join(timeout=2)  # while a test read it twice had two lengths: an IndexError)
+            yield out
+        finally:
+            stop_sampler.set()
+            if gcs is not None:
+                gcs.close()
 
 
 def _monitoring(ticks):

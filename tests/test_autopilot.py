@@ -9,7 +9,7 @@ import time
 import pytest
 
 from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
-from sim.mav_links import Endpoint
+from sim.mock_links import Endpoint
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 

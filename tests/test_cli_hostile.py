@@ -26,7 +26,10 @@ def files(tmp: Path) -> dict[str, str]:
         (tmp / name).write_text(text)
         out[name] = str(tmp / name)
     write("bigint.yaml", PAPER.replace("dt_s: 1.0", "dt_s: 1" + "0" * 400))
-    write("bigint_particles.yaml", PAPER.replace("particles: 2000", "particles: 1" + "0" * 400))
+    write("bigint_particles.yaml", PAPER + "tracking:\n  particles: 1" + "0" * 400 + "\n")
+    write("bigint_5000.yaml", PAPER.replace("n_radial: 4", "n_radial: 1" + "0" * 4999))
+    write("radians.yaml", PAPER.replace("sigma_deg: 1.0", "sigma_deg: 0.01745"))
+    write("twice.yaml", PAPER.replace("  p_detect: 0.95", "  p_detect: 0.95\n  p_detect: 0.5"))
     write("deep.yaml", "name: " + "[" * 3000 + "]" * 3000 + "\n")
     write("tag.yaml", "name: !!python/object/apply:os.system [\"echo owned\"]\n")
     targets = "".join(f"  - {{name: X{i}, position_m: [10.0, 10.0, 0.0], goal: G}}\n" for i in range(100))
@@ -48,7 +51,7 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
     mock = [sys.executable, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0"]
     return [
         # issue 23's list
-        (pmon + ["check-config", f["bigint.yaml"]], "dynamics.dt_s: must be finite"),
+        (pmon + ["check-config", f["bigint.yaml"]], "dynamics.dt_s: must be in [0.1, 10] s, got 1000000... (401 digits)"),
         (pmon + ["check-config", f["deep.yaml"]], "nested too deeply"),
         (pmon + ["check-config", "/dev/zero"], "/dev/zero: a device, not a regular file"),
         (pmon + ["check-config", f["fifo"]], "a FIFO, not a regular file"),
@@ -63,7 +66,10 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
         (pmon + ["eval", "--set", "tracking.control_mix=!!python/object/apply:os.system ['echo owned']"],
          "VALUE is not plain YAML"),
         # found alongside
-        (pmon + ["check-config", f["bigint_particles.yaml"]], "tracking.particles: must be in [10, 1000000], got 100000..."),
+        (pmon + ["check-config", f["bigint_particles.yaml"]], "tracking.particles: must be in [100, 20000], got 1000000..."),
+        (pmon + ["check-config", f["bigint_5000.yaml"]], "uav.n_radial: must be in [0, 20], got 1000000... (5000 digits)"),
+        (pmon + ["check-config", f["radians.yaml"]], "sensor.sigma_deg: must be in [0.05, 30] deg, got 0.01745"),
+        (pmon + ["check-config", f["twice.yaml"]], "sensor.p_detect: key given twice (lines"),
         (pmon + ["check-config", f["tag.yaml"]], "not valid YAML"),
         (pmon + ["check-config", f["many_targets.yaml"]], "targets: must have at most 64 items"),
         (pmon + ["check-config", f["huge.yaml"]], "more than 1000000"),

@@ -27,7 +27,15 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "RMSE" in p.stdout and "T4" in p.stdout
     assert "RMSE [m]" in p.stdout and "final [m]" in p.stdout, p.stdout[-1500:]  # units shown
-    assert (out / "flight.png").stat().st_size > 10_000
+    said = " ".join(p.stdout.split())  # rich wraps lines
+    # what a new user asked: the clock, the ticks against the scans, the timings, the scale
+    assert "the first at autopilot t = " in said and "(its clock counts from boot)" in said, said[-1500:]
+    assert " monitoring (" in said and "before, in the launch" in said and " scored (" in said
+    assert "monitoring tick, wall-time median: core " in said and "ms to send)" in said
+    assert "scale (RMSE from 10 s, all targets" in said and "three fixed DFs (fixed3) 7.9 m" in said
+    from matplotlib.image import imread
+    height, width = imread(out / "flight.png").shape[:2]
+    assert width >= 1400 and height >= 850, (width, height)  # was 729 x 558
     from onboard.config import load_scenario
     from test_export import assert_geojson_in_area
     raw = assert_geojson_in_area(out / "flight.geojson", load_scenario("paper"))  # RFC 7946, in the area
@@ -36,6 +44,22 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
     rep = json.loads((out / "report.json").read_text())
     assert rep["scored_ticks"] >= 18 and len(rep["rmse_m"]) == 4
     assert _children_gone(out)
+
+
+def test_the_demos_scale_is_what_the_docs_files_say():
+    """sim/demo.py quotes pmon eval's 100 missions: median and 10-90 % of the per-mission RMSE of
+    each method, from the docs' per_trial.csv files. Fails when those files change and the demo
+    still quotes the old figures."""
+    import csv
+
+    import numpy as np
+
+    from sim.demo import SCALE
+    for key, (_, path, method, med, lo, hi) in SCALE.items():
+        with open(REPO / path) as f:
+            r = [float(row["rmse_window_m"]) for row in csv.DictReader(f) if row["method"] == method]
+        assert len(r) == 100, (key, path, method)
+        assert np.round(np.percentile(r, [50, 10, 90]), 1).tolist() == [med, lo, hi], key
 
 
 @pytest.mark.timeout(60)

@@ -22,15 +22,17 @@ from sim import evaluation as ev
 
 @pytest.fixture(scope="module")
 def quick(paper):
-    """The paper scenario with a shorter guidance horizon (same world, faster ticks)."""
-    return replace(paper, guidance=replace(paper.guidance, horizon=20))
+    """The paper scenario with a shorter guidance horizon (same world, faster ticks); the lookahead
+    scores the whole (shorter) plan, as it did before it was held to the horizon."""
+    from onboard.config import override
+    return override(paper, {"guidance.horizon": 20, "planning.lookahead_steps": 20})
 
 
 def test_fixed_sensors_localise_a_target_to_the_triangulation_bound(paper):
     """One slow target (no control authority, so the truth is the linear model with noise Q)
     seen by the three fixed DFs: the filter's RMSE matches the posterior Cramér-Rao bound computed
     from the sensors' geometry and sigma along the true trajectory."""
-    t = Target("S", (450.0, 500.0, 0.0), (0.0, 0.0, 0.0), "H")
+    t = Target(name="S", position_m=(450.0, 500.0, 0.0), velocity_mps=(0.0, 0.0, 0.0), goal="H")
     sc = replace(paper, targets=(t,), goals=(Box("H", (450.0, 500.0, 0.0), (10.0, 10.0, 0.0)),), obstacles=(),
                  guidance=replace(paper.guidance, horizon=10, u_max_n=1.0))
     cfg = ev.make_config(sc, 30, 5, ["fixed3"], duration_s=30)
@@ -350,7 +352,10 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     (("--workers", "0"), "argument --workers: must be in 1..4096"),
     (("--scheduler", "not an address"), "--scheduler"),
     (("--set", "planning.speed_max_mps"), "expected KEY=VALUE"),
-    (("--set", "planning.speed_max_mps=-1"), "planning.speed_max_mps: must be > 0"),
+    (("--set", "planning.speed_max_mps=-1"), "planning.speed_max_mps: must be in (0, 30] m/s, got -1.0"),
+    (("--particles", "50"), "argument --particles: must be in 100..20000"),
+    (("--methods", "lookahead", "--set", "guidance.horizon=20"),
+     "method lookahead: planning.lookahead_steps: must be <= guidance.horizon (20)"),
 ])
 def test_pmon_eval_bad_arguments(tmp_path, args, message):
     res = run_cli("eval", "--out", str(tmp_path / "x"), *args)

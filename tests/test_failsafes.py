@@ -17,9 +17,6 @@ Pilot takeover (another mode) is shown in tests/test_app_sitl.py.
 """
 from __future__ import annotations
 
-import math
-import socket
-import threading
 import time
 from dataclasses import replace
 
@@ -30,78 +27,17 @@ from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before m
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from conftest import Gcs
+from app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, wait_for
 
-import onboard.app.worker as app_mod  # the tick the worker calls (fault injection)
-from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.tracking import ParticleSet
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
 SPEEDUP = 3.0
-
-
-class ScriptedDf:
-    """A direction finder on the autopilot's clock: every whole second T, one datagram per
-    channel with the bearing from the UAV to each (static) target. ``silent`` sends nothing;
-    ``empty_ch0`` sends ch 0 with no bearing (with p_D = 1 and no clutter: impossible)."""
-
-    def __init__(self, ap: MockAutopilot, port: int, targets: np.ndarray):
-        self.ap, self.dest, self.targets = ap, ("127.0.0.1", port), targets
-        self.silent = False
-        self.empty_ch0 = 0  # number of scans to send ch 0 empty
-        self.sent: list[float] = []
-        self._stop = threading.Event()
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def start(self):
-        self._t.start()
-        return self
-
-    def _run(self):
-        T = math.floor(self.ap.sim_time) + 1.0
-        while not self._stop.is_set():
-            if self.ap.sim_time < T:
-                time.sleep(0.003)
-                continue
-            s = self.ap.state()
-            if s.armed and not self.silent:
-                uav = np.array(s.pos_enu)
-                for ch, tgt in enumerate(self.targets):
-                    d = tgt[:2] - uav[:2]
-                    b = [math.atan2(d[0], d[1])]
-                    if ch == 0 and self.empty_ch0 > 0:
-                        b = []
-                    self._sock.sendto(dg.encode(T, ch, b), self.dest)
-                if self.empty_ch0 > 0:
-                    self.empty_ch0 -= 1
-                self.sent.append(T)
-            T += 1.0
-
-    def stop(self):
-        self._stop.set()
-        self._t.join(timeout=2)
-        self._sock.close()
-
-
-def _wait_ap(ap: MockAutopilot, dt: float, timeout: float = 30.0) -> float:
-    """Let ``dt`` autopilot seconds pass; returns the autopilot time at the end."""
-    t_end = ap.sim_time + dt
-    assert ap.wait_until(lambda s: s.time_boot_ms / 1000 >= t_end, timeout)
-    return t_end
-
-
-def _wait(pred, timeout: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 @pytest.fixture(scope="module")
@@ -120,33 +56,33 @@ def flight():
     ap._on_set_position_target_local_ned = spy
     ap.start()
     app = df = gcs = None
-    real_tick = app_mod.tick
+    tick = FaultyTick()  # the core tick the worker calls: faults are injected through it
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=1, link_timeout_s=1.0), sc).start()
+                                   auto_launch=True, seed=1, link_timeout_s=1.0), sc, tick=tick).start()
         df = ScriptedDf(ap, app.sensor_port, np.array([t.mean for t in sc.targets])).start()
         gcs = Gcs(ap.port("tcpin", 1))
-        assert _wait(lambda: app.state == State.MONITORING
+        assert wait_for(lambda: app.state == State.MONITORING
                      and sum(1 for t in app.ticks if t["planned"]) >= 5, 90), list(app.events)
 
         # 1. sensor silence
         df.silent = True
-        out["silence"] = (ap.sim_time, _wait_ap(ap, 15.0))
+        out["silence"] = (ap.sim_time, wait_autopilot_s(ap, 15.0))
         df.silent = False
-        assert _wait(lambda: any(t["channels"] and t["t"] > out["silence"][1] for t in app.ticks), 30)
+        assert wait_for(lambda: any(t["channels"] and t["t"] > out["silence"][1] for t in app.ticks), 30)
 
         # 2. guidance gets no time at all (PMON_GUID_S = 0), then its time back
         out["guid_set"] = gcs.param_set("PMON_GUID_S", 0.0)
         t0 = ap.sim_time
-        _wait_ap(ap, 5.0)
+        wait_autopilot_s(ap, 5.0)
         out["guid_reset"] = gcs.param_set("PMON_GUID_S", 0.3)
         out["guidance"] = (t0, ap.sim_time)
-        _wait_ap(ap, 3.0)
+        wait_autopilot_s(ap, 3.0)
 
         # 3. particle collapse of T1: a NaN appears in its belief (a numerical fault in the core;
         #    with the clutter-aware likelihood in log space, no finite datagram can cause it)
-        def nan_tick(*a, **k):
-            state, res = real_tick(*a, **k)
+        def nan_tick(*a, real, **k):
+            state, res = real(*a, **k)
             if "collapse_t" not in out:
                 out["collapse_t"] = ap.sim_time
                 b = state.beliefs[0]
@@ -154,32 +90,32 @@ def flight():
                 p[::7, 0] = np.nan
                 state = replace(state, beliefs=(ParticleSet(p, b.log_weights),) + state.beliefs[1:])
             return state, res
-        app_mod.tick = nan_tick
-        assert _wait(lambda: app.counters.get("reseeds", 0) >= 1, 30), list(app.events)[-10:]
-        app_mod.tick = real_tick
-        _wait_ap(ap, 3.0)
+        tick.fault = nan_tick
+        assert wait_for(lambda: app.counters.get("reseeds", 0) >= 1, 30), list(app.events)[-10:]
+        tick.fault = None
+        wait_autopilot_s(ap, 3.0)
 
         # 4. one tick stalls 1.5 s of wall time (4.5 s of autopilot time at 3x)
         stalled = {"done": False}
 
-        def slow_tick(*a, **k):
+        def slow_tick(*a, real, **k):
             if not stalled["done"]:
                 stalled["done"] = True
                 stalled["t"] = ap.sim_time
-                time.sleep(1.5)
+                time.sleep(1.5)  # the stall itself (wall time), not a wait for a condition
                 stalled["t_end"] = ap.sim_time
-            return real_tick(*a, **k)
+            return real(*a, **k)
         skipped0 = app.counters.get("ticks_skipped", 0)
-        app_mod.tick = slow_tick
-        assert _wait(lambda: "t_end" in stalled, 30)
-        app_mod.tick = real_tick
-        _wait_ap(ap, 3.0)
+        tick.fault = slow_tick
+        assert wait_for(lambda: "t_end" in stalled, 30)
+        tick.fault = None
+        wait_autopilot_s(ap, 3.0)
         out["stall"] = stalled
         out["skipped_by_stall"] = app.counters.get("ticks_skipped", 0) - skipped0
 
         # 5. the planner proposes a point outside the area (a fault in the core): refused
-        def bad_tick(*a, **k):
-            state, res = real_tick(*a, **k)
+        def bad_tick(*a, real, **k):
+            state, res = real(*a, **k)
             if res.planning is not None and "bad_t" not in out:
                 out["bad_t"] = ap.sim_time
                 cand = res.planning.candidates.copy()
@@ -187,37 +123,37 @@ def flight():
                 res = replace(res, planning=replace(res.planning, candidates=cand))
             return state, res
         refused0 = app.counters.get("setpoints_refused", 0)
-        app_mod.tick = bad_tick
-        assert _wait(lambda: "bad_t" in out, 30)
-        _wait_ap(ap, 1.0)
-        app_mod.tick = real_tick
+        tick.fault = bad_tick
+        assert wait_for(lambda: "bad_t" in out, 30)
+        wait_autopilot_s(ap, 1.0)
+        tick.fault = None
         out["refused"] = app.counters.get("setpoints_refused", 0) - refused0
-        _wait_ap(ap, 2.0)
+        wait_autopilot_s(ap, 2.0)
 
         # 6. the app's link to the autopilot goes dead both ways for 6 s
         ticks_before_cut = len([t for t in app.ticks])
         assert ap.cut_link(191, 9.0) == 1
         out["cut"] = (ap.sim_time, ap.sim_time + 9.0)
-        assert _wait(lambda: app.state == State.FAULT, 30), list(app.events)[-5:]
+        assert wait_for(lambda: app.state == State.FAULT, 30), list(app.events)[-5:]
         out["state_in_cut"] = app.state
-        _wait_ap(ap, 9.5 - (ap.sim_time - out["cut"][0]))
-        assert _wait(lambda: app.counters.get("link_regained", 0) >= 1, 30), list(app.events)[-5:]
+        wait_autopilot_s(ap, 9.5 - (ap.sim_time - out["cut"][0]))
+        assert wait_for(lambda: app.counters.get("link_regained", 0) >= 1, 30), list(app.events)[-5:]
         out["ticks_in_cut"] = [t for t in list(app.ticks)[ticks_before_cut:] if out["cut"][0] < t["t"] < out["cut"][1]]
         out["back_t"] = ap.sim_time
-        _wait_ap(ap, 3.0)
+        wait_autopilot_s(ap, 3.0)
         out["state_after_back"] = app.state
         out["resume_t"] = ap.sim_time
         out["resume_ack"] = gcs.command(191, mavlink.MAV_CMD_USER_1, 3)
-        _wait_ap(ap, 8.0)
+        wait_autopilot_s(ap, 8.0)
         out["state_after_resume"] = app.state
         out["texts"] = gcs.texts()
         out["events"] = [e for _, e in app.events]
         out["ticks"] = list(app.ticks)
         out["counters"] = dict(app.counters)
-        out["watchdog"] = dict(app.watchdog)
+        out["watchdog"] = dict(app.watchdog.counts)
         yield out
     finally:
-        app_mod.tick = real_tick
+        tick.fault = None
         if df is not None:
             df.stop()
         if gcs is not None:

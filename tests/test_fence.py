@@ -13,7 +13,7 @@ from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before py
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from onboard.app.fence import Fence, outgoing_violation, violation
-from onboard.app.params import ParamTable, defaults_from_scenario
+from onboard.app.params import ParamTable
 from onboard.app.pose import Frame
 from onboard.core.monitor import MonitorSetup
 
@@ -24,7 +24,7 @@ VELOCITY_TOO = 3576 & ~0b111000  # x, y, z and vx, vy, vz used (issue 24's feed-
 @pytest.fixture(scope="module")
 def world(paper):
     setup = MonitorSetup.from_scenario(paper)
-    params = ParamTable(defaults_from_scenario(paper))
+    params = ParamTable.from_scenario(paper)
     o = paper.origin
     frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
     # the autopilot's EKF origin: its home, 300 m south-west of the mission origin, 10 m lower

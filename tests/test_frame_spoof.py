@@ -26,14 +26,14 @@ from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before m
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from test_failsafes import ScriptedDf, _wait, _wait_ap
+from app_helpers import ScriptedDf, wait_autopilot_s, wait_for
 
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.app.pose import Frame
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from onboard.demo import DEMO_VEHICLE_PARAMS
+from sim.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -65,23 +65,23 @@ def flight():
     hostile = mavutil.mavlink_connection(url, source_system=1, source_component=1, dialect="ardupilotmega")
     gcs = mavutil.mavlink_connection(url, source_system=255, source_component=190, dialect="ardupilotmega")
     try:
-        assert _wait(lambda: app.state == State.MONITORING
+        assert wait_for(lambda: app.state == State.MONITORING
                      and sum(1 for t in app.ticks if t["planned"]) >= 3, 90), list(app.events)
 
         # 1. a forged GPS_GLOBAL_ORIGIN, 1843 m east and 1891 m north of the real one
-        fixed = app.origin.value
+        fixed = app.autopilot.origin.value
         lat, lon, alt = Frame(*fixed).geodetic_from_enu((1843.0, 1891.0, 0.0))
         n_rx = len(out["rx"])
         hostile.mav.gps_global_origin_send(int(lat * 1e7), int(lon * 1e7), int(alt * 1000), 0)
-        _wait(lambda: app.state == State.FAULT, 5)  # asserted below: the flight goes on either way
+        wait_for(lambda: app.state == State.FAULT, 5)  # asserted below: the flight goes on either way
         out["state_after_origin"] = app.state
-        out["origin_after"] = app.origin.value
-        _wait_ap(ap, 3.0)
+        out["origin_after"] = app.autopilot.origin.value
+        wait_autopilot_s(ap, 3.0)
         out["rx_in_fault"] = [r for r in out["rx"][n_rx:] if r[0] > ap.copter.t - 2.0]
         gcs.mav.command_long_send(1, 191, mavlink.MAV_CMD_USER_1, 0, 3, 0, 0, 0, 0, 0, 0)  # resume
-        assert _wait(lambda: app.state == State.MONITORING, 10), list(app.events)[-5:]
+        assert wait_for(lambda: app.state == State.MONITORING, 10), list(app.events)[-5:]
         t_resume = ap.copter.t
-        _wait_ap(ap, 6.0)
+        wait_autopilot_s(ap, 6.0)
         out["rx_after_resume"] = [r for r in out["rx"] if r[0] > t_resume]
 
         # 2. SYSTEM_TIME an hour ahead, three times 0.5 s apart
@@ -90,7 +90,7 @@ def flight():
         for _ in range(3):
             hostile.mav.system_time_send(0, int((ap.sim_time + 3600.0) * 1000))
             time.sleep(0.5)
-        _wait_ap(ap, 4.0)
+        wait_autopilot_s(ap, 4.0)
         out["clock"] = {"jumps": app.clock.jumps, "jumps_ignored": app.clock.jumps_ignored,
                         "now_minus_ap": app.clock.now() - ap.sim_time}
         out["coasted_in_spoof"] = app.counters.get("ticks_coasted", 0) - coasted0
@@ -104,12 +104,12 @@ def flight():
             app.vehicle.ned_origin = (lat, lon, alt)
         time.sleep(0.05)  # a setpoint sent just before may still be on its way
         n_rx = len(out["rx"])
-        _wait_ap(ap, 3.0)
+        wait_autopilot_s(ap, 3.0)
         app.vehicle.ned_origin = real
         out["refused_at_send"] = app.counters.get("setpoints_refused_at_send", 0) - refused0
         out["state_injected"] = app.state
         out["rx_injected"] = len(out["rx"]) - n_rx
-        out["watchdog"] = dict(app.watchdog)
+        out["watchdog"] = dict(app.watchdog.counts)
         out["events"] = [e for _, e in app.events]
         out["counters"] = dict(app.counters)
         yield out

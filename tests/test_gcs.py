@@ -1,5 +1,5 @@
 """The ground-station CLI's error paths (message and exit code each), retries on a lossy link
-that never execute a command twice, the real console script, and the wire constants it shares
+that never execute a command twice, the real console script, and the wire contract it shares
 with the onboard app."""
 from __future__ import annotations
 
@@ -78,14 +78,63 @@ def test_plot_of_a_missing_or_foreign_file_exits_1(capsys, tmp_path):
     assert rc == 1 and "not a pmon run log" in one_line(err)
 
 
-def test_wire_constants_match_the_onboard_app():
-    from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, State
-    from onboard.app.link import COMP_ID
+def test_the_ground_station_reads_the_apps_own_contract_without_loading_the_app():
+    """One contract: the ground station imports onboard/app/contract.py (no copy to drift), and
+    that import does not pull in the app or the core (a GCS command stays quick to start)."""
+    code = ("import sys, groundstation.protocol; "
+            "print(sorted(m for m in sys.modules if m.startswith(('onboard.core', 'onboard.app.app', 'scipy', 'sim'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+    from onboard.app.contract import REASON_TEXT, Action, State
 
-    assert P.APP_COMPID == COMP_ID and P.APP_COMMAND == MAV_CMD_PMON
-    assert P.ACTIONS == {a.name.lower(): int(a) for a in Action}
-    assert P.APP_STATES == tuple(s.name.lower().replace("_", " ") for s in sorted(State))
-    assert P.REASONS == {int(r): text for r, text in REASON_TEXT.items()}
+    assert P.ACTIONS["launch"] == Action.LAUNCH and P.APP_STATES[State.PILOT_OVERRIDE] == "pilot override"
+    assert P.REASONS[5] == REASON_TEXT[5] == "no autopilot heartbeat"
+    assert (P.GUIDED, P.LOITER, P.RTL, P.LAND, P.BRAKE) == (4, 5, 6, 9, 17)  # ArduCopter's numbers
+
+
+def test_what_the_app_publishes_is_what_the_ground_station_decodes():
+    """PMON_STAT and PMON_TGT encoded by the app's publisher and decoded by the ground station:
+    every field lands where the contract's field list says (a field moved on one side only
+    fails here)."""
+    import math
+
+    from onboard.app.contract import STAT_FIELDS, TGT_FIELDS, State
+    from onboard.app.mavlink_connection import mavlink
+    from onboard.app.publisher import Publisher
+    from onboard.app.vehicle_state import Vehicle
+
+    class Wire:  # a link that keeps what it sends
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+
+        def __init__(self):
+            self.sent = []
+
+        def send(self, msg):
+            self.sent.append(self.mav.decode(bytearray(msg.pack(self.mav))))
+            return True
+
+    class Clock:
+        def now(self):
+            return 12.0
+
+    stat = {name: float(i + 1) for i, name in enumerate(STAT_FIELDS)}
+    stat.update(state=float(State.PAUSED), warnings=3.0, launch_phase=2.0, next_u_m=math.nan)
+    wire = Wire()
+    pub = Publisher(wire, Clock(), Vehicle(sysid=1), lambda: State.PAUSED, lambda: stat)
+    pub.publish_stat()
+    tgt = {name: float(10 + i) for i, name in enumerate(TGT_FIELDS)}
+    tgt.update(since_scan_s=-1.0, degenerate=1.0)
+    pub.publish_target(2, tgt, 12.0)
+    s = P.AppStatus.from_msg(wire.sent[0])
+    assert (s.state, s.tick_rate_hz, s.last_tick_time_s, s.tick_ms) == ("paused", 2.0, 3.0, 4.0)
+    assert s.next_enu is None  # one coordinate not finite: no setpoint
+    assert (s.datagrams_accepted, s.datagrams_rejected, s.ticks, s.ticks_skipped, s.latency_ms) == (8, 9, 10, 11, 12.0)
+    assert s.uav_enu == (15.0, 16.0, 17.0) and (s.ticks_late, s.setpoints_refused) == (19, 20)
+    assert s.launch_phase == "arming" and len(s.warnings) == 2
+    assert s.limits == "planned at 23 m/s, 25 m/s^2 (autopilot 22 m/s, 24 m/s^2)"
+    t = P.TargetEstimate.from_msg(wire.sent[1])
+    assert (t.index, t.x, t.y, t.vx, t.vy, t.sigma_x, t.sigma_y, t.cov_xy) == (2, 10, 11, 13, 14, 16, 17, 19)
+    assert t.since_detection_s is None and t.degenerate and t.tick_time_s == 23
 
 
 # ----------------------------------------------------------------------------- against a vehicle

@@ -5,7 +5,9 @@ from onboard.core.guidance import GuidanceParams, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 from bench.miqp_reference import random_instance
 
-PARAMS = GuidanceParams(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16)
+from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
+
+PARAMS = GuidanceParams.from_config(Guidance(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16))
 
 
 def check_plan(plan, obs, mean0, params):
@@ -71,7 +73,7 @@ def test_cost_matches_exact_miqp_on_small_instances():
     the fraction on 100)."""
     from bench.miqp_reference import solve_p1_exact
     rng = np.random.default_rng(3)
-    params = GuidanceParams(horizon=10, obstacle_margin_m=5.0)
+    params = GuidanceParams.from_config(Guidance(horizon=10, obstacle_margin_m=5.0))
     ratios = []
     for _ in range(8):
         obs, mean0, goal = random_instance(rng, params.obstacle_margin_m, blocked=True)
@@ -93,7 +95,8 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
     the QP's sensitivity with the active set held: it equals central differences of the QP's
     solution for the plan's own face assignment, and zero-gain directions are those the
     constraints pin."""
-    from onboard.core.guidance import GuidanceWorkspace, _reduce_obstacles
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance_faces import face_geometry
     from onboard.core.dynamics import predict_mean
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
@@ -109,7 +112,7 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
         assert plan.feedback is not None and plan.feedback.shape == (3, 6)
         qp = ws.qp(T, len(obs), model, params)
         z = np.concatenate([[x[2]], predict_mean(model, x, np.zeros((T, 3)))[:, 2]])
-        geo = _reduce_obstacles(obs, params.obstacle_margin_m, z)
+        geo = face_geometry(obs, params.obstacle_margin_m, z)
         rows = geo.rows(plan.faces)
 
         def p2(state):
@@ -179,18 +182,19 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     """The free steering: a particle whose own plan is the free optimum gets its control;
     the others get the plan's u, and only they can draw the random control of the mixture."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import _Active
-    from onboard.core.monitor import MonitorSetup, _particle_controls
+    from onboard.core.guidance_qp import ActiveRows
+    from onboard.core.monitor import MonitorSetup
+    from onboard.core.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5))
     setup = MonitorSetup.from_scenario(sc)
     goal = setup.goals[0]
     T, K = setup.guidance.horizon, len(setup.obstacles)
     u = np.array([100.0, -50.0, 0.0])
     plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
-                _Active(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool)))
+                ActiveRows(np.zeros(10, bool), np.zeros((K, T - 1, 2), bool)))
     near = np.tile(np.r_[goal[:2] + [10.0, -5.0], 0, 0.5, 0, 0], (500, 1))  # arriving: free
     far = np.tile(np.r_[goal[:2] + [0.0, 500.0], 0, 0, 0, 0], (500, 1))  # behind O3: not free
-    out = _particle_controls(plan, np.vstack([near, far]), goal, setup, rng)
+    out = particle_controls(plan, np.vstack([near, far]), goal, setup, rng)
     np.testing.assert_allclose(out[:500], setup.free_steering.controls(near, goal))
     assert np.all(out[:500, 0] < 0) and np.all(out[:500, 1] > 0)  # back toward the goal
     n_plan = int(np.all(out[500:] == u, axis=1).sum())
@@ -230,8 +234,10 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     takes the control of the nearest reference law (clipped to the input box) if within
     plan_trust_sigma of it; the others keep the plan's control (or the mixture's random one)."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import LocalLaw, _Active
-    from onboard.core.monitor import MonitorSetup, _particle_controls
+    from onboard.core.guidance import LocalLaw
+    from onboard.core.guidance_qp import ActiveRows
+    from onboard.core.monitor import MonitorSetup
+    from onboard.core.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.0, plan_steering=True,
                                                plan_steered_share=0.7))
     setup = MonitorSetup.from_scenario(sc)
@@ -240,7 +246,7 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     T, K = setup.guidance.horizon, len(setup.obstacles)
     u = np.array([100.0, -50.0, 0.0])
     plan = Plan("optimal", 0.0, 0.0, 1, np.tile(u, (T, 1)), np.zeros((T, 6)), np.zeros((T - 1, K), int),
-                _Active(np.zeros(10, bool), np.ones((K, T - 1, 2), bool)))
+                ActiveRows(np.zeros(10, bool), np.ones((K, T - 1, 2), bool)))
     gain = np.zeros((3, 6))
     gain[0, 0] = -50.0  # N per m east of the reference
     a = LocalLaw(np.array([500.0, 600.0, 0.0, -10.0]), np.array([1000.0, 0.0, 0.0]), gain)
@@ -248,17 +254,17 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     near_a = np.tile([504.0, 610.0, 0.0, 0.0, -10.0, 0.0], (1000, 1))
     near_b = np.tile([400.0, 690.0, 0.0, 0.0, -10.0, 0.0], (1000, 1))
     metric = np.eye(2) / 100.0 ** 2  # sigma 100 m
-    out = _particle_controls(plan, np.vstack([near_a, near_b]), goal, setup, rng, [a, b], metric)
+    out = particle_controls(plan, np.vstack([near_a, near_b]), goal, setup, rng, [a, b], metric)
     on_a = np.all(out[:1000] == [1000.0 - 200.0, 0.0, 0.0], axis=1)
     on_b = np.all(out[1000:] == [-1000.0 + 5000.0, 0.0, 0.0], axis=1)
     kept = np.all(out == u, axis=1)
     assert 620 < on_a.sum() < 780 and 620 < on_b.sum() < 780  # the steered share
     assert np.all(on_a | kept[:1000]) and np.all(on_b | kept[1000:])
     clipped = np.tile([320.0, 700.0, 0.0, 0.0, -10.0, 0.0], (100, 1))  # 1.8 sigma; law -1000 + 9000 N
-    out = _particle_controls(plan, clipped, goal, setup, rng, [b], metric)
+    out = particle_controls(plan, clipped, goal, setup, rng, [b], metric)
     assert np.all(np.abs(out[:, :2]) <= setup.guidance.u_max_n) and (out[:, 0] == setup.guidance.u_max_n).any()
     far = np.tile([200.0, 690.0, 0.0, 0.0, -10.0, 0.0], (100, 1))  # 3 sigma > plan_trust_sigma = 2
-    out = _particle_controls(plan, far, goal, setup, rng, [b], metric)
+    out = particle_controls(plan, far, goal, setup, rng, [b], metric)
     assert np.all(out == u)  # not pulled onto a plan linearised 300 m away
 
 
@@ -268,7 +274,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     each a feasible plan of its own; the metric is the inverse position covariance."""
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, _reference_laws
+    from onboard.core.monitor import MonitorSetup, replanner
+    from onboard.core.steering import reference_laws
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_references=2,
                                                plan_spread_sigma=1.5))
     setup = MonitorSetup.from_scenario(sc)
@@ -277,14 +284,14 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
     plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
-    laws, metric, refs = _reference_laws(setup, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
+    laws, metric, refs = reference_laws(setup.plan_steering, mean, cov, plan, None, (), replanner(setup, goal, ws, lambda: 0.0))
     assert len(laws) == 3 and laws[0] is plan.law and len(refs) == 2
     np.testing.assert_allclose(metric, np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2)))
     offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
     np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
     assert all(abs(lw.x_ref[1] - mean[1]) < 1e-6 for lw in laws[1:])
     four = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, plan_references=4)))
-    laws, _, _ = _reference_laws(four, mean, cov, goal, plan, None, (), ws, lambda: 0.0)
+    laws, _, _ = reference_laws(four.plan_steering, mean, cov, plan, None, (), replanner(four, goal, ws, lambda: 0.0))
     np.testing.assert_allclose(sorted(lw.x_ref[0] - mean[0] for lw in laws[1:]), [-45.0, -22.5, 22.5, 45.0],
                                atol=1e-6)
     # next tick each reference is warm-started by its own plan from the same offset: it keeps
@@ -292,8 +299,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean2 = plan.means[0]
     plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan, workspace=ws,
                           with_feedback=True)
-    _, _, own = _reference_laws(setup, mean2, cov, goal, plan2, plan, refs, ws, lambda: 0.0)
-    _, _, cold = _reference_laws(setup, mean2, cov, goal, plan2, plan, (), ws, lambda: 0.0)
+    _, _, own = reference_laws(setup.plan_steering, mean2, cov, plan2, plan, refs, replanner(setup, goal, ws, lambda: 0.0))
+    _, _, cold = reference_laws(setup.plan_steering, mean2, cov, plan2, plan, (), replanner(setup, goal, ws, lambda: 0.0))
     pairs = [(a, b, c) for a, b, c in zip(refs, own, cold) if b is not None and c is not None]
     assert pairs
     for before, warm, from_mean in pairs:
@@ -365,7 +372,7 @@ def _one_box(paper, **tracking):
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, **tracking))
     obs = Obstacles.from_boxes([Box("B", (0.0, 0.0, 25.0), (100.0, 100.0, 50.0))])
     goals = np.tile([0.0, -300.0, 0.0], (len(paper.targets), 1))
-    return MonitorSetup.from_scenario(sc, obstacles=obs, goals=goals)
+    return dc_replace(MonitorSetup.from_scenario(sc), obstacles=obs, goals=goals)
 
 
 def test_winding_is_the_side_a_plan_rounds_an_obstacle_and_sides_hold_it(paper, model):
@@ -402,7 +409,8 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     from dataclasses import replace as dc_replace
     from onboard.core import tracking
     from onboard.core.guidance import GuidanceWorkspace, winding
-    from onboard.core.monitor import _particle_controls, _side_modes
+    from onboard.core.monitor import replanner
+    from onboard.core.steering import particle_controls, side_modes
     setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
     ws = GuidanceWorkspace()
     goal = setup.goals[0]
@@ -411,7 +419,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     ps = tracking.initialise(mean, cov, 2000, rng)
     m, c = tracking.estimate(ps)
     plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=True)
-    laws, modes = _side_modes(setup, ps, m, c, goal, plan, (), None, ws, lambda: 0.0, rng)
+    laws, modes = side_modes(setup, ps, m, c, plan, (), None, replanner(setup, goal, ws, lambda: 0.0), rng)
     labels = laws.labels
     assert len(modes) == 2 and modes[0].plan is plan
     assert winding(modes[0].plan.faces)[0] * winding(modes[1].plan.faces)[0] < 0
@@ -421,7 +429,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     # mode 0: its plan's law and its two spread references; mode 1, born now: its plan's law
     np.testing.assert_array_equal(laws.group, [0, 0, 0, 1])
     assert laws.laws[0] is plan.law and laws.laws[3] is modes[1].plan.law
-    u = _particle_controls(plan, ps.particles, goal, setup, rng, sides=laws)
+    u = particle_controls(plan, ps.particles, goal, setup, rng, sides=laws)
     east = np.sign(modes[0].plan.means[25, 0])  # mode 0's side (+1: east)
     # each side's particles are pushed toward its own side of the box
     assert np.mean(np.sign(u[labels == 0, 0]) == east) > 0.9
@@ -436,7 +444,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     m2, c2 = tracking.estimate(nxt)
     plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan, workspace=ws,
                           with_feedback=True)
-    laws2, modes2 = _side_modes(setup, nxt, m2, c2, goal, plan2, modes, plan, ws, lambda: 0.0, rng)
+    laws2, modes2 = side_modes(setup, nxt, m2, c2, plan2, modes, plan, replanner(setup, goal, ws, lambda: 0.0), rng)
     assert len(modes2) == 2
     np.testing.assert_array_equal(laws2.labels, nxt.labels)
     np.testing.assert_array_equal(laws2.group, [0, 0, 0, 1, 1, 1])

@@ -26,7 +26,7 @@ from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before py
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from test_failsafes import _wait
+from app_helpers import wait_for
 
 from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
@@ -46,11 +46,11 @@ def _sender(host: str = "127.0.0.1") -> socket.socket:
     return s
 
 
-def _app(clock, **cfg) -> OnboardApp:
+def _app(clock, monotonic=time.monotonic, **cfg) -> OnboardApp:
     # no autopilot (nothing listens on its MAVLink port): scans are ticked without a pose, which
     # is what the input path and the schedule need
     return OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, **cfg), load_scenario("paper"),
-                      clock=clock).start()
+                      clock=clock, monotonic=monotonic).start()
 
 
 def _scan(tx: socket.socket, app: OnboardApp, t: float) -> None:
@@ -92,17 +92,17 @@ def test_first_valid_peer_locks_the_input_and_others_are_reported_not_parsed():
     df, stranger = _sender(), _sender()
     try:
         stranger.sendto(b"garbage first: cannot take the lock", ("127.0.0.1", app.sensor_port))
-        assert _wait(lambda: app.scans.rejected["not_json"] == 1, 5)
+        assert wait_for(lambda: app.scans.rejected["not_json"] == 1, 5)
         assert app.df.locked is None
         _scan(df, app, 51.0)
-        assert _wait(lambda: app.df.locked is not None, 5)
+        assert wait_for(lambda: app.df.locked is not None, 5)
         assert app.df.locked == Source("127.0.0.1", df.getsockname()[1])
         for k in range(50):  # the stranger's valid datagrams: dropped before the parser
             stranger.sendto(dg.encode(52.0, k % M, [0.2]), ("127.0.0.1", app.sensor_port))
         clock.t = 52.0
         _scan(df, app, 52.0)
-        assert _wait(lambda: _ticked(app) == [51.0, 52.0], 5), _ticked(app)
-        assert _wait(lambda: app.df.dropped["foreign_source"] == 50, 5), app.df.dropped
+        assert wait_for(lambda: _ticked(app) == [51.0, 52.0], 5), _ticked(app)
+        assert wait_for(lambda: app.df.dropped["foreign_source"] == 50, 5), app.df.dropped
         assert app.scans.accepted == 2 * M and app.scans.rejected_total == 1
         said = [text for _, text in app.events if text.startswith(("PMON: DF source", "PMON: DF from"))]
         assert said == [f"PMON: DF source 127.0.0.1:{df.getsockname()[1]}; others ignored",
@@ -125,8 +125,8 @@ def test_df_sources_accept_only_the_listed_senders():
     try:
         _scan(other, app, 51.0)
         _scan(listed, app, 51.0)
-        assert _wait(lambda: _ticked(app) == [51.0], 5)
-        assert _wait(lambda: app.df.dropped["foreign_source"] == M, 5)
+        assert wait_for(lambda: _ticked(app) == [51.0], 5)
+        assert wait_for(lambda: app.df.dropped["foreign_source"] == M, 5)
         assert app.scans.accepted == M and app.df.locked is None
     finally:
         listed.close()
@@ -135,23 +135,25 @@ def test_df_sources_accept_only_the_listed_senders():
 
 
 def test_a_sender_over_its_rate_limit_loses_only_its_excess():
-    clock = ManualClock(50.0)
-    app = _app(clock, df_rate_hz=100.0)
+    clock = ManualClock(50.0)  # autopilot s
+    local = ManualClock(1000.0)  # local s: the app's monotonic clock, which the buckets refill by
+    app = _app(clock, monotonic=local.now, df_rate_hz=100.0)
     df = _sender()
     try:
         _scan(df, app, 51.0)
-        assert _wait(lambda: _ticked(app) == [51.0], 5)
-        time.sleep(1.1)  # the bucket refills: 100 datagrams
+        assert wait_for(lambda: _ticked(app) == [51.0], 5)
+        local.t += 1.1  # the bucket refills: 100 datagrams
         junk = b'{"v":1,"t":"x","ch":0,"bearings_rad":[]}'
-        for _ in range(1000):  # in ~10 ms: 10x the burst
+        for _ in range(1000):  # 10x the burst, with no local time passing
             df.sendto(junk, ("127.0.0.1", app.sensor_port))
-        assert _wait(lambda: app.df.received >= 1000 + M, 5)
-        assert _wait(lambda: app.scans.rejected["bad_type"] + app.df.dropped["rate_limited"] == 1000, 5)
-        assert 100 <= app.scans.rejected["bad_type"] <= 110, app.scans.rejected  # the burst, no more
-        time.sleep(1.1)
+        assert wait_for(lambda: app.df.received >= 1000 + M, 5)
+        assert wait_for(lambda: app.scans.rejected["bad_type"] + app.df.dropped["rate_limited"] == 1000, 5)
+        assert app.scans.rejected["bad_type"] == 100, app.scans.rejected  # the burst, no more
+        assert app.df.dropped["rate_limited"] == 900
+        local.t += 1.1
         clock.t = 52.0
         _scan(df, app, 52.0)  # the sender's own good scan once it is back under the limit
-        assert _wait(lambda: _ticked(app) == [51.0, 52.0], 5)
+        assert wait_for(lambda: _ticked(app) == [51.0, 52.0], 5)
         assert sum("excess dropped" in text for _, text in app.events) == 1
     finally:
         df.close()
@@ -173,7 +175,7 @@ def test_an_error_in_any_handler_is_counted_and_the_schedule_runs_regardless(cap
             raise OverflowError("injected")
         return real_offer(data, now)
     monkeypatch.setattr(app.scans, "offer", offer)
-    monkeypatch.setattr(app, "_on_param_read", lambda msg: 1 / 0)
+    monkeypatch.setitem(app.router.for_app, "PARAM_REQUEST_READ", lambda msg: 1 / 0)
     df, hostile = _sender(), _sender()
     url = f"udpout:127.0.0.1:{app.link.conn.port.getsockname()[1]}"
     autopilot = mavutil.mavlink_connection(url, source_system=1, source_component=1, dialect="ardupilotmega")
@@ -181,9 +183,9 @@ def test_an_error_in_any_handler_is_counted_and_the_schedule_runs_regardless(cap
     caplog.set_level(logging.ERROR, logger="pmon.app")
     try:
         autopilot.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
-        assert _wait(lambda: app.vehicle.sysid == 1, 5)
+        assert wait_for(lambda: app.vehicle.sysid == 1, 5)
         _scan(df, app, 51.0)  # the DF locks the input; the hostile peer is then foreign ...
-        assert _wait(lambda: _ticked(app) == [51.0], 5)
+        assert wait_for(lambda: _ticked(app) == [51.0], 5)
         app.df.sources = (Source("127.0.0.1"),)  # ... so accept its host, as --df-from would
         sent = 0
         t0 = time.monotonic()
@@ -197,10 +199,10 @@ def test_an_error_in_any_handler_is_counted_and_the_schedule_runs_regardless(cap
             _scan(df, app, 52.0 + k)
             # the manual clock jumps a second at once: let the scan land before it does, or its
             # last channels arrive after the scan's wait and are rejected as stale (rightly)
-            assert _wait(lambda: app.scans.accepted == (k + 2) * M, 5), app.scans.accepted
+            assert wait_for(lambda: app.scans.accepted == (k + 2) * M, 5), app.scans.accepted
         assert time.monotonic() - t0 < 4.0
-        assert _wait(lambda: app.errors.counts.get("DF datagram: OverflowError") == sent, 10), app.errors.counts
-        assert _wait(lambda: _ticked(app) == [51.0, 52.0, 53.0, 54.0], 10), _ticked(app)
+        assert wait_for(lambda: app.errors.counts.get("DF datagram: OverflowError") == sent, 10), app.errors.counts
+        assert wait_for(lambda: _ticked(app) == [51.0, 52.0, 53.0, 54.0], 10), _ticked(app)
         assert app.errors.counts.get("MAVLink PARAM_REQUEST_READ: ZeroDivisionError") == 3
         assert app.counters["io_errors"] == sent + 3 == app.errors.total
         tracebacks = [r for r in caplog.records if r.exc_info]
@@ -221,19 +223,19 @@ def test_watchdog_reports_a_tick_schedule_that_keeps_failing_and_a_loop_that_sto
     df = _sender()
     try:
         _scan(df, app, 51.0)
-        assert _wait(lambda: _ticked(app) == [51.0], 5)
-        monkeypatch.setattr(app, "_schedule_tick", lambda now: [][0])
+        assert wait_for(lambda: _ticked(app) == [51.0], 5)
+        monkeypatch.setattr(app.schedule, "run", lambda now: [][0])
         for k in range(8):  # time goes on: the coast grid would tick every second
             clock.t = 52.0 + k
             time.sleep(0.2)
-        assert _wait(lambda: app.watchdog.get("schedule_stuck") == 1 and app.watchdog.get("ticks_stuck") == 1, 5), \
-            app.watchdog
+        assert wait_for(lambda: app.watchdog.counts.get("schedule_stuck") == 1
+                        and app.watchdog.counts.get("ticks_stuck") == 1, 5), app.watchdog.counts
         texts = [text for _, text in app.events]
         assert any("watchdog: tick schedule failing" in x for x in texts)
         assert any("watchdog: no tick for" in x for x in texts)
         assert app.errors.counts["tick schedule: IndexError"] > 10
         monkeypatch.undo()
-        assert _wait(lambda: "schedule" not in app._alarmed, 5)  # the episode ends with the fault
+        assert wait_for(lambda: "schedule" not in app.watchdog.alarmed, 5)  # the episode ends with the fault
     finally:
         df.close()
         app.stop()
@@ -252,9 +254,9 @@ def test_a_link_that_raises_on_every_read_does_not_stop_the_schedule(monkeypatch
         for k in range(3):
             clock.t = 51.0 + k
             _scan(df, app, 51.0 + k)
-            assert _wait(lambda: _ticked(app)[-1:] == [51.0 + k], 5), _ticked(app)
+            assert wait_for(lambda: _ticked(app)[-1:] == [51.0 + k], 5), _ticked(app)
         assert app.errors.counts["MAVLink read: RuntimeError"] > 10
-        assert app.watchdog == {}
+        assert app.watchdog.counts == {}
     finally:
         df.close()
         app.stop()

@@ -47,10 +47,12 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 # --------------------------------------------------------------------------- beyond the paper
 
 from onboard.core.dynamics import MotionModel  # noqa: E402
-from onboard.core.planning import UavMotion, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning import JUMP, LookaheadParams, UavMotion, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.settings import Lookahead  # noqa: E402
 
 MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10])
 VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5)
+LOOKAHEAD = LookaheadParams.from_config(Lookahead())  # the declared defaults
 AREA = ((-2e3, -2e3, 0.0), (2e3, 2e3, 1e3))
 
 
@@ -85,7 +87,7 @@ def test_both_planners_move_a_vehicle_within_its_limits(rng):
     for res in (choose_next_position(particles, logw, np.array([0.0, 0.0]), GRID, math.radians(1.0), *AREA,
                                      Obstacles.empty(), "position_trace", VEHICLE, v0, 1.0),
                 choose_lookahead(particles, logw, plans, np.array([0.0, 0.0]), v0, GRID, VEHICLE, MODEL,
-                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty())):
+                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)):
         v1 = res.velocities[res.index]
         assert np.linalg.norm(v1 - v0) <= 2.5 + 1e-9 and np.linalg.norm(v1) <= 10.0 + 1e-9
         # the move is the one the velocities imply (constant acceleration over the tick)
@@ -100,8 +102,8 @@ def test_lookahead_approaches_distant_targets_where_greedy_only_crosses(rng):
     here = np.array([0.0, 0.0])
     greedy = choose_next_position(particles, logw, here, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
                                   "position_trace")
-    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, UavMotion("jump"), MODEL,
-                            math.radians(1.0), 0.95, *AREA, Obstacles.empty())
+    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, JUMP, MODEL,
+                            math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)
     assert look.position[1] > 10.0  # toward the targets
     assert look.position[1] > greedy.position[1] + 5.0
     # and the route it scores keeps approaching, then turns (diversifies the geometry)
@@ -119,9 +121,9 @@ def test_lookahead_routes_around_a_wall_it_cannot_overfly(rng):
     wall = wall.inflate(10.0)
     particles, logw, plans = _still_targets(rng, [[0.0, 400.0]])
     here = np.array([0.0, 0.0])
-    for motion in (UavMotion("jump"), VEHICLE):
+    for motion in (JUMP, VEHICLE):
         res = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, motion, MODEL, math.radians(1.0),
-                               0.95, *AREA, wall)
+                               0.95, *AREA, wall, params=LOOKAHEAD)
         path = np.concatenate([[[0.0, 0.0, 40.0]], res.paths[res.index]])
         assert not wall.segments_cross(path[:-1], path[1:]).any()
         assert path[:, 1].max() > 180.0  # it got past the wall within the horizon
@@ -143,9 +145,8 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     from onboard.config import load_scenario
     from onboard.core.monitor import MonitorSetup
 
-    sc = load_scenario("paper", {})
-    setup = MonitorSetup.from_scenario(sc, planner="lookahead", motion=UavMotion(
-        motion, sc.planning.speed_max_mps, sc.planning.accel_max_mps2))
+    setup = MonitorSetup.from_scenario(load_scenario("paper", {"planning.planner": "lookahead",
+                                                               "planning.motion": motion}))
     [(_, particles, log_w, plans, planning, _)] = list(snapshots(setup, {1}, 7, start_xy))
     assert planning.admissible.sum() > 100
     rng = np.random.default_rng(0)
@@ -156,3 +157,62 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     assert part[np.argmin(ekf)] < 1.15 * part.min()
     # conservative, as the one-step form: it never promises much more than the particles give
     assert 0.95 < np.median(ekf / part) < 1.5
+
+
+# --------------------------------------------------------------------------- the planner and steering roles
+
+
+def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
+    """``MonitorSetup.planner`` names the planner (the baselines too), built once per setup;
+    ``tracking.plan_steering`` / ``plan_sides`` choose the particle steering; a name no planner
+    has is refused with the names that exist."""
+    from dataclasses import replace as dc_replace
+
+    from onboard.core.monitor import MonitorSetup
+    from onboard.core.planners import (GreedyPlanner, HoverPlanner, LookaheadPlanner, OrbitPlanner, RandomPlanner,
+                                       make_planner)
+    from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
+
+    setup = MonitorSetup.from_scenario(paper)
+    assert isinstance(setup.uav_planner, GreedyPlanner) and setup.uav_planner is setup.uav_planner
+    for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
+                       ("random", RandomPlanner)):
+        assert isinstance(MonitorSetup.from_scenario(paper, planner=name).uav_planner, kind)
+    with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
+        make_planner(MonitorSetup.from_scenario(paper, planner="spiral"))
+    assert isinstance(setup.steering, FreeSteering)
+
+    def steering(**tr):
+        return MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))).steering
+    assert isinstance(steering(plan_steering=True), ReferenceSteering)
+    assert isinstance(steering(plan_steering=True, plan_sides=True), SideSteering)
+
+
+def test_a_planners_draws_never_shift_the_filters(paper):
+    """The random baseline draws from ``planner_rng``: with the same scans, the filter's beliefs
+    after each tick are those of the hover baseline from the same streams, and its moves are
+    admissible candidates of S_(t+1); drawing from the filter's own stream instead changes them."""
+    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+
+    def run(planner, separate):
+        setup = MonitorSetup.from_scenario(paper, planner=planner)
+        rng, prng = np.random.default_rng(5), np.random.default_rng(6)
+        state, ws = initial_state(setup, rng), GuidanceWorkspace()
+        uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []
+        for _ in range(3):
+            bearings = tuple(np.array([0.5 + 0.1 * j]) for j in range(setup.n_targets))
+            state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws,
+                              planner_rng=prng if separate else None)
+            out.append((np.stack([b.particles for b in state.beliefs]), res.planning))  # scans stay put
+        return out
+
+    hover, rand, shared = run("hover", True), run("random", True), run("random", False)
+    moved = 0
+    for (b_h, p_h), (b_r, p_r) in zip(hover, rand):
+        np.testing.assert_array_equal(b_h, b_r)
+        assert p_h.index == 0 and np.array_equal(p_h.position, p_h.candidates[0])
+        assert p_r.admissible[p_r.index] and len(p_r.candidates) == 4 * 15 + 1
+        moved += p_r.index != 0
+    assert moved >= 2
+    assert not np.array_equal(shared[-1][0], rand[-1][0])

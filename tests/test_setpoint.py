@@ -7,8 +7,8 @@ import pytest
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import choose_lookahead, choose_next_position
 from onboard.core.setpoint import plan_setpoint
-from sim.vehicle import advance_input
-from tests.test_planning import AREA, GRID, MODEL, VEHICLE, _still_targets
+from sim.multicopter import advance_input
+from tests.test_planning import AREA, GRID, LOOKAHEAD, MODEL, VEHICLE, _still_targets
 
 
 @pytest.mark.parametrize("offset", [0.0, 0.13, 0.5, 1.0])
@@ -21,7 +21,7 @@ def test_the_firmware_carries_the_setpoint_to_the_planned_next_state(rng, offset
     for res in (choose_next_position(particles, logw, p0, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
                                      "position_trace", VEHICLE, v0, 1.0),
                 choose_lookahead(particles, logw, plans, p0, v0, GRID, VEHICLE, MODEL, math.radians(1.0), 0.95,
-                                 *AREA, Obstacles.empty())):
+                                 *AREA, Obstacles.empty(), params=LOOKAHEAD)):
         v1 = res.velocities[res.index]
         assert np.linalg.norm(v1 - v0) > 0.5  # the plan accelerates: the test sees the acceleration term
         pos, vel, acc = plan_setpoint(p0, v0, v1, 1.0, offset)

@@ -138,7 +138,7 @@ def test_signed_gcs_commands_the_app_unsigned_and_wrongly_signed_are_rejected_an
     forged.drain(0.5)
     assert app.params["PMON_CLUTTER"] == 1.0
     assert not ap.state().armed, "an unsigned force-arm must not arm the vehicle"
-    assert app._launch is None, "a forged launch must not start"
+    assert app.machine.launch is None, "a forged launch must not start"
     got = ok.drain(5.0, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "PMON_CLUTTER"
                    and abs(m.param_value - 2.0) < 1e-6) if ok.param_set("PMON_CLUTTER", 2.0) is None else []
     assert got and app.params["PMON_CLUTTER"] == 2.0
@@ -225,7 +225,7 @@ def test_commands_only_from_configured_gcs_and_bad_mavlink_never_hurts():
                 time.sleep(0.003)
         time.sleep(0.5)
         assert app.params["PMON_PD"] == pytest.approx(sc.sensor.p_detect)
-        assert app._launch is None
+        assert app.machine.launch is None
         assert app.counters.get("rejected_sysid", 0) == 2
         assert app.vehicle.sysid == 1, "a second autopilot does not take over"
         assert app.counters.get("mavlink_bad_data", 0) > 100

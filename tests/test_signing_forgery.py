@@ -28,9 +28,9 @@ from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from test_failsafes import _wait
+from app_helpers import wait_for
 
-from groundstation.link import GcsLink
+from groundstation.gcs_link import GcsLink
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
@@ -160,17 +160,17 @@ def test_app_keeps_its_autopilot_after_forged_autopilot_packets(key_file):
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=2.0, signing_key=key,
                        endpoints=[f"udpout:127.0.0.1:{port}"]).start()
     try:
-        assert _wait(lambda: app.vehicle.sysid == 1 and app.signing_counts()["goodsig"] > 20, 20)
+        assert wait_for(lambda: app.vehicle.sysid == 1 and app.signing_counts()["goodsig"] > 20, 20)
         before = app.signing_counts()
         frames = forgeries(1, 1)
         _send_all(port, frames)
-        assert _wait(lambda: app.signing_counts()["badsig"] - before["badsig"] >= len(frames), 10)
+        assert wait_for(lambda: app.signing_counts()["badsig"] - before["badsig"] >= len(frames), 10)
         mid = app.signing_counts()
         time.sleep(3.0)  # 3 link timeouts
         after = app.signing_counts()
         assert after["badsig"] - before["badsig"] == len(frames), "a genuine packet was rejected"
         assert after["goodsig"] - mid["goodsig"] > 40, (mid, after)
-        assert app.counters.get("link_losses", 0) == 0 and not app._link_lost
+        assert app.counters.get("link_losses", 0) == 0 and not app.autopilot.link_lost
     finally:
         app.stop()
         ap.stop()
@@ -218,7 +218,7 @@ def test_mock_autopilot_keeps_obeying_its_ground_station_after_forged_gcs_packet
         rejected0 = ap.counters().get("signing_rejected", 0)
         frames = forgeries(255, 190)
         _send_all(port, frames)
-        assert _wait(lambda: ap.counters().get("signing_rejected", 0) - rejected0 >= len(frames), 10)
+        assert wait_for(lambda: ap.counters().get("signing_rejected", 0) - rejected0 >= len(frames), 10)
         answered = 0
         for i in range(10):
             gcs.mav.param_request_read_send(1, 1, b"WPNAV_SPEED", -1)

@@ -1,4 +1,4 @@
-"""sim.vehicle and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
+"""sim.multicopter and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
 
 The reference is tests/data/sitl_response.json.gz: what ``python bench/sitl_response.py --save
 tests/data/sitl_response.json.gz`` recorded on the real SITL, at ArduCopter's stock limits and
@@ -25,7 +25,7 @@ from bench.sitl_response import (
 )
 from sim.copter import Copter, GuidedTarget, Mode, Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
-from sim.vehicle import (
+from sim.multicopter import (
     Setpoint,
     VehicleLimits,
     VehicleState,
@@ -327,7 +327,7 @@ def px4():
 
 @pytest.mark.timeout(120)
 def test_model_flies_each_recorded_px4_trace(px4):
-    """sim.vehicle with PX4's parameters (limits_from_params on its MPC_* names: its position
+    """sim.multicopter with PX4's parameters (limits_from_params on its MPC_* names: its position
     controller, no kinematic shaping, SIH's linear drag) given the setpoints PX4 SITL was sent, each
     held until the next as PX4 does. ArduCopter's controller on the same setpoints misses by
     metres: the test fails on a model that is not PX4's."""
@@ -364,7 +364,7 @@ def test_the_evaluations_flight_at_px4_flies_px4s_model():
     """``pmon eval --methods flight@px4``: the flown method's vehicle is PX4's (its parameters,
     controller and SIH airframe), planned at its MPC_XY_VEL_MAX / MPC_ACC_HOR capped as the app caps."""
     from sim.evaluation import AUTOPILOTS, method_named
-    from sim.vehicle import PX4_SIH_AIRFRAME, limits_from_params
+    from sim.multicopter import PX4_SIH_AIRFRAME, limits_from_params
 
     lim = limits_from_params(AUTOPILOTS["px4"])
     assert not lim.shaping and lim.drag_lin == PX4_SIH_AIRFRAME["drag_lin"] and lim.speed_xy == 12.0

@@ -16,9 +16,9 @@ import pytest
 
 from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
 
-from groundstation import commands as C
+from groundstation import gcs_commands as C
 from groundstation.cli import main
-from groundstation.link import GcsLink
+from groundstation.gcs_link import GcsLink
 from viewcheck import browser_unavailable, check_live_view, summary
 from conftest import QUICK_BOOT_S
 

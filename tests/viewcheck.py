@@ -180,7 +180,7 @@ def check_live_view(gcs_url: str, scenario: str = "paper", *, seconds: float = 1
     ``seconds`` (wall); the mission must be running (the app ticking)."""
     from rich.console import Console
 
-    from groundstation.link import GcsLink
+    from groundstation.gcs_link import GcsLink
     from groundstation.view import serve
     from onboard.config import load_scenario
 

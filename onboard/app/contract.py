@@ -1,11 +1,14 @@
-"""The onboard app's wire contract: its states, the actions it is commanded with, the reasons
-it refuses, and the layout of what it publishes (docs/MAVLINK.md). groundstation/protocol.py
-repeats the numbers a ground station needs (tests/test_gcs.py checks they agree)."""
+"""The onboard app's wire contract: its component id, its states, the actions it is commanded
+with, the reasons it refuses, and the layout of what it publishes (docs/MAVLINK.md). The app
+speaks it and the ground station (groundstation/protocol.py) reads it from here: one
+declaration. Light module (the MAVLink dialect only), so a ground station imports it without
+the app or the core."""
 from __future__ import annotations
 
 from enum import IntEnum
 
-from onboard.app.link import mavlink
+from onboard.app.mavlink_connection import COMP_ID as APP_COMPID  # noqa: F401  (191, the app's component)
+from onboard.app.mavlink_connection import mavlink
 
 # MAVLink command sent to component 191; param1 = action
 MAV_CMD_PMON = mavlink.MAV_CMD_USER_1  # 31010

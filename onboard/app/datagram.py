@@ -196,6 +196,17 @@ class ScanBuffer:
         self.last_scan_t[d.ch] = max(self.last_scan_t[d.ch], d.t)
         return d
 
+    def drop_pending(self) -> None:
+        """Forget the scans waiting for a tick (stamped on a timeline the clock left)."""
+        self.pending.clear()
+        self.arrival.clear()
+
+    def start_over(self) -> None:
+        """The autopilot rebooted: its clock, which stamps the scans, starts again near zero."""
+        self.drop_pending()
+        self.consumed_until = -math.inf
+        self.last_scan_t = [-math.inf] * self.n_channels
+
     def complete(self, key: float) -> bool:
         return len(self.pending.get(key, ())) == self.n_channels
 

@@ -100,6 +100,11 @@ class FixedOrigin:
         self.value = None
 
 
+def heading_from_global_position_int(hdg_cdeg: int) -> float | None:
+    """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535)."""
+    return None if hdg_cdeg == 65535 else hdg_cdeg / 100.0
+
+
 def valid_global_position_int(msg) -> bool:
     """A fix worth using: lat/lon in range and not the all-zero 'no fix' message."""
     if msg.lat == 0 and msg.lon == 0:

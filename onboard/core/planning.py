@@ -3,6 +3,7 @@ bearings (eq:measurement_model2) and the argmin of summed traces (eq:optimizatio
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,7 +105,7 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center:
                          dt: float = 1.0) -> PlanningResult:
     """eq:optimization over the admissible next positions around ``center``: the paper's
     S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick."""
-    motion = motion or UavMotion()
+    motion = motion or JUMP
     velocity = np.zeros(2) if velocity is None else velocity
     paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt)
     cand = paths[:, 0]
@@ -124,19 +125,23 @@ class UavMotion:
     """How the UAV moves between ticks.
 
     ``jump``: the paper's model, any point of the polar grid S_(t+1) is reached in one tick.
-    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator; the
-    defaults are ArduCopter's WPNAV_SPEED and WPNAV_ACCEL, which reproduce the measured 5.6 s
+    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator;
+    ArduCopter's WPNAV_SPEED and WPNAV_ACCEL defaults, the scenario's, reproduce the measured 5.6 s
     for a 20 m step from hover); the next positions are those reached in one tick under a
     constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
     """
 
-    kind: str = "jump"
-    speed_max_mps: float = 10.0
-    accel_max_mps2: float = 2.5
+    kind: str  # jump | vehicle
+    speed_max_mps: float  # vehicle only
+    accel_max_mps2: float  # vehicle only
 
     @classmethod
     def from_config(cls, planning) -> "UavMotion":
+        """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
         return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2)
+
+
+JUMP = UavMotion("jump", math.inf, math.inf)  # the paper's motion: no speed or acceleration limit applies
 
 
 def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
@@ -215,19 +220,17 @@ class LookaheadParams:
     per tick were measured and not adopted).
     """
 
-    ranges_m: tuple[float, ...] = (30.0, 80.0, 160.0, 320.0)
-    n_headings: int = 16
-    loiter_radius_m: float = 40.0
-    corner_clearance_m: float = 3.0
-    spacing_m: float = 2.0  # arc-length resolution of the sampled routes
+    ranges_m: tuple[float, ...]  # m
+    n_headings: int
+    loiter_radius_m: float
+    corner_clearance_m: float
+    spacing_m: float  # arc-length resolution of the sampled routes, m
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
-        """From ``onboard.config.Lookahead`` (the scenario's ``planning.lookahead``)."""
+        """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
+        the defaults, units and ranges)."""
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
-
-
-LOOKAHEAD_DEFAULT = LookaheadParams()
 
 
 def _blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -379,8 +382,7 @@ def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: Loo
 def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, objective: str = "trace",
-                     params: LookaheadParams | None = None) -> PlanningResult:
+                     uav_obstacles: Obstacles, *, params: LookaheadParams) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -393,13 +395,12 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     and acceleration limits from the current velocity). Along each route the planar covariance
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
-    reduction factor q). Score: sum over ticks and targets of tr P_pos.
+    reduction factor q). Score: sum over ticks and targets of tr P_pos (the position, whatever
+    the greedy rule's ``objective``).
     The first step of the best route is the next position (receding horizon): jump, the
     admissible point of S_(t+1) nearest to it; vehicle, the route's own first step, which is in
-    the reachable set by construction. ``objective`` (the paper's trace setting) is ignored:
-    routes are scored on the position.
+    the reachable set by construction.
     """
-    params = params or LOOKAHEAD_DEFAULT
     H = target_paths.shape[1]
     dt = model.dt_s
     alt = grid.altitude_m
@@ -407,7 +408,28 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     v0 = np.zeros(2) if velocity is None else np.asarray(velocity, float)[:2]
     if motion.kind == "jump":
         v0 = np.zeros(2)
-    normals, offsets = _blocking_2d(uav_obstacles, alt)
+    routes = _routes(p0, target_paths, grid, motion, params, dt, area_min, area_max, uav_obstacles)
+    if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
+        return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
+                                    area_max, uav_obstacles, "position_trace", motion, v0, dt)
+    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
+    ok = _first_step(pos, vel, p0, grid, motion, dt, area_min, area_max, uav_obstacles)
+    # a route that would leave the area or cross an obstacle later is scored as stopping there
+    start3 = np.r_[p0, alt]
+    paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
+    _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
+    total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction)
+    scores = np.where(ok, total.sum(axis=1), np.inf)
+    index = int(np.argmin(scores)) if ok.any() else None
+    return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
+
+
+def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motion: UavMotion,
+            params: LookaheadParams, dt: float, area_min, area_max, uav_obstacles: Obstacles) -> np.ndarray:
+    """The candidate routes (C, S, 2), sampled every ``spacing_m``: to each waypoint the shortest
+    polyline around the obstacles the UAV cannot overfly, then a circle turning left or right."""
+    H = target_paths.shape[1]
+    normals, offsets = _blocking_2d(uav_obstacles, grid.altitude_m)
     wp = _route_waypoints(p0, target_paths, params, area_min, area_max, normals, offsets,
                           params.corner_clearance_m)
     clearance = params.corner_clearance_m
@@ -416,16 +438,19 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     polys = route_polylines(p0, wp, normals, offsets, clearance)
     speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
     length = speed * dt * (H + 2)
-    routes = np.array([_sample_route(pl, side, params.loiter_radius_m, length, params.spacing_m)
-                       for pl in polys if pl is not None for side in (1.0, -1.0)])
-    if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
-        return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
-                                    area_max, uav_obstacles, "position_trace", motion, v0, dt)
-    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
+    return np.array([_sample_route(pl, side, params.loiter_radius_m, length, params.spacing_m)
+                     for pl in polys if pl is not None for side in (1.0, -1.0)])
+
+
+def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,
+                dt: float, area_min, area_max, uav_obstacles: Obstacles) -> np.ndarray:
+    """(C,) the routes whose first step is admissible. Jump: each route's first move is snapped
+    (in place in ``pos``, ``vel``) to the admissible point of the paper's S_(t+1) nearest to it.
+    Vehicle: the first step admissible and the vehicle's braking path from there clear too."""
     C = len(pos)
+    alt = grid.altitude_m
     start3 = np.r_[p0, alt]
     if motion.kind == "jump":
-        # the first move snapped to the paper's S_(t+1): the admissible grid point nearest to it
         grid_pts = candidate_positions(p0, grid)
         grid_ok = admissible(grid_pts, start3, area_min, area_max, uav_obstacles)
         d = np.linalg.norm(grid_pts[None, :, :2] - pos[:, :1, :], axis=2)
@@ -434,26 +459,26 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
         ok = np.isfinite(d[np.arange(C), snap])
         pos[:, 0] = grid_pts[snap, :2]
         vel[:, 0] = (pos[:, 0] - p0) / dt
-    else:
-        first = np.column_stack([pos[:, 0], np.full(C, alt)])
-        ok = admissible(first, start3, area_min, area_max, uav_obstacles)
-        # and the vehicle can still stop: its braking path from there is clear too
-        sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
-        stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
-        ok &= admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max,
-                         uav_obstacles)
+        return ok
+    first = np.column_stack([pos[:, 0], np.full(C, alt)])
+    ok = admissible(first, start3, area_min, area_max, uav_obstacles)
+    sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
+    stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
+    return ok & admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max, uav_obstacles)
 
-    # a route that would leave the area or cross an obstacle later is scored as stopping there
-    paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
-    _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
-    pos = paths3[..., :2]
 
+def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, pos: np.ndarray,
+                  model: MotionModel, sigma_rad: float, reduction: float) -> np.ndarray:
+    """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos,
+    P the target's planar covariance from its particles, propagated with (A, Q) and updated at
+    each tick with an ideal bearing to its planned position (EKF form, information times q)."""
     A, _, Q = planar_model(model)
     w = np.exp(log_weights - logsumexp(log_weights, axis=1, keepdims=True))  # (M, N)
     x = particles[:, :, PLANAR]
     mean = np.einsum("mn,mnd->md", w, x)
     dev = x - mean[:, None]
     P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)  # (M, 4, 4) predicted covariance at t+1
+    C, H = pos.shape[:2]
     M = len(P0)
     P = np.broadcast_to(P0, (C, M, 4, 4)).copy()
     total = np.zeros((C, M))
@@ -462,6 +487,4 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
             P = A @ P @ A.T + Q
         P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
         total += np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
-    scores = np.where(ok, total.sum(axis=1), np.inf)
-    index = int(np.argmin(scores)) if ok.any() else None
-    return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
+    return total

@@ -20,21 +20,13 @@ from dataclasses import dataclass
 from typing import Callable
 
 from groundstation import protocol as P
-from onboard.app.link import Link, mavlink
+from groundstation.errors import FAILED, TIMEOUT, GcsError
+from groundstation.ports import in_use_hint, silent_link_hint
+from onboard.app.mavlink_connection import Link, mavlink
+from onboard.app.statustext import Reassembler
 
 RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)
 GRACE_S = 0.3  # after a refusal, how long to wait for the STATUSTEXT that says why
-
-
-class GcsError(Exception):
-    """A command failed; ``code`` is the process exit code (1 refused/failed, 3 timeout)."""
-
-    def __init__(self, message: str, code: int = 1):
-        super().__init__(message)
-        self.code = code
-
-
-FAILED, TIMEOUT = 1, 3
 
 
 @dataclass(frozen=True)
@@ -115,7 +107,8 @@ class GcsLink:
                 self.link = Link(url, tlog_path=tlog_path, source_system=P.GCS_SYSID,
                                  source_component=P.GCS_COMPID, signing_key=signing_key)
         except (OSError, ConnectionError) as exc:
-            raise GcsError(f"cannot open {url}: {exc.strerror or exc}", TIMEOUT) from exc
+            raise GcsError(f"cannot open {url}: {exc.strerror or exc}{in_use_hint(url)}{silent_link_hint(url)}",
+                           TIMEOUT) from exc
         self.v = Vehicle()
         self.received = 0
         self._hb_local = -math.inf
@@ -124,6 +117,7 @@ class GcsLink:
         self._seq: int | None = None  # the autopilot's last packet sequence number
         self.autopilot_packets = 0
         self.autopilot_lost = 0
+        self._statustexts = Reassembler()  # MAVLink 2 STATUSTEXT chunks (onboard/app/statustext.py)
 
     def packet_loss_pct(self) -> float:
         """Packets lost from the autopilot component, by its sequence numbers. (Components it
@@ -199,8 +193,12 @@ class GcsLink:
             elif msg.name == "PMON_STAT":
                 v.n_stat += 1
             mtype = msg.name
-        elif mtype == "STATUSTEXT":
-            v.texts.append((now, comp, msg.severity, msg.text))
+        elif mtype == "STATUSTEXT":  # chunks of a long text: listeners get it whole, once
+            texts = self._statustexts.feed(msg)
+            if not texts:
+                return
+            msg.text = texts[-1]
+            v.texts.extend((now, comp, msg.severity, t) for t in texts)
         v.last[(mtype, comp)] = msg
         v.seen_at[(mtype, comp)] = now
         for fn in self._listeners:
@@ -237,6 +235,7 @@ class GcsLink:
                 return self
             who = f"vehicle {self.want_sysid} not" if self.want_sysid else "no vehicle"
             what = 'no MAVLink at all' if not self.received else 'other traffic only'
+            what += silent_link_hint(self.url)  # a one-client TCP port another process holds
             if self.link.signing and self.link.mav.signing.reject_count:
                 what = (f"{self.link.mav.signing.reject_count} packets failed the signature check: "
                         "wrong --signing-key, or the vehicle does not sign")

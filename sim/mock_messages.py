@@ -11,11 +11,11 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 
-from sim import vehicle  # noqa: E402
+from sim import multicopter  # noqa: E402
 
 from sim.copter import FIRMWARE, FW_VERSION, Mode  # noqa: E402
-from sim.mav_links import _Link  # noqa: E402
-from sim.autopilot_commands import _ACC_IGNORE, _VEL_IGNORE, _YAW_IGNORE, _YAW_RATE_IGNORE  # noqa: E402
+from sim.mock_links import _Link  # noqa: E402
+from sim.mock_commands import _ACC_IGNORE, _VEL_IGNORE, _YAW_IGNORE, _YAW_RATE_IGNORE  # noqa: E402
 
 
 # --------------------------------------------------------------------------- telemetry
@@ -163,7 +163,7 @@ class Telemetry:
         return self._enc().local_position_ned_encode(self._time_ms(), *s.pos, *s.vel)
 
     def _attitude(self, link: _Link):
-        roll, pitch, yaw = vehicle.attitude(self.copter.state)
+        roll, pitch, yaw = multicopter.attitude(self.copter.state)
         return self._enc().attitude_encode(self._time_ms(), roll, pitch, yaw, 0.0, 0.0, 0.0)
 
     def _vfr_hud(self, link: _Link):

@@ -45,6 +45,12 @@ import numpy as np
 Vec3 = tuple[float, float, float]
 Vec2 = tuple[float, float]
 
+# ArduCopter parameters a fast multicopter is set up with (20 m/s, 5 m/s^2, jerk 20 m/s^3, climb
+# 5 m/s): the paper's steps of up to N_r * Delta_r = 20 m per tick need them (docs/SITL.md). The
+# demo's vehicle (pmon demo, python -m sim.stack, the SITL tests and benches); NAME@demo in pmon eval.
+DEMO_VEHICLE_PARAMS = {"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 500, "PSC_JERK_XY": 20,
+                       "WPNAV_SPEED_UP": 500}
+
 GRAVITY = 9.80665  # m/s^2
 
 

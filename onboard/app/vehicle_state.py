@@ -1,20 +1,12 @@
-"""What the app knows of its autopilot: the ``Vehicle`` record the io thread keeps from the
-autopilot's heartbeats and telemetry, and the firmware facts it is read with."""
+"""What the app knows of its autopilot: the ``Vehicle`` record the autopilot side
+(onboard/app/autopilot_side.py) keeps from the autopilot's heartbeats and telemetry."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from onboard.app.link import mavlink
-
-ARDUCOPTER_GUIDED = 4
-PX4_MAIN_MODE_OFFBOARD = 6
-# the autopilot's horizontal speed and acceleration limits for guided position setpoints, read at
-# connection to check what the planner's moves assume: (name, factor to SI) per autopilot
-SPEED_ACCEL_PARAMS = {
-    mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: (("WPNAV_SPEED", 0.01), ("WPNAV_ACCEL", 0.01)),  # cm/s, cm/s^2
-    mavlink.MAV_AUTOPILOT_PX4: (("MPC_XY_CRUISE", 1.0), ("MPC_ACC_HOR", 1.0)),  # m/s, m/s^2
-}
+from onboard.app.autopilot_profiles import UNKNOWN, AutopilotProfile
+from onboard.app.mavlink_connection import mavlink
 
 
 @dataclass
@@ -23,7 +15,8 @@ class Vehicle:
 
     sysid: int | None = None
     compid: int | None = None
-    autopilot: int = mavlink.MAV_AUTOPILOT_INVALID
+    autopilot: int = mavlink.MAV_AUTOPILOT_INVALID  # HEARTBEAT.autopilot
+    profile: AutopilotProfile = field(default=UNKNOWN)  # chosen by ``autopilot`` (autopilot_profiles.py)
     custom_mode: int | None = None
     armed: bool = False
     landed_state: int | None = None
@@ -31,21 +24,18 @@ class Vehicle:
     ned_origin: tuple[float, float, float] | None = None  # autopilot local origin (deg, deg, m)
     heartbeat_local: float = -math.inf
     mode_seen_local: float = -math.inf
-    speed_limit_mps: float | None = None  # horizontal, from its parameters (SPEED_ACCEL_PARAMS)
+    speed_limit_mps: float | None = None  # horizontal, from its parameters (profile.limit_params)
     accel_limit_mps2: float | None = None
     lat_lon_deg: tuple[float, float] | None = None  # last valid GLOBAL_POSITION_INT
     amsl_m: float | None = None
     heading_deg: float | None = None
     position_local: float = -math.inf  # local time of the last valid GLOBAL_POSITION_INT
-    prearm_ok: bool | None = None  # SYS_STATUS MAV_SYS_STATUS_PREARM_CHECK (None: not reported)
+    prearm_ok: bool | None = None  # the profile's reading of SYS_STATUS (None: not reported)
     prearm_text: str | None = None  # its latest "PreArm: ..." / "Arm: ..." STATUSTEXT
 
-    def is_guided(self) -> bool:
-        if self.custom_mode is None:
-            return False
-        if self.autopilot == mavlink.MAV_AUTOPILOT_PX4:
-            return (self.custom_mode >> 16) & 0xFF == PX4_MAIN_MODE_OFFBOARD
-        return self.custom_mode == ARDUCOPTER_GUIDED
+    def in_mission_mode(self) -> bool:
+        """In the mode the app flies the mission in (ArduCopter's GUIDED, PX4's OFFBOARD)."""
+        return self.profile.in_mission_mode(self.custom_mode)
 
     def airborne(self) -> bool:
         """Off the ground: taking off, flying or landing (``flying`` waits for the take-off to
@@ -58,4 +48,3 @@ class Vehicle:
         if self.landed_state not in (None, mavlink.MAV_LANDED_STATE_UNDEFINED):
             return self.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
         return self.relative_alt is not None and self.relative_alt > 2.0
-

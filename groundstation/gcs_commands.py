@@ -7,8 +7,9 @@ import time
 from dataclasses import dataclass, field
 
 from groundstation import protocol as P
-from groundstation.link import FAILED, TIMEOUT, Ack, GcsError, GcsLink, _same
-from onboard.app.link import mavlink
+from groundstation.errors import FAILED, TIMEOUT, GcsError
+from groundstation.gcs_link import Ack, GcsLink, _same
+from onboard.app.mavlink_connection import mavlink
 
 STAT_WAIT_S = 2.5  # the app publishes PMON_STAT at 1 Hz: a status waits at most this for it
 
@@ -157,7 +158,7 @@ def set_mode(gl: GcsLink, what: str, mode: int, cmd: int | None = None) -> Outco
 
 def _prearm_ok(gl: GcsLink) -> bool | None:
     """The autopilot's pre-arm checks from SYS_STATUS (None where it does not report them)."""
-    from onboard.app.autopilot_commands import prearm_ok
+    from onboard.app.autopilot_profiles import prearm_ok
     return prearm_ok(gl.v.get("SYS_STATUS"))
 
 
@@ -207,10 +208,11 @@ CLIMB_PROGRESS_M = 0.5  # --wait: the take-off fails when the height gains less 
 
 def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
     """MAV_CMD_NAV_TAKEOFF to ``alt`` m above home, in the form every firmware accepts
-    (onboard/app/autopilot_commands.py). ``wait``: until at ``alt`` and reported in the air; a
+    (onboard/app/autopilot_profiles.py). ``wait``: until at ``alt`` and reported in the air; a
     climb takes as long as it takes, so --timeout bounds the time without progress (less
     than CLIMB_PROGRESS_M gained), not the whole climb."""
-    from onboard.app.autopilot_commands import heading_from_global_position_int, takeoff_params
+    from onboard.app.autopilot_profiles import takeoff_params
+    from onboard.app.pose import heading_from_global_position_int
 
     v = gl.v
     gl.stream(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 4.0)

@@ -36,6 +36,13 @@ class _PeerGone(Exception):
     """Raised from pymavlink's disconnect hooks instead of its blocking reconnect."""
 
 
+def param_name(raw) -> str:
+    """A PARAM_* message's param_id as text (pymavlink gives str or bytes, NUL-padded)."""
+    if isinstance(raw, bytes):
+        raw = raw.decode("ascii", "replace")
+    return str(raw).split("\x00", 1)[0]
+
+
 def _is_stream(url: str) -> bool:
     return not url.startswith(("udp:", "udpin:", "udpout:", "udpbcast:"))
 

@@ -12,11 +12,11 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 
-from sim import vehicle  # noqa: E402
-from sim.vehicle import Vec3  # noqa: E402
+from sim import multicopter  # noqa: E402
+from sim.multicopter import Vec3  # noqa: E402
 
 from sim.copter import MAGIC_FORCE_ARM, MAGIC_FORCE_DISARM, GuidedTarget, Mode  # noqa: E402
-from sim.mav_links import _Link  # noqa: E402
+from sim.mock_links import _Link  # noqa: E402
 
 # type_mask bits (POSITION_TARGET_TYPEMASK_*)
 _POS_IGNORE = 0b111
@@ -142,7 +142,7 @@ class Commands:
         if cmd.command == m.MAV_CMD_CONDITION_YAW:
             if 0.0 <= p1 <= 360.0 and p4 in (0.0, 1.0):
                 target = math.radians(p1) + (c.state.yaw if p4 == 1.0 else 0.0)
-                c.fixed_yaw = vehicle.wrap_pi(target)
+                c.fixed_yaw = multicopter.wrap_pi(target)
                 return m.MAV_RESULT_ACCEPTED
             return m.MAV_RESULT_FAILED
         if cmd.command == m.MAV_CMD_DO_CHANGE_SPEED:

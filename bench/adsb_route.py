@@ -1,0 +1,229 @@
+"""Which route puts the targets on a ground station's map without the autopilot taking them as
+traffic: measured on ArduCopter SITL (4.4.0-dev, ../shared/ardupilot) with the real programs.
+
+    python bench/adsb_route.py [--avoidance on|off] [--monitor 60] [--inject 20] [--speedup 2]
+
+One flight (sim.procedure.Mission: SITL, ``pmon run``, ``pmon feed live``, ``pmon gcs launch``):
+
+B. the hub route: ``pmon gcs hub`` on the vehicle's SERIAL6 serves a pymavlink ground station
+   for --monitor autopilot s of monitoring; the client checks one ADSB_VEHICLE per target per
+   tick within 1 m of the PMON_TGT it was made from; the observer (SERIAL5) counts the
+   autopilot's mode changes, COLLISION messages, ADSB_VEHICLE and avoidance texts.
+A. the autopilot route: the same targets' ADSB_VEHICLE (adsb.marker of the app's latest
+   estimates) sent into the autopilot on SERIAL2 at 1 Hz for --inject s, as a ground station
+   or companion forwarding them to the vehicle would; the same counts.
+
+``--avoidance on`` sets ADSB_TYPE 1 (MAVLink receiver), AVD_ENABLE 1 and warn/fail distances
+of 1000 m (the area is 1 km: every target is "near"), with ArduCopter's default AVD_F_ACTION;
+``--action N`` sets AVD_F_ACTION (2 climb/descend, 3 move horizontally, 4 perpendicular, 5 RTL,
+6 hover); ``off`` flies copter.parm as is. Prints a summary and one JSON line.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from sim.ardupilot import skip_reason  # noqa: E402
+from sim.procedure import Mission, MissionConfig  # noqa: E402
+
+AVOIDANCE = {"ADSB_TYPE": 1, "AVD_ENABLE": 1, "AVD_W_DIST_XY": 1000, "AVD_F_DIST_XY": 1000}
+
+
+class Recorder:
+    """What the observer's link hears besides what sim.procedure.Observer keeps."""
+
+    def __init__(self, observer):
+        self.lock = threading.Lock()
+        self.collisions: list = []
+        self.adsb: list = []
+        self.avoid_texts: list = []
+        orig = observer._on
+
+        def on(msg):
+            mtype = msg.get_type()
+            with self.lock:
+                if mtype == "COLLISION":
+                    self.collisions.append((observer.t, msg.id, msg.action, msg.threat_level))
+                elif mtype == "ADSB_VEHICLE":
+                    self.adsb.append((observer.t, msg.get_srcSystem(), msg.get_srcComponent(), msg.ICAO_address))
+                elif mtype == "STATUSTEXT" and any(w in msg.text for w in ("ADSB", "Avoid", "avoid", "threat")):
+                    self.avoid_texts.append((observer.t, msg.text))
+            orig(msg)
+        observer._on = on
+
+    def counts(self, t0: float, t1: float) -> dict:
+        with self.lock:
+            def within(rows):
+                return [r for r in rows if r[0] is not None and t0 <= r[0] <= t1]
+            return {"collision_msgs": len(within(self.collisions)),
+                    "collision_actions_threats": sorted({(r[2], r[3]) for r in within(self.collisions)}),
+                    "collision_ids": sorted({hex(r[1]) for r in within(self.collisions)}),
+                    "adsb_vehicle_on_observer": len(within(self.adsb)),
+                    "avoidance_texts": [x for _, x in within(self.avoid_texts)]}
+
+
+def mode_changes(m: Mission, t0: float, t1: float) -> list:
+    with m.observer.lock:
+        modes = list(m.observer.modes)
+    return [(round(t, 1), mode) for t, mode, _ in modes if t is not None and t0 < t <= t1]
+
+
+class HubClient:
+    """A pymavlink ground station on the hub's port: the ADSB_VEHICLE it gets, matched to the
+    PMON_TGT (forwarded by the hub) each was made from."""
+
+    def __init__(self, port: int):
+        from onboard.app.mavlink_connection import mavlink
+        from pymavlink import mavutil
+        self.mavlink = mavlink
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=240,
+                                               source_component=190, dialect="ardupilotmega")
+        self.last_tgt: dict[int, object] = {}
+        self.ticks: dict[int, set] = {}
+        self.markers: dict[int, list] = {}
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        from groundstation import adsb as A
+        hb = 0.0
+        while not self.stop.is_set():
+            if time.monotonic() - hb > 1.0:
+                hb = time.monotonic()
+                self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)
+            m = self.conn.recv_match(blocking=True, timeout=0.1)
+            if m is None:
+                continue
+            t = m.get_type()
+            if t == "DEBUG_FLOAT_ARRAY" and m.name == "PMON_TGT" and m.get_srcComponent() == 191:
+                self.last_tgt[m.array_id] = m
+                self.ticks.setdefault(m.array_id, set()).add(round(m.data[13], 3))
+            elif t == "ADSB_VEHICLE" and m.emitter_type != A.OA_DB_EMITTER:
+                j = (m.ICAO_address - A.MARKER_BASE) % 16
+                self.markers.setdefault(j, []).append((m, self.last_tgt.get(j)))
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(timeout=2)
+        self.conn.close()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--avoidance", choices=("on", "off"), default="on")
+    ap.add_argument("--monitor", type=float, default=60.0, help="autopilot s of monitoring with the hub (default 60)")
+    ap.add_argument("--inject", type=float, default=20.0, help="autopilot s of ADSB_VEHICLE into the autopilot (default 20)")
+    ap.add_argument("--action", type=int, help="AVD_F_ACTION with --avoidance on (default: ArduCopter's)")
+    ap.add_argument("--speedup", type=float, default=2.0)
+    ap.add_argument("--out", help="keep the logs here (default: a temporary directory)")
+    args = ap.parse_args()
+    if (why := skip_reason()):
+        print(why)
+        return 2
+    out = Path(args.out or tempfile.mkdtemp(prefix="pmon-adsb-route-"))
+    params = dict(AVOIDANCE) if args.avoidance == "on" else {}
+    if args.action is not None and params:
+        params["AVD_F_ACTION"] = args.action
+    res = fly(params, args.monitor, args.inject, args.speedup, out)
+    print(json.dumps(res, indent=1))
+    print(json.dumps(res))
+    return 0
+
+
+def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Path) -> dict:
+    """One flight: --monitor s of the hub route, then --inject s of the autopilot route (0:
+    none). Returns the figures (the JSON line)."""
+    from groundstation import adsb as A
+    from groundstation.estimates import check
+    from onboard.app.pose import Frame
+    from tests.gcs_fake_vehicle import free_udp_port
+
+    cfg = MissionConfig(speedup=speedup, params=params, feed_duration_s=monitor_s + inject_s + 150)
+    res: dict = {"avoidance": "on" if params else "off", "params": params, "speedup": speedup}
+    with Mission(cfg, out) as m:
+        rec = Recorder(m.observer)
+        frame = Frame(m.sc.origin.lat_deg, m.sc.origin.lon_deg, m.sc.origin.alt_m)
+        launch = m.gcs("launch")
+        if not m.wait(lambda o: o.app_state == "monitoring", 200, "monitoring"):
+            raise RuntimeError(f"not monitoring: {launch.stderr} {m.observer.app_texts()}")
+        # ---- B: the hub
+        port = free_udp_port()
+        hub = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "hub", "--connect", m.spare_url,
+                                "--serve", f"udp:127.0.0.1:{port}", "--json", "--timeout", "20"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        client = HubClient(port)
+        tb0 = m.observer.t
+        m.sim_sleep(monitor_s)
+        tb1 = m.observer.t
+        client.close()
+        hub.send_signal(signal.SIGINT)
+        hub_out, hub_err = hub.communicate(timeout=20)
+        summary = json.loads(hub_out.strip().splitlines()[-1])
+        errors, per_tick = [], {}
+        for j, rows in client.markers.items():
+            per_tick[f"T{j + 1}"] = {"adsb": len(rows), "ticks": len(client.ticks.get(j, ()))}
+            for msg, tgt in rows:
+                est, _ = check(tgt, frame) if tgt is not None else (None, None)
+                if est is None:
+                    continue
+                e, n, _ = frame.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.altitude * 1e-3)
+                errors.append(math.hypot(e - est.x_m, n - est.y_m))
+        res["hub"] = {"autopilot_s": [tb0, tb1], "per_target": per_tick,
+                      "max_error_m": round(max(errors), 4) if errors else None, "matched": len(errors),
+                      "mode_changes": mode_changes(m, tb0, tb1), **rec.counts(tb0, tb1),
+                      "hub_summary": {k: summary.get(k) for k in ("adsb_sent", "forwarded_to_vehicle",
+                                                                   "estimates_refused", "echoed_targets_dropped")}}
+        if inject_s <= 0:
+            return res
+        # ---- A: into the autopilot
+        from onboard.app.mavlink_connection import Link, mavlink
+        link = Link(m.sitl.url(2), source_system=255, source_component=190)
+        mav = A.encoder(1)
+        ta0 = m.observer.t
+        sent = 0
+        while (m.observer.t or 0) - ta0 < inject_s:
+            link.send(link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+            with m.observer.lock:
+                latest = {}
+                for t, j, x, y, sx, sy in m.observer.estimates:
+                    latest[j] = (x, y, sx, sy)
+            for j, (x, y, sx, sy) in latest.items():
+                from tests.gcs_fake_vehicle import target_values
+
+                class _T:  # the app's estimate as PMON_TGT carries it
+                    array_id = j
+                    data = target_values(x, y, 0.0, 0.0, sx, sy, 0.0, since=0.0, t=1.0)
+
+                    def get_srcComponent(self):
+                        return 191
+                est, _ = check(_T(), frame)
+                if est is not None:
+                    link.send(A.marker(mav, est))
+                    sent += 1
+            m.sim_sleep(1.0)
+        ta1 = m.observer.t
+        link.close()
+        m.sim_sleep(5.0)
+        res["autopilot_route"] = {"autopilot_s": [ta0, ta1], "adsb_sent_to_autopilot": sent,
+                                  "mode_changes": mode_changes(m, ta0, (m.observer.t or ta1)),
+                                  **rec.counts(ta0, m.observer.t or ta1)}
+        res["app_texts_after_inject"] = m.observer.app_texts(ta0)[-5:]
+    return res
+
+
+if __name__ == "__main__":
+    sys.exit(main())

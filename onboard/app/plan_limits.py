@@ -1,0 +1,72 @@
+"""The planner's speed and acceleration against the autopilot's limits (docs/MAVLINK.md).
+
+Vehicle motion (the flight policy): the planner flies at the autopilot's limits, capped by the
+scenario's ``planning.speed_max_mps`` / ``accel_max_mps2`` (what the airframe can fly): a change
+of either rebuilds the core setup (``planner``, read by onboard/app/monitor_core.py), and no plan
+is faster than the autopilot flies. The jump model (the paper's policy) asks for its grid's
+rings each tick whatever the autopilot's limit: below it the vehicle lags its setpoints, a
+warning that holds until the limits or PMON_REACH change: PMON_STAT carries it every second
+(``pmon gcs status`` shows it), and it is said when it first holds and again whenever
+monitoring starts. Which parameters hold the limits is the autopilot profile's
+(``limit_params``). io thread, under the app lock.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+from onboard.app.contract import WARN_SPEED
+from onboard.app.mavlink_connection import mavlink
+from onboard.app.params import ParamTable
+from onboard.app.vehicle_state import Vehicle
+from onboard.policy import vehicle_motion
+
+log = logging.getLogger("pmon.app")
+
+
+class PlanLimits:
+    def __init__(self, scenario, params: ParamTable, vehicle: Vehicle, say):
+        self.scenario = scenario  # the base scenario (planning, uav, dynamics)
+        self.params = params
+        self.vehicle = vehicle
+        self.say = say
+        # (speed m/s, accel m/s^2) the vehicle-motion planner flies at; None until the autopilot's
+        # limits are read (the scenario's then)
+        self.planner: tuple[float, float] | None = None
+        self.plan = (math.nan, math.nan)  # (speed m/s, accel m/s^2) the planner assumes (PMON_STAT)
+        self.warnings = 0  # WARN_* bits that hold now (PMON_STAT)
+        self.warning: str | None = None  # the same in words, while it holds
+
+    def check(self) -> None:
+        """Compare the limits read so far with what the planner assumes; say what changed."""
+        names = self.vehicle.profile.limit_params
+        if not names:
+            return
+        if self.scenario.planning.motion == "vehicle":
+            self._plan_at_vehicle_limits()
+        else:
+            self._check_jumps(names[0][0])
+
+    def _plan_at_vehicle_limits(self) -> None:
+        v = self.vehicle
+        m = vehicle_motion(self.scenario.planning, v.speed_limit_mps or math.inf, v.accel_limit_mps2 or math.inf)
+        speed, accel = m.speed_max_mps, m.accel_max_mps2
+        if (speed, accel) != self.planner:
+            self.planner = self.plan = (speed, accel)
+            self.say(f"planning at {speed:g} m/s, {accel:g} m/s^2")
+        self.warnings, self.warning = 0, None
+
+    def _check_jumps(self, speed_name: str) -> None:
+        """The paper's jump: the largest ring asked for, per tick (no acceleration assumed)."""
+        sc, have = self.scenario, self.vehicle.speed_limit_mps
+        reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
+        need = reach / sc.dynamics.dt_s
+        self.plan = (need, math.nan)
+        short = have is not None and have < need - 1e-6  # not read yet, or enough: no warning
+        text = f"{speed_name} {have:g} m/s < {need:g} planned" if short else None
+        changed = text != self.warning
+        self.warnings, self.warning = (WARN_SPEED if short else 0), text
+        if changed and text is not None:
+            log.warning("autopilot %s = %g m/s is below the planner's steps (PMON_REACH) = %g m/s: "
+                        "the vehicle will lag the setpoints", speed_name, have, need)
+            self.say(text, mavlink.MAV_SEVERITY_WARNING)

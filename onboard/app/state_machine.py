@@ -1,0 +1,254 @@
+"""The app's state as commanded (docs/MAVLINK.md): idle, monitoring, paused, pilot override,
+fault; the commands that move it (start, pause, resume, stop, launch, each acknowledged with a
+reason when refused); what the autopilot's news does to it (a mode someone else set, a link
+loss, a reboot, a moved origin); and the launch sequence's actions (onboard/app/launch.py).
+
+Only ``monitoring`` sends setpoints, and only while the autopilot is in the mode the app put it
+in (the profile's mission mode: GUIDED, OFFBOARD); any other mode set by someone else -> pilot
+override, at once. Leaving ``monitoring`` drops the setpoint and bumps ``generation``: results of
+ticks already running are not sent. io thread, under the app lock.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+from onboard.app import launch
+from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
+from onboard.app.dispatch import ack
+from onboard.app.mavlink_connection import mavlink
+
+log = logging.getLogger("pmon.app")
+MODE_WAIT_S = 3.0  # autopilot s the vehicle has to reach the mission mode after start/resume
+SENSOR_FRESH_S = 3.0  # start needs a DF scan this recent (autopilot s)
+SEVERITY = {"info": mavlink.MAV_SEVERITY_INFO, "warning": mavlink.MAV_SEVERITY_WARNING,
+            "error": mavlink.MAV_SEVERITY_ERROR}
+
+
+class StateMachine:
+    """``autopilot``: the autopilot side; ``publisher``: says and heartbeats; ``stream``: the
+    setpoint stream; ``limits``: the plan limits (their warning is said again at start);
+    ``scans``: the scan buffer (start needs fresh DF data); ``params``: PMON_ALT for a launch."""
+
+    def __init__(self, link, clock, autopilot, publisher, stream, limits, scans, params, auto_launch: bool = False):
+        self.link = link
+        self.clock = clock
+        self.autopilot = autopilot
+        self.publisher = publisher
+        self.say = publisher.say
+        self.stream = stream
+        self.limits = limits
+        self.scans = scans
+        self.params = params
+        self.auto_launch = auto_launch
+        self.state = State.IDLE
+        self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
+        self.mode_deadline: float | None = None  # waiting for the mission mode after start/resume
+        self.launch: launch.Launch | None = None
+
+    # ----- what the state allows
+    def commanding(self) -> bool:
+        """Monitoring, with the vehicle in the mission mode: the tick's point is to be sent."""
+        return self.state == State.MONITORING and self.mode_deadline is None
+
+    def may_stream(self) -> bool:
+        """The setpoint may be re-sent now."""
+        return self.commanding() and not self.autopilot.link_lost and self.autopilot.vehicle.in_mission_mode()
+
+    def set_state(self, new: State) -> None:
+        if new != State.MONITORING:
+            self.stream.clear()
+            self.generation += 1  # results of ticks already running are not sent
+            self.mode_deadline = None
+        self.state = new
+        self.publisher.heartbeat()
+
+    # ----- commands (MAV_CMD_PMON, param1 = action)
+    def on_command(self, msg) -> None:
+        if msg.command != MAV_CMD_PMON:
+            ack(self.link, msg, mavlink.MAV_RESULT_UNSUPPORTED, Reason.UNKNOWN_ACTION)
+            return
+        p1 = msg.param1
+        action = int(p1) if math.isfinite(p1) and p1 == int(p1) else -1
+        handler = {Action.START: self.start, Action.PAUSE: self.pause, Action.RESUME: self.resume,
+                   Action.STOP: self.stop, Action.LAUNCH: self.begin_launch}.get(action)
+        if handler is None:
+            self._refuse(msg, mavlink.MAV_RESULT_DENIED, Reason.UNKNOWN_ACTION, f"action {p1:g}")
+            return
+        result, reason = handler()
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            ack(self.link, msg, result, reason)
+        else:
+            self._refuse(msg, result, reason, Action(action).name.lower())
+
+    def _refuse(self, msg, result: int, reason: Reason, what: str) -> None:
+        ack(self.link, msg, result, reason)
+        self.say(f"{what} refused: {REASON_TEXT.get(reason, reason.name)}", mavlink.MAV_SEVERITY_WARNING)
+
+    def preconditions(self) -> tuple[int, Reason]:
+        ap, v = self.autopilot, self.autopilot.vehicle
+        now = self.clock.now()
+        if not ap.heard_recently():
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT
+        if not ap.has_position() or now is None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_POSITION
+        if not v.armed:
+            return mavlink.MAV_RESULT_DENIED, Reason.NOT_ARMED
+        if not v.flying():
+            return mavlink.MAV_RESULT_DENIED, Reason.NOT_FLYING
+        if not now - max(self.scans.last_scan_t) <= SENSOR_FRESH_S:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_SENSOR_DATA
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def _enter_monitoring(self) -> None:
+        self.set_state(State.MONITORING)
+        self.stream.restart()
+        if self.limits.warning:  # said again where an operator starting the mission hears it
+            self.say(self.limits.warning, mavlink.MAV_SEVERITY_WARNING)
+        mode = self.autopilot.vehicle.profile.mission_mode
+        if self.autopilot.vehicle.in_mission_mode():
+            self.mode_deadline = None
+            self.say("monitoring started")
+        else:  # take the vehicle into the mission mode; not an override until it is there (or refuses)
+            self.mode_deadline = (self.clock.now() or 0.0) + MODE_WAIT_S
+            self.autopilot.set_mission_mode()
+            self.say(f"monitoring: switching to {mode}")
+
+    def start(self) -> tuple[int, Reason]:
+        if self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE  # already: do nothing twice
+        if self.launch is not None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.BUSY
+        result, reason = self.preconditions()
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self._enter_monitoring()
+        return result, reason
+
+    def resume(self) -> tuple[int, Reason]:
+        if self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.state == State.IDLE:
+            return mavlink.MAV_RESULT_DENIED, Reason.WRONG_STATE
+        return self.start()
+
+    def pause(self) -> tuple[int, Reason]:
+        if self.state == State.PAUSED:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.state != State.MONITORING:
+            return mavlink.MAV_RESULT_DENIED, Reason.WRONG_STATE
+        self.set_state(State.PAUSED)
+        self.say("paused: setpoints stopped, vehicle holds")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def stop(self) -> tuple[int, Reason]:
+        if self.launch is not None:
+            self.launch = None
+            self.say("launch cancelled")
+        if self.state == State.IDLE:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        self.set_state(State.IDLE)
+        self.say("stopped")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    def begin_launch(self) -> tuple[int, Reason]:
+        if self.launch is not None or self.state == State.MONITORING:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        v = self.autopilot.vehicle
+        if v.sysid is None or self.autopilot.link_lost:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT
+        if v.armed and v.flying():
+            return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
+        # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
+        # checks itself (onboard/app/launch.py), so the operator never has to try again
+        self.launch = launch.Launch(target_up_m=self.params["PMON_ALT"])
+        self.say(f"launch: {v.profile.mission_mode}, arm, take off")
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
+    # ----- the autopilot's news (AutopilotEvents, through the app)
+    def check_mode(self) -> None:
+        """Stop commanding the moment the vehicle leaves the mode the app put it in."""
+        v = self.autopilot.vehicle
+        if self.state != State.MONITORING:
+            return
+        if self.mode_deadline is not None:
+            if v.in_mission_mode():
+                self.mode_deadline = None
+                self.say(f"{v.profile.mission_mode}: monitoring")
+            return
+        if not v.in_mission_mode() or not v.armed:
+            why = "disarmed" if not v.armed else f"mode {v.custom_mode}"
+            self.set_state(State.PILOT_OVERRIDE)
+            self.say(f"pilot override ({why}): setpoints stopped", mavlink.MAV_SEVERITY_WARNING)
+
+    def on_link_lost(self) -> None:
+        """Stop commanding at once, keep estimating; fly again only when told."""
+        if self.state in (State.MONITORING, State.PAUSED):
+            self.set_state(State.FAULT)
+        aborted = ", launch aborted" if self.launch is not None else ""
+        self.launch = None
+        self.say(f"autopilot link lost: setpoints stopped{aborted}, estimating", mavlink.MAV_SEVERITY_CRITICAL)
+
+    def on_link_back(self, lost_s: float) -> None:
+        # said now: "link lost" could reach no one while the link was down
+        self.say(f"link back (lost {lost_s:.0f} s)" + (": send resume" if self.state == State.FAULT else ""),
+                 mavlink.MAV_SEVERITY_WARNING)
+
+    def on_reboot(self) -> None:
+        """The vehicle is not ours to fly until the operator says so (the link was lost
+        meanwhile, as a rule)."""
+        if self.state in (State.MONITORING, State.PAUSED):
+            self.set_state(State.FAULT)
+
+    def on_origin_moved(self, off_m: float) -> None:
+        if self.state == State.MONITORING:
+            self.set_state(State.FAULT)
+            self.say(f"NED origin moved {off_m:.0f} m: refused, setpoints stopped", mavlink.MAV_SEVERITY_CRITICAL)
+        else:
+            self.say(f"NED origin moved {off_m:.0f} m: refused", mavlink.MAV_SEVERITY_CRITICAL, once="origin_moved")
+
+    # ----- periodic jobs (io thread, under the lock)
+    def periodic_mode(self, now: float) -> None:
+        if self.state == State.MONITORING and self.mode_deadline is not None and now > self.mode_deadline:
+            self.set_state(State.PAUSED)
+            self.say(f"{self.autopilot.vehicle.profile.mission_mode} refused by the autopilot: paused",
+                     mavlink.MAV_SEVERITY_WARNING)
+
+    def periodic_launch(self, now: float) -> None:
+        if self.auto_launch and self.state == State.IDLE and self.launch is None \
+                and not self.publisher.said("auto_launch"):
+            if self.begin_launch()[0] == mavlink.MAV_RESULT_ACCEPTED and self.launch is not None:
+                self.publisher.mark_said("auto_launch")
+        self._launch_step(now)
+
+    def _launch_view(self) -> launch.VehicleView:
+        ap, v = self.autopilot, self.autopilot.vehicle
+        pose = ap.poses.latest()
+        result, reason = self.preconditions()
+        blocker = None if result == mavlink.MAV_RESULT_ACCEPTED or reason == Reason.NOT_FLYING \
+            else REASON_TEXT[reason]  # NOT_FLYING: the take-off is not reported done yet
+        return launch.VehicleView(
+            position=pose is not None and v.ned_origin is not None and v.lat_lon_deg is not None,
+            guided=v.in_mission_mode(), armed=v.armed, up_m=None if pose is None else float(pose.pos[2]),
+            home_up_m=ap.home_up_m(), climbing=v.landed_state in (mavlink.MAV_LANDED_STATE_TAKEOFF,
+                                                                mavlink.MAV_LANDED_STATE_IN_AIR),
+            prearm_ok=v.prearm_ok, prearm_text=v.prearm_text,
+            can_start=result == mavlink.MAV_RESULT_ACCEPTED, start_blocker=blocker)
+
+    def _launch_step(self, now: float) -> None:
+        """Advance the launch sequence (onboard/app/launch.py) and carry out its actions."""
+        if self.launch is None:
+            return
+        self.launch, actions = launch.step(self.launch, self._launch_view(), now)
+        for a in actions:
+            if isinstance(a, launch.Say):
+                self.say(a.text, SEVERITY[a.level], once=None if a.once is None else f"launch:{a.once}")
+            elif a[0] == "guided":
+                self.autopilot.set_mission_mode()
+            elif a[0] == "arm":
+                self.autopilot.arm()
+            elif a[0] == "takeoff":
+                self.autopilot.takeoff(a[1])
+            elif a[0] == "start":
+                self._enter_monitoring()
+        if self.launch is None:
+            self.publisher.forget("launch:")

@@ -1,0 +1,465 @@
+"""Every setting of a scenario, declared once: key, default, unit, range and one line of doc.
+
+The declaration is the dataclasses below: each field of a section carries its ``Setting`` in its
+metadata (Stone Soup's "each property declared once with its default and doc"). Everything else
+derives from it: the YAML reader and ``--set`` (onboard/config.py), the flight policies
+(onboard/policy.py), the PMON_* parameters and their checks (onboard/app/params.py) and the
+table in docs/SETTINGS.md (``python -m onboard.settings --write`` regenerates it; a test fails
+when it drifts). The core's parameter classes have no defaults of their own: they take every
+value from these objects (their ``from_config``).
+
+The objects hold each setting as the file states it, in the file's unit (so a scenario written
+back and read again is the same object, bit for bit); what the code needs in SI units and
+radians is a property (``Sensor.sigma_rad``, ``Box.yaw_rad``).
+
+Pure Python (no YAML, no numpy): the ground station imports it for the parameters' ranges.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, Callable
+
+POS_M = 1e5  # |coordinate| of the ENU frame, m: a flat frame 100 km out is off by ~0.8 km (Earth's curvature)
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing or invalid; the message starts with its key path."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """How one setting is read, checked and shown.
+
+    kind: ``number`` (a float), ``integer``, ``even`` (an even integer), ``flag`` (true/false),
+    ``choice`` (one of ``choices``), ``text`` (a name), ``vector`` (``size`` numbers, or 1 to
+    ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
+    vector (``lo_open``/``hi_open``: the bound itself excluded). ``nullable``: ``null`` is a
+    value (its meaning in ``doc``). ``param``: the PMON_* parameter that sets it in flight.
+    ``paper``: the value is the paper's (Sec. V-A), not ours.
+    """
+
+    kind: str
+    doc: str
+    unit: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] = ()
+    size: int | None = None
+    max_items: int | None = None
+    nullable: bool = False
+    param: str | None = None
+    paper: bool = False
+
+    def range_text(self) -> str:
+        """The range as a reader writes it: ``[0.05, 30] deg``, ``(0, 5]``, ``one of a | b``."""
+        if self.kind == "choice":
+            return " or ".join(self.choices)
+        if self.kind == "flag":
+            return "true or false"
+        if self.kind == "text":
+            return f"1 to {TEXT_CHARS} characters"
+        if self.lo is None:
+            return ""
+        text = f"{'(' if self.lo_open else '['}{show_number(self.lo)}, {show_number(self.hi)}{')' if self.hi_open else ']'}"
+        if self.kind == "even":
+            text += ", even"
+        return f"{text} {self.unit}".strip()
+
+    def contains(self, v: float) -> bool:
+        lo_ok = v > self.lo if self.lo_open else v >= self.lo
+        hi_ok = v < self.hi if self.hi_open else v <= self.hi
+        return lo_ok and hi_ok
+
+
+TEXT_CHARS = 64  # a name: shown in tables, logs and messages
+
+
+def show_number(x: float) -> str:
+    """1e6 rather than 1e+06."""
+    return f"{x:g}".replace("e+0", "e").replace("e+", "e").replace("e-0", "e-")
+
+
+def _setting(default: Any, kind: str, doc: str, **kw) -> Any:
+    """A dataclass field declaring a setting; ``default`` MISSING: the file must state it."""
+    meta = {"setting": Setting(kind, doc, **kw)}
+    if isinstance(default, (list, tuple)):
+        return field(default=tuple(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def number(default, lo, hi, unit, doc, *, lo_open=False, hi_open=False, nullable=False, param=None,
+           paper=False) -> Any:
+    return _setting(default, "number", doc, unit=unit, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open,
+                    nullable=nullable, param=param, paper=paper)
+
+
+def integer(default, lo, hi, unit, doc, *, param=None, paper=False, even=False) -> Any:
+    return _setting(default, "even" if even else "integer", doc, unit=unit, lo=lo, hi=hi, param=param,
+                    paper=paper)
+
+
+def flag(default, doc) -> Any:
+    return _setting(default, "flag", doc)
+
+
+def choice(default, choices, doc, *, paper=False) -> Any:
+    return _setting(default, "choice", doc, choices=tuple(choices), paper=paper)
+
+
+def text(default, doc) -> Any:
+    return _setting(default, "text", doc)
+
+
+def vector(default, size, lo, hi, unit, doc, *, max_items=None, lo_open=False, paper=False) -> Any:
+    return _setting(default, "vector", doc, unit=unit, lo=lo, hi=hi, size=size, max_items=max_items,
+                    lo_open=lo_open, paper=paper)
+
+
+def section(cls, doc: str, required: bool = False) -> Any:
+    """A nested mapping of settings; left out of a file, its defaults (unless ``required``)."""
+    meta = {"section": cls, "doc": doc}
+    return field(metadata=meta) if required else field(default_factory=cls, metadata=meta)
+
+
+def records(cls, min_items: int, max_items: int, doc: str, required: bool = True) -> Any:
+    """A list of mappings of ``cls`` (targets, goals, obstacles)."""
+    meta = {"records": cls, "min_items": min_items, "max_items": max_items, "doc": doc}
+    return field(metadata=meta) if required else field(default=(), metadata=meta)
+
+
+# --------------------------------------------------------------------------- the declaration
+
+
+@dataclass(frozen=True)
+class Origin:
+    lat_deg: float = number(MISSING, -90, 90, "deg", "geodetic latitude of the ENU frame's origin")
+    lon_deg: float = number(MISSING, -180, 180, "deg", "geodetic longitude of the origin")
+    alt_m: float = number(MISSING, -500, 9000, "m", "altitude of the origin above mean sea level")
+
+
+@dataclass(frozen=True)
+class Area:
+    min_m: tuple[float, float, float] = vector(MISSING, 3, -POS_M, POS_M, "m",
+                                               "lowest corner of the surveillance area E (ENU)")
+    max_m: tuple[float, float, float] = vector(MISSING, 3, -POS_M, POS_M, "m",
+                                               "highest corner; greater than min_m in every axis")
+
+    def contains(self, points):
+        """True where each point (..., 3) lies inside the closed box."""
+        import numpy as np  # here: this module stays importable without numpy
+
+        p = np.asarray(points, dtype=float)
+        return np.all((p >= np.asarray(self.min_m)) & (p <= np.asarray(self.max_m)), axis=-1)
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    dt_s: float = number(1.0, 0.1, 10, "s", "time step of the targets' model and of the monitor's tick",
+                         paper=True)
+    friction: float = number(0.2, 0, 1, "", "epsilon: velocity lost to friction per step", paper=True)
+    mass_kg: float = number(1300.0, 1, 1e5, "kg", "a target's mass", paper=True)
+    process_noise_diag: tuple[float, ...] = vector((30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10), 6, 0, 1e6,
+                                                   "m^2, (m/s)^2", "diagonal of Q (x, y, z, vx, vy, vz)",
+                                                   paper=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Target:
+    name: str = text(MISSING, "the target's name")
+    position_m: tuple[float, float, float] = vector(MISSING, 3, -POS_M, POS_M, "m",
+                                                    "mu_0: its initial mean position, inside the area")
+    velocity_mps: tuple[float, float, float] = vector((0.0, 0.0, 0.0), 3, -100, 100, "m/s",
+                                                      "its initial mean velocity (ground targets)")
+    goal: str = text(MISSING, "the name of its goal region in goals")
+
+    @property
+    def mean(self):
+        import numpy as np
+
+        return np.array(self.position_m + self.velocity_mps, dtype=float)
+
+
+@dataclass(frozen=True)
+class Box:
+    """A cuboid given by centre, extents (before yaw) and yaw about +z (CCW from +x)."""
+
+    name: str = text(MISSING, "its name")
+    center_m: tuple[float, float, float] = vector(MISSING, 3, -POS_M, POS_M, "m", "its centre")
+    size_m: tuple[float, float, float] = vector(MISSING, 3, 0, 1e4, "m",
+                                                "its x, y, z extents before yaw (an obstacle's > 0)")
+    yaw_deg: float = number(0.0, -360, 360, "deg", "its rotation about +z, counterclockwise from +x")
+
+    @property
+    def yaw_rad(self) -> float:
+        return math.radians(self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class Guidance:
+    """Problem P1: each target's plan to its goal (docs/GUIDANCE.md)."""
+
+    horizon: int = integer(50, 2, 200, "steps", "T: steps each target's guidance plans ahead",
+                           param="PMON_HORIZON", paper=True)
+    u_max_n: float = number(6000.0, 0, 1e6, "N", "|u_x|, |u_y| bound of a target's control input",
+                            lo_open=True, paper=True)
+    speed_max_mps: float = number(16.0, 0, 100, "m/s", "a target's ground speed bound (inscribed polygon)",
+                                  lo_open=True, paper=True)
+    speed_polygon_sides: int = integer(16, 4, 64, "", "sides of the polygon that keeps the speed bound")
+    terminal_weight: float = number(1.0, 0, 1e6, "1/m^2", "weight of ||mu_pos(t+T) - G_o||^2",
+                                    paper=True)
+    stage_weight: float = number(1.0, 0, 1e6, "1/m^2", "weight of ||mu_pos(t+tau) - G_o||^2 for tau < T "
+                                 "(ours; not both 0)")
+    smooth_weight: float = number(1000.0, 0, 1e6, "1/kN^2", "weight of ||u_tau - u_(tau-1)||^2")
+    obstacle_margin_m: float = number(5.0, 0, 1000, "m", "obstacles are inflated by this for the targets' plans")
+    max_qp_solves: int = integer(80, 1, 1000, "", "QP solves per target and tick; then the best plan found")
+    max_solve_time_s: float | None = number(None, 0, 10, "s", "solve time per target and tick; null: no limit "
+                                            "(results independent of the machine's speed)",
+                                            lo_open=True, nullable=True)
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """The direction finder."""
+
+    sigma_deg: float = number(1.0, 0.05, 30, "deg", "bearing noise, 1 sigma", param="PMON_SIGMA_DEG", paper=True)
+    p_detect: float = number(0.95, 0.01, 1, "", "p_D: probability that a scan holds a target's bearing",
+                             param="PMON_PD", paper=True)
+    clutter_rate: float = number(1.0, 0, 50, "1/scan", "Lambda: Poisson mean of false bearings per scan, "
+                                 "uniform on (-pi, pi]", param="PMON_CLUTTER", paper=True)
+
+    @property
+    def sigma_rad(self) -> float:
+        return math.radians(self.sigma_deg)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Uav:
+    start_m: tuple[float, float, float] = vector(MISSING, 3, -POS_M, POS_M, "m",
+                                                 "the UAV's start (x, y; it flies at altitude_m)")
+    altitude_m: float = number(40.0, 2, 1000, "m", "h: flight altitude above the mission origin",
+                               param="PMON_ALT", paper=True)
+    step_m: float = number(5.0, 0.5, 100, "m", "Delta_r: radial step of the candidate grid",
+                           param="PMON_DR", paper=True)
+    n_radial: int = integer(4, 0, 20, "", "N_r: radial steps of the candidate grid", param="PMON_NR", paper=True)
+    n_heading: int = integer(15, 1, 72, "", "N_theta: headings of the candidate grid", param="PMON_NTH",
+                             paper=True)
+    obstacle_margin_m: float = number(10.0, 0, 1000, "m", "clearance the UAV keeps from obstacles it cannot overfly")
+
+
+@dataclass(frozen=True)
+class Tracking:
+    """The particle filters (docs/TRACKING.md)."""
+
+    particles: int = integer(2000, 100, 20000, "", "particles per target", param="PMON_PARTICLES")
+    resample_ess_fraction: float = number(0.5, 0, 1, "", "resample when the effective sample size falls "
+                                          "below this fraction")
+    control_mix: float = number(0.1, 0, 1, "", "share of particles predicted with a random control, the "
+                                "rest with the plan's", hi_open=True)
+    regularise_bandwidth: float = number(0.2, 0, 1, "", "h of the regularised resampling, jitter N(0, h^2 C); "
+                                         "0: plain resampling")
+    plan_steering: bool = flag(False, "particles steer by the affine law of the nearest reference plan "
+                               "while the plan is constrained (opt-in)")
+    plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True)
+    plan_spread_sigma: float = number(1.5, 0, 5, "sigma", "the references' spread along the cloud's major axis",
+                                      lo_open=True)
+    plan_steered_share: float = number(0.7, 0, 1, "", "share of the particles a reference plan steers "
+                                       "(the rest keep its control)")
+    plan_trust_sigma: float = number(2.0, 0, 10, "sigma", "only particles this close (Mahalanobis) to a "
+                                     "reference are steered", lo_open=True)
+    plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan")
+    plan_sides: bool = flag(False, "with plan_steering: a side of each obstacle per particle, reference "
+                            "plans per side present")
+    plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
+                                          "1/(1+exp(d/this)) of the particles", lo_open=True)
+
+
+@dataclass(frozen=True)
+class Lookahead:
+    """The lookahead planner's routes (docs/PLANNING.md argues each value)."""
+
+    ranges_m: tuple[float, ...] = vector((30.0, 80.0, 160.0, 320.0), None, 0, 5000, "m",
+                                         "waypoints on a polar grid around the UAV at these ranges",
+                                         max_items=16, lo_open=True)
+    n_headings: int = integer(16, 1, 360, "", "... and this many headings (plus the targets' predicted positions)")
+    loiter_radius_m: float = number(40.0, 0, 1000, "m", "after its waypoint a route circles through it with "
+                                    "this radius", lo_open=True)
+    corner_clearance_m: float = number(3.0, 0, 100, "m", "routes round the UAV's inflated obstacles this much wider")
+    spacing_m: float = number(2.0, 0.1, 50, "m", "arc-length resolution of the sampled routes")
+
+
+@dataclass(frozen=True)
+class Planning:
+    """Where the UAV flies next (docs/PLANNING.md)."""
+
+    objective: str = choice("trace", ("trace", "position_trace"), "what the greedy rule minimises: tr(Sigma) "
+                            "of all six states, or of the position only", paper=True)
+    planner: str = choice("greedy", ("greedy", "lookahead", "hover", "orbit", "random"),
+                          "the paper's one-step rule, or routes scored over lookahead_steps; hover, "
+                          "orbit, random: the evaluation's baselines (onboard/core/planners.py)", paper=True)
+    lookahead_steps: int = integer(50, 1, 200, "ticks", "ticks the lookahead planner scores "
+                                   "(<= guidance.horizon)")
+    motion: str = choice("jump", ("jump", "vehicle"), "jump: any grid point each tick; vehicle: "
+                         "within speed and acceleration limits", paper=True)
+    speed_max_mps: float = number(10.0, 0, 30, "m/s", "vehicle motion: speed limit (ArduCopter's "
+                                  "WPNAV_SPEED default)", lo_open=True)
+    accel_max_mps2: float = number(2.5, 0, 20, "m/s^2", "vehicle motion: acceleration limit (ArduCopter's "
+                                   "WPNAV_ACCEL default)", lo_open=True)
+    lookahead: Lookahead = section(Lookahead, "the lookahead planner's routes")
+
+
+@dataclass(frozen=True)
+class Mission:
+    duration_s: float = number(100.0, 0, 86400, "s", "length of a simulated mission", lo_open=True)
+
+
+@dataclass(frozen=True)
+class App:
+    """The onboard app's own settings (``pmon run``); the simulator and the evaluation do not use them."""
+
+    reach_m: float | None = number(None, 1, 500, "m", "largest move asked per tick, farther candidates "
+                                   "excluded; null: the grid's outer ring N_r Delta_r (at least 1 m)",
+                                   nullable=True, param="PMON_REACH")
+    setpoint_hz: float = number(10.0, 5, 50, "Hz", "setpoint re-send rate, of autopilot time", param="PMON_SP_HZ")
+    scan_wait_s: float = number(0.3, 0, 0.9, "s", "after a scan's time, wait this long for missing channels "
+                                "before ticking", param="PMON_SCAN_WAIT")
+    tick_budget_s: float = number(0.9, 0.1, 1.0, "s", "after a scan's time, its setpoint must be sent by this "
+                                  "or the tick is missed", param="PMON_BUDGET")
+    guidance_s: float = number(0.3, 0, 0.9, "s", "autopilot time the targets' guidance may take per tick, then "
+                               "the best plan found or the fallback; 0: fallback only (fault drill)",
+                               param="PMON_GUID_S")
+    fence_min_m: float | None = number(None, 0, 1000, "m", "geofence floor above the mission origin; null: "
+                                       "min(10 m, uav.altitude_m)", nullable=True, param="PMON_ALT_MIN")
+    fence_max_m: float | None = number(None, 2, 1000, "m", "geofence ceiling above the mission origin; null: "
+                                       "max(120 m, uav.altitude_m)", nullable=True, param="PMON_ALT_MAX")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Scenario:
+    name: str = text(MISSING, "the scenario's name")
+    origin: Origin = section(Origin, "geodetic origin of the ENU mission frame", required=True)
+    area: Area = section(Area, "the surveillance environment E", required=True)
+    dynamics: Dynamics = section(Dynamics, "the targets' motion model (eq. target_dynamics)")
+    initial_cov_diag: tuple[float, ...] = vector((200.0, 200.0, 1e-10, 20.0, 20.0, 1e-10), 6, 0, 1e6,
+                                                 "m^2, (m/s)^2", "diagonal of Sigma_0, every target's "
+                                                 "initial covariance", paper=True)
+    targets: tuple[Target, ...] = records(Target, 1, 64, "the targets (their initial means)")
+    goals: tuple[Box, ...] = records(Box, 1, 64, "goal regions on the ground; guidance steers to a centroid")
+    obstacles: tuple[Box, ...] = records(Box, 0, 256, "cuboids the targets go around", required=False)
+    guidance: Guidance = section(Guidance, "Problem P1: the targets' guidance")
+    sensor: Sensor = section(Sensor, "the direction finder")
+    uav: Uav = section(Uav, "the UAV and its candidate grid", required=True)
+    tracking: Tracking = section(Tracking, "the particle filters")
+    planning: Planning = section(Planning, "where the UAV flies next")
+    mission: Mission = section(Mission, "the simulated mission")
+    app: App = section(App, "the onboard app (pmon run)")
+    source: str = field(default="<memory>", compare=False)  # where it was read from, for messages
+    overrides: tuple[tuple[str, Any], ...] = field(default=(), compare=False)  # KEY=VALUE applied, in order
+
+    def goal_of(self, target: Target) -> Box:
+        return next(g for g in self.goals if g.name == target.goal)
+
+    @property
+    def initial_cov(self):
+        import numpy as np
+
+        return np.diag(self.initial_cov_diag)
+
+
+# null settings whose value is derived from others (the PMON_* parameter carries the number)
+DERIVED: dict[str, Callable[[Scenario], float]] = {
+    "app.reach_m": lambda sc: max(sc.uav.n_radial * sc.uav.step_m, 1.0),
+    "app.fence_min_m": lambda sc: min(10.0, sc.uav.altitude_m),
+    "app.fence_max_m": lambda sc: max(120.0, sc.uav.altitude_m),
+}
+
+
+# --------------------------------------------------------------------------- walking the declaration
+
+
+def walk(cls=Scenario, prefix: str = ""):
+    """Every setting under ``cls``: (dotted key, dataclass field, Setting); records as ``key[].field``."""
+    for f in fields(cls):
+        if not f.init or f.name in ("source", "overrides"):
+            continue
+        key = f"{prefix}{f.name}"
+        if "section" in f.metadata:
+            yield from walk(f.metadata["section"], key + ".")
+        elif "records" in f.metadata:
+            yield from walk(f.metadata["records"], key + "[].")
+        else:
+            yield key, f, f.metadata["setting"]
+
+
+SETTINGS: dict[str, Setting] = {key: s for key, _, s in walk()}
+PARAMS: dict[str, str] = {s.param: key for key, s in SETTINGS.items() if s.param}  # PMON name -> key
+
+
+def value_of(sc: Scenario, key: str) -> Any:
+    """The value of a dotted key (no records), a null derived one resolved (``DERIVED``)."""
+    obj: Any = sc
+    for part in key.split("."):
+        obj = getattr(obj, part)
+    if obj is None and key in DERIVED:
+        return DERIVED[key](sc)
+    return obj
+
+
+def default_text(f) -> str:
+    if f.default is MISSING:
+        return "required"
+    v = f.default
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, tuple):
+        return "[" + ", ".join(show_number(x) for x in v) + "]"
+    if isinstance(v, float):
+        return show_number(v)
+    return str(v)
+
+
+def markdown_table() -> str:
+    """docs/SETTINGS.md's table: one row per setting, from the declaration."""
+    rows = ["| key | default | range | in flight | meaning |", "|---|---|---|---|---|"]
+    for key, f, s in walk():
+        default = default_text(f) + (" (paper)" if s.paper else "")
+        null = "null or " if s.nullable else ""
+        rows.append(f"| `{key}` | {default} | {null}{s.range_text()} | {s.param or ''} | "
+                    f"{s.doc.replace('|', chr(92) + '|')} |")
+    return "\n".join(rows)
+
+
+BEGIN, END = "<!-- settings table: begin (python -m onboard.settings --write) -->", "<!-- settings table: end -->"
+
+
+def docs_with_table(doc: str) -> str:
+    """``doc`` with the text between BEGIN and END replaced by ``markdown_table()``."""
+    head, sep, rest = doc.partition(BEGIN)
+    _, sep2, tail = rest.partition(END)
+    if not sep or not sep2:
+        raise ValueError(f"no {BEGIN!r} ... {END!r} block")
+    return f"{head}{BEGIN}\n{markdown_table()}\n{END}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    from pathlib import Path
+
+    ap = argparse.ArgumentParser(prog="python -m onboard.settings",
+                                 description="print the settings table, or write it into docs/SETTINGS.md")
+    ap.add_argument("--write", metavar="FILE", nargs="?", const="docs/SETTINGS.md")
+    args = ap.parse_args(argv)
+    if args.write is None:
+        print(markdown_table())
+        return 0
+    path = Path(args.write)
+    path.write_text(docs_with_table(path.read_text(encoding="utf-8")), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
