@@ -39,8 +39,10 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from onboard.app.contract import MAV_CMD_PMON
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame
+from onboard.app.statustext import Reassembler
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 from sim.rig import Rig, RigConfig
 from sim.tick_account import TickAccount, scan_times
@@ -58,6 +60,8 @@ def app_mode(autopilot: str) -> Callable[[int], bool]:
     return lambda m: m == GUIDED
 
 
+PILOT_SYSID = 252  # a pilot's ground station with sticks (Mission.take_sticks)
+JOYSTICK_HZ = 20.0  # wall Hz of its MANUAL_CONTROL
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
 # ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
 # paper's 20 m steps: the demo's vehicle's
@@ -95,6 +99,7 @@ class Observer:
         self.estimates: list[tuple] = []  # (t, index, x, y, sigma_x, sigma_y) PMON_TGT
         self.app_state: str | None = None
         self._stop = threading.Event()
+        self._chunks = Reassembler()
         self._asked = -math.inf
         self._last_pos_local = -math.inf
         self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
@@ -166,8 +171,8 @@ class Observer:
                         self.modes.append((t, msg.custom_mode, armed))
                 elif mtype == "GPS_GLOBAL_ORIGIN":
                     self.origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-            if mtype == "STATUSTEXT":
-                self.texts.append((t, comp, msg.text))
+            if mtype == "STATUSTEXT":  # whole, as a ground station shows it (chunks joined)
+                self.texts.extend((t, comp, text) for text in self._chunks.feed(msg))
             elif comp == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:
                 if mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_TGT":
                     d = msg.data
@@ -180,6 +185,39 @@ class Observer:
         with self.lock:
             return [x for (t, c, x) in self.texts if c == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
                     and (t is None or t >= since_t)]
+
+
+class Sticks:
+    """A pilot's sticks, centred, on a ground station of their own (sysid PILOT_SYSID):
+    MANUAL_CONTROL at JOYSTICK_HZ from a thread that does nothing else (PX4 takes POSCTL only
+    with manual control, and fails safe when it stops for COM_RC_LOSS_T)."""
+
+    def __init__(self, url: str):
+        self.link = Link(url, source_system=PILOT_SYSID, source_component=mavlink.MAV_COMP_ID_MISSIONPLANNER,
+                         wait_for_peer=True)
+        self.gap_s = 0.0  # the longest wall s between two
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sticks", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last = hb = None
+        while not self._stop.wait(1.0 / JOYSTICK_HZ):
+            now = time.monotonic()
+            if hb is None or now - hb >= 1.0:
+                hb = now
+                self.link.send(self.link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                              0, 0, mavlink.MAV_STATE_ACTIVE))
+            self.link.send(self.link.mav.manual_control_encode(1, 0, 0, 500, 0, 0))
+            self.gap_s = max(self.gap_s, now - last) if last is not None else 0.0
+            last = now
+            while self.link.recv() is not None:  # what the autopilot sends back is not read
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.link.close()
 
 
 @dataclass
@@ -208,6 +246,7 @@ class Mission:
         o = self.sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
         self.observer: Observer | None = None
+        self.sticks: Sticks | None = None
         self.commands: list[GcsCall] = []
 
     @property
@@ -242,7 +281,16 @@ class Mission:
         self.rig.start_feed()
         return self
 
+    def take_sticks(self) -> Sticks:
+        """A pilot's sticks from now on, on the observer's port (PX4's GCS link takes any number of
+        clients that speak first; ArduPilot's TCP port takes one)."""
+        if self.sticks is None:
+            self.sticks = Sticks(self.rig.url(OBSERVER_PORT))
+        return self.sticks
+
     def stop(self) -> None:
+        if self.sticks is not None:
+            self.sticks.close()
         self.rig.stop_programs()
         if self.observer is not None:
             self.observer.close()
@@ -393,17 +441,27 @@ def takeover_reactions(tlog: Path, modes: list[tuple], in_app_mode: Callable[[in
             continue
         back = next((t for t, m, _ in modes[i + 1:] if in_app_mode(m) and t is not None), math.inf)
         episodes.append((t0, back))
-    last = [None] * len(episodes)
+    sent: list[float] = []  # the app's setpoints, its clock
+    told: list[float] = []  # autopilot time when an operator's command reached the app (resume ...)
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    while True:
-        m = conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")
-        if m is None:
-            break
-        t = m.time_boot_ms / 1000.0
-        for i, (a, b) in enumerate(episodes):
-            if a <= t < b:
-                last[i] = t
-    return [0.0 if sp is None else sp - a for (a, _), sp in zip(episodes, last)]
+    t = None
+    while (m := conn.recv_match()) is not None:
+        mtype = m.get_type()
+        if mtype == "SET_POSITION_TARGET_LOCAL_NED":
+            sent.append(m.time_boot_ms / 1000.0)
+        elif hasattr(m, "time_boot_ms") and m.get_srcComponent() == 1:
+            t = m.time_boot_ms / 1000.0
+        elif mtype == "COMMAND_LONG" and m.command == MAV_CMD_PMON and t is not None \
+                and m.target_component == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:
+            told.append(t)
+    # setpoints after the operator's resume are the app's way back in (PX4: streamed before
+    # OFFBOARD is asked for), not a late reaction: an episode ends there
+    out = []
+    for a, b in episodes:
+        end = min(b, min((x for x in told if x > a), default=math.inf))
+        last = max((x for x in sent if a <= x < end), default=None)
+        out.append(0.0 if last is None else last - a)
+    return out
 
 
 def app_view(tlog: Path) -> dict:

@@ -259,6 +259,11 @@ class Px4Sitl:
     def log_file(self) -> Path:
         return Path(self.log_path) if self.log_path else Path(self.workdir) / "px4.log"
 
+    def events_metadata(self) -> Path | None:
+        """The build's event metadata (what ``pmon run --px4-events`` reads), if it has one."""
+        p = self.folder / "etc" / "extras" / "all_events.json.xz"
+        return p if p.is_file() else None
+
     def ulogs(self) -> list[Path]:
         """The ULogs PX4 wrote (workdir/log/DATE/TIME.ulg), oldest first."""
         return sorted(Path(p) for p in glob.glob(str(Path(self.workdir) / "log" / "*" / "*.ulg")))

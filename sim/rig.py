@@ -11,7 +11,8 @@ What runs:
   DF feed, 2 and on ground stations and observers (sim/ardupilot.py's SERIALn order); or PX4's
   own SITL (sim/px4.py), where the same port numbers name UDP links (``PX4_PORTS``): 0 PX4's
   offboard/API link, the others its ground-station link, as on a vehicle;
-- the onboard app (``pmon run``), on port 0, through a ``TcpProxy`` a test can cut if asked;
+- the onboard app (``pmon run``), on port 0, through a ``TcpProxy`` (PX4: ``UdpProxy``) a test can
+  cut if asked;
 - the live DF feed (``pmon feed live``), on port 1, sending to the app's DF port: with the rig,
   later (``start_feed``) or not at all.
 
@@ -65,7 +66,7 @@ class RigConfig:
     auto_launch: bool = False  # pmon run --auto-launch: GUIDED, arm, take off, monitor
     app_args: tuple[str, ...] = ()  # more pmon run options (the app as a process)
     app_config: Mapping = field(default_factory=dict)  # more AppConfig fields (the app in process)
-    link_proxy: bool = False  # the app reaches its port through a TcpProxy (Rig.proxy)
+    link_proxy: bool = False  # the app reaches its port through a TcpProxy, PX4's a UdpProxy (Rig.proxy)
     feed: str = "start"  # start (with the rig) | later (Rig.start_feed) | none
     feed_duration_s: float | None = None  # scans sent (from arming); None: the scenario's mission
     out_dir: str | None = None  # the programs' logs; None: a temporary directory, removed at stop
@@ -100,8 +101,6 @@ class Rig:
             raise ValueError(f"rig: autopilot {cfg.autopilot!r}, feed {cfg.feed!r}")
         if cfg.in_process and cfg.autopilot != "mock":
             raise ValueError("rig: in_process needs the mock autopilot (a firmware's SITL is a program)")
-        if cfg.link_proxy and cfg.autopilot == "px4":
-            raise ValueError("rig: link_proxy is a TCP proxy; PX4's links are UDP")
         if (on_tick or on_setpoint) and not cfg.in_process:
             raise ValueError("rig: on_tick and on_setpoint look inside the app and the mock: in_process only")
         self.cfg = cfg
@@ -175,7 +174,11 @@ class Rig:
         """The app on port 0 (or through the proxy); its DF port in ``df_port``."""
         cfg = self.cfg
         url = self.url(APP_PORT)
-        if cfg.link_proxy:
+        if cfg.link_proxy and cfg.autopilot == "px4":  # a UDP link: the relay takes the app's port
+            from sim.udp_proxy import UdpProxy
+            self.proxy = UdpProxy(int(url.rsplit(":", 1)[1]))
+            url = self.proxy.url
+        elif cfg.link_proxy:
             from sim.tcp_proxy import TcpProxy
             self.proxy = TcpProxy(("127.0.0.1", self.port(APP_PORT)))
             url = f"tcp:127.0.0.1:{self.proxy.port}"
@@ -197,6 +200,8 @@ class Rig:
                               ("--signing-key", cfg.signing_key_path)):
             argv += [option, str(value)] if value is not None else []
         argv += ["--auto-launch"] if cfg.auto_launch else []
+        if cfg.autopilot == "px4" and (events := self.ap.events_metadata()) is not None:
+            argv += ["--px4-events", str(events)]  # the build's: its EVENTs in words
         self.app = Proc("app", argv + list(cfg.app_args), self.out / "app.log")
         self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
 
