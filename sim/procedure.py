@@ -33,6 +33,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping
@@ -95,6 +96,7 @@ class Observer:
         self.positions: list[tuple] = []  # (t, lat, lon, alt_amsl, rel_alt) deg, m
         self.targets: list[tuple] = []  # (t, x, y, z) POSITION_TARGET_LOCAL_NED, m (EKF origin)
         self.modes: list[tuple] = []  # (t, custom_mode, armed) on every change
+        self.beats: deque[float] = deque(maxlen=50)  # t of its latest heartbeats
         self.texts: list[tuple] = []  # (t, compid, text)
         self.estimates: list[tuple] = []  # (t, index, x, y, sigma_x, sigma_y) PMON_TGT
         self.app_state: str | None = None
@@ -166,6 +168,8 @@ class Observer:
                 elif mtype == "POSITION_TARGET_LOCAL_NED":
                     self.targets.append((t, msg.x, msg.y, msg.z))
                 elif mtype == "HEARTBEAT":
+                    if t is not None:
+                        self.beats.append(t)
                     armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                     if not self.modes or self.modes[-1][1:] != (msg.custom_mode, armed):
                         self.modes.append((t, msg.custom_mode, armed))
@@ -180,6 +184,13 @@ class Observer:
                 elif mtype == "HEARTBEAT":
                     from groundstation.protocol import app_state_name
                     self.app_state = app_state_name(msg.custom_mode)
+
+    def heartbeat_period_s(self) -> float:
+        """The autopilot's HEARTBEAT period as heard, autopilot s (median; 1 s until known)."""
+        with self.lock:
+            beats = list(self.beats)
+        gaps = [b - a for a, b in zip(beats, beats[1:]) if 0 < b - a < 5.0]
+        return float(np.median(gaps)) if gaps else 1.0
 
     def app_texts(self, since_t: float = -math.inf) -> list[str]:
         with self.lock:
@@ -361,10 +372,14 @@ class Mission:
         events = [(t, 1, (x, y, z)) for t, x, y, z in targets if t is not None]
         for rec in self.run_log():
             # a setpoint sent after a pilot took over, before the app heard of it, is not taken
-            # (ArduPilot ignores it outside GUIDED) and is not the app's miss; nor one sent
-            # within a target report (0.1 s) of the takeover: its receipt cannot be seen
+            # (ArduPilot ignores it outside GUIDED, PX4 outside OFFBOARD) and is not the app's
+            # miss; nor one sent within a target report (0.1 s) of the takeover: its receipt
+            # cannot be seen. The observer times a mode change to its heartbeats, so a change it
+            # saw may have come up to one heartbeat period earlier (PX4 sends HEARTBEAT at 1 Hz
+            # and refuses another rate; ArduPilot at the 4 Hz asked)
+            window = REPORT_S + self.observer.heartbeat_period_s()
             if rec["planned"] and rec["sent_t"] is not None and not (
-                    self.guided_at(rec["sent_t"]) and self.guided_at(rec["sent_t"] + REPORT_S)):
+                    self.guided_at(rec["sent_t"]) and self.guided_at(rec["sent_t"] + window)):
                 rec = {**rec, "planned": False}
             events.append((rec["t"], 0, rec))
         for t, kind, item in sorted(events, key=lambda e: (e[0], e[1])):

@@ -73,6 +73,12 @@ BOOT_TIMEOUT_S = 30.0  # wall s from the process to PX4's startup script done
 SPEED_SCALED_PARAMS = ("COM_DL_LOSS_T", "COM_RC_LOSS_T", "COM_OF_LOSS_T", "COM_OBC_LOSS_T")
 
 
+# what a vehicle flown by pmon is set up with (docs/SITL.md): when the app's setpoints stop (the
+# app or its link gone), Hold instead of PX4's default Position mode, which without RC sinks
+# (measured: 46 -> 24 m above home in ~20 s)
+RECOMMENDED_PARAMS = {"COM_OBL_RC_ACT": 5}
+
+
 class SitlError(RuntimeError):
     """PX4 SITL could not be started or stopped; the message says why in one line."""
 
