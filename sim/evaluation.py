@@ -41,9 +41,7 @@ Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 """
 from __future__ import annotations
 
-import contextlib
 import os
-import signal
 import time
 import zlib
 from dataclasses import dataclass, replace
@@ -60,11 +58,12 @@ from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
 from sim.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
-                         motion_stats, nees_band, paired_ratio, pcrb_position, seeded_rng, t_interval)
+                         motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
+from sim.workers import one_blas_thread as _one_blas_thread, worker_pool as _worker_pool
 
 # the evaluation's interface, wherever its parts are held (sim.metrics: the statistics; sim.report:
 # the outputs)
@@ -88,8 +87,10 @@ AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICL
 class Method:
     """A sensing mode and, for a UAV, how it moves.
 
-    sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter) or ``fixed`` (the paper's three
-    ground DFs, no clutter, p_D = 1). clutter_rate: Lambda for both the simulated DF and the
+    sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter), ``fixed`` (the paper's three
+    ground DFs, no clutter, p_D = 1) or ``ceiling`` (bound only, no sensor and no filter run: the
+    path is the clairvoyant ceiling's, ``sim.ceiling_search.ceiling_path``, from the trial's
+    truth, gains and start at the method's vehicle limits; only its PCRB and path are defined). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
     from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
     random); None: the scenario's ``planning.planner``.
@@ -106,7 +107,9 @@ class Method:
     scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
     the run's own ``--set`` (``onboard.config.override(..., beneath=True)``).
     autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
-    (None: stock). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
+    (None: stock). follows: ``ceiling``: the UAV flies the clairvoyant ceiling's path (at the method's
+    limits, as the bound-only ``ceiling``), known in advance: no planning; the filter runs on its
+    bearings (what the filter makes of the best path for the bound). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
     WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
     airframe flies; ``onboard.policy.vehicle_motion``), as the app does; else with the
     scenario's values.
@@ -123,10 +126,20 @@ class Method:
     scenario_overrides: tuple[tuple[str, Any], ...] = ()
     autopilot: str | None = None
     autopilot_limits: bool = False
+    follows: str | None = None
 
     def __post_init__(self):
-        if self.sensing not in ("uav", "fixed"):
-            raise ValueError(f"method {self.name}: sensing must be 'uav' or 'fixed'")
+        if self.sensing not in ("uav", "fixed", "ceiling"):
+            raise ValueError(f"method {self.name}: sensing must be 'uav', 'fixed' or 'ceiling'")
+        if (self.sensing == "ceiling" or self.follows is not None) and self.motion != "vehicle":
+            raise ValueError(f"method {self.name}: a ceiling is a vehicle's (motion 'vehicle')")
+        if self.follows not in (None, "ceiling") or (self.follows and self.sensing != "uav"):
+            raise ValueError(f"method {self.name}: follows must be None or 'ceiling' (with sensing 'uav')")
+
+    @property
+    def bound_only(self) -> bool:
+        """No filter run (RMSE and NEES undefined): the clairvoyant ceiling."""
+        return self.sensing == "ceiling"
         if self.planner is not None and self.planner not in PLANNERS:
             raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
         if self.motion not in (None, "jump", "vehicle"):
@@ -158,6 +171,14 @@ for _m in (
            "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
            "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+    Method("ceiling", "bound only: the path of a vehicle at the flight default's limits (its policy, the stock "
+           "autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies) that minimises the PCRB "
+           "knowing the true target trajectories (sim/ceiling.py, docs/PLANNING.md 'The clairvoyant ceiling'); "
+           "no filter run, Lambda = 1", sensing="ceiling", clutter_rate=1.0, motion="vehicle",
+           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+    Method("ceiling_flown", "single UAV flying the ceiling's path (clairvoyant, not a planner: the path of "
+           "'ceiling'), the flight default's filter on its bearings, Lambda = 1", clutter_rate=1.0, motion="vehicle",
+           follows="ceiling", scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
     Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
     Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
     # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
@@ -328,20 +349,23 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
     limits from its autopilot's parameters."""
     sc = method_scenario(cfg.scenario, method)
-    flown = method.sensing == "uav" and sc.planning.motion == "vehicle"
+    flown = method.sensing != "fixed" and sc.planning.motion == "vehicle"  # the ceiling: its vehicle's limits
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
         m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
         sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
-    df = None if method.sensing == "fixed" else DirectionFinder.from_config(sc.sensor)
+    df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
     return MonitorSetup.from_scenario(sc), df, limits
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
-               gains: np.ndarray | None = None) -> MethodTrace:
+               gains: np.ndarray | None = None, path: np.ndarray | None = None) -> MethodTrace:
     """Closed loop of one method on one trial's truth (K, M, 6); with the truth's closed-loop
-    gains (K-1, M, 3, 6), also the PCRB along the flown path."""
+    gains (K-1, M, 3, 6), also the PCRB along the flown path. ``path`` (K, 2): the UAV's
+    positions given in advance (``Method.follows``; its start first): no planning, no flight."""
     setup, df, limits = _setup_for(cfg, method)
+    if path is not None:
+        limits = None
     ss = np.random.SeedSequence(cfg.seed, spawn_key=(trial, 2, _method_key(method.name)))
     sensor_rng, filter_rng, policy_rng = (np.random.default_rng(s) for s in ss.spawn(3))
     K, M = truth.shape[0], truth.shape[1]
@@ -362,8 +386,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav_track[k] = uav
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav, workspace=ws, uav_velocity=uav_vel,
-                          planner_rng=policy_rng)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=None if path is not None else uav,
+                          workspace=ws, uav_velocity=uav_vel, planner_rng=policy_rng)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]
@@ -371,7 +395,9 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         P = res.covs[:, :2, :2]
         nees[k] = np.einsum("mi,mi->m", e, np.linalg.solve(P, e[..., None])[..., 0])
         degenerate += int(res.degenerate.sum())
-        if uav is not None and k < K - 1 and limits is not None:
+        if path is not None and k < K - 1:
+            uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
+        elif uav is not None and k < K - 1 and limits is not None:
             p = res.planning
             ok = p is not None and p.index is not None
             v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
@@ -402,73 +428,50 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown)
 
 
+def _ceiling_trace(cfg: EvalConfig, method: Method, truth: np.ndarray, gains: np.ndarray, path: np.ndarray,
+                   cpu_s: float) -> MethodTrace:
+    """A bound-only method's trace: its path (K, 2) and the PCRB along it; the error, NEES and
+    estimates NaN (no filter runs); tick_s: the search's CPU time per tick."""
+    setup, _, _ = _setup_for(cfg, method)
+    K, M = truth.shape[:2]
+    q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
+    bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, path[:, None], setup.sensor.sigma_rad, q)
+    nan = np.full((K, M), np.nan)
+    uav = np.column_stack([path, np.full(K, setup.grid.altitude_m)])
+    return MethodTrace(nan, nan.copy(), np.full((K, M, 2), np.nan), uav, 0, cpu_s / K, bound)
+
+
 def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
-    """One trial of every method: truth once, the same truth and UAV start for all."""
+    """One trial of every method: truth once, the same truth and UAV start for all. The
+    clairvoyant ceiling's path (``sim.ceiling_search.ceiling_path``), for a bound-only method
+    or one that follows it, is searched once per vehicle limits after the other methods ran,
+    with their flown paths at those limits as extra starts of its search."""
+    from sim.ceiling_search import ceiling_path
+
     t0 = time.perf_counter()
     truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True)
     start = draw_start(cfg, _rng(cfg.seed, trial, 1))
-    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in cfg.methods}
+    planned = [m for m in cfg.methods if not m.bound_only and m.follows is None]
+    traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in planned}
+    ceilings: dict = {}  # UavMotion -> (path (K, 2), CPU s)
+    for m in cfg.methods:
+        if m in planned:
+            continue
+        setup = _setup_for(cfg, m)[0]
+        if setup.motion not in ceilings:
+            given = [traces[o.name].uav[:, :2] for o in planned
+                     if o.sensing == "uav" and _setup_for(cfg, o)[0].motion == setup.motion]
+            c0 = time.process_time()
+            path = ceiling_path(setup, truth, gains, start, cfg.window_start, given)
+            ceilings[setup.motion] = (path, time.process_time() - c0)
+        path, cpu = ceilings[setup.motion]
+        traces[m.name] = (_ceiling_trace(cfg, m, truth, gains, path, cpu) if m.bound_only else
+                          run_method(cfg, m, trial, truth, start, gains, path=path))
+    traces = {m.name: traces[m.name] for m in cfg.methods}
     return TrialResult(trial, start, truth, traces, time.perf_counter() - t0, gains)
 
 
 # --------------------------------------------------------------------------- running many trials
-
-def _one_blas_thread() -> None:
-    # one BLAS thread per worker: the workers already fill the cores
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-
-
-def _worker_init() -> None:
-    _one_blas_thread()
-    # Ctrl-C reaches the whole process group: the parent stops the pool, the workers stay quiet
-    # (they already start with SIGINT ignored, _worker_pool; this covers a replaced worker)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-@contextlib.contextmanager
-def _worker_pool(ctx, workers: int):
-    """A pool of spawned workers that never outlives the block: terminated on leaving it for any
-    reason (a worker's error, Ctrl-C, or SIGTERM, which raises SystemExit(143) meanwhile).
-
-    While the pool starts (milliseconds: the workers import on their own afterwards):
-    - SIGINT is ignored, a disposition the workers inherit across exec (a signal mask is not:
-      spawned children start unblocked), so a Ctrl-C to the process group never kills one
-      mid-import; one pressed in that window is lost.
-    - SIGTERM is only recorded, and raised once the pool exists, so the pool is terminated rather
-      than left half-built with workers orphaned. Recorded by the handler, not held back by a
-      mask: this process has other threads (the progress bar's, BLAS's) that a signal sent to
-      the process may land on, whatever the main thread blocks.
-    Signal handling only from the main thread, where Python allows it."""
-    import threading
-
-    main = threading.current_thread() is threading.main_thread()
-
-    def _raise(signum, frame):
-        raise SystemExit(128 + signum)
-
-    held: list[int] = []
-    old_term = signal.signal(signal.SIGTERM, _raise) if main else None
-    pool = None
-    try:
-        if main:
-            old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
-        try:
-            pool = ctx.Pool(workers, initializer=_worker_init)
-        finally:
-            if main:
-                signal.signal(signal.SIGINT, old_int)
-                signal.signal(signal.SIGTERM, _raise)
-        if held:
-            _raise(held[0], None)
-        yield pool
-    finally:
-        if pool is not None:
-            pool.terminate()
-        if main:
-            signal.signal(signal.SIGTERM, old_term)
-
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
                progress: bool = True, console=None) -> list[TrialResult]:
@@ -560,10 +563,11 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
         eps = np.sqrt(np.mean(err ** 2, axis=0))
         anees = nees.mean(axis=0)
         per_trial = np.sqrt(np.mean(err[:, w0:] ** 2, axis=(1, 2)))
-        diff = None if ref_r is None else t_interval(per_trial - ref_r)
-        ratio_ref = None if ref_r is None else paired_ratio(ref_err, err, w0, cfg.seed)
+        filtered = ref_r is not None and not m.bound_only
+        diff = t_interval(per_trial - ref_r) if filtered else None
+        ratio_ref = paired_ratio(ref_err, err, w0, cfg.seed) if filtered else None
         motion: dict = {}
-        if m.sensing == "uav":
+        if m.sensing != "fixed":
             st = [motion_stats(t.traces[m.name], t.truth) for t in trials]
             steps = np.concatenate([s["step_m"] for s in st])
             motion = dict(
@@ -592,7 +596,30 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
     speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
     per10 = int(round(10.0 / cfg.dt_s))
     speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
+    filtered = [m.name for m in cfg.methods if not m.bound_only]
     pairs = {(a, b): (paired_ratio(errs[a], errs[b], w0, cfg.seed),
                       t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
-             for a in cfg.method_names if is_flight(a) for b in cfg.method_names if b != a}
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs)
+             for a in filtered if is_flight(a) for b in filtered if b != a}
+    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs, _over_ceiling(cfg, trials))
+
+
+def _over_ceiling(cfg: EvalConfig, trials: Sequence[TrialResult]) -> dict:
+    """Each UAV method's PCRB over the (first) bound-only method's, paired over the trials
+    (``Summary.ceiling``)."""
+    ceil = next((m for m in cfg.methods if m.bound_only), None)
+    if ceil is None:
+        return {}
+    w0 = cfg.window_start
+    ref = np.stack([t.traces[ceil.name].bound_m2 for t in trials])
+    ratios, limits = {}, {}
+    for m in cfg.methods:
+        if m.sensing == "fixed":
+            continue
+        mo = _setup_for(cfg, m)[0].motion
+        limits[m.name] = (f"{mo.speed_max_mps:g} m/s, {mo.accel_max_mps2:g} m/s²" if mo.kind == "vehicle" else
+                          f"jumps of {cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m:g} m")
+        if m.sensing == "uav":
+            b = np.stack([t.traces[m.name].bound_m2 for t in trials])
+            per_trial = np.sqrt(b[:, w0:].mean(axis=(1, 2)) / ref[:, w0:].mean(axis=(1, 2)))
+            ratios[m.name] = (paired_bound_ratio(b, ref, w0, cfg.seed), per_trial)
+    return {"name": ceil.name, "limits": limits, "ratios": ratios}

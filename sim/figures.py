@@ -145,6 +145,11 @@ def scenario(sc, path_3d, path_top, rng_seed: int = 0) -> None:
     plt.close(fig)
 
 
+def _filtered(summary) -> dict:
+    """The methods that ran a filter (a bound-only method has no RMSE or NEES)."""
+    return {n: s for n, s in summary.methods.items() if np.isfinite(s.rmse_mean_m)}
+
+
 def rmse_vs_time(summary, path) -> None:
     cfg = summary.config
     dt = cfg.dt_s
@@ -153,7 +158,8 @@ def rmse_vs_time(summary, path) -> None:
     fig = plt.figure(figsize=(12, 8))
     gs = fig.add_gridspec(2, M)
     top = fig.add_subplot(gs[0, :])
-    for i, (n, s) in enumerate(summary.methods.items()):
+    shown = _filtered(summary)
+    for i, (n, s) in enumerate(shown.items()):
         t = np.arange(len(s.rmse_t_mean)) * dt
         top.plot(t, s.rmse_t_mean, label=f"{n} ({s.rmse_mean_m:.1f} m)", **_style(n, i))
     top.axvline(cfg.window_start * dt, color="0.5", lw=0.8, ls=":")
@@ -166,7 +172,7 @@ def rmse_vs_time(summary, path) -> None:
     top.legend(fontsize=8, ncol=3)
     for j in range(M):
         ax = fig.add_subplot(gs[1, j], sharey=top)
-        for i, (n, s) in enumerate(summary.methods.items()):
+        for i, (n, s) in enumerate(shown.items()):
             ax.plot(np.arange(s.rmse_t.shape[0]) * dt, s.rmse_t[:, j], **_style(n, i))
         ax.set_title(names[j], color=_colour(j))
         ax.set_xlabel("t [s]")
@@ -180,7 +186,7 @@ def nees_vs_time(summary, path) -> None:
     cfg = summary.config
     lo, hi = summary.nees_band
     fig, ax = plt.subplots(figsize=(10, 5))
-    for i, (n, s) in enumerate(summary.methods.items()):
+    for i, (n, s) in enumerate(_filtered(summary).items()):
         t = np.arange(s.anees_t.shape[0]) * cfg.dt_s
         ax.plot(t, s.anees_t.mean(axis=1), label=f"{n} ({s.nees_mean:.2f})", **_style(n, i))
     ax.axhspan(lo, hi, color="tab:green", alpha=0.15, label=f"95 % band, N = {summary.n_trials}, per target")
@@ -199,11 +205,14 @@ def nees_vs_time(summary, path) -> None:
 def flight(cfg, trial, path, methods=("greedy_l1", "greedy_l8")) -> None:
     """Fig. 2(a)-(b): one trial, the UAV's trajectory with true and estimated target tracks."""
     sc = cfg.scenario
-    shown = [m for m in methods if m in trial.traces and trial.traces[m].uav is not None]
+    traces = {n: tr for n, tr in trial.traces.items() if not np.isnan(tr.error_m).all()}  # a filter ran
+    shown = [m for m in methods if m in traces and traces[m].uav is not None]
     if not shown:
-        shown = [n for n, tr in trial.traces.items() if tr.uav is not None][:1]
+        shown = [n for n, tr in traces.items() if tr.uav is not None][:1]
     if not shown:
-        shown = list(trial.traces)[:1]
+        shown = list(traces)[:1]
+    if not shown:
+        return
     fig = plt.figure(figsize=(7 * len(shown), 12))
     for col, name in enumerate(shown):
         tr = trial.traces[name]
@@ -261,8 +270,12 @@ def flown_paths(cfg, trials, path, methods=None, n_trials: int = 3) -> None:
             ax.plot(u[:, 0], u[:, 1], "-", color="black", lw=1.5)
             ax.plot(u[::every, 0], u[::every, 1], ".", color="black", ms=5)
             ax.plot(*u[0, :2], marker="D", color="black", ls="none")
-            err = np.sqrt(np.mean(tr.error_m[cfg.window_start:] ** 2))
-            ax.set_title(f"{name}, trial {trial.trial}: RMSE {err:.1f} m", fontsize=9)
+            w = cfg.window_start
+            if not np.isnan(tr.error_m).all():
+                what = f"RMSE {np.sqrt(np.mean(tr.error_m[w:] ** 2)):.1f} m"
+            else:  # bound only (the ceiling)
+                what = f"PCRB {np.sqrt(np.mean(tr.bound_m2[w:])):.1f} m"
+            ax.set_title(f"{name}, trial {trial.trial}: {what}", fontsize=9)
             lo, hi = sc.area.min_m, sc.area.max_m
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])

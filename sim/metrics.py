@@ -109,6 +109,10 @@ class Summary:
     # of the run: {(flight method, other): ((ratio, lo, hi) of RMSEs, (mean, lo, hi) of per-trial
     # differences)}, paired over the trials
     pairs: dict = field(default_factory=dict)
+    # a run with a bound-only method (the clairvoyant ceiling): {"name": its name, "limits": {method:
+    # the motion it planned with, text}, "ratios": {UAV method: ((ratio, lo, hi) of the PCRBs, method /
+    # ceiling, paired bootstrap CI; per-trial ratios of the window PCRBs (N,))}}
+    ceiling: dict = field(default_factory=dict)
 
 
 def is_flight(name: str) -> bool:
@@ -125,6 +129,25 @@ def paired_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[floa
         return ratio, float("nan"), float("nan")
     boot_rng = seeded_rng(seed, 2**31 - 2)  # its own stream: does not touch any trial's
     rs = [window_mean_rmse(a[idx], w0) / window_mean_rmse(b[idx], w0)
+          for idx in (boot_rng.integers(0, N, N) for _ in range(BOOTSTRAP_RESAMPLES))]
+    return ratio, float(np.percentile(rs, 2.5)), float(np.percentile(rs, 97.5))
+
+
+def bound_window(b: np.ndarray, w0: int) -> float:
+    """bounds (N, K, M) m^2 -> the PCRB as ``bound_summary`` averages it (sqrt of the trial mean,
+    over targets, over the window), m."""
+    return float(np.sqrt(np.mean(b, axis=0)).mean(axis=1)[w0:].mean())
+
+
+def paired_bound_ratio(a: np.ndarray, b: np.ndarray, w0: int, seed: int) -> tuple[float, float, float]:
+    """PCRB(a) / PCRB(b) for bounds (N, K, M) of the same trials, with the 95 % paired percentile
+    bootstrap CI of ``paired_ratio`` (the same resamples)."""
+    ratio = bound_window(a, w0) / bound_window(b, w0)
+    N = len(a)
+    if N < 2:
+        return ratio, float("nan"), float("nan")
+    boot_rng = seeded_rng(seed, 2**31 - 2)
+    rs = [bound_window(a[idx], w0) / bound_window(b[idx], w0)
           for idx in (boot_rng.integers(0, N, N) for _ in range(BOOTSTRAP_RESAMPLES))]
     return ratio, float(np.percentile(rs, 2.5)), float(np.percentile(rs, 97.5))
 

@@ -7,6 +7,8 @@ import os
 import platform
 from typing import TYPE_CHECKING, Sequence
 
+import numpy as np
+
 from sim.metrics import BOOTSTRAP_RESAMPLES, FIXED, REFERENCE
 from sim.numerics import numerics_description
 
@@ -31,7 +33,14 @@ def headline(summary: Summary) -> dict:
         "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
         **({} if not summary.pairs else {"flight_over": {f"{a} / {b}": [r(v) for v in ratio]
                                                           for (a, b), (ratio, _) in summary.pairs.items()}}),
+        **({} if not summary.ceiling else {"pcrb_over_ceiling": {n: [r(v) for v in ratio] for n, (ratio, _)
+                                                                 in summary.ceiling["ratios"].items()}}),
     }
+
+
+def _bound_only(summary: Summary) -> set:
+    """The methods that ran no filter (their RMSE rows are not written)."""
+    return {m.name for m in summary.config.methods if m.bound_only}
 
 
 def write_csv(summary: Summary, path) -> None:
@@ -39,7 +48,10 @@ def write_csv(summary: Summary, path) -> None:
     names = [t.name for t in summary.config.scenario.targets]
     dt = summary.config.dt_s
     lines = ["step,time_s,method,target,rmse_m"]
+    skip = _bound_only(summary)
     for mname, s in summary.methods.items():
+        if mname in skip:
+            continue
         for k in range(s.rmse_t.shape[0]):
             for j, tn in enumerate(names):
                 lines.append(f"{k},{k * dt:g},{mname},{tn},{s.rmse_t[k, j]:.4f}")
@@ -51,7 +63,10 @@ def write_csv(summary: Summary, path) -> None:
 def write_per_trial_csv(summary: Summary, path) -> None:
     """trial, method, rmse_window_m (r_n): the numbers the paired differences are made of."""
     lines = ["trial,method,rmse_window_m"]
+    skip = _bound_only(summary)
     for mname, s in summary.methods.items():
+        if mname in skip:
+            continue
         lines += [f"{n},{mname},{v:.4f}" for n, v in enumerate(s.per_trial_rmse)]
     with open(path, "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
@@ -65,7 +80,8 @@ def machine_description() -> str:
 def results_markdown(summary: Summary, command: str) -> str:
     """results.md: the run, its table, then each section that applies."""
     L = _rmse_section(summary, command)
-    for section in (_fixed_ratio, _vehicle_ratios, _motion_section, _pairs_section, _flown_section, _methods_section):
+    for section in (_fixed_ratio, _vehicle_ratios, _ceiling_section, _motion_section, _pairs_section, _flown_section,
+                    _methods_section):
         L += section(summary)
     return "\n".join(L)
 
@@ -100,6 +116,10 @@ def _rmse_section(summary: Summary, command: str) -> list[str]:
            f"| ANEES | in band | ms/tick |",
          "|---|---:|" + "---:|" * len(names) + "---|---|---:|---:|---:|---:|---:|"]
     for n, s in summary.methods.items():
+        if n in _bound_only(summary):
+            L.append(f"| {n} | — | " + " | ".join("—" for _ in names) + f" | — | — | {s.bound_mean_m:.1f} | — | — | — "
+                     f"| {s.tick_ms:.0f} (search CPU) |")
+            continue
         if s.diff_vs_ref is None or n == REFERENCE:
             d = "—"
         else:
@@ -143,6 +163,27 @@ def _vehicle_ratios(summary: Summary) -> list[str]:
                   f"The jump model moves up to {jump_m:g} m per tick, the vehicle at most {pl.speed_max_mps:g} m/s "
                   f"({pl.accel_max_mps2:g} m/s^2); the same comparison at equal speed: "
                   f"`--set uav.step_m={equal_step:g}`.", ""]
+    return L
+
+
+def _ceiling_section(summary: Summary) -> list[str]:
+    """Each UAV method's PCRB over the clairvoyant ceiling's, paired."""
+    if not summary.ceiling:
+        return []
+    name, limits = summary.ceiling["name"], summary.ceiling["limits"]
+    L = ["## Each path's PCRB over the clairvoyant ceiling", "",
+         f"`{name}`: the path a vehicle at {limits[name]} would fly knowing the true target trajectories, "
+         f"chosen to minimise this PCRB (sim/ceiling_search.py: multi-start SQP, the run's flown paths at the "
+         f"same limits among the starts): PCRB {summary.methods[name].bound_mean_m:.2f} m. Ratio: a method's "
+         f"PCRB over the ceiling's, averaged as the table's, 95 % paired percentile bootstrap CI over trials "
+         f"({BOOTSTRAP_RESAMPLES} resamples); per trial: its window PCRB over the ceiling's. A method planned "
+         f"with other limits than the ceiling's is compared with a vehicle of another speed (the column says).", "",
+         "| method | planned with | PCRB [m] | over the ceiling (95 % CI) | per trial: median (min, max) |",
+         "|---|---|---:|---|---|"]
+    for n, ((v, lo, hi), per) in summary.ceiling["ratios"].items():
+        L.append(f"| {n} | {limits[n]} | {summary.methods[n].bound_mean_m:.2f} | {v:.3f} ({lo:.3f}, {hi:.3f}) "
+                 f"| {np.median(per):.3f} ({per.min():.3f}, {per.max():.3f}) |")
+    L.append("")
     return L
 
 

@@ -179,9 +179,13 @@ def eval_summary(head: dict, trials: int, out, reference: str, figures: bool = T
             + (f"  {ref} / method (95 % CI)" if ref else "")]
     for name, m in head["methods"].items():
         r = m.get("ratio_vs_ref")
-        ratio = "-" if not ref or name == ref or r is None else f"{r[0]:.2f} ({r[1]:.2f}, {r[2]:.2f})"
+        ratio = "-" if not ref or name == ref or r is None else f"{f(r[0], '.2f')} ({f(r[1], '.2f')}, {f(r[2], '.2f')})"
         rows.append(f"{name:<{width}}{f(m['rmse_mean_m']):>9}{f(m['bound_m']):>10}{f(m['rmse_over_bound'], '.2f'):>11}"
                     f"{f(m['nees_mean'], '.2f'):>7}" + (f"  {ratio}" if ref else ""))
+    over = head.get("pcrb_over_ceiling")
+    if over:
+        rows.append("PCRB over the clairvoyant ceiling's (95 % CI): " + "; ".join(
+            f"{n} {f(v[0], '.3f')} ({f(v[1], '.3f')}, {f(v[2], '.3f')})" for n, v in over.items()))
     out = Path(out)
     pngs = sorted(p.name for p in out.glob("*.png")) if figures else []
     rows.append(f"{trials} trial{'s' if trials > 1 else ''}; RMSE averaged over the targets and the convergence "

@@ -251,6 +251,55 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         ev.make_config(sc, 1, 5, ["flight@x"])
 
 
+def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits(tmp_path):
+    """``ceiling``: no filter runs (RMSE, NEES NaN; no RMSE rows), its path is a vehicle's at the
+    flight default's limits from the trial's start, its bound is the evaluation's PCRB of that
+    path and at most the flight's own path's (one of its search's starts), and adding it changes
+    no other method's number. The summary pairs each UAV path's PCRB with it. ``ceiling_flown``
+    flies that same path with the filter on its bearings."""
+    from onboard.config import load_scenario
+
+    sc = load_scenario("paper", {"guidance.horizon": 20, "planning.lookahead_steps": 20, "tracking.particles": 300})
+    cfg = ev.make_config(sc, 2, 5, ["greedy_l1", "flight", "ceiling", "ceiling_flown"], duration_s=30)
+    bare = ev.make_config(sc, 2, 5, ["greedy_l1", "flight"], duration_s=30)
+    trials = [ev.run_trial(cfg, i) for i in range(2)]
+    w0 = cfg.window_start
+    for tr in trials:
+        c, f = tr.traces["ceiling"], tr.traces["flight"]
+        assert np.isnan(c.error_m).all() and np.isnan(c.nees).all()
+        assert np.array_equal(c.uav[0], tr.start)
+        setup, _, _ = ev._setup_for(cfg, cfg.methods[2])
+        assert (setup.motion.speed_max_mps, setup.motion.accel_max_mps2) == (9.0, 2.5)  # the flight's, capped
+        speed = np.linalg.norm(np.diff(c.uav[:, :2], axis=0), axis=1) / cfg.dt_s
+        assert speed.max() <= 9.0 + 1e-6 and speed[0] <= 2.5 / 2 + 1e-6  # from rest, within the limits
+        q = ev.information_reduction_factor(setup.sensor.p_detect, 1.0, setup.sensor.sigma_rad)
+        again = ev.pcrb_position(setup.model, setup.initial_cov, tr.truth, tr.gains, c.uav[:, None, :2],
+                                 setup.sensor.sigma_rad, q)
+        assert np.allclose(again, c.bound_m2, rtol=1e-12)
+        assert np.sqrt(c.bound_m2[w0:]).mean() < np.sqrt(f.bound_m2[w0:]).mean()
+        cf = tr.traces["ceiling_flown"]
+        assert np.array_equal(cf.uav, c.uav) and np.allclose(cf.bound_m2, c.bound_m2, rtol=1e-12)
+        assert np.isfinite(cf.error_m).all() and cf.error_m[w0:].mean() < 100.0
+        without = ev.run_trial(bare, tr.trial)
+        for n in ("greedy_l1", "flight"):
+            assert np.array_equal(without.traces[n].error_m, tr.traces[n].error_m)
+    s = ev.summarise(cfg, trials)
+    (r, lo, hi), per = s.ceiling["ratios"]["flight"]
+    assert s.ceiling["name"] == "ceiling" and set(s.ceiling["ratios"]) == {"greedy_l1", "flight", "ceiling_flown"}
+    assert 1.0 < r and lo <= r <= hi and (per > 1.0).all()
+    assert r == pytest.approx(s.methods["flight"].bound_mean_m / s.methods["ceiling"].bound_mean_m)
+    assert ("flight", "ceiling") not in s.pairs and s.methods["ceiling"].ratio_vs_ref is None
+    head = ev.write_outputs(s, trials, tmp_path, "x", figures=False)
+    assert head["methods"]["ceiling"]["rmse_mean_m"] is None
+    assert head["pcrb_over_ceiling"]["flight"][0] == pytest.approx(r, abs=1e-4)
+    assert ",ceiling," not in (tmp_path / "per_trial.csv").read_text() + (tmp_path / "rmse.csv").read_text()
+    assert ",ceiling_flown," in (tmp_path / "per_trial.csv").read_text()
+    assert f"| flight | 9 m/s, 2.5 m/s² | {s.methods['flight'].bound_mean_m:.2f} | {r:.3f} (" in \
+        (tmp_path / "results.md").read_text()
+    with pytest.raises(ValueError, match="a ceiling is a vehicle's"):
+        ev.Method("c", "x", sensing="ceiling", motion="jump")
+
+
 def test_workers_load_the_avx2_kernels_where_the_cpu_has_them():
     """sim.numerics: OpenBLAS's and numpy's AVX-512 kernels round differently from their AVX2
     ones, so the evaluation's workers load the AVX2 ones on every x86-64 that has them (a

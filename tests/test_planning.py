@@ -4,6 +4,7 @@ from types import SimpleNamespace as Box
 import numpy as np
 import pytest
 
+from onboard.config import override
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import CandidateGrid, admissible, candidate_positions, choose_next_position
 
@@ -177,9 +178,9 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
     assert isinstance(setup.uav_planner, GreedyPlanner) and setup.uav_planner is setup.uav_planner
     for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
                        ("random", RandomPlanner)):
-        assert isinstance(MonitorSetup.from_scenario(paper, planner=name).uav_planner, kind)
+        assert isinstance(MonitorSetup.from_scenario(override(paper, {"planning.planner": name})).uav_planner, kind)
     with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
-        make_planner(MonitorSetup.from_scenario(paper, planner="spiral"))
+        make_planner(dc_replace(setup, planner="spiral"))
     assert isinstance(setup.steering, FreeSteering)
 
     def steering(**tr):
@@ -196,7 +197,7 @@ def test_a_planners_draws_never_shift_the_filters(paper):
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
     def run(planner, separate):
-        setup = MonitorSetup.from_scenario(paper, planner=planner)
+        setup = MonitorSetup.from_scenario(override(paper, {"planning.planner": planner}))
         rng, prng = np.random.default_rng(5), np.random.default_rng(6)
         state, ws = initial_state(setup, rng), GuidanceWorkspace()
         uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []

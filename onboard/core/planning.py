@@ -233,7 +233,7 @@ class LookaheadParams:
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
-def _blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
+def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Lateral faces (K, 4, 2), offsets (K, 4) of the obstacles the UAV cannot overfly at its altitude."""
     if not len(uav_obstacles):
         return np.zeros((0, 4, 2)), np.zeros((0, 4))
@@ -429,7 +429,7 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     """The candidate routes (C, S, 2), sampled every ``spacing_m``: to each waypoint the shortest
     polyline around the obstacles the UAV cannot overfly, then a circle turning left or right."""
     H = target_paths.shape[1]
-    normals, offsets = _blocking_2d(uav_obstacles, grid.altitude_m)
+    normals, offsets = blocking_2d(uav_obstacles, grid.altitude_m)
     wp = _route_waypoints(p0, target_paths, params, area_min, area_max, normals, offsets,
                           params.corner_clearance_m)
     clearance = params.corner_clearance_m
