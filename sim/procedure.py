@@ -501,6 +501,7 @@ def app_view(tlog: Path) -> dict:
                  "no_fix_positions": 0, "origin_t": None, "armed_t": None, "unasked": set()}
     timed: list[tuple[float, str]] = []  # (autopilot s, type) of every autopilot message
     monitored: list[float] = []  # autopilot s of the app's heartbeats saying "monitoring"
+    chunks = Reassembler(clock=lambda: 0.0)  # a recording: a text is whole when its last chunk is
     t = None
 
     def add(key, value):
@@ -514,8 +515,9 @@ def app_view(tlog: Path) -> dict:
             if mtype == "COMMAND_LONG" and m.command in (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                          mavlink.MAV_CMD_REQUEST_MESSAGE):
                 asked.add(int(m.param1))
-            elif mtype == "STATUSTEXT":
-                add("app_said", m.text.removeprefix("PMON: ").split(" (")[0].strip())
+            elif mtype == "STATUSTEXT":  # whole: a long text comes in chunks
+                for text in chunks.feed(m):
+                    add("app_said", text.removeprefix("PMON: ").split(" (")[0].strip())
             elif mtype == "HEARTBEAT" and m.custom_mode == 1 and t is not None:  # monitoring
                 monitored.append(t)
             continue

@@ -48,8 +48,8 @@ def test_key_file_rules(tmp_path):
 
 def test_an_autopilot_that_cannot_sign_is_heard_unsigned_and_no_one_else(tmp_path):
     """PX4 v1.16 signs nothing: with ``unsigned_from`` its own packets (1/1) are taken unsigned,
-    while a ground station's still need the key, whether it sends them or the autopilot
-    forwards them byte for byte (PX4 does: the signature arrives intact, measured)."""
+    while a ground station's still need the key, whatever path they take (PX4 forwards them with
+    their signature block rewritten, so they fail: tests/test_px4.py measures it)."""
     key = bytes(range(1, 33))
     rx = mavlink.MAVLink(None)
     rx.robust_parsing = True  # as the app's link: a refused packet is BAD_DATA, not an exception

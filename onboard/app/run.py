@@ -41,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "one-step rule on its jump model); onboard/policy.py")
     p.add_argument("--sysid", type=integer(1, 255), help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--auto-launch", action="store_true",
-                   help="by itself: GUIDED, arm, take off to h, start monitoring (SITL/demo only)")
+                   help="by itself: arm, take off to h, the mission mode (ArduCopter GUIDED, PX4 OFFBOARD), "
+                   "start monitoring (SITL/demo only)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="initial PMON_* parameter; repeatable")
     p.add_argument("--runlog", type=OUT_FILE, help="JSONL run log, one line per tick")
