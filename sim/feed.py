@@ -142,10 +142,11 @@ class Telemetry:
             self._pose_local = time.monotonic()
 
 
-def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
+def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002, resets: int | None = None) -> bool:
     """Until the clock reads ``t`` (True), or ``stop`` (False), or the clock is reset: an
-    autopilot reboot (True: the caller sees ``clock.resets`` change)."""
-    resets = clock.resets
+    autopilot reboot (True: the caller sees ``clock.resets`` change). ``resets``: the count the
+    caller last saw (a reboot before the call returns at once, not at ``t`` of the new clock)."""
+    resets = clock.resets if resets is None else resets
     while not stop.is_set():
         now = clock.now()
         if (now is not None and now >= t) or clock.resets != resets:
@@ -295,7 +296,7 @@ class LiveFeed:
             seq = 0
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
-                if states is None or not _sleep_until(tel.clock, T, self.stop_event):
+                if states is None or not _sleep_until(tel.clock, T, self.stop_event, resets=resets):
                     return 130
                 if tel.clock.resets != resets:
                     # the autopilot rebooted: its clock starts again from 0, and so do the

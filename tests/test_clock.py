@@ -108,3 +108,25 @@ def test_a_reboot_is_pending_from_its_first_sample_until_confirmed():
     assert not clock.reboot_pending and clock.resets == 1
     run(clock, local, 1.0, spoof=lambda i, ap: (ap + 3600) * 1000 if i == 3 else None)
     assert not clock.reboot_pending  # a sample far ahead is a candidate, not a reboot
+
+
+def test_the_feed_sees_a_reboot_that_came_before_it_went_to_sleep():
+    """PX4 restarted while the feed waited out scans with no position: the reboot was followed
+    before the feed's next sleep, which then waited for the new clock to reach the old scan time
+    (78 s of PX4's time without DF scans after a restart, tests/test_px4.py flight B, measured)."""
+    import threading
+    import time
+
+    from sim.feed import _sleep_until
+
+    class Rebooted:
+        resets = 1  # the caller last saw 0
+
+        def now(self):
+            return 3.0  # the new boot's clock, far below the old timeline's t = 107
+
+    stop = threading.Event()
+    t0 = time.monotonic()
+    assert _sleep_until(Rebooted(), 107.0, stop, resets=0) and time.monotonic() - t0 < 0.5
+    stop.set()
+    assert not _sleep_until(Rebooted(), 107.0, stop)  # by itself it counts from its own call
