@@ -247,7 +247,7 @@ class Mission:
 
     def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None):
         self.cfg = cfg
-        self.out = Path(out)
+        self.out = Path(out).resolve()  # the firmware runs in a directory of its own: no relative paths
         self.rig = Rig(RigConfig(scenario=cfg.scenario, seed=cfg.seed, autopilot_seed=1, autopilot=cfg.autopilot,
                                  binary=str(binary) if binary else None, speedup=cfg.speedup, params=cfg.params,
                                  ports=5, auto_launch=cfg.auto_launch, app_args=cfg.app_args,
