@@ -261,8 +261,9 @@ class StateMachine:
 
     def on_reboot(self) -> None:
         """The vehicle is not ours to fly until the operator says so (the link was lost
-        meanwhile, as a rule)."""
-        if self.state in (State.MONITORING, State.PAUSED):
+        meanwhile, as a rule; a PX4 back within the link timeout is seen first as a disarm: a
+        pilot override that no pilot made)."""
+        if self.state in (State.MONITORING, State.PAUSED, State.PILOT_OVERRIDE):
             self.set_state(State.FAULT)
 
     def on_origin_moved(self, off_m: float) -> None:
