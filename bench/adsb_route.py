@@ -149,7 +149,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
     from groundstation import adsb as A
     from groundstation.estimates import check
     from onboard.app.pose import Frame
-    from tests.gcs_fake_vehicle import free_udp_port
+    from tests.support.gcs_fake_vehicle import free_udp_port
 
     cfg = MissionConfig(speedup=speedup, params=params, feed_duration_s=monitor_s + inject_s + 150)
     res: dict = {"avoidance": "on" if params else "off", "params": params, "speedup": speedup}
@@ -202,7 +202,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
                 for t, j, x, y, sx, sy in m.observer.estimates:
                     latest[j] = (x, y, sx, sy)
             for j, (x, y, sx, sy) in latest.items():
-                from tests.gcs_fake_vehicle import target_values
+                from tests.support.gcs_fake_vehicle import target_values
 
                 class _T:  # the app's estimate as PMON_TGT carries it
                     array_id = j

@@ -6,9 +6,9 @@ where the copter flew, the firmware's crashes.
     python bench/ardupilot.py [--autopilot ardupilot|px4|mock] [--params stock|recommended]
                               [--monitor 100] [--speedup 2] [--policy flight|paper] [--seed 1] [--out DIR]
 
-The flight is tests/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
+The flight is tests/firmware/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
 launch` as the autopilot boots, --monitor s of monitoring, a pilot's takeovers each followed by
-`pmon gcs resume`: ArduCopter's LOITER and BRAKE; on PX4 (tests/test_px4.py's flight A) Hold and
+`pmon gcs resume`: ArduCopter's LOITER and BRAKE; on PX4 (tests/firmware/test_px4.py's flight A) Hold and
 POSCTL, with a pilot's sticks live from the start of monitoring (PX4 takes POSCTL only with
 manual control). The binaries: $PMON_ARDUPILOT_SITL, else ../shared/ardupilot; $PMON_PX4_SITL,
 else ../shared/px4. ``recommended``: docs/SITL.md's parameters (ArduCopter: the demo vehicle's;

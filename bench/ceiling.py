@@ -40,32 +40,16 @@ for _k, _v in PINNED.items():  # the evaluation's kernels (sim/numerics.py), set
 
 import numpy as np  # noqa: E402
 
-from bench.ceiling_cache import DEFAULT_CACHE, fill_cache, trial_path  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
+from bench.ceiling_cache import (DEFAULT_CACHE, FLIGHT, _setup, fill_cache, label,  # noqa: E402
+                                 load_trial)
 from sim import ceiling as ce  # noqa: E402
 from sim import ceiling_search as cs  # noqa: E402
 
-FLIGHT = "flight_at_stock"
 DEFAULT_OUT = "/tmp/ceiling/out"
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _setup():
-    return MonitorSetup.from_scenario(load_scenario("paper"))
-
-
-def load_trial(cache: Path, seed: int, trial: int) -> dict:
-    with np.load(trial_path(cache, seed, trial)) as d:
-        return {k: d[k] for k in d.files}
 
 
 def problem(setup, d: dict, speed: float, accel: float) -> ce.CeilingProblem:
     return ce.problem_for_trial(setup, d["truth"], d["gains"], d["start"], 10, speed, accel)
-
-
-def label(speed: float, accel: float) -> str:
-    return f"v{speed:g}_a{accel:g}"
 
 
 def _trials(args) -> list[int]:

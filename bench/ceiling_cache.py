@@ -23,10 +23,26 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from onboard.config import load_scenario  # noqa: E402
+from onboard.core.monitor import MonitorSetup  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.numerics import pin_kernels  # noqa: E402
 
 DEFAULT_CACHE = "/tmp/ceiling/cache"
+FLIGHT = "flight_at_stock"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _setup():
+    return MonitorSetup.from_scenario(load_scenario("paper"))
+
+
+def load_trial(cache: Path, seed: int, trial: int) -> dict:
+    with np.load(trial_path(cache, seed, trial)) as d:
+        return {k: d[k] for k in d.files}
+
+
+def label(speed: float, accel: float) -> str:
+    return f"v{speed:g}_a{accel:g}"
 
 
 def trial_path(cache: Path, seed: int, trial: int) -> Path:

@@ -1,7 +1,7 @@
 """Filter consistency per method: where the average NEES comes from (bulk or tails).
 
-    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20]
-                                [--set tracking.regularise_bandwidth=0 ...]
+    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
+                                [--set tracking.regularise_bandwidth=0 ...] [--out DIR]
 
 Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
 trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and prints per method: ANEES
@@ -12,13 +12,16 @@ wrong on one trial shows here), the window RMSE, the three (trial, target) pairs
 shares of the window's squared error (the trials to look at first), and RMSE / PCRB per 10 s of
 the mission and the median of the per-trial ratio (where the bound gap comes from).
 docs/TRACKING.md compares filter settings with it (``--set KEY=VALUE``: a scenario value changed,
-VALUE read as YAML). Last line: JSON figures.
+VALUE read as YAML). ``--out DIR`` also writes ``pmon eval``'s files for the same trials
+(per_trial.csv, rmse.csv, results.md; no figures), so one run gives both; a bound-only method
+(``ceiling``) has no filter and only appears there. Last line: JSON figures.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -31,12 +34,24 @@ from sim import evaluation as ev  # noqa: E402
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
-                overrides: dict | None = None, workers: int | None = None) -> dict:
-    cfg = ev.make_config(load_scenario(scenario, overrides), trials, seed, methods=methods)
-    results = ev.run_trials(cfg, workers=workers, progress=False)  # the trials of ``pmon eval``
+                overrides: dict | None = None, workers: int | None = None, trial_ids: list[int] | None = None,
+                out: str | None = None, command: str = "") -> dict:
+    n = trials if trial_ids is None else max(trial_ids) + 1
+    cfg = ev.make_config(load_scenario(scenario, overrides), n, seed, methods=methods)
+    t0 = time.perf_counter()
+    # the trials of ``pmon eval``, each as a run of all of them computes it
+    results = ev.run_trials(cfg, workers=workers, progress=False, trials=trial_ids)
+    if out is not None:
+        summary = ev.summarise(cfg, results, wall_s=time.perf_counter() - t0)
+        ev.write_outputs(summary, results, out, command, figures=False)
+    return figures(cfg, results)
+
+
+def figures(cfg, results) -> dict:
+    """Per method of ``cfg``, the figures above from the evaluation's trial results."""
     w = slice(cfg.window_start, None)
     out = {}
-    for m in cfg.method_names:
+    for m in (m.name for m in cfg.methods if not m.bound_only):
         nees = np.stack([r.traces[m].nees[w].mean(axis=0) for r in results])  # (N, M)
         e_all = np.stack([r.traces[m].error_m for r in results])  # (N, K, M)
         out[m] = {"anees": round(float(nees.mean()), 2), "median": round(float(np.median(nees)), 2),
@@ -45,7 +60,7 @@ def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024
         # the (trial, target) pairs that carry the most of the window's squared error
         sq = np.mean(e_all[:, w] ** 2, axis=1)  # (N, M)
         out[m]["worst_pairs"] = [
-            {"trial": int(i), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
+            {"trial": int(results[i].trial), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
              "share": round(float(sq[i, j] / sq.sum()), 3), "nees": round(float(nees[i, j]), 1)}
             for i, j in zip(*np.unravel_index(np.argsort(sq, axis=None)[::-1][:3], sq.shape))]
         if all(r.traces[m].bound_m2 is not None for r in results):
@@ -80,11 +95,21 @@ def main() -> int:
     ap.add_argument("--methods", default="orbit,fixed3,greedy_l8,hover")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--workers", type=int, default=None, help="local processes (default: one per core)")
+    ap.add_argument("--trial-ids", default=None, help="comma-separated trial numbers to run instead of 0..N-1 "
+                                                      "(each exactly as pmon eval runs it)")
+    ap.add_argument("--out", default=None, help="also write pmon eval's files for these trials here")
     add_set_option(ap, "tracking.regularise_bandwidth=0")
     args = ap.parse_args()
     overrides = set_overrides(ap, args)
+    try:
+        ids = None if args.trial_ids is None else sorted({int(i) for i in args.trial_ids.split(",")})
+    except ValueError:
+        ap.error(f"--trial-ids: not a comma-separated list of trial numbers: {args.trial_ids!r}")
+    if ids is not None and (not ids or ids[0] < 0):
+        ap.error("--trial-ids: trial numbers are >= 0")
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
-                      workers=args.workers)
+                      workers=args.workers, trial_ids=ids, out=args.out,
+                      command="python bench/consistency.py " + " ".join(sys.argv[1:]))
     report(res)
     return 0
 

@@ -103,6 +103,35 @@ class TracebackCounter(logging.Handler):
             self.first = self.first or record.getMessage()
 
 
+def _sender(ph: dict, port: int) -> subprocess.Popen:
+    """The sender process of one phase (``python -m bench.df_flood send``), its figures on stdout."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "bench.df_flood", "send", "--to", f"127.0.0.1:{port}",
+         "--src", ph["src"], "--rate", str(ph["rate_hz"]), "--seconds", str(ph["seconds"]),
+         "--kind", ph["kind"]], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+
+
+def _phase_figures(ph: dict, sent: dict, b: dict, a: dict, setpoints: list[float], hb_age: float) -> dict:
+    """One phase's figures: what was sent, and the app's counters after (``a``) less before (``b``)."""
+    gaps = [y - x for x, y in zip(setpoints[b["sp_n"]:], setpoints[b["sp_n"] + 1:a["sp_n"]])]
+    return {
+        "name": ph["name"], "kind": ph["kind"], "src": ph["src"], **sent,
+        "rejected": {k: a["rejected"][k] - b["rejected"][k] for k in a["rejected"]
+                     if a["rejected"][k] != b["rejected"][k]},
+        "dropped_unparsed": {k: a["dropped"][k] - b["dropped"][k] for k in a["dropped"]
+                             if a["dropped"][k] != b["dropped"][k]},
+        "kernel_drops": a["kernel_drops"] - b["kernel_drops"],
+        "reader_cpu_s": round(a["reader_cpu_s"] - b["reader_cpu_s"], 2),
+        "reader_us_per_datagram": round((a["reader_cpu_s"] - b["reader_cpu_s"]) * 1e6
+                                        / max(a["received"] - b["received"], 1), 2),
+        "setpoints": a["sp_n"] - b["sp_n"],
+        "setpoint_gap_s_max": round(max(gaps), 3) if gaps else None,
+        "heartbeat_age_s_max": round(hb_age, 2),
+        "handler_errors": a["errors"] - b["errors"],
+        "mission_s": round((a["t"] or 0) - (b["t"] or 0), 1),
+    }
+
+
 def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3, log=print) -> dict:
     """Fly, and once the app monitors (``warm_ticks`` planned ticks in), run each phase
     (``{"name", "kind", "rate_hz", "seconds", "src"}``) one after the other from a sender
@@ -133,10 +162,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
                 return
             ph = phases[st["i"]]
             st["before"], st["hb_age"], st["t0"] = snapshot(app), 0.0, time.monotonic()
-            st["proc"] = subprocess.Popen(
-                [sys.executable, "-m", "bench.df_flood", "send", "--to", f"127.0.0.1:{app.sensor_port}",
-                 "--src", ph["src"], "--rate", str(ph["rate_hz"]), "--seconds", str(ph["seconds"]),
-                 "--kind", ph["kind"]], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+            st["proc"] = _sender(ph, app.sensor_port)
             log(f"phase {ph['name']}: {ph['rate_hz']:g} datagrams/s from {ph['src']} for {ph['seconds']:g} s "
                 f"(mission t {app.clock.now():.0f} s)")
             return
@@ -145,25 +171,8 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
             return
         time.sleep(1.0)  # let the app drain what is queued
         sent = json.loads(proc.stdout.read().strip().splitlines()[-1])
-        b, a = st["before"], snapshot(app)
-        ph = phases[st["i"]]
-        gaps = [y - x for x, y in zip(setpoints[b["sp_n"]:], setpoints[b["sp_n"] + 1:a["sp_n"]])]
-        out["phases"].append({
-            "name": ph["name"], "kind": ph["kind"], "src": ph["src"], **sent,
-            "rejected": {k: a["rejected"][k] - b["rejected"][k] for k in a["rejected"]
-                         if a["rejected"][k] != b["rejected"][k]},
-            "dropped_unparsed": {k: a["dropped"][k] - b["dropped"][k] for k in a["dropped"]
-                                 if a["dropped"][k] != b["dropped"][k]},
-            "kernel_drops": a["kernel_drops"] - b["kernel_drops"],
-            "reader_cpu_s": round(a["reader_cpu_s"] - b["reader_cpu_s"], 2),
-            "reader_us_per_datagram": round((a["reader_cpu_s"] - b["reader_cpu_s"]) * 1e6
-                                            / max(a["received"] - b["received"], 1), 2),
-            "setpoints": a["sp_n"] - b["sp_n"],
-            "setpoint_gap_s_max": round(max(gaps), 3) if gaps else None,
-            "heartbeat_age_s_max": round(st["hb_age"], 2),
-            "handler_errors": a["errors"] - b["errors"],
-            "mission_s": round((a["t"] or 0) - (b["t"] or 0), 1),
-        })
+        out["phases"].append(_phase_figures(phases[st["i"]], sent, st["before"], snapshot(app), setpoints,
+                                            st["hb_age"]))
         log(f"  {out['phases'][-1]}")
         st["proc"], st["i"] = None, st["i"] + 1
         st["done"] = st["i"] == len(phases)

@@ -2,7 +2,7 @@
 
     python bench/flight_choice.py [--trials 100] [--seed 2024] [--workers 2] [--autopilot stock]
                                   [--variant NAME KEY=VALUE ...] ... [--with greedy_l1,lookahead,fixed3]
-                                  [--out DIR] [--set KEY=VALUE ...]
+                                  [--out DIR] [--against CSV:METHOD ...] [--set KEY=VALUE ...]
 
 Each ``--variant NAME KEY=VALUE ...`` is the evaluation's ``flight`` method (onboard/policy.py
 POLICIES["flight"], flown by the vehicle model with the autopilot's limits) with those scenario
@@ -11,20 +11,29 @@ method has); ``flight`` itself runs as the base. ``--with`` adds registered meth
 sees the same truths and UAV starts (``pmon eval``'s trials for the seed). Prints, per variant,
 its RMSE, the paired difference from the base (per-trial window RMSE, mean and 95 % t-interval)
 and the ratio of time-averaged RMSEs variant / base (95 % paired bootstrap CI), with the mean
-ms per tick, and writes ``pmon eval``'s files to ``--out``. Last line: JSON.
+ms per tick; then per method its ANEES, RMSE / bound and tails (the largest per-(trial, target)
+NEES and the pairs carrying most of the squared error, as bench/consistency.py prints them); and
+writes ``pmon eval``'s files to ``--out``. ``--against CSV:METHOD`` pairs the base with a stored
+run on the same trials (a per_trial.csv of the same seed: docs/results_flight_choice/ holds the
+flight default before the side-aware filter and that filter's first implementation). Last
+line: JSON.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from bench.consistency import figures  # noqa: E402
 from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 
@@ -40,6 +49,33 @@ def variant(name: str, items: list[str], autopilot: str) -> ev.Method:
                    description=f"{base.description}; with {', '.join(items) or 'nothing more'}; autopilot: {autopilot}")
 
 
+def stored_trials(spec: str) -> np.ndarray:
+    """Per-trial window RMSE (trial order) of METHOD in a stored per_trial.csv (``CSV:METHOD``)."""
+    path, _, method = spec.rpartition(":")
+    if not path:
+        raise ValueError(f"{spec!r} is not CSV:METHOD")
+    with open(path, encoding="utf-8") as f:
+        rows = [r for r in csv.DictReader(f) if r["method"] == method]
+    if not rows:
+        raise ValueError(f"no method {method!r} in {path}")
+    return np.array([float(r["rmse_window_m"]) for r in sorted(rows, key=lambda r: int(r["trial"]))])
+
+
+def paired_against(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[tuple, tuple]:
+    """Runs a and b on the same trials (their first common ones): the mean per-trial difference
+    a - b with its 95 % t-interval, and the ratio of their RMS per-trial RMSEs with a 95 % paired
+    percentile bootstrap CI (the trials resampled with replacement, both runs together)."""
+    n = min(len(a), len(b))
+    a, b = a[:n], b[:n]
+    diff = ev.t_interval(a - b)
+    rng = ev.seeded_rng(seed, 2**31 - 3)
+    idx = rng.integers(0, n, (ev.BOOTSTRAP_RESAMPLES, n))
+    boot = np.sqrt((a[idx] ** 2).mean(axis=1) / (b[idx] ** 2).mean(axis=1))
+    ratio = (float(np.sqrt(np.mean(a ** 2) / np.mean(b ** 2))), float(np.percentile(boot, 2.5)),
+             float(np.percentile(boot, 97.5)))
+    return diff, ratio
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python bench/flight_choice.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
@@ -51,9 +87,16 @@ def main(argv: list[str] | None = None) -> int:
                     help="a variant: its name, then the scenario settings it changes; repeatable")
     ap.add_argument("--with", dest="others", default="", help="comma-separated registered methods run beside")
     ap.add_argument("--out", default=None, help="write pmon eval's files here (default: none)")
+    ap.add_argument("--against", action="append", default=[], metavar="CSV:METHOD",
+                    help="a stored run's per_trial.csv and method (same seed and truths): the base paired "
+                         "with it trial by trial; repeatable")
     ap.add_argument("--quiet", action="store_true")
     add_set_option(ap)
     args = ap.parse_args(argv)
+    try:
+        stored = [(spec, stored_trials(spec)) for spec in args.against]
+    except (OSError, ValueError) as exc:
+        ap.error(f"--against: {exc}")
     try:
         sc = load_scenario("paper", set_overrides(ap, args))
         base = replace(ev.METHODS[BASE], name=f"{BASE}@{args.autopilot}", autopilot=args.autopilot)
@@ -87,6 +130,23 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"{m.name:34s} {s.rmse_mean_m:6.1f} {'':24s} {'':22s} {s.tick_ms:8.0f} {plan:>18s}")
             out[m.name] = {"rmse_m": round(s.rmse_mean_m, 4), "ms_per_tick": round(s.tick_ms, 1)}
+    tails = figures(cfg, trials)  # bench/consistency.py's: where each filter's error and NEES come from
+    for m in cfg.methods:
+        s, t = summary.methods[m.name], tails[m.name]
+        print(f"{m.name:34s} ANEES {s.nees_mean:.2f}, RMSE / bound {s.rmse_over_bound:.2f}, median per-trial ratio "
+              f"{t.get('over_bound_trial_median', float('nan'))}; largest (trial, target) NEES {t['top5']}; "
+              "largest shares of the squared error: " + ", ".join(
+                  f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
+                  for p in t["worst_pairs"]))
+        out[m.name].update(anees=round(s.nees_mean, 4), over_bound=round(s.rmse_over_bound, 4), top5_nees=t["top5"],
+                           worst_pairs=t["worst_pairs"])
+    for spec, other in stored:
+        base_r = summary.methods[base.name].per_trial_rmse
+        d, ratio = paired_against(base_r, other, args.seed)
+        n = min(len(base_r), len(other))
+        print(f"{base.name} against {spec} (trials 0-{n - 1}, paired): minus it {d[0]:+.2f} m ({d[1]:+.2f}, {d[2]:+.2f}), "
+              f"RMS of per-trial RMSE over its {ratio[0]:.3f} ({ratio[1]:.3f}, {ratio[2]:.3f})")
+        out[f"{base.name} against {spec}"] = {"minus_m": [round(x, 4) for x in d], "over": [round(x, 4) for x in ratio]}
     if args.out:
         command = "python bench/flight_choice.py " + " ".join(sys.argv[1:] if argv is None else argv)
         ev.write_outputs(summary, trials, args.out, command, figures=False)

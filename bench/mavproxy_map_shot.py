@@ -4,7 +4,7 @@
 
 PYTHON runs MAVProxy 1.8.74 with its map module (wxPython and OpenCV: Debian's python3-wxgtk4.0
 and python3-opencv in a venv made with --system-site-packages). The vehicle is the hub tests'
-loopback vehicle (tests/test_gcs_hub.py: the app's four targets on the paper scenario);
+loopback vehicle (tests/gcs/test_gcs_hub.py: the app's four targets on the paper scenario);
 ``pmon gcs hub`` serves MAVProxy; Xvfb is the display. No map tiles (no internet): the
 targets, their 1-sigma circles and the vehicle on MAVProxy's blank background.
 """
@@ -31,7 +31,7 @@ def main() -> int:
     if shutil.which("Xvfb") is None:
         print("no Xvfb (Debian: apt-get install xvfb)")
         return 2
-    from tests.test_gcs_hub import FRAME, Rig
+    from tests.support.hub_rig import FRAME, Rig
 
     xvfb = subprocess.Popen(["Xvfb", args.display, "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -1,8 +1,8 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
-    python bench/planner.py [--ticks 60] [--seed 1] [--figure bench/planner_tick.png]
-                            [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight]
-                            [--set tracking.plan_steering=true ...]
+    python bench/planner.py [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure bench/planner_tick.png]
+                            [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight,...]
+                            [--clock wall|cpu] [--repeat 1] [--set tracking.plan_steering=true ...]
 
 Closed loop on the core alone (as bench/tick.py): the targets follow their own plans, the DF
 bearings carry noise, the UAV goes where the planner says (and, for the vehicle motion, with
@@ -12,7 +12,14 @@ Prints a table per planner x motion (medians and p95 over ticks after the first,
 the guidance's exploratory face search), writes a figure of the tick-time distributions, and
 ends with one JSON line. The case ``flight`` is the flight default (onboard/policy.py
 POLICIES["flight"], with ArduCopter's stock WPNAV_SPEED / WPNAV_ACCEL as the app reads them,
-capped as the policy says), the scenario's ``--set`` on top.
+capped as the policy says), the scenario's ``--set`` on top; ``flight~free`` is it with the default
+filter (the free steering: ``plan_steering``, ``plan_sides`` off), ``flight~sides`` with the
+side-aware filter (both on), whatever the policy says.
+
+On a shared machine: ``--clock cpu`` times the ticks by this process's CPU time (time.process_time)
+instead of the wall clock, and ``--repeat R`` flies each case's closed loop R times, the cases in
+turn, and keeps each tick's least time (the loops are deterministic: tick k does the same work
+every time). ``--seeds`` pools the ticks of several closed loops.
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -37,12 +45,17 @@ from onboard.policy import vehicle_motion, with_policy  # noqa: E402
 from sim.numerics import numerics_description  # noqa: E402
 from sim.multicopter import VehicleLimits  # noqa: E402
 
-CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight")
+CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
+         "flight~sides")
+# variants of the flight default: its filter as the policy has it, the default filter (free steering:
+# plan_steering and plan_sides off), the side-aware filter (both on)
+FLIGHT_FILTERS = {"flight": {}, "flight~free": {"tracking.plan_steering": False, "tracking.plan_sides": False},
+                  "flight~sides": {"tracking.plan_steering": True, "tracking.plan_sides": True}}
 
 
 def setup_for(sc, case: str) -> MonitorSetup:
-    if case == "flight":
-        fl = with_policy(sc, "flight")
+    if case in FLIGHT_FILTERS:
+        fl = override(with_policy(sc, "flight"), FLIGHT_FILTERS[case])
         stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
         m = vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy)
         return MonitorSetup.from_scenario(override(fl, {"planning.speed_max_mps": m.speed_max_mps,
@@ -51,10 +64,25 @@ def setup_for(sc, case: str) -> MonitorSetup:
     return MonitorSetup.from_scenario(override(sc, {"planning.planner": planner, "planning.motion": motion}))
 
 
+def timings(sc, cases: list[str], ticks: int, seeds: list[int], repeat: int, timer) -> dict:
+    """Per case, ms per tick (tick, tracking, guidance, planning) over the seeds' closed loops: each
+    tick's least over ``repeat`` runs, the cases run in turn within each repetition."""
+    runs: dict[str, list[dict]] = {c: [] for c in cases}
+    for _ in range(repeat):
+        for case in cases:
+            per_seed = [tick_timings(setup_for(sc, case), ticks, seed, timer=timer) for seed in seeds]
+            runs[case].append({k: np.concatenate([t[k] for t in per_seed]) for k in per_seed[0]})
+    return {c: {k: np.min([r[k] for r in rs], axis=0) for k in rs[0]} for c, rs in runs.items()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ticks", type=int, default=60)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seeds", default=None, help="comma-separated seeds, their ticks pooled (instead of --seed)")
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="time ticks by the wall clock or by this process's CPU time")
+    ap.add_argument("--repeat", type=int, default=1, help="fly each case this many times; each tick's least time")
     ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
                     help="where to write the figure ('' for none)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
@@ -64,11 +92,16 @@ def main() -> None:
     bad = [c for c in cases if c not in CASES]
     if bad or not cases:
         ap.error(f"--cases: unknown case {bad[0]!r}" if bad else "--cases is empty")
+    try:
+        seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else [args.seed]
+    except ValueError:
+        ap.error(f"--seeds: not a comma-separated list of integers: {args.seeds!r}")
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
     sc = load_scenario("paper", set_overrides(ap, args))
-    results = {}
-    for case in cases:
-        results[case] = tick_timings(setup_for(sc, case), args.ticks, args.seed)
-    print(f"paper scenario{set_label(args)}, {args.ticks} ticks, lookahead over "
+    results = timings(sc, cases, args.ticks, seeds, args.repeat, time.process_time if args.clock == "cpu" else None)
+    print(f"paper scenario{set_label(args)}, {args.ticks} ticks x seeds {','.join(map(str, seeds))}, "
+          f"{args.clock} clock, least of {args.repeat} run(s) per tick, lookahead over "
           f"{sc.planning.lookahead_steps} ticks (flight: {with_policy(sc, 'flight').planning.lookahead_steps}), "
           f"BLAS threads: {os.environ['OPENBLAS_NUM_THREADS']}")
     print(f"numerics: {numerics_description()}")
@@ -97,7 +130,7 @@ def main() -> None:
         fig.tight_layout()
         fig.savefig(args.figure, dpi=90)
         plt.close(fig)
-    print(json.dumps({name: {"tick_ms_median": round(float(np.median(r["tick"])), 2),
+    print(json.dumps({name: {"clock": args.clock, "tick_ms_median": round(float(np.median(r["tick"])), 2),
                              "tick_ms_p95": round(float(np.percentile(r["tick"], 95)), 2),
                              "planning_ms_median": round(float(np.median(r["planning"])), 2)}
                       for name, r in results.items()}))

@@ -5,7 +5,7 @@
 
 The planner (docs/PLANNING.md §3) scores each of its ~150 routes over H = 50 ticks with a
 Gaussian (EKF) pseudo-update per tick; the one-step form is checked against the paper's particle
-pseudo-update in tests/test_information.py. This bench checks the whole score. It flies the
+pseudo-update in tests/core/test_information.py. This bench checks the whole score. It flies the
 closed loop of bench/planner.py (the paper scenario, lookahead planner). At each tick named, it
 takes the inputs of that tick's plan: the predicted particles of every target, the guidance
 plans and the candidate routes with their EKF scores. It then scores the same routes with

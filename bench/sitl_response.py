@@ -48,7 +48,7 @@ Printed per case: for routes and the ramp, the horizontal distance from the vehi
 the plan puts it at, when the next 1-s setpoint is due (median, p95, max over the ticks); for
 steps, the time to come within 1 m, the overshoot and the peak speed. Last line: JSON of these.
 ``--save`` writes the traces (10 Hz, horizontal) and every setpoint sent: the reference data of
-tests/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the model
+tests/sim/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the model
 (sim.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
 trace and its distance at the next tick beside the SITL's.
 """

@@ -5,7 +5,7 @@ port on 127.0.0.1, docs/OPERATING.md "TAK" says how it was started).
     python bench/tak_server.py --port 18087
 
 A TCP client announces itself to the server (a takPong-style hello, pytak.hello_event), then
-``pmon gcs hub --tak tcp://127.0.0.1:PORT`` (tests/test_gcs_hub.py's loopback vehicle: four
+``pmon gcs hub --tak tcp://127.0.0.1:PORT`` (tests/gcs/test_gcs_hub.py's loopback vehicle: four
 targets, 1 Hz ticks) sends three ticks; the client counts what the server relays: position
 error (m), ce against the 1-sigma ellipse's radius, latency from the tick. One JSON line.
 """
@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.simplefilter("ignore")
 import pytak  # noqa: E402
 
-from tests.test_gcs_hub import FRAME, TARGETS, Rig  # noqa: E402
-from tests.test_gcs_tak import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
+from tests.support.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
+from tests.support.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--port", type=int, required=True, help="the TAK server's TCP CoT port on 127.0.0.1")

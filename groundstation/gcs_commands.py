@@ -67,6 +67,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
                "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
                "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
                "launch": st.launch_phase, "limits": st.limits,
+               "kraken": None if st.kraken is None else dict(zip(("frames", "rejected", "gated"), st.kraken)),
                "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
                "next_enu_m": list(st.next_enu) if st.next_enu else None,
                "params": params}
@@ -92,6 +93,8 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
             f"({st.ticks_skipped} skipped, {st.ticks_late} late)",
             f"  DF datagrams {st.datagrams_accepted} accepted, {st.datagrams_rejected} rejected; "
             f"setpoints refused {st.setpoints_refused}",
+            *([] if st.kraken is None else [
+                f"  KrakenSDR {st.kraken[0]} frames, {st.kraken[1]} rejected, {st.kraken[2]} gated"]),
             f"  UAV ENU   {_enu(e)}   next {_enu(st.next_enu)}",
         ]
         if st.launch_phase:

@@ -112,6 +112,8 @@ class AppStatus:
     warnings: tuple[str, ...] = ()  # conditions that hold now, in words
     launch_phase: str | None = None  # None: no launch sequence running
     limits: str | None = None  # the planner's speed and acceleration and the autopilot's, in words
+    # a KrakenSDR input's frames used, lines and frames refused, sets gated; None: no KrakenSDR input
+    kraken: tuple[int, int, int] | None = None
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
@@ -139,7 +141,13 @@ class AppStatus:
                          _int(d["ticks_skipped"]), _int(d["ticks_late"]), _int(d["setpoints_refused"]),
                          _num(d["latency_ms"]), uav if all(math.isfinite(v) for v in uav) else None,
                          tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None,
-                         limits)
+                         limits, _kraken(d))
+
+
+def _kraken(d: dict) -> tuple[int, int, int] | None:
+    """The KrakenSDR counts, None when the app has no KrakenSDR input (NaN) or is older than them."""
+    values = [d.get(k, math.nan) for k in C.KRAKEN_STAT_FIELDS]
+    return tuple(_int(v) for v in values) if all(math.isfinite(v) for v in values) else None
 
 
 def _int(x: float, default: int = 0) -> int:

@@ -25,6 +25,7 @@ from dataclasses import MISSING, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+from urllib.parse import urlsplit
 
 import numpy as np
 import yaml
@@ -37,6 +38,8 @@ from onboard.settings import (  # noqa: F401  (re-exported: the scenario's types
     ConfigError,
     Dynamics,
     Guidance,
+    Kraken,
+    KrakenVfo,
     Lookahead,
     Mission,
     Origin,
@@ -48,7 +51,7 @@ from onboard.settings import (  # noqa: F401  (re-exported: the scenario's types
     Tracking,
     Uav,
 )
-from onboard.settings import TEXT_CHARS, value_of
+from onboard.settings import LOCATION_CHARS, LOCATION_STARTS, TEXT_CHARS, value_of
 
 BUILTIN_SCENARIOS = ("paper",)
 MAX_FILE_BYTES = 1_000_000
@@ -227,6 +230,26 @@ class _Node:
             if len(v) > TEXT_CHARS:
                 raise self.fail(f"must be at most {TEXT_CHARS} characters, got {len(v)}")
             return v
+        if s.kind == "location":
+            if not isinstance(v, str) or not v:
+                raise self.fail(f"must be a non-empty string, got {_kind(v)}")
+            if v in s.choices:
+                return v
+            if not v.startswith(LOCATION_STARTS):
+                raise self.fail(f"must be {s.range_text()}, got {_show(v)}")
+            if len(v) > LOCATION_CHARS:
+                raise self.fail(f"must be at most {LOCATION_CHARS} characters, got {len(v)}")
+            if any(c.isspace() or not c.isprintable() for c in v):
+                raise self.fail(f"must have no spaces or control characters, got {_show(v)}")
+            if v.startswith("http://"):
+                try:
+                    u = urlsplit(v)
+                    u.port  # noqa: B018  (raises for a port out of range)
+                except ValueError as exc:
+                    raise self.fail(f"{exc}, got {_show(v)}") from None
+                if not u.hostname:
+                    raise self.fail(f"must name a host (http://HOST:PORT/PATH), got {_show(v)}")
+            return v
         if s.kind == "vector":
             if isinstance(self.value, tuple):
                 self.value = list(self.value)
@@ -286,12 +309,9 @@ def _area(sc: Scenario) -> None:
 
 
 def _settings(sc: Scenario) -> None:
-    g, tr, pl = sc.guidance, sc.tracking, sc.planning
+    g, pl = sc.guidance, sc.planning
     if g.terminal_weight == 0 and g.stage_weight == 0:
         raise ConfigError("guidance.stage_weight: stage_weight and terminal_weight cannot both be 0")
-    if tr.plan_sides and not tr.plan_steering:
-        raise ConfigError("tracking.plan_sides: needs tracking.plan_steering: true (the sides choose "
-                          "among its reference plans)")
     if pl.planner == "lookahead" and pl.lookahead_steps > g.horizon:
         raise ConfigError(f"planning.lookahead_steps: must be <= guidance.horizon ({g.horizon}) with the "
                           f"lookahead planner, got {pl.lookahead_steps}: it follows the guidance plans")
@@ -299,6 +319,25 @@ def _settings(sc: Scenario) -> None:
     if not lo <= h <= hi:
         raise ConfigError(f"uav.altitude_m: must be within the geofence band app.fence_min_m.."
                           f"app.fence_max_m = {lo:g}..{hi:g} m, got {h:g}")
+
+
+def _kraken(sc: Scenario) -> None:
+    """Each VFO a target's, one VFO per target, their frequencies told apart; the adaptive
+    clutter's bounds in order."""
+    k = sc.kraken
+    names = {t.name for t in sc.targets}
+    for i, v in enumerate(k.vfos):
+        if v.target not in names:
+            raise ConfigError(f"kraken.vfos[{i}].target: no target named {v.target!r} in targets")
+        for w in k.vfos[:i]:
+            if w.target == v.target:
+                raise ConfigError(f"kraken.vfos[{i}].target: two VFOs with the same target {v.target!r}")
+            if abs(w.freq_hz - v.freq_hz) <= 2 * k.freq_tol_hz:
+                raise ConfigError(f"kraken.vfos[{i}].freq_hz: two VFOs with the same frequency (within "
+                                  f"2 x kraken.freq_tol_hz of {w.freq_hz:g} Hz)")
+    if k.clutter_min is not None and k.clutter_max < k.clutter_min:
+        raise ConfigError(f"kraken.clutter_max: must be >= kraken.clutter_min ({k.clutter_min:g}), "
+                          f"got {k.clutter_max:g}")
 
 
 def _geometry(sc: Scenario) -> None:
@@ -333,7 +372,7 @@ def _geometry(sc: Scenario) -> None:
                           f"{sc.obstacles[hit].name!r} (inflated by uav.obstacle_margin_m)")
 
 
-CHECKS = (_unique_names, _references, _area, _settings, _geometry)  # in this order, after each setting's own
+CHECKS = (_unique_names, _references, _area, _settings, _kraken, _geometry)  # in this order, after each setting's own
 
 
 # --------------------------------------------------------------------------- entry points

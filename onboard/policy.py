@@ -19,7 +19,8 @@ from onboard.core.planning import UavMotion
 
 POLICIES: dict[str, dict[str, Any]] = {
     "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
-               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5},
+               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5,
+               "tracking.plan_steering": True, "tracking.plan_sides": True},
     "paper": {},
 }
 DEFAULT = "flight"

@@ -32,8 +32,9 @@ class Setting:
     """How one setting is read, checked and shown.
 
     kind: ``number`` (a float), ``integer``, ``even`` (an even integer), ``flag`` (true/false),
-    ``choice`` (one of ``choices``), ``text`` (a name), ``vector`` (``size`` numbers, or 1 to
-    ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
+    ``choice`` (one of ``choices``), ``text`` (a name), ``location`` (where to read from: an
+    ``http://`` or ``file://`` URL or an absolute path, or one of the words in ``choices``),
+    ``vector`` (``size`` numbers, or 1 to ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
     vector (``lo_open``/``hi_open``: the bound itself excluded). ``nullable``: ``null`` is a
     value (its meaning in ``doc``). ``param``: the PMON_* parameter that sets it in flight.
     ``paper``: the value is the paper's (Sec. V-A), not ours.
@@ -61,6 +62,8 @@ class Setting:
             return "true or false"
         if self.kind == "text":
             return f"1 to {TEXT_CHARS} characters"
+        if self.kind == "location":
+            return " or ".join((LOCATION_FORMS,) + self.choices)
         if self.lo is None:
             return ""
         text = f"{'(' if self.lo_open else '['}{show_number(self.lo)}, {show_number(self.hi)}{')' if self.hi_open else ']'}"
@@ -75,6 +78,9 @@ class Setting:
 
 
 TEXT_CHARS = 64  # a name: shown in tables, logs and messages
+LOCATION_CHARS = 512  # a location setting
+LOCATION_STARTS = ("http://", "file://", "/")  # what a location setting may start with
+LOCATION_FORMS = "http://HOST:PORT/PATH, file:///PATH or an absolute path"
 
 
 def show_number(x: float) -> str:
@@ -113,6 +119,11 @@ def text(default, doc) -> Any:
     return _setting(default, "text", doc)
 
 
+def location(default, doc, *, words=(), nullable=False) -> Any:
+    """Where to read from; ``words``: plain words it may also be (``auto``)."""
+    return _setting(default, "location", doc, choices=tuple(words), nullable=nullable)
+
+
 def vector(default, size, lo, hi, unit, doc, *, max_items=None, lo_open=False, paper=False) -> Any:
     return _setting(default, "vector", doc, unit=unit, lo=lo, hi=hi, size=size, max_items=max_items,
                     lo_open=lo_open, paper=paper)
@@ -125,7 +136,7 @@ def section(cls, doc: str, required: bool = False) -> Any:
 
 
 def records(cls, min_items: int, max_items: int, doc: str, required: bool = True) -> Any:
-    """A list of mappings of ``cls`` (targets, goals, obstacles)."""
+    """A list of mappings of ``cls`` (targets, goals, obstacles, kraken.vfos)."""
     meta = {"records": cls, "min_items": min_items, "max_items": max_items, "doc": doc}
     return field(metadata=meta) if required else field(default=(), metadata=meta)
 
@@ -261,7 +272,8 @@ class Tracking:
     regularise_bandwidth: float = number(0.2, 0, 1, "", "h of the regularised resampling, jitter N(0, h^2 C); "
                                          "0: plain resampling")
     plan_steering: bool = flag(False, "particles steer by the affine law of the nearest reference plan "
-                               "while the plan is constrained (opt-in)")
+                               "while the plan is constrained (the flight policy's; false: the free steering "
+                               "alone, and the plan_* settings below unused)")
     plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True)
     plan_spread_sigma: float = number(1.5, 0, 5, "sigma", "the references' spread along the cloud's major axis",
                                       lo_open=True)
@@ -271,7 +283,7 @@ class Tracking:
                                      "reference are steered", lo_open=True)
     plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan")
     plan_sides: bool = flag(False, "with plan_steering: a side of each obstacle per particle, reference "
-                            "plans per side present")
+                            "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
 
@@ -336,6 +348,58 @@ class App:
                                        "max(120 m, uav.altitude_m)", nullable=True, param="PMON_ALT_MAX")
 
 
+@dataclass(frozen=True)
+class KrakenVfo:
+    """One VFO of a KrakenSDR: the frequency it is tuned to, and whose emitter that is."""
+
+    target: str = text(MISSING, "a target's name: this VFO's bearings are its channel")
+    freq_hz: float = number(MISSING, 1e6, 1e11, "Hz", "the VFO's frequency, as KrakenSDR writes it in each line")
+
+
+@dataclass(frozen=True)
+class Kraken:
+    """A KrakenSDR's DoA output as the DF (``pmon run --kraken``; onboard/app/kraken.py;
+    docs/KRAKENSDR.md argues each value)."""
+
+    vfos: tuple[KrakenVfo, ...] = records(KrakenVfo, 0, 64, "each target's emitter: a VFO of KrakenSDR tuned "
+                                          "to it (needed by pmon run --kraken)", required=False)
+    url: str = location("http://127.0.0.1:8081/DOA_value.html", "its DoA output (the 'Kraken App' CSV) over "
+                   "HTTP, or the file it writes; pmon run --kraken URL overrides it")
+    status_url: str | None = location("auto", "its status.json (ADC overdrive, DAQ sync) for the overdrive gate; "
+                                 "auto: beside url; null: none", words=("auto",), nullable=True)
+    freq_tol_hz: float = number(2000.0, 0, 1e6, "Hz", "a line within this of a VFO's frequency is that VFO's",
+                                lo_open=True)
+    mount_offset_deg: float = number(0.0, -360, 360, "deg", "KrakenSDR's 0 (antenna 0), clockwise from the "
+                                     "vehicle's nose")
+    convention: str = choice("auto", ("auto", "unit_circle", "compass"), "the main DoA's angle convention; auto: "
+                             "read off each line's spectrum")
+    measurements: str = choice("peaks", ("peaks", "main"), "the measurement set: the spectrum's peaks, or the "
+                               "main DoA alone")
+    peak_floor_db: float = number(6.0, 0, 100, "dB", "peaks within this of the spectrum's highest",
+                                  lo_open=True)
+    peak_prominence_db: float = number(3.0, 0, 100, "dB", "... standing this far above their valleys")
+    max_peaks: int = integer(8, 1, 64, "", "at most this many peaks per line (the highest)")
+    min_confidence: float = number(0.0, 0, 1000, "", "gate: a line below this confidence is an empty set")
+    min_power_db: float = number(-100.0, -300, 100, "dB", "gate: a line below this power is an empty set "
+                                 "(KrakenSDR floors it at -100)")
+    reject_overdrive: bool = flag(True, "gate: frames its status.json flags (ADC overdrive, DAQ not in sync) "
+                                  "are empty sets")
+    clutter: str = choice("fixed", ("fixed", "adaptive"), "the clutter rate of a KrakenSDR scan: fixed "
+                          "(sensor.clutter_rate) or adaptive (what its peaks show)")
+    clutter_min: float | None = number(None, 0, 1000, "1/scan", "adaptive clutter: its floor; null: the "
+                                       "filter's own rate (sensor.clutter_rate, PMON_CLUTTER)", nullable=True)
+    clutter_max: float = number(10.0, 0, 1000, "1/scan", "adaptive clutter: its ceiling (>= clutter_min)")
+    clutter_window: int = integer(20, 1, 10_000, "scans", "adaptive clutter: averaged over this many scans "
+                                  "per target")
+    time_source: str = choice("autopilot", ("autopilot", "host"), "its Unix stamps to autopilot time through "
+                              "the autopilot's UTC (SYSTEM_TIME) or this computer's clock")
+    poll_s: float = number(0.05, 0.005, 10, "s", "wall time between reads of url")
+
+    @property
+    def mount_offset_rad(self) -> float:
+        return math.radians(self.mount_offset_deg)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
     name: str = text(MISSING, "the scenario's name")
@@ -355,6 +419,7 @@ class Scenario:
     planning: Planning = section(Planning, "where the UAV flies next")
     mission: Mission = section(Mission, "the simulated mission")
     app: App = section(App, "the onboard app (pmon run)")
+    kraken: Kraken = section(Kraken, "a KrakenSDR as the DF (pmon run --kraken)")
     source: str = field(default="<memory>", compare=False)  # where it was read from, for messages
     overrides: tuple[tuple[str, Any], ...] = field(default=(), compare=False)  # KEY=VALUE applied, in order
 

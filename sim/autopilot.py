@@ -23,8 +23,9 @@ clients (pymavlink, MAVProxy, MAVSDK) can tell:
 
 The parts: sim/copter.py (modes, parameters, boot, the flight state machine), sim/mock_links.py
 (endpoints and links), sim/mock_commands.py (commands and position targets),
-sim/mock_messages.py (streams and the messages built); this module the protocol around
-them (routing, parameters, missions, FTP, fault injection) and the program.
+sim/mock_messages.py (streams, their requests and the messages built), sim/mock_stores.py
+(parameters, missions, FTP); this module the protocol around them (links, routing, dispatch,
+fault injection) and the program.
 
 Geodetic <-> local conversions use pymap3d; the local frame is NED (MAVLink's), and
 `AutopilotState.pos_enu` gives the ENU mission frame of the core.
@@ -57,6 +58,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 import numpy as np  # noqa: E402
 
 from sim.mock_commands import Commands  # noqa: E402
+from sim.mock_stores import Stores  # noqa: E402
 from sim.mock_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry  # noqa: E402
 from sim.copter import BootTimeline, Copter, Params  # noqa: E402
 from sim.copter import Mode  # noqa: E402,F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
@@ -64,13 +66,6 @@ from sim.mock_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _c
 from sim.multicopter import Vec3  # noqa: E402
 
 log = logging.getLogger("sim.autopilot")
-
-# MAVLink FTP opcodes and error codes used by the FTP refusal
-_FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS = 1, 2
-_FTP_OPEN_OPS = {3, 4, 6, 11, 13}  # list dir, open RO, create, open WO, calc CRC
-_FTP_ACK, _FTP_NAK = 128, 129
-_FTP_ERR_INVALID_SESSION, _FTP_ERR_FILE_NOT_FOUND = 4, 10
-
 
 @dataclass(frozen=True)
 class AutopilotState:
@@ -95,7 +90,7 @@ class AutopilotState:
 
 # --------------------------------------------------------------------------- the mock
 
-class MockAutopilot(Telemetry, Commands):
+class MockAutopilot(Telemetry, Commands, Stores):
     """A mock ArduCopter on MAVLink 2, run by a background thread.
 
     Args:
@@ -536,26 +531,6 @@ class MockAutopilot(Telemetry, Commands):
     def _on_heartbeat(self, link: _Link, msg) -> None:
         pass  # routes are learned in _on_message; GCS failsafe is not modelled
 
-    def _on_timesync(self, link: _Link, msg) -> None:
-        if msg.tc1 == 0:  # a request: answer with our clock (ns since boot)
-            link.send(self._enc().timesync_encode(
-                int(self.copter.t * 1e9), msg.ts1, msg.get_srcSystem(), msg.get_srcComponent()))
-
-    def _on_autopilot_version_request(self, link: _Link, msg) -> None:
-        link.send(self._autopilot_version(link))
-
-    def _on_request_data_stream(self, link: _Link, msg) -> None:
-        hz = msg.req_message_rate if msg.start_stop else 0
-        ids = list(DATA_STREAMS) if msg.req_stream_id == mavlink.MAV_DATA_STREAM_ALL else [
-            msg.req_stream_id]
-        for sid in ids:
-            for name in DATA_STREAMS.get(sid, ()):
-                self._set_interval(link, name, 1.0 / hz if hz > 0 else 0.0)
-
-    def _set_interval(self, link: _Link, name: str, interval_s: float) -> None:
-        link.intervals[name] = interval_s
-        link.next_due[name] = self.copter.t  # start the new rate now
-
     def _on_set_mode(self, link: _Link, msg) -> None:
         result = self._set_mode_common(msg.base_mode, msg.custom_mode)
         self._ack(link, msg, mavlink.MAV_CMD_DO_SET_MODE, result)
@@ -566,104 +541,7 @@ class MockAutopilot(Telemetry, Commands):
             return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED
         return mavlink.MAV_RESULT_DENIED
 
-    # ----- parameters
-    def _param_value(self, name: str):
-        return self._enc().param_value_encode(
-            name.encode(), self.params[name], self.params.ptype(name), len(self.params),
-            self.params.index(name))
 
-    def _on_param_request_list(self, link: _Link, msg) -> None:
-        self._banner(link)
-        for name in self.params.names():
-            link.send(self._param_value(name))
-
-    def _on_param_request_read(self, link: _Link, msg) -> None:
-        names = self.params.names()
-        if msg.param_index >= 0:
-            name = names[msg.param_index] if msg.param_index < len(names) else None
-        else:
-            name = _param_name(msg.param_id)
-        if name is None or name not in self.params:
-            self._count("param_unknown")
-            link.send(self._enc().statustext_encode(
-                mavlink.MAV_SEVERITY_WARNING,
-                f"Unknown parameter {_param_name(msg.param_id) or msg.param_index}".encode()[:50]))
-            return
-        link.send(self._param_value(name))
-
-    def _on_param_set(self, link: _Link, msg) -> None:
-        name = _param_name(msg.param_id)
-        if name not in self.params:
-            self._count("param_unknown")
-            link.send(self._enc().statustext_encode(
-                mavlink.MAV_SEVERITY_WARNING, f"Unknown parameter {name}".encode()[:50]))
-            return
-        if self.params.set(name, float(msg.param_value)):
-            self._count("param_set")
-            self.copter.params_changed()
-            if name.startswith("SR") and "_" in name:  # a port's stream rates: at once
-                for lk in self._links:
-                    if name.startswith(f"SR{lk.port_index}_"):
-                        for msg_name, iv in self._default_intervals(lk.port_index).items():
-                            self._set_interval(lk, msg_name, iv)
-        self._broadcast(self._param_value(name))  # ArduPilot tells every link
-
-    # ----- missions: an empty mission, fence and rally
-    def _on_mission_request_list(self, link: _Link, msg) -> None:
-        link.send(self._enc().mission_count_encode(
-            msg.get_srcSystem(), msg.get_srcComponent(), 0, getattr(msg, "mission_type", 0)))
-
-    def _mission_nack(self, link: _Link, msg, result: int) -> None:
-        link.send(self._enc().mission_ack_encode(
-            msg.get_srcSystem(), msg.get_srcComponent(), result,
-            getattr(msg, "mission_type", 0)))
-
-    def _on_mission_request_int(self, link: _Link, msg) -> None:
-        self._mission_nack(link, msg, mavlink.MAV_MISSION_INVALID_SEQUENCE)
-
-    _on_mission_request = _on_mission_request_int
-
-    def _on_mission_clear_all(self, link: _Link, msg) -> None:
-        self._mission_nack(link, msg, mavlink.MAV_MISSION_ACCEPTED)
-
-    def _on_mission_count(self, link: _Link, msg) -> None:
-        # Uploading an empty list is fine; storing missions is not modelled.
-        result = mavlink.MAV_MISSION_ACCEPTED if msg.count == 0 else mavlink.MAV_MISSION_UNSUPPORTED
-        self._mission_nack(link, msg, result)
-
-    def _on_mission_set_current(self, link: _Link, msg) -> None:
-        self._mission_nack(link, msg, mavlink.MAV_MISSION_INVALID_SEQUENCE)
-
-    # ----- MAVLink FTP: a vehicle without files
-    def _on_file_transfer_protocol(self, link: _Link, msg) -> None:
-        """Answer every FTP request at once so clients (MAVProxy fetches parameters over FTP
-        first) fall back to PARAM_REQUEST_LIST instead of waiting for a timeout."""
-        payload = bytes(msg.payload)
-        if len(payload) < 12:
-            return
-        seq = int.from_bytes(payload[0:2], "little")
-        session, opcode = payload[2], payload[3]
-        if opcode in (_FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS):
-            reply_op, size, data = _FTP_ACK, 0, b""
-        else:
-            code = _FTP_ERR_FILE_NOT_FOUND if opcode in _FTP_OPEN_OPS else _FTP_ERR_INVALID_SESSION
-            reply_op, size, data = _FTP_NAK, 1, bytes([code])
-        header = (((seq + 1) & 0xFFFF).to_bytes(2, "little")
-                  + bytes([session, reply_op, size, opcode, 0, 0]) + payload[8:12])
-        body = (header + data).ljust(251, b"\x00")
-        link.send(self._enc().file_transfer_protocol_encode(
-            0, msg.get_srcSystem(), msg.get_srcComponent(), list(body)))
-
-
-
-
-
-
-
-def _param_name(raw) -> str:
-    if isinstance(raw, bytes):
-        raw = raw.decode("ascii", "replace")
-    return str(raw).split("\x00", 1)[0].strip()
 
 
 # --------------------------------------------------------------------------- CLI

@@ -2,7 +2,8 @@
 
     mock autopilot  (python -m sim.autopilot, 2 TCP ports picked by the OS, home = the UAV's start)
     onboard app     (pmon run --auto-launch: GUIDED, arm, take off, monitor)
-    DF feed         (pmon feed live: truth world from arming, DF scans, truth JSONL)
+    DF feed         (pmon feed live: truth world from arming, DF scans, truth JSONL; with --df kraken
+                     a simulated KrakenSDR serving its output, which the app reads: docs/KRAKENSDR.md)
 
 stood up by sim/rig.py. Separate processes because that is how it flies (the app knows the
 autopilot only through MAVLink, the feed only through its own MAVLink link and UDP) and because
@@ -41,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--gcs", metavar="PORT", type=int,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
+    p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
+                   help="the DF: datagram (default: the feed's datagrams) or kraken (a simulated KrakenSDR's "
+                        "output over HTTP, which the app reads: docs/KRAKENSDR.md)")
     p.add_argument("--autopilot", choices=("mock", "ardupilot", "px4"), default="mock",
                    help="mock (default: sim/autopilot.py, booting in 5 s), ardupilot: ArduPilot's own "
                    "ArduCopter SITL ($PMON_ARDUPILOT_SITL or ../shared/ardupilot/arducopter; ~43 s of "
@@ -142,7 +146,7 @@ def run(args) -> int:
     rig = Rig(RigConfig(scenario=args.scenario, policy=args.policy, seed=args.seed, feed_seed=args.seed,
                         autopilot=args.autopilot, speedup=speedup, ready_s=DEMO_READY_S if mock else None,
                         ports=2 if mock else 3, gcs_udp_out=args.gcs, auto_launch=True,
-                        feed_duration_s=duration, **extra).records_in(out))
+                        feed_duration_s=duration, df=args.df, **extra).records_in(out))
     try:
         with rig:
             if not mock:
@@ -150,7 +154,8 @@ def run(args) -> int:
                 console.print(f"{firmware} {rig.ap.instance}; a ground station: {rig.url(GCS_PORT)} "
                               f"(e.g. pmon gcs --connect {rig.url(GCS_PORT)} view)")
             console.print(f"{args.autopilot} autopilot {rig.url(APP_PORT)} (app) {rig.url(FEED_PORT)} "
-                          f"(feed), DF udp:{rig.df_port}, speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
+                          f"(feed), DF {f'udp:{rig.df_port}' if rig.kraken_url is None else rig.kraken_url}, "
+                          f"speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
             _fly(rig, duration, console)
     except KeyboardInterrupt:
         console.print("interrupted: stopping every process")
@@ -233,7 +238,7 @@ def load_run(run_path: Path, truth_path: Path):
 WINDOW_S = 10.0  # pmon eval scores a mission from 10 s after its first scan (sim/evaluation.py)
 # What one demo mission's figure is worth: pmon eval paper's 100 missions of the same scenario,
 # the per-mission RMSE from 10 s on over all targets (r_n), median and 10th-90th percentile, from
-# the files named (docs/RESULTS.md; tests/test_demo.py holds these figures to the files)
+# the files named (docs/RESULTS.md; tests/sim/test_demo.py holds these figures to the files)
 SCALE = {
     "flight": ("the flight default on this vehicle (flight@demo)", "docs/results_flight/per_trial.csv",
                "flight@demo", 26.0, 18.9, 45.1),

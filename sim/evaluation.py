@@ -474,9 +474,10 @@ def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
 # --------------------------------------------------------------------------- running many trials
 
 def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | None = None,
-               progress: bool = True, console=None) -> list[TrialResult]:
-    """All trials, in trial order. workers: local processes (default os.cpu_count()), each with
-    one BLAS thread; scheduler: a Dask distributed scheduler address instead of local processes."""
+               progress: bool = True, console=None, trials: Sequence[int] | None = None) -> list[TrialResult]:
+    """All trials (or those numbered ``trials``: each exactly as in a run of them all), in trial
+    order. workers: local processes (default os.cpu_count()), each with one BLAS thread;
+    scheduler: a Dask distributed scheduler address instead of local processes."""
     from rich.console import Console
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
@@ -486,14 +487,15 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
                    TextColumn("trials"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
                    console=console, disable=not progress, transient=False, refresh_per_second=2)
     results: list[TrialResult] = []
-    n = cfg.n_trials
+    ids = list(range(cfg.n_trials)) if trials is None else [int(i) for i in trials]
+    n = len(ids)
     label = f"{len(cfg.methods)} methods x {cfg.n_ticks} ticks"
     if scheduler is not None:
         from dask.distributed import Client, as_completed
 
         with Client(scheduler, timeout="20s") as client, bar:
             task = bar.add_task(label + f" on {scheduler}", total=n)
-            futures = client.map(run_trial, [cfg] * n, list(range(n)), pure=False)
+            futures = client.map(run_trial, [cfg] * n, ids, pure=False)
             for fut in as_completed(futures):
                 results.append(fut.result())
                 bar.advance(task)
@@ -516,7 +518,7 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
             # stopped for any reason, the workers go at once: none computes trials nobody reads
             try:
                 with _worker_pool(ctx, workers) as pool:
-                    for res in pool.imap_unordered(functools.partial(run_trial, cfg), range(n)):
+                    for res in pool.imap_unordered(functools.partial(run_trial, cfg), ids):
                         results.append(res)
                         bar.advance(task)
             except BaseException:

@@ -1,5 +1,6 @@
 """The mock autopilot's outgoing messages: its streams (rates per link), and every message it
-builds from the copter's state, as ArduCopter fills them. A mixin of ``MockAutopilot``."""
+builds from the copter's state, as ArduCopter fills them, and the requests that set them
+(REQUEST_DATA_STREAM, TIMESYNC, AUTOPILOT_VERSION). A mixin of ``MockAutopilot``."""
 from __future__ import annotations
 
 import math
@@ -226,3 +227,24 @@ class Telemetry:
     def _banner(self, link: _Link) -> None:
         for text in (FIRMWARE, "Frame: QUAD/X"):
             link.send(self._enc().statustext_encode(mavlink.MAV_SEVERITY_INFO, text.encode()))
+
+    # ----- requests
+    def _on_timesync(self, link: _Link, msg) -> None:
+        if msg.tc1 == 0:  # a request: answer with our clock (ns since boot)
+            link.send(self._enc().timesync_encode(
+                int(self.copter.t * 1e9), msg.ts1, msg.get_srcSystem(), msg.get_srcComponent()))
+
+    def _on_autopilot_version_request(self, link: _Link, msg) -> None:
+        link.send(self._autopilot_version(link))
+
+    def _on_request_data_stream(self, link: _Link, msg) -> None:
+        hz = msg.req_message_rate if msg.start_stop else 0
+        ids = list(DATA_STREAMS) if msg.req_stream_id == mavlink.MAV_DATA_STREAM_ALL else [
+            msg.req_stream_id]
+        for sid in ids:
+            for name in DATA_STREAMS.get(sid, ()):
+                self._set_interval(link, name, 1.0 / hz if hz > 0 else 0.0)
+
+    def _set_interval(self, link: _Link, name: str, interval_s: float) -> None:
+        link.intervals[name] = interval_s
+        link.next_due[name] = self.copter.t  # start the new rate now

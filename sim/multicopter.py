@@ -21,7 +21,7 @@ Horizontally the model is ArduCopter 4.4's AC_PosControl in two layers, as the f
    loop (a first-order lag) by an airframe with drag.
 
 The airframe terms (lean lag and drag) are fitted to ArduPilot's SITL '+' copter
-(bench/sitl_response.py, tests/data/sitl_response.json.gz, tests/test_vehicle.py): its drag at
+(bench/sitl_response.py, tests/data/sitl_response.json.gz, tests/sim/test_vehicle.py): its drag at
 ANGLE_MAX 30 deg caps level speed at 10.1 m/s whatever WPNAV_SPEED says. Vertically the vehicle
 flies the shaped kinematic target itself (altitude changes are slow and not what is measured).
 

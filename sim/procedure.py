@@ -1,5 +1,5 @@
 """The documented procedure (docs/SITL.md), flown with the real programs against ArduPilot's own
-SITL firmware: the conformance tests (tests/test_ardupilot.py) and bench/ardupilot.py use it.
+SITL firmware: the conformance tests (tests/firmware/test_ardupilot.py) and bench/ardupilot.py use it.
 
     with Mission(MissionConfig(speedup=2), out_dir) as m:     # SITL boots, app and feed start
         m.gcs("launch")                                         # as the operator types it
@@ -481,7 +481,7 @@ def takeover_reactions(tlog: Path, modes: list[tuple], in_app_mode: Callable[[in
 
 def app_view(tlog: Path) -> dict:
     """What the app saw of its autopilot, from the app's own tlog: the comparison
-    tests/test_conformance.py makes between the mock and ArduPilot.
+    tests/firmware/test_conformance.py makes between the mock and ArduPilot.
 
     - ``rates_hz``: messages from the autopilot per autopilot second while the app monitored;
     - ``unasked``: message types it sent that the app never asked for (by id or stream);
@@ -568,7 +568,7 @@ def app_view(tlog: Path) -> dict:
 
 def fly_launch_procedure(m: Mission, monitor_s: float, during: Callable[[Mission, dict], None] | None = None,
                          takeovers: tuple[tuple[str, ...], ...] = (("mode", "LOITER"), ("hold",))) -> dict:
-    """docs/SITL.md's procedure from the autopilot's boot, as tests/test_ardupilot.py (flight A)
+    """docs/SITL.md's procedure from the autopilot's boot, as tests/firmware/test_ardupilot.py (flight A)
     and bench/ardupilot.py fly it: ``pmon gcs launch`` at once; ``monitor_s`` autopilot s of
     monitoring (``during(m, rec)`` runs at its start, inside that time); then each takeover (a
     pilot's mode change), 3 s, ``pmon gcs resume``, 6 s. Returns each command's GcsCall and the

@@ -14,7 +14,10 @@ What runs:
 - the onboard app (``pmon run``), on port 0, through a ``TcpProxy`` (PX4: ``UdpProxy``) a test can
   cut if asked;
 - the live DF feed (``pmon feed live``), on port 1, sending to the app's DF port: with the rig,
-  later (``start_feed``) or not at all.
+  later (``start_feed``) or not at all. With ``df="kraken"`` the feed is a simulated KrakenSDR
+  instead (sim/kraken.py: its output served over HTTP, which the app reads with ``--kraken``); it
+  starts before the app, whatever ``feed`` says (the app reads it from its start; it scans from
+  the arming all the same).
 
 Two layouts. By default every program is a process of its own, as on a vehicle (the app knows the
 autopilot only through MAVLink, the feed only through its MAVLink link and UDP; and two busy
@@ -68,6 +71,8 @@ class RigConfig:
     app_config: Mapping = field(default_factory=dict)  # more AppConfig fields (the app in process)
     link_proxy: bool = False  # the app reaches its port through a TcpProxy, PX4's a UdpProxy (Rig.proxy)
     feed: str = "start"  # start (with the rig) | later (Rig.start_feed) | none
+    df: str = "datagram"  # the DF: datagram (the feed's UDP datagrams) | kraken (a simulated KrakenSDR)
+    multipath: bool = True  # kraken: the DF model's clutter drawn as multipath peaks in its spectrum
     feed_duration_s: float | None = None  # scans sent (from arming); None: the scenario's mission
     out_dir: str | None = None  # the programs' logs; None: a temporary directory, removed at stop
     runlog_path: str | None = None  # the app's JSONL run log (None: none)
@@ -97,8 +102,11 @@ class Rig:
         from onboard.policy import POLICIES
         from sim.ardupilot import home_of
 
-        if cfg.autopilot not in ("mock", "ardupilot", "px4") or cfg.feed not in ("start", "later", "none"):
-            raise ValueError(f"rig: autopilot {cfg.autopilot!r}, feed {cfg.feed!r}")
+        if cfg.autopilot not in ("mock", "ardupilot", "px4") or cfg.feed not in ("start", "later", "none") \
+                or cfg.df not in ("datagram", "kraken"):
+            raise ValueError(f"rig: autopilot {cfg.autopilot!r}, feed {cfg.feed!r}, df {cfg.df!r}")
+        if cfg.df == "kraken" and cfg.feed == "none":
+            raise ValueError("rig: df kraken needs the feed (the simulated KrakenSDR)")
         if cfg.in_process and cfg.autopilot != "mock":
             raise ValueError("rig: in_process needs the mock autopilot (a firmware's SITL is a program)")
         if (on_tick or on_setpoint) and not cfg.in_process:
@@ -119,6 +127,7 @@ class Rig:
         self.feed = None
         self.proxy = None
         self.df_port: int | None = None
+        self.kraken_url: str | None = None  # df kraken: where the simulated KrakenSDR serves its output
         self._stopped = False
         self.ap = self._autopilot()
         if on_setpoint is not None:
@@ -184,10 +193,12 @@ class Rig:
             url = f"tcp:127.0.0.1:{self.proxy.port}"
         if cfg.in_process:
             from onboard.app.app import AppConfig, OnboardApp
+            from onboard.config import override
+            sc = self.sc if self.kraken_url is None else override(self.sc, {"kraken.url": self.kraken_url})
             self.app = OnboardApp(AppConfig(url, sensor_port=0, auto_launch=cfg.auto_launch, seed=cfg.seed,
                                             runlog_path=cfg.runlog_path, tlog_path=cfg.tlog_path,
-                                            signing_key_path=cfg.signing_key_path, **dict(cfg.app_config)),
-                                  self.sc)
+                                            signing_key_path=cfg.signing_key_path, kraken=self.kraken_url is not None,
+                                            **dict(cfg.app_config)), sc)
             if self.on_tick is not None:
                 self.app.tick_listeners.append(self.on_tick)
             self.app.start()
@@ -202,24 +213,34 @@ class Rig:
         argv += ["--auto-launch"] if cfg.auto_launch else []
         if cfg.autopilot == "px4" and (events := self.ap.events_metadata()) is not None:
             argv += ["--px4-events", str(events)]  # the build's: its EVENTs in words
+        argv += ["--kraken", self.kraken_url] if self.kraken_url is not None else []
         self.app = Proc("app", argv + list(cfg.app_args), self.out / "app.log")
         self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
 
     def start_feed(self):
-        """``pmon feed live`` on port 1 to the app's DF port: scans from the moment the vehicle
-        is armed, ``feed_duration_s`` of them. The feed's ``Proc``."""
+        """``pmon feed live`` on port 1 to the app's DF port (or, ``df="kraken"``, as a KrakenSDR
+        serving its output: started before the app, and this returns it): scans from the moment
+        the vehicle is armed, ``feed_duration_s`` of them. The feed's ``Proc``."""
         from sim.processes import Proc
 
         cfg = self.cfg
-        assert self.app is not None and self.feed is None
+        if cfg.df == "kraken" and self.feed is not None:
+            return self.feed
+        assert self.feed is None and (self.app is not None or cfg.df == "kraken")
         seed = cfg.seed + 1 if cfg.feed_seed is None else cfg.feed_seed
         duration = cfg.feed_duration_s if cfg.feed_duration_s is not None else self.sc.mission.duration_s
         argv = [sys.executable, "-m", "sim.feed", "live", "--mavlink", self.url(FEED_PORT),
-                "--to", f"127.0.0.1:{self.df_port}", "--scenario", cfg.scenario, "--seed", str(seed),
-                "--duration", f"{duration:g}"]
+                "--scenario", cfg.scenario, "--seed", str(seed), "--duration", f"{duration:g}"]
+        if cfg.df == "kraken":
+            argv += ["--df", "kraken", "--kraken-dir", str(self.out / "kraken"),
+                     "--multipath", "on" if cfg.multipath else "off"]
+        else:
+            argv += ["--to", f"127.0.0.1:{self.df_port}"]
         for option, value in (("--truth", cfg.truth_path), ("--signing-key", cfg.signing_key_path)):
             argv += [option, str(value)] if value is not None else []
         self.feed = Proc("feed", argv, self.out / "feed.log")
+        if cfg.df == "kraken":
+            self.kraken_url = self.feed.wait_line(r"KrakenSDR output at (\S+)", 30).group(1)
         return self.feed
 
     # ----- lifecycle
@@ -228,6 +249,8 @@ class Rig:
         when a part fails to."""
         try:
             self.start_autopilot()
+            if self.cfg.df == "kraken":  # the KrakenSDR serves before the app reads it
+                self.start_feed()
             self.start_app()
             if self.cfg.feed == "start":
                 self.start_feed()

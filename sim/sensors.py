@@ -61,6 +61,14 @@ def df_scan(target_positions, sensor_position, df: DirectionFinder,
     in a fixed order (detection, noise, clutter count, clutter, shuffle), the noise always drawn,
     so a scan consumes the same stream whatever was detected.
     """
+    return tuple(b for b, _ in df_scan_labelled(target_positions, sensor_position, df, rng))
+
+
+def df_scan_labelled(target_positions, sensor_position, df: DirectionFinder,
+                     rng: np.random.Generator) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """``df_scan`` with, per channel, which bearing is the target's (a bool mask beside the
+    bearings): the same draws from ``rng``, the same bearings in the same order. A simulated
+    array DF (sim/kraken.py) draws the direct path's peak and the clutter's differently."""
     targets = np.atleast_2d(np.asarray(target_positions, dtype=float))
     true = bearing(targets[:, :2], np.asarray(sensor_position, dtype=float)[:2])  # (M,)
     out = []
@@ -69,7 +77,10 @@ def df_scan(target_positions, sensor_position, df: DirectionFinder,
         noise = rng.normal(0.0, df.sigma_rad)
         clutter = _uniform_bearings(rng, rng.poisson(df.clutter_rate))
         b = np.concatenate([wrap([phi + noise]), clutter]) if detected else clutter
-        out.append(rng.permutation(b).astype(float))
+        is_target = np.zeros(len(b), dtype=bool)
+        is_target[:1] = detected  # the detection is first, before the shuffle
+        order = rng.permutation(len(b))  # the same shuffle as rng.permutation(b)
+        out.append((b[order].astype(float), is_target[order]))
     return tuple(out)
 
 

@@ -10,7 +10,7 @@ Or as a process, for a terminal session (docs/OPERATING.md):
 
     python -m sim.stack --gcs-udp 14550     # then: pmon gcs status
 
-Used by tests/test_gcs*.py and bench/gcs_latency.py. ``pmon demo`` is the self-flying version
+Used by tests/gcs/test_gcs*.py and bench/gcs_latency.py. ``pmon demo`` is the self-flying version
 (separate processes, --auto-launch).
 """
 from __future__ import annotations

@@ -8,6 +8,7 @@ that own their state (each in its module):
                                        commands, launch sequence
   parameters       param_server.py     PMON_* on the parameter protocol (params.py: the values)
   DF scans         df_scans.py         datagrams into the scan buffer (df_input.py: the socket)
+  KrakenSDR        kraken.py           its DoA output into the scan buffer (optional: --kraken)
   tick schedule    tick_schedule.py    which scan the worker ticks next
   worker           worker.py           snapshot -> tick -> check -> send -> record
   core             monitor_core.py     the core setup and state between ticks
@@ -26,6 +27,8 @@ This module wires them and runs the threads (all daemon; ``stop()`` joins them):
           (``IO_MAVLINK_MAX``, ``IO_DF_MAX``).
   df      reads the DF port at line rate, drops foreign and rate-limited senders unparsed, and
           queues the rest for the io thread (onboard/app/df_input.py).
+  kraken  (with a KrakenSDR) polls its output and queues each new document, parsed, for the io
+          thread (onboard/app/kraken_fetch.py).
   worker  one core tick at a time. A scan that becomes due while the worker is busy waits;
           when it frees, only the newest due scan is ticked and older ones are counted as
           skipped: an overrun is skipped, never queued.
@@ -51,11 +54,12 @@ from onboard.app import launch
 from onboard.app.autopilot_side import AutopilotSide
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
-from onboard.app.contract import STAT_FIELDS, TGT_FIELDS, Action, Reason, State
+from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
 from onboard.app.counters import Counters
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
 from onboard.app.df_scans import DfScans
 from onboard.app.dispatch import Router
+from onboard.app.kraken import KrakenInput
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.monitor_core import MonitorCore
 from onboard.app.param_server import ParamServer
@@ -107,6 +111,7 @@ class AppConfig:
     df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
     # PX4's event metadata (its build's etc/extras/all_events.json.xz): its EVENTs said in words
     px4_events_path: str | None = None
+    kraken: bool = False  # also read a KrakenSDR's DoA output at the scenario's kraken.url (kraken.py)
 
 
 class OnboardApp:
@@ -139,7 +144,13 @@ class OnboardApp:
             raise
         self.sensor_port = self.df.port
         self.scans = dg.ScanBuffer(len(scenario.targets))
-        self._build_parts(cfg, scenario, tick)
+        try:
+            self._build_parts(cfg, scenario, tick)
+        except BaseException:  # a KrakenSDR section without VFOs, a poller that cannot start
+            self.df.stop()
+            self.link.close()
+            self.tick_log.close()
+            raise
         self.errors = Contained(log, on_first=self._say_error)  # io-thread handler errors by kind
         self._io_beat = self.mono()
         self._sched_beat = self.mono()  # the tick schedule job last ran to its end (local s)
@@ -164,6 +175,8 @@ class OnboardApp:
         self.schedule = TickSchedule(self.scans, self.params, self.clock, self.mono, self.worker,
                                      self.counters, say)
         self.df_scans = DfScans(self.df, self.scans, self.clock, self.counters, say)
+        self.kraken = KrakenInput(scenario, self.clock, self.autopilot, self.scans, self.params, say) \
+            if cfg.kraken else None
         self.param_server = ParamServer(self.link, self.params, say, lambda name: self.limits.check())
         self.router = Router(self.link, self.autopilot, self.machine, self.param_server,
                              self.publisher.publish_stat, cfg.gcs_sysids, self.counters, say)
@@ -225,11 +238,14 @@ class OnboardApp:
             "warnings": lim.warnings, "speed_limit_mps": _nan(v.speed_limit_mps), "speed_plan_mps": lim.plan[0],
             "accel_limit_mps2": _nan(v.accel_limit_mps2), "accel_plan_mps2": lim.plan[1],
             "launch_phase": -1 if launch_phase is None else launch.PHASES.index(launch_phase.phase),
+            **(self.kraken.status() if self.kraken is not None else dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan)),
         }
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "OnboardApp":
         self.df.start()
+        if self.kraken is not None:
+            self.kraken.start()
         for name, fn in (("pmon-io", self._io_loop), ("pmon-worker", lambda: self.worker.loop(self._stop)),
                          ("pmon-watchdog", self._watchdog_loop)):
             th = threading.Thread(target=fn, name=name, daemon=True)
@@ -244,6 +260,8 @@ class OnboardApp:
             th.join(timeout=10.0)
         self._threads = []
         self.df.stop()
+        if self.kraken is not None:
+            self.kraken.stop()
         self.link.close()
         self.tick_log.close()
 
@@ -310,6 +328,9 @@ class OnboardApp:
         for data, addr in self.df.pop(IO_DF_MAX):
             with self.lock:
                 self._handle("DF datagram", self.df_scans.on_datagram, data, addr)
+        if self.kraken is not None:
+            with self.lock:
+                self._handle("KrakenSDR input", self.kraken.drain)
         with self.lock:
             self._periodic()
 
@@ -344,6 +365,8 @@ class OnboardApp:
         self._handle("periodic link", self.autopilot.periodic_link, local)
         self._handle("periodic clock", self.autopilot.periodic_clock, now)
         self._handle("periodic DF input", self.df_scans.report)
+        if self.kraken is not None:
+            self._handle("periodic KrakenSDR", self.kraken.periodic, now)
         if now is None:
             self._sched_beat = self.mono()  # nothing to schedule before the first clock sample
             return

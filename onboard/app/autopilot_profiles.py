@@ -27,8 +27,8 @@ A mode change is never taken from its COMMAND_ACK (PX4 ACKs OFFBOARD with no str
 with no RC, ACCEPTED and stays where it was): the app, on every firmware, waits for HEARTBEAT to
 show it (onboard/app/state_machine.py).
 
-``ArduPilot`` is flown against its real SITL firmware (tests/test_ardupilot.py), ``Px4`` against
-PX4 v1.16's (tests/test_px4.py; ../shared/px4/README.md has what was measured there). Light
+``ArduPilot`` is flown against its real SITL firmware (tests/firmware/test_ardupilot.py), ``Px4`` against
+PX4 v1.16's (tests/firmware/test_px4.py; ../shared/px4/README.md has what was measured there). Light
 module (no core import): ``pmon gcs`` uses it.
 
 MAV_CMD_NAV_TAKEOFF: the MAVLink spec lets latitude/longitude/yaw be NaN ("current"), but

@@ -11,6 +11,7 @@ import math
 from typing import Callable, Protocol
 
 from onboard.app.autopilot_profiles import profile_for
+from onboard.app.clock import UtcMap
 from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import Link, mavlink, param_name
 from onboard.app.pose import (
@@ -59,6 +60,7 @@ class AutopilotSide:
         self.vehicle = vehicle
         self.poses = PoseHistory()
         self.origin = FixedOrigin()  # the autopilot's NED origin, fixed once (pose.py)
+        self.utc = UtcMap()  # its UTC (SYSTEM_TIME): a DF's Unix stamps on its clock (KrakenSDR)
         self.events = events
         self.say = say
         self.counters = counters
@@ -183,6 +185,10 @@ class AutopilotSide:
             self._clock_resets = self.clock.resets
             self._on_reboot()
 
+    def on_system_time(self, msg) -> None:
+        """Its UTC against its boot time (its clock sample was taken by ``observe_time``)."""
+        self.utc.observe(msg.time_unix_usec, msg.time_boot_ms)
+
     def on_global_position_int(self, msg) -> None:
         if not valid_global_position_int(msg):
             return
@@ -290,7 +296,7 @@ class AutopilotSide:
             if first:
                 self.vehicle.ned_origin = self.origin.value
                 log.info("autopilot NED origin: %.7f %.7f %.2f m", *origin)
-                self.say("NED origin fixed")  # the same words whatever the place (tests/test_conformance.py)
+                self.say("NED origin fixed")  # the same words whatever the place (tests/firmware/test_conformance.py)
             return
         self.counters.add("origin_changes_refused")
         self.events.on_origin_moved(off)

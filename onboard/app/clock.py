@@ -28,6 +28,8 @@ seconds; None until the first sample), so tests can inject a ``ManualClock``.
 """
 from __future__ import annotations
 
+import math
+import statistics
 import threading
 import time
 from collections import deque
@@ -145,6 +147,50 @@ class AutopilotClock:
         """Local seconds since the last sample (inf before the first): link health."""
         with self._lock:
             return self._mono() - self._samples[-1][0] if self._samples else float("inf")
+
+
+# ----- Unix time to autopilot time (a DF that stamps its frames in Unix time: onboard/app/kraken.py)
+
+
+class UtcMap:
+    """Unix time to autopilot time from the autopilot's SYSTEM_TIME (UTC from its GPS, and its
+    time since boot): the median offset of the last ``WINDOW`` messages with a UTC (0 = none),
+    so a stray message moves nothing. After a reboot it follows in WINDOW // 2 + 1 messages."""
+
+    WINDOW = 9
+
+    def __init__(self):
+        self._offsets: deque[float] = deque(maxlen=self.WINDOW)
+
+    def observe(self, time_unix_usec: int, time_boot_ms: int) -> None:
+        if time_unix_usec <= 0 or not 0 <= time_boot_ms < 2**32:
+            return
+        off = time_unix_usec / 1e6 - time_boot_ms / 1e3
+        if math.isfinite(off):
+            self._offsets.append(off)
+
+    def autopilot_time(self, unix_s: float) -> float | None:
+        if not self._offsets:
+            return None
+        return unix_s - statistics.median(self._offsets)
+
+    def unix_time(self, autopilot_s: float) -> float | None:
+        """The inverse (a simulated KrakenSDR stamps its frames with it: sim/kraken.py)."""
+        if not self._offsets:
+            return None
+        return autopilot_s + statistics.median(self._offsets)
+
+
+class HostTime:
+    """Unix time to autopilot time through this computer's clock (KrakenSDR on this computer,
+    or synchronised with it): the autopilot clock now, less the age of the stamp."""
+
+    def __init__(self, clock, wall: Callable[[], float] = time.time):
+        self.clock, self.wall = clock, wall
+
+    def autopilot_time(self, unix_s: float) -> float | None:
+        now = self.clock.now()
+        return None if now is None else now - (self.wall() - unix_s) * getattr(self.clock, "rate", 1.0)
 
 
 class ManualClock:

@@ -72,7 +72,11 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
                "next_u_m", "dgram_accepted", "dgram_rejected", "ticks", "ticks_skipped",
                "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
                "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
-               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase")
+               "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase",
+               "kraken_frames", "kraken_rejected", "kraken_gated")
+# a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
+# empty (confidence, power, overdrive); NaN without one
+KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")
 # PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)
 WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
 WARN_ACCEL = 2  # ... its acceleration limit

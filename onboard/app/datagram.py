@@ -181,6 +181,15 @@ class ScanBuffer:
         """Parse and store; raises DatagramError (already counted) when rejected."""
         try:
             d = parse(data, self.n_channels, now_s)
+        except DatagramError as err:
+            self.reject(err)
+            raise
+        return self.add(d, now_s)
+
+    def add(self, d: Datagram, now_s: float | None) -> Datagram:
+        """Store an already valid scan of one channel (another input's, e.g. KrakenSDR's:
+        onboard/app/kraken.py); raises DatagramError (counted) for a stale time or a duplicate."""
+        try:
             key = round(d.t, 3)
             if key <= self.consumed_until:
                 raise DatagramError("stale_time", f"t={d.t:.3f} is at or before the last tick")

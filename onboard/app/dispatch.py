@@ -48,6 +48,7 @@ class Router:
         self.any_source: dict[str, Handler] = {"HEARTBEAT": autopilot.on_heartbeat}
         self.from_autopilot: dict[str, Handler] = {
             "GLOBAL_POSITION_INT": autopilot.on_global_position_int,
+            "SYSTEM_TIME": autopilot.on_system_time,
             "SYS_STATUS": autopilot.on_sys_status,
             "STATUSTEXT": autopilot.on_statustext,
             "EXTENDED_SYS_STATE": autopilot.on_extended_sys_state,

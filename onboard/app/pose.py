@@ -15,12 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 import pymap3d
 
+from onboard.core.bearings import wrap
+
 
 @dataclass(frozen=True)
 class PoseSample:
     t: float  # autopilot s
     pos: np.ndarray  # (3,) ENU m
     vel: np.ndarray  # (3,) ENU m/s
+    yaw: float | None = None  # rad, clockwise from north (the vehicle's heading); None: unknown
 
 
 class Frame:
@@ -48,7 +51,9 @@ class Frame:
     def pose_from_global_position_int(self, msg) -> PoseSample:
         pos = self.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
         vel = np.array([msg.vy, msg.vx, -msg.vz], dtype=float) / 100.0  # NED cm/s -> ENU m/s
-        return PoseSample(msg.time_boot_ms / 1000.0, pos, vel)
+        hdg = heading_from_global_position_int(msg.hdg)
+        yaw = None if hdg is None else float(wrap(math.radians(hdg)))
+        return PoseSample(msg.time_boot_ms / 1000.0, pos, vel, yaw)
 
 
 ORIGIN_TOL_M = 0.5  # a GPS_GLOBAL_ORIGIN within this of the fixed one is the same origin
@@ -101,8 +106,9 @@ class FixedOrigin:
 
 
 def heading_from_global_position_int(hdg_cdeg: int) -> float | None:
-    """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535)."""
-    return None if hdg_cdeg == 65535 else hdg_cdeg / 100.0
+    """GLOBAL_POSITION_INT.hdg in degrees, None when the autopilot does not know it (65535) or
+    it is out of its range (0..35999 cdeg; 36000 read as north)."""
+    return None if hdg_cdeg > 36000 else hdg_cdeg / 100.0
 
 
 def valid_global_position_int(msg) -> bool:
@@ -162,6 +168,27 @@ class PoseHistory:
             a, b = self._s[i - 1], self._s[i]
             w = (t - a.t) / (b.t - a.t)
             return a.pos + w * (b.pos - a.pos)
+
+    def yaw_at(self, t: float) -> float | None:
+        """Heading (rad, clockwise from north, (-pi, pi]) at autopilot time t, interpolated the
+        short way round between the samples around it; after the newest the newest, for at most
+        ``max_extrapolation_s`` (no yaw rate is known); None if not covered or unknown."""
+        with self._lock:
+            if not self._t or t < self._t[0] - 0.05:
+                return None
+            i = bisect.bisect_left(self._t, t)
+            if i == len(self._t):
+                last = self._s[-1]
+                return last.yaw if t - last.t <= self.max_extrapolation_s and last.yaw is not None \
+                    else None
+            if i == 0 or self._t[i] == t:
+                return self._s[i].yaw
+            a, b = self._s[i - 1], self._s[i]
+        if a.yaw is None or b.yaw is None:
+            return None
+        w = (t - a.t) / (b.t - a.t)
+        d = math.remainder(b.yaw - a.yaw, math.tau)
+        return float(wrap(a.yaw + w * d))
 
 
 def is_finite(v) -> bool:

@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the first sender whose datagram is valid (docs/DATAGRAM.md, who may send)")
     p.add_argument("--df-rate", type=number(1.0, 1e6), default=DEFAULT_RATE_HZ, metavar="N",
                    help="DF datagrams/s accepted per sender; the excess is dropped unparsed (default 1000)")
+    p.add_argument("--kraken", nargs="?", const="", metavar="URL",
+                   help="also read a KrakenSDR's DoA output (its 'Kraken App' CSV): the scenario's kraken "
+                   "section says which VFO is which target; URL (http://HOST:8081/DOA_value.html or a file "
+                   "path) overrides its kraken.url (docs/KRAKENSDR.md)")
     p.add_argument("--scenario", default="paper", help="YAML file or built-in name (default paper)")
     from onboard.policy import DEFAULT, POLICIES
     p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
@@ -68,7 +72,7 @@ def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
     from onboard.app.px4_events import EventMetadataError
     from onboard.app.signing import KeyFileError
-    from onboard.config import ConfigError, load_scenario
+    from onboard.config import ConfigError, load_scenario, override
     from onboard.policy import POLICIES
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
@@ -81,16 +85,18 @@ def run(args) -> int:
         return 2
     try:  # a bad scenario refuses to start, with one error naming the field
         sc = load_scenario(args.scenario, POLICIES[args.policy])
+        if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
+            sc = override(sc, {"kraken.url": args.kraken})
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     cfg = AppConfig(args.mavlink, host, port, args.baud, args.sysid, args.auto_launch,
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
                     df_sources=args.df_from, df_rate_hz=args.df_rate, px4_events_path=args.px4_events,
-                    autopilot_unsigned=args.autopilot_unsigned)
+                    autopilot_unsigned=args.autopilot_unsigned, kraken=args.kraken is not None)
     try:
         app = OnboardApp(cfg, sc)
-    except (KeyFileError, EventMetadataError) as exc:
+    except (KeyFileError, EventMetadataError, ConfigError) as exc:  # ConfigError: --kraken without kraken.vfos
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # connection refused, address in use, a log file's directory missing ...
@@ -112,6 +118,8 @@ def run(args) -> int:
         signal.signal(sig, lambda *_: stop.set())
     print(f"pmon run: mavlink {args.mavlink}, DF datagrams on udp {host}:{app.sensor_port}, "
           f"policy {args.policy} ({sc.planning.planner}, {sc.planning.motion} motion)", flush=True)
+    if app.kraken is not None:
+        print(f"pmon run: KrakenSDR DoA from {app.kraken.url}", flush=True)
     app.start()
     try:
         while not stop.wait(0.2):
@@ -122,4 +130,9 @@ def run(args) -> int:
         print(f"pmon run: stopped: {c.get('ticks', 0)} ticks, {c.get('ticks_skipped', 0)} skipped, "
               f"{c.get('ticks_late', 0)} late, datagrams {app.scans.accepted} accepted "
               f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
+        if app.kraken is not None:
+            k = app.kraken.source
+            print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames ({k.missed} missed), {k.scans} scans, "
+                  f"{sum(k.rejected.values())} rejected {dict((r, n) for r, n in k.rejected.items() if n)}, "
+                  f"gated {dict((g, n) for g, n in k.gated.items() if n)}", flush=True)
     return 0

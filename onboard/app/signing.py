@@ -34,7 +34,7 @@ timestamp; our timestamp raised to the newest accepted one), in the C library's 
 changes only for a packet signed with the key. Replacing the one bound method is the smallest
 change that covers the app, the ground station and the mock (all configure through here) and
 leaves pymavlink's parsing, counting and allow-unsigned logic as it is; subclassing would mean
-replacing the protocol objects mavutil creates. tests/test_signing_forgery.py checks it against
+replacing the protocol objects mavutil creates. tests/app/test_signing_forgery.py checks it against
 pymavlink's own signing: packets pymavlink signs are accepted, its verdicts agree on every
 packet that is not a forgery, and the forgery that locks pymavlink's own check out does nothing
 here.
@@ -174,7 +174,7 @@ def apply(conn, key: bytes, link_id: int = 1, unsigned_from: tuple[tuple[int, in
 def bad_signatures(mav) -> dict[tuple[int, int], int]:
     """Packets whose signature failed, by sender (sysid, compid): a wrong key, a forgery, or a
     signature rewritten on the way (PX4 v1.16 replaces the signature block of every message it
-    forwards with other bytes: measured, tests/test_px4.py)."""
+    forwards with other bytes: measured, tests/firmware/test_px4.py)."""
     return dict(getattr(mav, "_pmon_badsig", {}))
 
 

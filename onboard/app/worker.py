@@ -29,6 +29,7 @@ from onboard.app.contract import State
 from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
+from onboard.app.pairing import scans_for_tick
 from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
 from onboard.app.tick_schedule import PLAN_RESERVE_S, TickJob
@@ -162,19 +163,18 @@ class TickWorker:
                             pose.vel[:2].copy() if plan and pose is not None else np.zeros(2))
 
     def _scans(self, job: TickJob, snap: Snapshot) -> list[Scan]:
-        """The job's bearings as a core scan, paired with where the DF was (none without)."""
+        """The job's bearings as core scans, each channel paired with where the DF was when it
+        measured (onboard/app/pairing.py; a channel without a position is dropped)."""
         for ch in job.scans:  # newest scan time <= this tick per channel (PMON_TGT)
             self.scan_t_used[ch] = max(self.scan_t_used[ch], job.t)
-        if not job.scans:
-            return []
-        if snap.sensor_pos is None:
+        poses = self.autopilot.poses
+        scans, unpaired = scans_for_tick(job.scans, job.t, self.core.n_targets,
+                                         lambda tm: snap.sensor_pos if tm == job.t else poses.at(tm))
+        if unpaired:
             with self.lock:
                 self.counters.add("scans_without_pose")
                 self.say("DF scan without a vehicle position: dropped", mavlink.MAV_SEVERITY_WARNING, once="nopose")
-            return []
-        bearings = tuple(job.scans[ch].bearings if ch in job.scans else np.empty(0)
-                         for ch in range(self.core.n_targets))
-        return [Scan(snap.sensor_pos, bearings)]
+        return scans
 
     def _with_guidance_time(self, setup: MonitorSetup, job: TickJob) -> MonitorSetup:
         """Guidance time, in autopilot s: PMON_GUID_S, and never more than what is left of the

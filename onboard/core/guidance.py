@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -100,6 +100,19 @@ class Plan:
     active: "ActiveRows | None" = None  # the QP rows active at the solution: next tick's warm start
     law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (with_feedback=True)
     margin_m: float | None = None  # m; None when not set (plans built by hand)
+    # the laws of the next controls at the states the plan predicts (``shifted``; plan_guidance(ahead=))
+    ahead: tuple[LocalLaw, ...] = ()
+
+    def shifted(self) -> "Plan":
+        """This plan one tick later, from the state it predicted (status ``shifted``): its controls
+        and path from the next step on, its assignment and active rows one step on, and as its law
+        the next control's (``ahead``; None when there is none). What the tracker keeps of a plan
+        it did not make again this tick."""
+        T = len(self.controls)
+        return Plan("shifted", self.cost, 0.0, 0, np.vstack([self.controls[1:], np.zeros((1, 3))]),
+                    np.vstack([self.means[1:], self.means[-1:]]), np.vstack([self.faces[1:], self.faces[-1:]]),
+                    None if self.active is None else self.active.shifted(T), self.ahead[0] if self.ahead else None,
+                    self.margin_m, self.ahead[1:])
 
     @property
     def feedback(self) -> np.ndarray | None:
@@ -130,50 +143,66 @@ class Plan:
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
                   workspace: GuidanceWorkspace | None = None,
-                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool = False,
-                  sides: np.ndarray | None = None, strict_sides: bool = False) -> Plan:
+                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool | str = False,
+                  sides: np.ndarray | None = None, strict_sides: bool = False,
+                  nearby: Plan | Sequence[Plan] | None = None, explore: bool = True, ahead: int = 0) -> Plan:
     """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
 
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
     fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
     ``with_feedback``: also compute ``Plan.feedback``, the closed-loop gain du_0/dx (for the
     posterior Cramer-Rao bound of a target that steers by this guidance) and ``Plan.law`` (for
-    the tracker's ``plan_steering``).
+    the tracker's ``plan_steering``); ``"constrained"``: only for a plan with an active row (the
+    free law describes the others: the tracker's mean plans); ``ahead``: with a law, the laws of
+    that many controls after the first too (``Plan.ahead``, ``Plan.shifted``: the side-aware
+    tracker's).
     ``sides`` (K,): the best plan that rounds no obstacle k the other way than counterclockwise
     (+1) or clockwise (-1) (0: either); ``strict_sides``: that does round each of them that way
     (``in_class``; the tracker's ``plan_sides``).
+    ``nearby``: plans of this tick from nearby starts (the tracker's: a side's plan for its
+    reference plans, the side modes' for the mean's), their assignments the next warm starts in
+    turn; ``explore=False``: no search beyond the warm starts (no plan if they fail; the margin is
+    never given up).
     """
     t_start = timer()
+    nearby = () if nearby is None else (nearby,) if isinstance(nearby, Plan) else tuple(nearby)
     plan = _search(model, params, obstacles, mean0, goal, previous, workspace, timer, with_feedback, sides,
-                   strict_sides, params.obstacle_margin_m)
+                   strict_sides, params.obstacle_margin_m, nearby, explore, ahead)
     left = None if params.max_solve_time_s is None else t_start + params.max_solve_time_s - timer()
-    if plan.feasible or not len(obstacles) or params.obstacle_margin_m <= 0.0 or (left is not None and left <= 0):
+    if (plan.feasible or not explore or not len(obstacles) or params.obstacle_margin_m <= 0.0
+            or (left is not None and left <= 0)):
         return plan
     # noise has carried the target so close to an obstacle, or so fast toward it, that no control
     # keeps the margin: it keeps clear of the obstacle itself (the margin stays vertical, which
     # keeps ground targets level with the obstacles' bases)
     retry = _search(model, replace(params, max_solve_time_s=left), obstacles, mean0, goal, previous, workspace,
-                    timer, with_feedback, sides, strict_sides, 0.0)
+                    timer, with_feedback, sides, strict_sides, 0.0, nearby, True, ahead)
     return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
 
 
 def _search(model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,
             goal: np.ndarray, previous: Plan | None, workspace: GuidanceWorkspace | None,
-            timer: Callable[[], float], with_feedback: bool, sides: np.ndarray | None, strict_sides: bool,
-            lateral_margin_m: float) -> Plan:
+            timer: Callable[[], float], with_feedback: bool | str, sides: np.ndarray | None, strict_sides: bool,
+            lateral_margin_m: float, nearby: tuple[Plan, ...] = (), explore: bool = True, ahead: int = 0) -> Plan:
     """``plan_guidance``'s search (``FaceSearch``) with the obstacles inflated by
     ``lateral_margin_m`` sideways, as a plan."""
     search = FaceSearch(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides,
                         lateral_margin_m)
-    search.run(previous)
+    search.run(previous, nearby, explore)
     best = search.best
     if best is None:
         return _fallback(model, params, search.mean0, previous, search.K, timer() - search.t_start, search.solves)
     controls = search.controls()
     status = search.status()
-    law = search.law(controls) if with_feedback else None
-    return Plan(status, best.cost, timer() - search.t_start, search.solves, controls,
-                predict_mean(model, search.mean0, controls), best.faces, best.sol.active, law, lateral_margin_m)
+    active = best.sol.active
+    if with_feedback == "constrained":
+        wanted = bool(active.fixed.any() or active.obstacles.any())
+    else:
+        wanted = bool(with_feedback)
+    means = predict_mean(model, search.mean0, controls)
+    law, later = search.law(controls, means, ahead) if wanted else (None, ())
+    return Plan(status, best.cost, timer() - search.t_start, search.solves, controls, means, best.faces, active, law,
+                lateral_margin_m, later)
 
 
 def _fallback(model, params, mean0, previous, K, elapsed, solves) -> Plan:

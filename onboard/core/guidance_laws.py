@@ -29,6 +29,28 @@ def first_control_gain(dP: np.ndarray, model: MotionModel, decay: float, gain: f
 
 
 
+def later_gains(dP: np.ndarray, model: MotionModel, decay: float, gain: float, steps: int) -> list[np.ndarray]:
+    """du_k/dx_k (3, 6), N per state unit, for k = 1..steps: how the plan's k-th control moves with
+    the state it starts from, x_k = (p_k, v_k), along the plans from nearby starts (dp_(2..T+1)/dx0
+    (T, 2, 4), the active set held). By the principle of optimality the plan from x_k is the rest of
+    this one, so this is the law of the plan shifted by k ticks (``Plan.shifted``). Where x_k does
+    not move with x0 in every direction (an active set pins it: a target at a corner of its speed
+    polygon), the gain of the control before it stands in (the law's own, for k = 1)."""
+    dt = model.dt_s
+    p = [np.hstack([np.eye(2), dt * np.eye(2)])] + [dP[i] for i in range(min(steps + 1, len(dP)))]  # dp_1, dp_2..
+    v = [np.hstack([np.zeros((2, 2)), np.eye(2)])] + [(p[i + 1] - p[i]) / dt for i in range(len(p) - 1)]  # dv_0..
+    out = [first_control_gain(dP, model, decay, gain)]
+    for k in range(1, min(steps, len(v) - 2) + 1):
+        dw = (v[k + 1] - decay * v[k]) / gain  # kN per unit of x0
+        dx = np.vstack([p[k], v[k]])
+        g = out[-1]
+        if np.all(np.isfinite(dx)) and np.all(np.isfinite(dw)) and np.linalg.cond(dx) < 1e8:
+            g = np.zeros((3, 6))
+            g[:2, [0, 1, 3, 4]] = np.linalg.solve(dx.T, dw.T).T * KN
+        out.append(g)
+    return out[1:]
+
+
 @dataclass(frozen=True, eq=False)
 class LocalLaw:
     """A plan's first control as an affine law of its start state: P1's optimum is affine in the

@@ -3,7 +3,7 @@ the maps between a target's positions and its controls (docs/GUIDANCE.md, "How i
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Callable
 
 import daqp
 import numpy as np
@@ -132,16 +132,20 @@ class AssignmentQP:
         cached = self._start  # (key, terms), replaced in one assignment
         if cached is not None and cached[0] == key:
             return cached[1]
+        p1, lo, hi, f = self._fixed_bounds(x0, goal, speed_bound)
+        terms = (p1, lo, hi, f, self.Rinv.T @ f)
+        self._start = (key, terms)
+        return terms
+
+    def _fixed_bounds(self, x0, goal, speed_bound):
+        """p1, the fixed rows' lower and upper bounds, and the cost vector f, from the start."""
         L = self.L
         p1, Vc, Wc = self._fixed_terms(x0, goal)
         box = self.params.u_max_n / KN / L
         cv = np.einsum("kd,td->tk", self.speed_normals, Vc)
         lo = np.concatenate([(-box - Wc).reshape(-1), np.full(cv.size, -np.inf)])
         hi = np.concatenate([(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1)])
-        f = self._cost_vector(x0, goal)
-        terms = (p1, lo, hi, f, self.Rinv.T @ f)
-        self._start = (key, terms)
-        return terms
+        return p1, lo, hi, self._cost_vector(x0, goal)
 
     def _bounds(self, x0, goal, speed_bound, coef, rhs):
         """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
@@ -227,21 +231,27 @@ class AssignmentQP:
         """d p_(2..T+1) / d x0 (T, 2, 4) in m per unit of x0 = (px, py, vx, vy), with the active
         set of ``sol`` held fixed (the optimum is affine in x0 there): the KKT system
         [H A_a^T; A_a 0] [dy; dlam] = [-df; db] solved for the four directions of x0.
-        The cost vector and every bound are affine in x0, so differences are exact."""
-        _, A, lo, hi = self._rows(x0, goal, speed_bound, coef, rhs)
+        The cost vector and every bound are affine in x0, so differences are exact; only the
+        fixed rows' bounds depend on x0 (an obstacle row's difference is 0)."""
+        _, lo, hi, _, c, j = self._bounds(x0, goal, speed_bound, coef, rhs)
+        n_fixed = len(self.A_fixed)
         act = np.flatnonzero(sol.lam != 0.0)
         b0 = np.where(sol.lam[act] < 0, lo[act], hi[act])
         keep = np.isfinite(b0)  # a multiplier on an infinite bound is round-off, not a constraint
         act, b0 = act[keep], b0[keep]
-        A_a = A[act]
+        fixed, obs = act[act < n_fixed], act[act >= n_fixed] - n_fixed
+        A_a = np.vstack([self.A_fixed[fixed], self._obstacle_rows(c[obs], j[obs], self.I)])
+        lower = sol.lam[act] < 0
         f0 = self._cost_vector(x0, goal)
         df, db = [], []
         for i in range(4):
             x1 = x0.copy()
             x1[i] += 1.0
-            _, lo1, hi1, _, _, _ = self._bounds(x1, goal, speed_bound, coef, rhs)
-            db.append(np.where(sol.lam[act] < 0, lo1[act], hi1[act]) - b0)
-            df.append(self._cost_vector(x1, goal) - f0)
+            _, lo1, hi1, f1 = self._fixed_bounds(x1, goal, speed_bound)
+            b1 = np.where(lower, lo[act], hi[act])  # the obstacle rows' bounds: those at x0
+            b1[:len(fixed)] = np.where(lower[:len(fixed)], lo1[fixed], hi1[fixed])
+            db.append(b1 - b0)
+            df.append(f1 - f0)
         df, db = np.column_stack(df), np.column_stack(db)
         # Schur complement on the (few) active rows, H's Cholesky factor cached: dy = -H^-1 (df +
         # A_a^T dlam), A_a dy = db. Dependent active rows make S singular: least squares there.
@@ -279,15 +289,33 @@ class GuidanceWorkspace:
 
     def __init__(self):
         self._qps: dict[tuple, AssignmentQP] = {}
+        self._last: tuple | None = None  # (T, K, model, params, qp): the last lookup, by identity
+        self._geometries: dict[tuple, Any] = {}
 
     def qp(self, T: int, K: int, model: MotionModel, params: GuidanceParams) -> AssignmentQP:
+        last = self._last
+        if last is not None and last[0] == T and last[1] == K and last[2] is model and last[3] is params:
+            return last[4]
         # the search's limits do not change the QP: one cache entry whatever they are
         full = (T, K, model.dt_s, model.friction, model.mass_kg,
                 replace(params, max_qp_solves=0, max_solve_time_s=None))
         if full not in self._qps:
             gain = model.dt_s / model.mass_kg * KN
             self._qps[full] = AssignmentQP(T, K, model.dt_s, 1.0 - model.friction, gain, params)
+        self._last = (T, K, model, params, self._qps[full])
         return self._qps[full]
+
+    def geometry(self, key: tuple, make: Callable[[], Any]) -> Any:
+        """The face geometry of ``key`` (the obstacles, margins and altitudes it was made for; the
+        obstacles by identity, held in the entry), made by ``make`` when not cached; the last 64."""
+        entry = self._geometries.get(key[1:])
+        if entry is not None and entry[0] is key[0]:
+            return entry[1]
+        if len(self._geometries) >= 64:
+            self._geometries.clear()
+        geo = make()
+        self._geometries[key[1:]] = (key[0], geo)
+        return geo
 
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from onboard.core.dynamics import MotionModel, predict_mean
 from onboard.core.guidance_faces import (FEAS_TOL_M, NO_FACE, face_geometry, in_class, shift_switches,
                                          timed_path, _opposite)
-from onboard.core.guidance_laws import LocalLaw, first_control_gain
+from onboard.core.guidance_laws import LocalLaw, first_control_gain, later_gains
 from onboard.core.guidance_qp import KN, GuidanceWorkspace, QPSolution, controls_kn, integrate, speed_bound_mps
 from onboard.core.obstacles import Obstacles
 
@@ -66,13 +66,14 @@ class FaceSearch:
         self.T, self.K = T, K = params.horizon, len(obstacles)
         mean0 = np.asarray(mean0, dtype=float)
         self.goal2 = np.asarray(goal, dtype=float)[:2]
-        self.qp = (workspace or GuidanceWorkspace()).qp(T, K, model, params)
+        ws = workspace or GuidanceWorkspace()
+        self.qp = ws.qp(T, K, model, params)
         self.decay, self.gain = 1.0 - model.friction, self.qp.gain
         self.solves = 0
         x0 = mean0[[0, 1, 3, 4]]
-        z_path = predict_mean(model, mean0, np.zeros((T, 3)))[:, 2]
-        self.geo = face_geometry(obstacles, params.obstacle_margin_m, np.concatenate([[mean0[2]], z_path]),
-                                 lateral_margin_m)
+        z = np.concatenate([[mean0[2]], predict_mean(model, mean0, np.zeros((T, 3)))[:, 2]])
+        self.geo = ws.geometry((obstacles, params.obstacle_margin_m, lateral_margin_m, z.tobytes()),
+                               lambda: face_geometry(obstacles, params.obstacle_margin_m, z, lateral_margin_m))
         # a start inside an inflated obstacle (noise carried the target into the margin, or an
         # estimate averages particles on both sides of an obstacle) has no feasible plan: plan from
         # the nearest point just outside, not moving into the obstacle
@@ -186,25 +187,34 @@ class FaceSearch:
 
     # ------------------------------------------------------------------ the phases
 
-    def run(self, previous: Plan | None) -> None:
+    def run(self, previous: Plan | None, nearby: tuple[Plan, ...] = (), explore: bool = True) -> None:
+        """The phases in order: the warm starts (``previous`` shifted, then each of ``nearby`` as it
+        is, until one gives a plan); a stalled warm plan is unstuck; without a warm plan, ``explore``
+        and the local search (``explore=False``: none, the search ends without a plan)."""
         if self.K == 0:
             self.evaluate(np.full((self.T - 1, 0), NO_FACE))
             return
-        if self.warm_start(previous):
+        if self.warm_start(previous) or any(self.warm_start(p, shift=False) for p in nearby):
             if self.stalled():
                 self.unstick()
             return
-        self.explore()
-        self.local_search()
+        if explore:
+            self.explore()
+            self.local_search()
 
-    def warm_start(self, previous: Plan | None) -> bool:
-        """The previous plan, shifted by one step, refined; True if it gave a feasible plan."""
+    def warm_start(self, previous: Plan | None, shift: bool = True) -> bool:
+        """The previous plan's assignment, shifted by one step (``shift``: last tick's plan; else
+        a plan of this tick from a nearby start, as it is), refined; True if a feasible plan in
+        the class is found."""
         T, K = self.T, self.K
         if previous is None or not previous.feasible or previous.faces.shape != (T - 1, K):
             return False
-        shifted = np.vstack([previous.faces[1:], previous.faces[-1:]])
-        prev_path = np.vstack([self.x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
-        self.refine(self.geo.sanitise(shifted, prev_path))
+        if shift:
+            faces = np.vstack([previous.faces[1:], previous.faces[-1:]])
+            path = np.vstack([self.x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
+        else:
+            faces, path = previous.faces, np.vstack([self.x0[:2], previous.means[:, :2]])
+        self.refine(self.geo.sanitise(faces, path))
         return self.best is not None
 
     def stalled(self) -> bool:
@@ -338,15 +348,21 @@ class FaceSearch:
         controls[:, :2] = controls_kn(self.x0, self.best.pts, self.model.dt_s, self.decay, self.gain) * KN
         return controls
 
-    def law(self, controls: np.ndarray) -> LocalLaw | None:
+    def law(self, controls: np.ndarray, means: np.ndarray, ahead: int = 0) -> tuple[LocalLaw | None, tuple]:
         """The closed-loop gain du_0/dx of the best plan: the optimum is affine in the state while
-        its active set holds, so a nearby state would be steered by u_0 + K dx (about 3 ms)."""
+        its active set holds, so a nearby state would be steered by u_0 + K dx (about 1 ms); and
+        the laws of its next ``ahead`` controls at the states it predicts (``later_gains``)."""
         sol = self.best.sol
         if not np.all(np.isfinite(sol.y)):
-            return None
+            return None, ()
         try:
             dP = self.qp.sensitivity(self.x0, self.goal2, self.speed_bound, *self.geo.rows(self.best.faces), sol)
         except np.linalg.LinAlgError:
             dP = np.full((self.T, 2, 4), np.nan)
         feedback = first_control_gain(dP, self.model, self.decay, self.gain)
-        return None if feedback is None else LocalLaw(self.x0.copy(), controls[0].copy(), feedback)
+        if feedback is None:
+            return None, ()
+        later = later_gains(dP, self.model, self.decay, self.gain, ahead) if ahead else []
+        return (LocalLaw(self.x0.copy(), controls[0].copy(), feedback),
+                tuple(LocalLaw(means[k - 1][[0, 1, 3, 4]].copy(), controls[k].copy(), g)
+                      for k, g in enumerate(later, start=1)))

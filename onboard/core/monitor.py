@@ -29,8 +29,8 @@ from onboard.core.guidance import FreeLaw, GuidanceParams, GuidanceWorkspace, Pl
 from onboard.core.obstacles import Obstacles
 from onboard.core.planners import Planner, PlanningInputs, make_planner
 from onboard.core.planning import CandidateGrid, LookaheadParams, PlanningResult, UavMotion
-from onboard.core.steering import (FreeSteering, ParticleSteering, ReferenceSteering, Replan, SideMode,
-                                   SideSteering, TargetTick)
+from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
+                                   SideMode, SideSteering, TargetTick)
 
 __all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "initial_state",
            "tick", "replanner"]
@@ -159,10 +159,14 @@ class MonitorState:
 
 @dataclass(frozen=True, eq=False)
 class Scan:
-    """Bearings (rad, per target channel) taken from one sensor position (ENU, m)."""
+    """Bearings (rad, per target channel) taken from one sensor position (ENU, m).
+
+    ``clutter_rates``: per channel, the clutter rate Lambda of this scan's likelihood (a DF that
+    measures its clutter, onboard/core/doa.py), None (or an entry None) for the setup's."""
 
     sensor_position: np.ndarray
     bearings: tuple[np.ndarray, ...]
+    clutter_rates: tuple[float | None, ...] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,7 +201,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     t0 = timer()
     posts, means, covs, degenerate = _update_and_estimate(setup, state.beliefs, scans, rng)  # 1, 2
     t1 = timer()
-    plans = _guidance(setup, means, state.plans, workspace, timer)  # 3
+    plans = _guidance(setup, state, means, workspace, timer)  # 3
     t2 = timer()
     beliefs, memory = _predict(setup, state, posts, means, covs, plans, workspace, timer, rng)  # 4
     t3 = timer()
@@ -220,7 +224,8 @@ def _update_and_estimate(setup: MonitorSetup, beliefs: Sequence[tracking.Particl
     posts, degenerate = [], np.zeros(M, dtype=bool)
     means, covs = np.zeros((M, 6)), np.zeros((M, 6, 6))
     for j in range(M):
-        j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j]) for s in scans]
+        j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
+                    None if s.clutter_rates is None else s.clutter_rates[j]) for s in scans]
         upd = tracking.update(beliefs[j], j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
         means[j], covs[j] = tracking.estimate(upd.particles)
@@ -229,14 +234,21 @@ def _update_and_estimate(setup: MonitorSetup, beliefs: Sequence[tracking.Particl
     return posts, means, covs, degenerate
 
 
-def _guidance(setup: MonitorSetup, means: np.ndarray, previous: Sequence[Plan | None],
-              workspace: GuidanceWorkspace | None, timer: Callable[[], float]) -> tuple[Plan, ...]:
+def _guidance(setup: MonitorSetup, state: MonitorState, means: np.ndarray, workspace: GuidanceWorkspace | None,
+              timer: Callable[[], float]) -> tuple[Plan, ...]:
     """Step 3: P1 from each posterior mean, warm-started by the target's previous plan (with its
-    law when the particle steering uses it)."""
-    return tuple(plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
-                               previous=previous[j], workspace=workspace, timer=timer,
-                               with_feedback=setup.plan_steering is not None)
-                 for j in range(setup.n_targets))
+    law when the particle steering uses it: a plan with an active row). With side modes, their
+    plans of the last tick are the next warm starts: the mean of a cloud split between two sides
+    of an obstacle often has no plan near its own last one."""
+    sides = setup.plan_steering is not None and setup.plan_steering.sides
+    out = []
+    for j in range(setup.n_targets):
+        modes = state.steering[j] if sides and state.steering else ()
+        out.append(plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
+                                 previous=state.plans[j], workspace=workspace, timer=timer,
+                                 with_feedback="constrained" if setup.plan_steering is not None else False,
+                                 nearby=tuple(m.plan.shifted() for m in modes), ahead=AHEAD_STEPS if sides else 0))
+    return tuple(out)
 
 
 def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.ParticleSet], means: np.ndarray,
@@ -245,9 +257,10 @@ def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.
     """Step 4: each posterior predicted to t+1 with the particle steering's controls (its
     reference plans count as tracking time); the beliefs and what the steering keeps."""
     beliefs, memory = [], []
+    budgets = setup.steering.budgets(plans)
     for j in range(setup.n_targets):
         target = TargetTick(posts[j], means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
-                            replanner(setup, setup.goals[j], workspace, timer))
+                            replanner(setup, setup.goals[j], workspace, timer), budgets[j])
         steered = setup.steering.steer(target, state.steering[j] if state.steering else (), rng)
         post = replace(posts[j], labels=steered.labels)
         beliefs.append(tracking.predict(post, setup.model, steered.controls, rng))
@@ -258,13 +271,18 @@ def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.
 def replanner(setup: MonitorSetup, goal: np.ndarray, workspace: GuidanceWorkspace | None = None,
               timer: Callable[[], float] = time.perf_counter) -> Replan:
     """P1 toward ``goal`` as the particle steering calls it (``steering.Replan``): from a state,
-    warm-started by a plan, with its law, held to sides; with a reference plan's QP budget
-    (``plan_max_qp_solves``, capped by the guidance's own)."""
+    warm-started by a plan (and a ``nearby`` plan of this tick), with its law, held to sides;
+    with a reference plan's QP budget (``plan_max_qp_solves``, capped by the guidance's own, and
+    by ``budget`` when given)."""
     params = setup.guidance
+    ahead = AHEAD_STEPS if setup.plan_steering is not None and setup.plan_steering.sides else 0
     if setup.plan_steering is not None:
         params = replace(params, max_qp_solves=min(setup.plan_steering.max_qp_solves, params.max_qp_solves))
 
-    def replan(x: np.ndarray, previous: Plan | None, sides: np.ndarray | None = None, strict: bool = False) -> Plan:
-        return plan_guidance(setup.model, params, setup.obstacles, x, goal, previous=previous, workspace=workspace,
-                             timer=timer, with_feedback=True, sides=sides, strict_sides=strict)
+    def replan(x: np.ndarray, previous: Plan | None, sides: np.ndarray | None = None, strict: bool = False,
+               nearby: Plan | None = None, explore: bool = True, budget: int | None = None) -> Plan:
+        p = params if budget is None else replace(params, max_qp_solves=min(budget, params.max_qp_solves))
+        return plan_guidance(setup.model, p, setup.obstacles, x, goal, previous=previous, workspace=workspace,
+                             timer=timer, with_feedback=True, sides=sides, strict_sides=strict, nearby=nearby,
+                             explore=explore, ahead=ahead)
     return replan

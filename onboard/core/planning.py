@@ -191,20 +191,30 @@ def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: Candidate
 
 def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
                       uav_obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
-    """First step admissible (C,), and the paths held at their last admissible point (C, H, 3)."""
+    """First step admissible (C,), and the paths held at their last admissible point (C, H, 3):
+    from a route's first step that leaves the area or crosses an obstacle on, it stays where it
+    was (at the start if that is its first step). Every step is checked at once."""
     C, H, _ = paths.shape
-    prev = np.broadcast_to(np.asarray(start, float), (C, 3))
-    held = paths.copy()
-    ok_first = None
-    alive = np.ones(C, dtype=bool)
-    for i in range(H):
-        ok = admissible(held[:, i], prev, area_min, area_max, uav_obstacles) & alive
-        if ok_first is None:
-            ok_first = ok.copy()
-        alive = ok
-        held[~ok, i] = prev[~ok]
-        prev = held[:, i]
-    return ok_first, held
+    start = np.broadcast_to(np.asarray(start, float), (C, 1, 3))
+    ext = np.concatenate([start, paths], axis=1)  # (C, H+1, 3): the start, then the path
+    ok = admissible(paths.reshape(-1, 3), ext[:, :-1].reshape(-1, 3), area_min, area_max,
+                    _at_level(uav_obstacles, ext[:, :, 2])).reshape(C, H)
+    alive = np.logical_and.accumulate(ok, axis=1)
+    n_ok = alive.sum(axis=1)  # the steps before the first that is not admissible
+    last = np.minimum(np.arange(H)[None, :], n_ok[:, None] - 1)  # -1: the start
+    held = ext[np.arange(C)[:, None], last + 1]
+    return alive[:, 0].copy(), held
+
+
+def _at_level(obstacles: Obstacles, z: np.ndarray) -> Obstacles:
+    """The obstacles a path at the one altitude z (every point's) can meet: those it is neither
+    above nor below (what ``admissible`` finds for the others is already known: nothing)."""
+    if not len(obstacles) or np.ptp(z) > 0.0:
+        return obstacles
+    _, _, z_lo, z_hi = obstacles.lateral()
+    level = float(z.flat[0])
+    keep = (z_lo < level + 1e-6) & (z_hi > level - 1e-6)
+    return obstacles if keep.all() else Obstacles(obstacles.normals[keep], obstacles.offsets[keep])
 
 
 @dataclass(frozen=True)
@@ -292,31 +302,44 @@ def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
     return out
 
 
-def _sample_route(poly: np.ndarray, side: float, radius: float, length: float, ds: float) -> np.ndarray:
-    """Points every ds metres along poly, then along a circle of ``radius`` that starts at its
-    end, tangent to the last leg and turning to ``side`` (+1 left, -1 right), up to ``length``."""
-    seg = np.diff(poly, axis=0)
-    seg_len = np.linalg.norm(seg, axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
-    total = cum[-1]
+def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, length: float,
+                   ds: float) -> np.ndarray:
+    """(C, S, 2): for each polyline and side, points every ds metres along it, then along a circle of
+    ``radius`` that starts at its end, tangent to the last leg and turning to the side (+1 left,
+    -1 right), up to ``length``. All routes at once: the polylines are padded with zero legs."""
+    C = len(polys)
+    n_seg = np.array([len(pl) - 1 for pl in polys])
+    V = int(n_seg.max()) + 1
+    poly = np.empty((C, V, 2))  # each polyline, then its end point repeated
+    for c, pl in enumerate(polys):
+        poly[c, :len(pl)] = pl
+        poly[c, len(pl):] = pl[-1]
+    seg = np.diff(poly, axis=1)
+    seg_len = np.linalg.norm(seg, axis=2)
+    cum = np.concatenate([np.zeros((C, 1)), np.cumsum(seg_len, axis=1)], axis=1)
+    total = cum[np.arange(C), n_seg]
     s = np.arange(0.0, length + ds, ds)
-    out = np.empty((len(s), 2))
-    on = s <= total
-    if total > 1e-9:
-        k = np.clip(np.searchsorted(cum, s[on], side="right") - 1, 0, len(seg) - 1)
-        frac = (s[on] - cum[k]) / np.maximum(seg_len[k], 1e-12)
-        out[on] = poly[k] + frac[:, None] * seg[k]
-        nz = seg[seg_len > 1e-9]
-        tangent = nz[-1] / np.linalg.norm(nz[-1])
-    else:
-        out[on] = poly[-1]
-        tangent = np.array([1.0, 0.0])
-    normal = side * np.array([-tangent[1], tangent[0]])
-    centre = poly[-1] + radius * normal
-    ang = (s[~on] - total) / radius  # arc angle travelled on the circle
+    out = np.empty((C, len(s), 2))
+    on = s[None, :] <= total[:, None]  # (C, S) along the polyline, else on the circle
+    end = poly[np.arange(C), n_seg]
+    tangent = np.tile([1.0, 0.0], (C, 1))
+    for c in np.flatnonzero(total > 1e-9):
+        nz = seg[c, :n_seg[c]][seg_len[c, :n_seg[c]] > 1e-9]
+        tangent[c] = nz[-1] / np.linalg.norm(nz[-1])
+    # on the polyline: the leg each sample falls on (searchsorted along each route's arc length)
+    k = np.clip((cum[:, None, :] <= s[None, :, None]).sum(axis=2) - 1, 0, np.maximum(n_seg - 1, 0)[:, None])
+    rows = np.arange(C)[:, None]
+    frac = (s[None, :] - cum[rows, k]) / np.maximum(seg_len[rows, k], 1e-12)
+    along = poly[rows, k] + frac[..., None] * seg[rows, k]
+    flat = total <= 1e-9  # a route that is its end point: the circle at once
+    along[flat] = end[flat][:, None]
+    normal = sides[:, None] * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    centre = end + radius * normal
+    ang = (s[None, :] - total[:, None]) / radius  # arc angle travelled on the circle
     r0 = -normal  # from the centre to the end point
-    r1 = side * np.array([-r0[1], r0[0]])  # the direction of travel rotated: tangent at the start
-    out[~on] = centre + radius * (np.cos(ang)[:, None] * r0 + np.sin(ang)[:, None] * r1)
+    r1 = sides[:, None] * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
+    circle = centre[:, None] + radius * (np.cos(ang)[..., None] * r0[:, None] + np.sin(ang)[..., None] * r1[:, None])
+    out[:] = np.where(on[..., None], along, circle)
     return out
 
 
@@ -438,8 +461,11 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     polys = route_polylines(p0, wp, normals, offsets, clearance)
     speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
     length = speed * dt * (H + 2)
-    return np.array([_sample_route(pl, side, params.loiter_radius_m, length, params.spacing_m)
-                     for pl in polys if pl is not None for side in (1.0, -1.0)])
+    kept = [pl for pl in polys if pl is not None for _ in (1.0, -1.0)]
+    if not kept:
+        return np.zeros((0, 0, 2))
+    sides = np.tile([1.0, -1.0], len(kept) // 2)
+    return _sample_routes(kept, sides, params.loiter_radius_m, length, params.spacing_m)
 
 
 def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,

@@ -43,6 +43,17 @@ class SideMode:
 MAX_SIDE_MODES = 4  # per target
 MIN_SIDE_SHARE = 0.01  # a side mode holding less of the posterior weight is dropped
 SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets two sides
+# the side-aware steering's QP solves per target and tick (``Budget``) and what one plan may take of
+# them: a side mode's re-plan (a search from scratch when its warm starts fail), a side's birth, a
+# reference plan (warm starts only); a plan's law counts as LAW_COST solves
+TICK_QP_BUDGET = 40  # per target, when side_modes is given no budget
+STEER_QPS = 40  # per tick, less what the mean plans searched this tick (SideSteering.budgets) ...
+STEER_MIN_QPS = 12  # ... but at least this many
+MODE_QPS = 8
+BIRTH_QPS = 12
+REFERENCE_QPS = 3
+LAW_COST = 1
+AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
 
 # P1 from a state, warm-started by a plan, with its law (with_feedback), held to sides (strict:
 # rounding each obstacle of a side that way): the guidance as the strategies call it
@@ -60,6 +71,7 @@ class TargetTick:
     plan: Plan  # P1 from the mean, this tick
     previous_plan: Plan | None  # last tick's
     replan: Replan  # ``replan(x, previous, sides=None, strict=False)``: P1 from x, with its law
+    budget: int | None = None  # QP solves its steering may spend this tick (``ParticleSteering.budgets``)
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,6 +91,11 @@ class ParticleSteering(ABC):
     @abstractmethod
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         ...
+
+    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
+        """Per target, the QP solves its steering may spend this tick (None: no limit), given the
+        mean's plans of the tick (made before the steering)."""
+        return [None] * len(plans)
 
     def free(self, target: TargetTick, rng: np.random.Generator) -> Steered:
         """The free law and the plan's control, nothing kept."""
@@ -112,13 +129,23 @@ class ReferenceSteering(ParticleSteering):
 
 
 class SideSteering(ParticleSteering):
-    """``tracking.plan_sides``: side modes (``side_modes``); kept: the modes."""
+    """``tracking.plan_sides``: side modes (``side_modes``); kept: the modes. Its plans are made
+    within a budget of QP solves per tick (a count, never wall time: the same inputs give the same
+    plans on any machine): ``STEER_QPS`` less what the mean's plans spent beyond a warm start, at
+    least ``STEER_MIN_QPS``, shared by the targets whose plan is constrained."""
+
+    def budgets(self, plans: Sequence[Plan]) -> list[int | None]:
+        searched = sum(max(0, p.qp_solves - 1) for p in plans)  # the mean plans' searches this tick
+        total = max(STEER_MIN_QPS, STEER_QPS - searched)
+        steered = [self.constrained(p) for p in plans]
+        share = total // max(1, sum(steered))
+        return [share if c else None for c in steered]
 
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         if not self.constrained(target.plan):
             return self.free(target, rng)  # a particle's side is dropped while the mean's plan is free
         side_laws, modes = side_modes(self.setup, target.post, target.mean, target.cov, target.plan, memory,
-                                      target.previous_plan, target.replan, rng)
+                                      target.previous_plan, target.replan, rng, target.budget)
         u = particle_controls(target.plan, target.post.particles, target.goal, self.setup, rng, sides=side_laws)
         return Steered(u, side_laws.labels, modes)
 
@@ -202,15 +229,17 @@ def mahalanobis2(points: np.ndarray, centres: np.ndarray, metric: np.ndarray) ->
 
 
 def reference_laws(ps: PlanSteering, mean: np.ndarray, cov: np.ndarray, plan: Plan, previous: Plan | None,
-                   previous_refs: Sequence[Plan | None], replan: Replan, sides: np.ndarray | None = None
-                   ) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
+                   previous_refs: Sequence[Plan | None], replan: Replan, sides: np.ndarray | None = None,
+                   budget: Budget | None = None) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
     """The laws of the mean's plan and of plans from ``references`` points, pairs evenly spaced
     out to +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
     regressed on position, as the cloud correlates them), each planned as the mean is (warm-started
     by last tick's plan from the same offset, else the mean's, so each may round an obstacle on its
     own side; with ``sides``, never against them: ``guidance.in_class``); the position metric
     (inverse covariance) that picks a particle's nearest reference; and the reference plans (next
-    tick's warm starts). A reference with no feasible plan is left out."""
+    tick's warm starts). A reference with no feasible plan is left out. With a ``budget`` (the
+    side modes'): each reference is warm-started by its own last plan, else by ``plan`` as it is,
+    with at most ``REFERENCE_QPS`` of the budget and no search from scratch."""
     C = cov[np.ix_(PLANAR, PLANAR)]
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
     metric = np.linalg.inv(Cpp)
@@ -223,11 +252,34 @@ def reference_laws(ps: PlanSteering, mean: np.ndarray, cov: np.ndarray, plan: Pl
             x = np.asarray(mean, float).copy()
             x[PLANAR] += C[:, :2] @ np.linalg.solve(Cpp, o * axis)
             own = previous_refs[i] if i < len(previous_refs) else None
-            p = replan(x, own if own is not None else previous, sides)
-            refs.append(p if p.feasible else None)
-            if p.feasible and p.law is not None:
+            if budget is None:
+                p = replan(x, own if own is not None else previous, sides)
+            else:
+                p = _budgeted_reference(x, own, previous, plan, sides, replan, budget, first=i >= len(previous_refs))
+            refs.append(p if p is not None and p.feasible else None)
+            if p is not None and p.feasible and p.law is not None:
                 laws.append(p.law)
     return laws, metric, tuple(refs)
+
+
+def _budgeted_reference(x: np.ndarray, own: Plan | None, previous: Plan | None, plan: Plan, sides: np.ndarray | None,
+                        replan: Replan, budget: Budget, first: bool) -> Plan | None:
+    """A reference plan within the side modes' budget: its own last plan shifted by a tick
+    (``Plan.shifted``) while that has a next law, so each is made afresh every ``AHEAD_STEPS`` + 1
+    ticks; else P1 from x warm-started by its own last plan (else the mode's last), then by the
+    mode's plan of this tick, no search from scratch (``first``: the reference's first plan, with
+    ``MODE_QPS``, else ``REFERENCE_QPS``); where the budget does not reach or that fails, shifted
+    while it can be."""
+    if own is not None and own.ahead:
+        return own.shifted()
+    p = None
+    most = REFERENCE_QPS if own is not None else MODE_QPS  # a reference's first plan: its faces re-picked more
+    if budget.cap(most) > 0:
+        p = replan(x, own if own is not None else previous, sides, nearby=plan, explore=False, budget=budget.cap(most))
+        budget.spend(p)
+    if (p is None or not p.feasible or p.law is None) and own is not None and own.ahead:
+        p = own.shifted()
+    return p
 
 
 # --------------------------------------------------------------------------- side modes
@@ -244,9 +296,26 @@ class SideLaws:
     metric: np.ndarray
 
 
+class Budget:
+    """The QP solves one target's side-aware steering may spend in a tick: a count, never wall
+    time, so the same inputs give the same plans on any machine. A plan's law (its sensitivity
+    solve) costs ``LAW_COST``. Spent in order of priority: the heaviest side modes first."""
+
+    def __init__(self, total: int):
+        self.left = total
+
+    def cap(self, most: int) -> int:
+        """What the next plan may spend: at most ``most``, within what is left."""
+        return max(0, min(most, self.left - LAW_COST))
+
+    def spend(self, plan: Plan | None) -> None:
+        if plan is not None:
+            self.left -= plan.qp_solves + (LAW_COST if plan.law is not None else 0)
+
+
 def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
                previous: Sequence[SideMode], previous_plan: Plan | None, replan: Replan,
-               rng: np.random.Generator) -> tuple[SideLaws, tuple[SideMode, ...]]:
+               rng: np.random.Generator, budget: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
     """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``).
 
     A true target keeps the side of an obstacle its plan took when the obstacle first bound it
@@ -255,36 +324,52 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
     side, kept through resampling, and each side present has its own reference plans:
 
     1. last tick's modes, each re-planned from the weighted mean of its particles, warm-started by
-       its own plan and never rounding an obstacle the other way than its side; a mode with
-       under ``MIN_SIDE_SHARE`` of the weight, or no feasible plan, is dropped (with none left
-       the mean's plan is the one mode); a particle without a mode joins the nearest
-       (Mahalanobis, position) (``_carry_modes``);
+       its own plan (then by the mean's plan of this tick, when on its sides) and never rounding
+       an obstacle the other way than its side; a mode with under ``MIN_SIDE_SHARE`` of the
+       weight, or no feasible plan, is dropped (with none left the mean's plan is the one mode); a
+       particle without a mode joins the nearest (Mahalanobis, position) (``_carry_modes``);
     2. a mode whose plan has an active row on an obstacle it has no side for yet, not within
        ``SIDE_LEAD_STEPS`` of now, takes its plan's side there and plans the best path round the
        other side from the same point; that side takes each of the mode's particles with
        probability 1 / (1 + exp(d / side_temperature)), d the relative extra cost of its plan (a
        coin toss at the knife edge), up to ``MAX_SIDE_MODES`` modes (``_birth_sides``);
-    3. each mode's reference plans, as ``reference_laws`` spreads them over its own particles
-       and held to its sides (a mode born this tick has its own plan only).
+    3. each mode's reference plans, as ``reference_laws`` spreads them over its own particles,
+       held to its sides and warm-started by their own plans of the last tick, then by the mode's
+       plan of this tick, never searched from scratch (a mode born this tick has its own plan only).
+
+    All of it within ``budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
+    most weight first: the modes' re-plans (a mode whose plan cannot be shifted again is re-planned
+    past the budget: a mode is never lost for want of QPs), then the births, then the references.
+    A mode or reference the budget does not reach (or whose warm starts fail) keeps its plan of the
+    last tick shifted by a tick (``Plan.shifted``: its law the next control's) for up to
+    ``AHEAD_STEPS`` ticks.
     """
     metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
+    budget = Budget(TICK_QP_BUDGET if budget is None else budget)
 
-    def planned(x, previous_plan, sides, strict=False):
-        p = replan(x, previous_plan, sides, strict)
+    def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS, force=False):
+        cap = budget.cap(most)
+        if cap <= 0:
+            if not force:
+                return None
+            cap = most  # past the budget: a mode that would otherwise be lost
+        p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=cap)
+        budget.spend(p)
         return p if p.feasible and p.law is not None else None
 
     labels, modes, stats, old = _carry_modes(ps, mean, cov, plan, previous, previous_plan, planned, metric,
                                              len(setup.obstacles))
     n_old = len(modes)
     _birth_sides(setup.plan_steering, labels, modes, stats, planned, rng)
+    weight = np.bincount(labels, weights=ps.weights, minlength=len(modes))
+    refs_of: dict[int, tuple] = {}
+    for m in sorted(range(n_old), key=lambda m: -weight[m]):  # the heaviest modes' references first
+        centre, c = stats[m]
+        refs_of[m] = reference_laws(setup.plan_steering, centre, c, modes[m].plan, old[m][0], old[m][1], replan,
+                                    sides=modes[m].sides, budget=budget)
     laws, group, out = [], [], []
     for m, mode in enumerate(modes):
-        if m < n_old:
-            centre, c = stats[m]
-            mode_laws, _, refs = reference_laws(setup.plan_steering, centre, c, mode.plan, old[m][0], old[m][1],
-                                                replan, sides=mode.sides)
-        else:
-            mode_laws, refs = [mode.plan.law], ()
+        mode_laws, _, refs = refs_of[m] if m < n_old else ([mode.plan.law], None, ())
         laws += mode_laws
         group += [m] * len(mode_laws)
         out.append(SideMode(mode.plan, mode.sides, refs))
@@ -293,8 +378,9 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
 
 def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan, previous: Sequence[SideMode],
                  previous_plan: Plan | None, planned: Callable, metric: np.ndarray, K: int):
-    """``side_modes``' step 1: the labels (n,), the modes kept (re-planned), each one's particles'
-    (weighted mean, covariance), and its last plan and references (the warm starts)."""
+    """``side_modes``' step 1: the labels (n,), the modes kept (re-planned, the heaviest first),
+    each one's particles' (weighted mean, covariance), and its last plan and references (the
+    warm starts)."""
     w, x_all = ps.weights, ps.particles
 
     def moments(sel):
@@ -305,24 +391,36 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
 
     labels = np.full(len(ps), -1) if ps.labels is None else np.asarray(ps.labels).copy()
     labels[labels >= len(previous)] = -1
+    kept = {}  # previous index -> (share, centre, covariance)
+    for m in range(len(previous)):
+        sel = labels == m
+        if sel.any():
+            share, centre, c = moments(sel)
+            if share >= MIN_SIDE_SHARE:
+                kept[m] = (share, centre, c)
+    planned_for = {}
+    for m in sorted(kept, key=lambda m: -kept[m][0]):  # the heaviest first: the budget runs out on the lightest
+        share, centre, _ = kept[m]
+        mode = previous[m]
+        on_side = in_class(plan.faces, mode.sides)
+        if share > 1.0 - 1e-12 and on_side:
+            planned_for[m] = plan  # the mean's plan is this mode's: no second solve
+        else:
+            # a mode whose plan cannot be shifted again is re-planned whatever the budget: a side
+            # mode is a hypothesis the bearings may still be weighing, never dropped for want of QPs
+            planned_for[m] = planned(centre, mode.plan, mode.sides, nearby=plan if on_side else None,
+                                     force=not mode.plan.ahead)
+            if planned_for[m] is None and mode.plan.ahead:
+                planned_for[m] = mode.plan.shifted()  # not re-planned this tick: its last plan, a tick on
     modes, stats, old = [], [], []  # old: the mode's last plan and references (warm starts)
     renumber = np.full(len(previous) + 1, -1)  # index -1 (no mode) stays -1
     for m, mode in enumerate(previous):
-        sel = labels == m
-        if not sel.any():
-            continue
-        share, centre, c = moments(sel)
-        if share < MIN_SIDE_SHARE:
-            continue
-        if share > 1.0 - 1e-12 and in_class(plan.faces, mode.sides):
-            p = plan  # the mean's plan is this mode's: no second solve
-        else:
-            p = planned(centre, mode.plan, mode.sides)
+        p = planned_for.get(m)
         if p is None:
             continue
         renumber[m] = len(modes)
         modes.append(SideMode(p, mode.sides))
-        stats.append((centre, c))
+        stats.append(kept[m][1:])
         old.append((mode.plan, mode.references))
     labels = renumber[labels]
     if not modes:
@@ -355,7 +453,7 @@ def _birth_sides(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], st
                 continue
             other = held.copy()
             other[k] = -held[k]
-            alt = planned(stats[m][0], None, other, strict=True)
+            alt = planned(stats[m][0], None, other, strict=True, most=BIRTH_QPS)
             if alt is None:
                 continue
             d = (alt.cost - p.cost) / max(abs(p.cost), 1e-9)

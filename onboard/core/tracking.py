@@ -4,7 +4,7 @@ Weights are kept as normalised log-weights so that no underflow turns into NaN.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -109,14 +109,18 @@ class UpdateResult:
 
 def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
     """eq:update with one or more scans [(sensor_xy, bearings), ...], their likelihoods multiplied.
+    A scan may carry a third item, its own clutter rate Lambda (None: the model's).
 
     If the update leaves no finite weight (a set impossible under the model, e.g. p_D = 1 with
     the target far from every bearing, or a scan holding a non-finite bearing), the prior weights
     are kept and ``degenerate`` is set.
     """
     logw = ps.log_weights.copy()
-    for sensor_xy, bearings in scans:
-        logw = logw + log_likelihood(ps.particles[:, :2], sensor_xy, bearings, model)
+    for scan in scans:
+        sensor_xy, bearings = scan[0], scan[1]
+        lam = scan[2] if len(scan) > 2 else None
+        m = model if lam is None else replace(model, clutter_rate=float(lam))
+        logw = logw + log_likelihood(ps.particles[:, :2], sensor_xy, bearings, m)
     total = logsumexp(logw) if np.isfinite(logw).any() else -np.inf
     if not np.isfinite(total):
         return UpdateResult(ps, True)

@@ -1,0 +1,117 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "onboard.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_check_config_ok_and_bad(tmp_path):
+    ok = run("check-config")
+    assert ok.returncode == 0 and "4 targets, 4 obstacles" in ok.stdout
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\n")
+    res = run("check-config", str(bad))
+    assert res.returncode == 2 and "origin: missing" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_simulate_runs_a_short_mission():
+    res = run("simulate", "--ticks", "3")
+    assert res.returncode == 0, res.stderr
+    assert "position error after 3 ticks" in res.stdout
+    assert "error per target [m]" in res.stdout and "final [m]" in res.stdout  # units, not eaten as markup
+
+
+def test_bad_arguments_exit_nonzero():
+    assert run("simulate", "--ticks", "0").returncode == 2
+    assert run("fly").returncode == 2
+
+
+def test_the_flight_program_loads_no_simulator_ground_station_or_lab_packages():
+    """``pmon run`` (the companion computer's program) imports onboard/ and its runtime
+    dependencies only: a flight install has none of these."""
+    res = subprocess.run([sys.executable, "-X", "importtime", "-m", "onboard.cli", "run", "--help"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "--mavlink" in res.stdout
+    modules = {line.split("|")[-1].strip() for line in res.stderr.splitlines() if line.startswith("import time:")}
+    assert "onboard.app.run" in modules
+    lab = sorted(m for m in modules if m.split(".")[0] in ("sim", "groundstation", "matplotlib", "dask", "rich",
+                                                           "mavsdk", "distributed"))
+    assert lab == []
+
+
+def test_version_and_every_verb_listed():
+    from importlib.metadata import version
+    res = run("--version")
+    assert res.returncode == 0 and res.stdout.strip() == f"pmon {version('passive-monitor')}"
+    res = run("--help")
+    assert res.returncode == 0
+    for verb in ("run", "check-config", "demo", "simulate", "eval", "feed", "gcs"):
+        assert f"\n    {verb}" in res.stdout, res.stdout
+    assert run("demo", "--help").stdout.startswith("usage: pmon demo ")
+
+
+def test_a_verb_whose_extra_is_not_installed_is_refused_in_one_line(monkeypatch, capsys):
+    from importlib import metadata
+
+    from onboard import cli
+
+    real = metadata.distribution
+    hidden = {"dask", "rich"}
+
+    def distribution(name):
+        if name.lower() in hidden:
+            raise metadata.PackageNotFoundError(name)
+        return real(name)
+    monkeypatch.setattr(metadata, "distribution", distribution)
+    assert cli.main(["eval", "--help"]) == 2  # refused before it parses anything
+    err = capsys.readouterr().err
+    assert err == "pmon eval: needs the 'sim' extra (rich, dask not installed): pip install 'passive-monitor[sim]'\n"
+    assert cli.main(["gcs", "status"]) == 2
+    assert capsys.readouterr().err == ("pmon gcs: needs the 'gcs' extra (rich not installed): "
+                                       "pip install 'passive-monitor[gcs]'\n")
+    from groundstation.cli import script  # the pmon-gcs program
+    monkeypatch.setattr(sys, "argv", ["pmon-gcs", "status"])
+    assert script() == 2 and capsys.readouterr().err.startswith("pmon-gcs: needs the 'gcs' extra (rich not")
+    hidden.update({"matplotlib", "distributed"})  # the flight install: feed needs no extra
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["feed", "--help"])
+    assert exc.value.code == 0 and "usage: pmon feed" in capsys.readouterr().out
+
+
+def test_the_ground_station_help_says_what_applies():
+    params = subprocess.run([sys.executable, "-m", "onboard.cli", "gcs", "params", "--help"],
+                            capture_output=True, text=True, timeout=60).stdout
+    for sub in ("list", "get", "set"):
+        assert f"\n    {sub} " in params, params
+    for offline in ("plot", "export"):
+        out = subprocess.run([sys.executable, "-m", "onboard.cli", "gcs", offline, "--help"],
+                             capture_output=True, text=True, timeout=60).stdout
+        assert "--json" in out and "--connect" not in out and "--timeout" not in out and "--sysid" not in out, out
+
+
+def test_a_programs_help_says_what_it_is_in_whole_sentences():
+    """argparse's description was the docstring's first line: cut mid-sentence where it wraps."""
+    for argv in (["-m", "sim.stack"], ["-m", "sim.autopilot"], ["bench/latency.py"]):
+        out = subprocess.run([sys.executable, *argv, "--help"], capture_output=True, text=True, timeout=60,
+                             cwd=Path(__file__).resolve().parents[2]).stdout
+        description = out.split("\n\n")[1]
+        assert description.rstrip().endswith("."), (argv, description)
+
+
+def test_pmon_eval_says_where_its_results_went_in_a_table_and_warns_of_few_trials(tmp_path):
+    out = tmp_path / "ev"
+    res = run("eval", "--trials", "2", "--duration", "4", "--particles", "100", "--workers", "1",
+              "--methods", "greedy_l1,hover", "--out", str(out), "--quiet", "--no-figures")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    head = json.loads(lines[-1])  # the JSON line stays last
+    assert lines[0].split()[:2] == ["method", "RMSE"]
+    hover = next(x for x in lines if x.startswith("hover "))
+    assert f"{head['methods']['hover']['rmse_mean_m']:.1f}" in hover
+    assert f"results in {out}/: results.md" in res.stdout and (out / "results.md").exists()
+    assert "warning: 2 trials: a 95 % confidence interval means little below about 10" in res.stderr

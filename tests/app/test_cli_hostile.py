@@ -1,0 +1,133 @@
+"""Hostile command lines and scenario files (issue 23, part 5): each is refused with exit 2 and
+one line on stderr, no traceback, no hang. Every case runs as the real program in a subprocess
+(pmon, python -m sim.stack, python -m sim.autopilot), several at a time, each bounded by 60 s:
+a hang fails the test. The first cases are issue 23's list; the others found alongside them.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = (ROOT / "config" / "paper.yaml").read_text()
+HANG_S = 60.0
+
+
+def files(tmp: Path) -> dict[str, str]:
+    """Scenario and recording files a hostile user could name."""
+    out = {}
+
+    def write(name: str, text: str) -> None:
+        (tmp / name).write_text(text)
+        out[name] = str(tmp / name)
+    write("bigint.yaml", PAPER.replace("dt_s: 1.0", "dt_s: 1" + "0" * 400))
+    write("bigint_particles.yaml", PAPER + "tracking:\n  particles: 1" + "0" * 400 + "\n")
+    write("bigint_5000.yaml", PAPER.replace("n_radial: 4", "n_radial: 1" + "0" * 4999))
+    write("radians.yaml", PAPER.replace("sigma_deg: 1.0", "sigma_deg: 0.01745"))
+    write("twice.yaml", PAPER.replace("  p_detect: 0.95", "  p_detect: 0.95\n  p_detect: 0.5"))
+    write("deep.yaml", "name: " + "[" * 3000 + "]" * 3000 + "\n")
+    write("tag.yaml", "name: !!python/object/apply:os.system [\"echo owned\"]\n")
+    targets = "".join(f"  - {{name: X{i}, position_m: [10.0, 10.0, 0.0], goal: G}}\n" for i in range(100))
+    write("many_targets.yaml", PAPER.replace("targets:", "targets:\n" + targets + "#", 1))
+    write("huge.yaml", "# " + "x" * 2_000_000 + "\n")
+    write("rec_bigint.jsonl", '{"t": 1' + "0" * 400 + ', "ch": 0, "bearings_rad": [0.1]}\n')
+    write("rec_deep.jsonl", "[" * 100000 + "]" * 100000 + "\n")
+    write("rec_types.jsonl", '{"t": 1.0, "ch": "0", "bearings_rad": 7}\n')
+    os.mkfifo(tmp / "fifo")
+    out["fifo"] = str(tmp / "fifo")
+    return out
+
+
+def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
+    """(argv, a part of the one line expected on stderr)."""
+    pmon = [sys.executable, "-m", "onboard.cli"]
+    run = pmon + ["run", "--mavlink", "udpin:127.0.0.1:0", "--df", "127.0.0.1:0"]
+    stack = [sys.executable, "-m", "sim.stack"]
+    mock = [sys.executable, "-m", "sim.autopilot", "--tcp", "127.0.0.1:0"]
+    return [
+        # issue 23's list
+        (pmon + ["check-config", f["bigint.yaml"]], "dynamics.dt_s: must be in [0.1, 10] s, got 1000000... (401 digits)"),
+        (pmon + ["check-config", f["deep.yaml"]], "nested too deeply"),
+        (pmon + ["check-config", "/dev/zero"], "/dev/zero: a device, not a regular file"),
+        (pmon + ["check-config", f["fifo"]], "a FIFO, not a regular file"),
+        (run + ["--seed", "-1"], "argument --seed: must be >= 0"),
+        (pmon + ["run", "--mavlink", "udpin:127.0.0.1:70000"], "argument --mavlink: port must be 0..65535"),
+        (pmon + ["run", "--mavlink", "nonsense://x"], "argument --mavlink: want udpin|"),
+        (pmon + ["run", "--df", "127.0.0.1:\u00b2"], "argument --df: port must be 0..65535"),
+        (stack + ["--speedup", "-1"], "argument --speedup: must be in (0, 1000]"),
+        (stack + ["--speedup", "0"], "argument --speedup: must be in (0, 1000]"),
+        (stack + ["--speedup", "nan"], "argument --speedup: must be in (0, 1000]"),
+        (stack + ["--gcs-udp", "70000"], "argument --gcs-udp: port must be 1..65535"),
+        (pmon + ["eval", "--set", "tracking.control_mix=!!python/object/apply:os.system ['echo owned']"],
+         "VALUE is not plain YAML"),
+        # found alongside
+        (pmon + ["check-config", f["bigint_particles.yaml"]], "tracking.particles: must be in [100, 20000], got 1000000..."),
+        (pmon + ["check-config", f["bigint_5000.yaml"]], "uav.n_radial: must be in [0, 20], got 1000000... (5000 digits)"),
+        (pmon + ["check-config", f["radians.yaml"]], "sensor.sigma_deg: must be in [0.05, 30] deg, got 0.01745"),
+        (pmon + ["check-config", f["twice.yaml"]], "sensor.p_detect: key given twice (lines"),
+        (pmon + ["check-config", f["tag.yaml"]], "not valid YAML"),
+        (pmon + ["check-config", f["many_targets.yaml"]], "targets: must have at most 64 items"),
+        (pmon + ["check-config", f["huge.yaml"]], "more than 1000000"),
+        (pmon + ["check-config", "/tmp"], "a directory, not a regular file"),
+        (run + ["--scenario", f["fifo"]], "a FIFO, not a regular file"),
+        (pmon + ["run", "--mavlink", "/usr/bin/true"], "/usr/bin/true: not a serial device"),
+        (pmon + ["run", "--mavlink", "udpin:127.0.0.1:-1"], "argument --mavlink: want udpin|"),
+        (pmon + ["run", "--mavlink", "tcp:127.0.0.1:0"], "argument --mavlink: port must be 1..65535"),
+        (run + ["--df-from", "10.0.0.x"], "argument --df-from: '10.0.0.x': want an IPv4 address"),
+        (run + ["--df-rate", "nan"], "argument --df-rate: must be in [1, 1e+06]"),
+        (run + ["--baud", "-5"], "argument --baud: must be in 50..20000000"),
+        (run + ["--sysid", "1e3"], "argument --sysid: want an integer"),
+        (run + ["--runlog", "/nonexistent/run.jsonl"], "no directory /nonexistent"),
+        (pmon + ["eval", "--set", "name=" + "[" * 3000], "--set"),
+        (pmon + ["eval", "--trials", "0"], "argument --trials: must be in 1..1000000"),
+        (pmon + ["eval", "--out", "/dev/null"], "argument --out: /dev/null: exists and is not a directory"),
+        (pmon + ["simulate", "--seed", "-1"], "argument --seed: must be >= 0"),
+        (pmon + ["simulate", "--ticks", "0"], "argument --ticks: must be in 1..100000"),
+        (pmon + ["feed", "live", "--mavlink", "nonsense://x"], "argument --mavlink: want udpin|"),
+        (pmon + ["feed", "replay", "/dev/zero"], "/dev/zero: a device, not a regular file"),
+        (pmon + ["feed", "replay", f["fifo"]], "a FIFO, not a regular file"),
+        (pmon + ["feed", "replay", f["rec_bigint.jsonl"]], "rec_bigint.jsonl:1: 1000000"),
+        (pmon + ["feed", "replay", f["rec_deep.jsonl"]], "rec_deep.jsonl:1: not JSON"),
+        (pmon + ["feed", "replay", f["rec_types.jsonl"]], "rec_types.jsonl:1: ch must be an integer"),
+        (pmon + ["feed", "replay", f["rec_types.jsonl"], "--to", "127.0.0.1:\u00b2"], "argument --to: port must be"),
+        (pmon + ["feed", "live", "--mavlink", "tcp:127.0.0.1:5760", "--seed", "-3"], "argument --seed: must be >= 0"),
+        (stack + ["--speedup", "inf"], "argument --speedup: must be in (0, 1000]"),
+        (stack + ["--seed", "-1"], "argument --seed: must be >= 0"),
+        (stack + ["--truth", "/nonexistent/truth.jsonl"], "no directory /nonexistent"),
+        (mock + ["--speedup", "0"], "argument --speedup: must be in (0, 1000]"),
+        (mock + ["--udp", "127.0.0.1:70000"], "argument --udp: port must be 1..65535"),
+        (mock + ["--param", "NOPE=1"], "unknown parameter 'NOPE'"),
+        (mock + ["--param", "WPNAV_SPEED=nan"], "argument --param: want NAME=VALUE with a finite number"),
+        (mock + ["--max-lag", "nan"], "argument --max-lag: must be in (0, 3600]"),
+    ]
+
+
+@pytest.mark.timeout(600)
+def test_every_hostile_case_exits_2_with_one_line_and_no_traceback(tmp_path):
+    todo = cases(files(tmp_path))
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    failures = []
+    for i in range(0, len(todo), 6):  # a few at a time: 2 cores, each a Python start-up
+        batch = []
+        for argv, _ in todo[i:i + 6]:
+            p = subprocess.Popen(argv, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            batch.append((p, time.monotonic()))
+        for (argv, want), (p, t0) in zip(todo[i:i + 6], batch):
+            try:
+                out, err = p.communicate(timeout=max(HANG_S - (time.monotonic() - t0), 1.0))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.communicate()
+                failures.append((argv[2:], "hung"))
+                continue
+            lines = [x for x in err.splitlines() if x.strip()]
+            if p.returncode != 2 or len(lines) != 1 or "Traceback" in err or want not in err:
+                failures.append((argv[2:], p.returncode, err[-600:]))
+            assert "owned" not in out + err, "a YAML tag was executed"
+    assert failures == [], failures

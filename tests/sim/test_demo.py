@@ -1,0 +1,106 @@
+"""`pmon demo` as a user runs it: exits 0, writes the table, the PNG and the logs, and leaves no
+process behind; Ctrl-C stops everything."""
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.sitl
+
+
+def _children_gone(out: Path) -> bool:
+    logs = [out / n for n in ("autopilot.log", "app.log")]
+    return all(p.exists() for p in logs) and "mock autopilot stopped" in logs[0].read_text() \
+        and "pmon run: stopped" in logs[1].read_text()
+
+
+@pytest.mark.timeout(90)
+def test_demo_flies_scores_and_cleans_up(tmp_path):
+    out = tmp_path / "d"
+    p = subprocess.run([sys.executable, "-m", "onboard.cli", "demo", "--duration", "20", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=80)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "RMSE" in p.stdout and "T4" in p.stdout
+    assert "RMSE [m]" in p.stdout and "final [m]" in p.stdout, p.stdout[-1500:]  # units shown
+    said = " ".join(p.stdout.split())  # rich wraps lines
+    # what a new user asked: the clock, the ticks against the scans, the timings, the scale
+    assert "the first at autopilot t = " in said and "(its clock counts from boot)" in said, said[-1500:]
+    assert " monitoring (" in said and "before, in the launch" in said and " scored (" in said
+    assert "monitoring tick, wall-time median: core " in said and "ms to send)" in said
+    assert "scale (RMSE from 10 s, all targets" in said and "three fixed DFs (fixed3) 7.9 m" in said
+    from matplotlib.image import imread
+    height, width = imread(out / "flight.png").shape[:2]
+    assert width >= 1400 and height >= 850, (width, height)  # was 729 x 558
+    from onboard.config import load_scenario
+    from tests.support.geojson_check import assert_geojson_in_area
+    raw = assert_geojson_in_area(out / "flight.geojson", load_scenario("paper"))  # RFC 7946, in the area
+    kinds = [f["properties"]["kind"] for f in raw["features"]]
+    assert kinds.count("true_track") == 4 and kinds.count("estimate_track") == 4 and "uav_path" in kinds
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["scored_ticks"] >= 18 and len(rep["rmse_m"]) == 4
+    assert _children_gone(out)
+
+
+def test_the_demos_scale_is_what_the_docs_files_say():
+    """sim/demo.py quotes pmon eval's 100 missions: median and 10-90 % of the per-mission RMSE of
+    each method, from the docs' per_trial.csv files. Fails when those files change and the demo
+    still quotes the old figures."""
+    import csv
+
+    import numpy as np
+
+    from sim.demo import SCALE
+    for key, (_, path, method, med, lo, hi) in SCALE.items():
+        with open(REPO / path) as f:
+            r = [float(row["rmse_window_m"]) for row in csv.DictReader(f) if row["method"] == method]
+        assert len(r) == 100, (key, path, method)
+        assert np.round(np.percentile(r, [50, 10, 90]), 1).tolist() == [med, lo, hi], key
+
+
+@pytest.mark.timeout(60)
+def test_demo_ctrl_c_stops_every_process(tmp_path):
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "demo", "--out", str(out)], cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not (out / "feed.log").exists():
+        time.sleep(0.2)
+    time.sleep(2)
+    p.send_signal(signal.SIGINT)
+    p.wait(timeout=20)
+    assert p.returncode in (130, 1)
+    assert _children_gone(out)
+
+
+@pytest.mark.timeout(90)
+def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
+    """pmon demo --gcs PORT: the mock streams to a ground station listening on that port (its
+    first endpoint is then that UDP one: the demo must still find its two TCP ports)."""
+    import os
+    import socket
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "demo", "--duration", "5", "--gcs", str(port),
+                          "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=30)
+        assert hb is not None and hb.get_srcSystem() == 1
+        stdout, _ = p.communicate(timeout=70)
+        assert p.returncode == 0, stdout[-2000:]
+        assert "RMSE" in stdout
+    finally:
+        if p.poll() is None:
+            p.kill()
+        gcs.close()
+    assert _children_gone(out)

@@ -1,0 +1,145 @@
+"""The repository's layout, checked (issue 28): tests by part, no test module importing another,
+and the import graph of the packages.
+
+Where tests live (a new test file goes in the folder of the part it tests):
+    tests/core/      onboard/core and the scenario/settings (onboard/config.py, onboard/settings.py)
+    tests/app/       onboard/app, `pmon run` and the onboard CLI (signing, failsafes, DF input, soak)
+    tests/sim/       sim/: the mock autopilot and its clients, truth, sensors, feed, evaluation, demo
+    tests/gcs/       groundstation/: `pmon gcs` verbs, hub, TAK, view, export
+    tests/firmware/  against the real firmware's SITL (ArduPilot; PX4) and the mock's conformance to it
+    tests/examples/  examples/, each script run as a user runs it
+    tests/support/   helpers the tests share (imported as ``tests.support.NAME``); tests/data/ data
+This file alone stays at the top. Fixtures every folder shares are in tests/conftest.py.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+PARTS = {"core", "app", "sim", "gcs", "firmware", "examples"}
+PACKAGES = ("onboard", "sim", "groundstation", "bench")
+
+
+def imported_names(path: Path, skip_type_checking: bool = False) -> list[tuple[int, str]]:
+    """(line, dotted name) of every import in a file, at any depth (a function's lazy import
+    too); relative imports resolved against the file's package. ``skip_type_checking``: leave out
+    what is imported under ``if TYPE_CHECKING:`` (never at run time)."""
+    tree = ast.parse(path.read_text(), str(path))
+    rel = path.relative_to(ROOT).with_suffix("").parts
+    pkg = list(rel if path.name == "__init__.py" else rel[:-1])
+    skip: set[int] = set()
+    if skip_type_checking:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+                skip |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
+    out = []
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(pkg[:len(pkg) - node.level + 1] + ([base] if base else []))
+            out += [(node.lineno, base)] + [(node.lineno, f"{base}.{a.name}") for a in node.names]
+    return out
+
+
+def test_no_test_module_imports_another():
+    """Shared code is in tests/support/; a test module (or a helper, or a bench) that imports a
+    test module or a conftest runs its tests' module-level code and couples their edits."""
+    bad = []
+    for path in [*TESTS.rglob("*.py"), *(ROOT / "bench").glob("*.py"), *(ROOT / "examples").glob("*.py")]:
+        for line, name in imported_names(path):
+            last = name.split(".")[-1]
+            if name.split(".")[0] in ("conftest",) or last.startswith("test_") and (
+                    name.startswith("tests.") or "." not in name):
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {name}")
+    assert not bad, "\n".join(bad)
+
+
+def test_every_test_module_is_in_the_folder_of_its_part():
+    loose = [p.name for p in TESTS.glob("test_*.py") if p != Path(__file__).resolve()]
+    assert not loose, f"move into tests/<part>/ (this file's docstring says which): {loose}"
+    folders = {p.parent.name for p in TESTS.rglob("test_*.py") if p.parent != TESTS}
+    assert folders <= PARTS, f"test folders not in this file's docstring: {sorted(folders - PARTS)}"
+    assert not list((TESTS / "support").glob("test_*.py")), "tests/support/ holds helpers, not tests"
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """File-level import graph of the packages and bench/, run-time imports only, every depth."""
+    mods = {}
+    for pkg in PACKAGES:
+        for p in (ROOT / pkg).rglob("*.py"):
+            parts = p.relative_to(ROOT).with_suffix("").parts
+            mods[".".join(parts[:-1] if p.name == "__init__.py" else parts)] = p
+
+    def owner(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+    return {m: {t for _, n in imported_names(p, skip_type_checking=True) if (t := owner(n)) and t != m}
+            for m, p in mods.items()}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one node (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+    for v in list(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycles_finds_a_cycle_and_only_cycles():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+
+
+def test_onboard_imports_nothing_from_sim_or_groundstation():
+    """onboard/ is what flies: not even a lazy import of the simulator or the ground station."""
+    bad = [f"{m} imports {t}" for m, ts in _module_graph().items() if m.startswith("onboard")
+           for t in ts if t.split(".")[0] != "onboard"]
+    for p in (ROOT / "onboard").rglob("*.py"):  # TYPE_CHECKING imports too
+        bad += [f"{p.relative_to(ROOT)}:{line} imports {n}" for line, n in imported_names(p)
+                if n.split(".")[0] in ("sim", "groundstation", "bench", "tests")]
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_cycle_between_files_or_packages():
+    graph = _module_graph()
+    assert cycles(graph) == []
+    packages: dict[str, set[str]] = {}
+    for m, ts in graph.items():
+        packages.setdefault(m.split(".")[0], set()).update(t.split(".")[0] for t in ts)
+    for p, ts in packages.items():
+        ts.discard(p)
+    assert cycles(packages) == [], packages
