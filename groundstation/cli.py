@@ -24,12 +24,13 @@ COMMANDS = """commands:
   hub [--serve udp:H:P] [--out udp:H:P] [--tak URL] [--view PORT] ...   one vehicle link shared by
                               ground stations (QGroundControl, Mission Planner, MAVProxy, pmon gcs),
                               the targets as their traffic (ADSB_VEHICLE) and as CoT to TAK
-  arm [--wait]                GUIDED, then arm (--wait: until the autopilot is ready and arms)
+  arm [--wait]                GUIDED (PX4: Hold), then arm (--wait: until the autopilot is ready and arms)
   takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
                               bounds the time without climbing)
   start | pause | resume | stop | launch     the onboard app's monitoring
-  hold                        ArduCopter BRAKE: stop and hold position (the app sees a pilot override)
-  mode NAME                   any ArduCopter flight mode, e.g. LOITER (a pilot's mode switch)
+  hold                        stop and hold position: ArduCopter BRAKE, PX4 Hold (the app sees a pilot override)
+  mode NAME                   a flight mode in the autopilot's names, e.g. LOITER (ArduCopter), POSCTL,
+                              AUTO.LOITER or HOLD (PX4): a pilot's mode switch
   rtl | land                  return to launch / land here
   params list | get NAME | set NAME VALUE     the onboard app's parameters (PMON_*)
   record FILE [--duration S]  tlog of everything the link carries
@@ -52,6 +53,9 @@ def _connection(p: argparse.ArgumentParser, suppress: bool) -> None:
                    help="MAVLink 2 signing key file (64 hex chars, mode 0600), the vehicle's: sign "
                         "every command and parameter write, accept only signed packets "
                         "(default: $PMON_GCS_SIGNING_KEY, else unsigned)")
+    p.add_argument("--autopilot-unsigned", action="store_true", default=d(False),
+                   help="with --signing-key: take the autopilot's own packets unsigned (PX4 cannot sign); "
+                        "the onboard app's must still be signed")
     _output(p, suppress)
 
 
@@ -87,7 +91,7 @@ def parser() -> argparse.ArgumentParser:
                     "origin (name or YAML file; default paper)")
     from groundstation.hub_options import add_arguments as hub_arguments  # the hub's options live with it
     hub_arguments(add("hub", "share the vehicle link; targets to QGC/MP/MAVProxy (ADSB) and TAK (CoT)"))
-    a = add("arm", "GUIDED, then arm the motors")
+    a = add("arm", "GUIDED (PX4: Hold), then arm the motors")
     a.add_argument("--wait", action="store_true",
                    help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
     t = add("takeoff", "take off to ALT m above home")
@@ -96,8 +100,9 @@ def parser() -> argparse.ArgumentParser:
                    help="return when at ALT; fails when the climb makes no progress for --timeout s")
     for name in ("start", "pause", "resume", "stop", "launch"):
         add(name, f"onboard app: {name}")
-    add("hold", "ArduCopter BRAKE: stop and hold position")
-    m = add("mode", "set an ArduCopter flight mode by name (LOITER, BRAKE, GUIDED, ...)")
+    add("hold", "stop and hold position (ArduCopter BRAKE, PX4 Hold)")
+    m = add("mode", "set a flight mode by the autopilot's name for it (ArduCopter: LOITER, BRAKE, ...; "
+            "PX4: POSCTL, AUTO.LOITER or HOLD, ...)")
     m.add_argument("name", metavar="NAME")
     add("rtl", "return to launch")
     add("land", "land where it is")
@@ -145,8 +150,9 @@ def run(args, console) -> tuple[str, dict]:
         raise UsageError(f"view: --port must be in 0..65535, got {args.port}")
     if args.cmd == "view" and args.duration is not None and not args.duration > 0:
         raise UsageError("view: --duration must be > 0")
-    if args.cmd == "mode" and P.mode_number(args.name) is None:
-        raise UsageError(f"mode: unknown ArduCopter mode {args.name!r} (one of {', '.join(P.mode_names())})")
+    if args.cmd == "mode" and not P.known_mode(args.name):
+        raise UsageError(f"mode: unknown mode {args.name!r} (ArduCopter: {', '.join(P.mode_names())}; "
+                         f"PX4: {', '.join(P.mode_names('PX4'))})")
     if args.cmd == "takeoff" and not (math.isfinite(args.alt) and 0 < args.alt <= 1000):
         raise UsageError(f"takeoff: ALT must be in (0, 1000] m, got {args.alt:g}")
     if args.cmd == "params" and args.pcmd == "set":
@@ -171,7 +177,10 @@ def run(args, console) -> tuple[str, dict]:
         from groundstation.hub import run_cli
         o = run_cli(args, key, sc, console)
         return o.text, o.data
-    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key) as gl:
+    if args.autopilot_unsigned and key is None:
+        raise UsageError("--autopilot-unsigned needs --signing-key (without a key nothing is signed)")
+    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key,
+                 autopilot_unsigned=args.autopilot_unsigned) as gl:
         gl.connect()
         cmd = args.cmd
         if cmd == "status":
@@ -189,15 +198,15 @@ def run(args, console) -> tuple[str, dict]:
         elif cmd in P.ACTIONS:
             o = C.app_action(gl, cmd)
         elif cmd == "hold":
-            o = C.set_mode(gl, "hold", P.BRAKE)
+            o = C.set_mode(gl, "hold", gl.v.profile.hold_mode)
         elif cmd == "mode":
-            o = C.set_mode(gl, f"mode {args.name.upper()}", P.mode_number(args.name))
+            o = C.set_mode(gl, f"mode {args.name.upper()}", args.name)
         elif cmd == "rtl":
             from onboard.app.mavlink_connection import mavlink
-            o = C.set_mode(gl, "rtl", P.RTL, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
+            o = C.set_mode(gl, "rtl", "RTL", mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
         elif cmd == "land":
             from onboard.app.mavlink_connection import mavlink
-            o = C.set_mode(gl, "land", P.LAND, mavlink.MAV_CMD_NAV_LAND)
+            o = C.set_mode(gl, "land", "LAND", mavlink.MAV_CMD_NAV_LAND)
         elif cmd == "params":
             o = {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),
                  "set": lambda: C.params_set(gl, args.name, args.value)}[args.pcmd]()

@@ -84,7 +84,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
     ]
     if app is None:
         lines.append("onboard app: not heard (no PMON_STAT within "
-                     f"{min(gl.timeout, STAT_WAIT_S):g} s)")
+                     f"{min(gl.timeout, STAT_WAIT_S):g} s{_bad_signature_hint(gl)})")
     else:
         e = st.uav_enu
         lines += [
@@ -105,6 +105,17 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         if params:
             lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
     return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app})
+
+
+def _bad_signature_hint(gl: GcsLink) -> str:
+    """Why the app may be unheard on a signed link: its packets fail their check."""
+    from onboard.app.signing import bad_signatures
+    n = bad_signatures(gl.link.mav).get((gl.v.sysid, P.APP_COMPID), 0) if gl.link.signing else 0
+    if not n:
+        return ""
+    why = (f"{gl.v.profile.name} rewrites the signature of what it forwards" if not gl.v.profile.can_sign
+           else "a wrong key?")
+    return f"; {n} of its packets failed the signature check: {why}"
 
 
 def _enu(p) -> str:
@@ -145,33 +156,46 @@ def app_action(gl: GcsLink, action: str) -> Outcome:
                    {**out.data, "app_state": gl.v.app_state})
 
 
-def set_mode(gl: GcsLink, what: str, mode: int, cmd: int | None = None) -> Outcome:
-    """A flight mode by its command (RTL, LAND) or by DO_SET_MODE (BRAKE)."""
-    done = lambda: gl.v.mode == mode  # noqa: E731
+MODE_SHOWN_S = 3.0  # s after its ACK a mode change must show in HEARTBEAT (the ACK is not proof)
+
+
+def set_mode(gl: GcsLink, what: str, name: str, cmd: int | None = None) -> Outcome:
+    """A flight mode by its firmware's name (the autopilot's profile: ArduCopter's or PX4's),
+    by its command (RTL, LAND) or by DO_SET_MODE. Done when HEARTBEAT shows it: PX4 ACKs a mode
+    it cannot run (POSCTL with no RC or joystick) ACCEPTED and stays where it was."""
+    profile = gl.v.profile
+    if profile.mode_number(name) is None:
+        raise GcsError(f"{what}: {profile.no_mode(name)}", FAILED)
+    done = lambda: profile.in_mode(gl.v.mode, name)  # noqa: E731
+    t0 = time.monotonic()
     if cmd is None:
-        ack = gl.command(None, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, mode,
-                         done=done, name=what)
+        ack = gl.command(None, mavlink.MAV_CMD_DO_SET_MODE, *profile.set_mode_params(name), done=done, name=what)
     else:
         ack = gl.command(None, cmd, done=done, name=what)
     out = _ack_outcome(what, ack, "autopilot", _vehicle_context(gl))
     gl.request(mavlink.MAVLINK_MSG_ID_HEARTBEAT)  # the new mode now, not at the next 1 Hz beat
-    gl.wait_for(done, 1.0)
+    if not gl.wait_for(done, max(MODE_SHOWN_S, min(gl.timeout, 10.0))):
+        texts = gl.texts_since(t0, gl.v.autopilot_comp)[-1:]
+        raise GcsError(f"{what}: accepted by the autopilot, but it is still in {gl.v.mode_name} "
+                       f"({profile.name} keeps its mode when the new one cannot run"
+                       f"{': ' + texts[0] if texts else ''})", FAILED)
     return Outcome(out.text + f"; mode {gl.v.mode_name}", {**out.data, "mode": gl.v.mode_name})
 
 
 def _prearm_ok(gl: GcsLink) -> bool | None:
-    """The autopilot's pre-arm checks from SYS_STATUS (None where it does not report them)."""
-    from onboard.app.autopilot_profiles import prearm_ok
-    return prearm_ok(gl.v.get("SYS_STATUS"))
+    """The autopilot's pre-arm checks from SYS_STATUS, as its profile reads them (None where it
+    does not report them)."""
+    return gl.v.profile.prearm_ok(gl.v.get("SYS_STATUS"))
 
 
 ARM_RETRY_S = 2.0  # arm --wait: between attempts while the autopilot refuses
 
 
 def arm(gl: GcsLink, wait: bool = False) -> Outcome:
-    """GUIDED first (ArduCopter takes off by command only in a navigating mode, and the app
-    flies GUIDED), then arm. ``wait``: the autopilot may not be ready yet (~40 s after boot for
-    ArduCopter): wait for its pre-arm checks (SYS_STATUS) and try again every ARM_RETRY_S while
+    """The launch mode first (the profile's: ArduCopter's GUIDED, as it takes off by command only
+    in a navigating mode and the app flies GUIDED; PX4's Hold, where it boots, arms and takes
+    off), then arm. ``wait``: the autopilot may not be ready yet (~40 s after boot for ArduCopter,
+    ~5 s for PX4): wait for its pre-arm checks (SYS_STATUS) and try again every ARM_RETRY_S while
     it refuses, up to --timeout in all. (ArduPilot's pre-arm bit can pass before GUIDED's own
     need for a position estimate does: measured on 4.4 SITL, so its refusals are waited out
     too.)"""
@@ -184,15 +208,16 @@ def arm(gl: GcsLink, wait: bool = False) -> Outcome:
     while True:
         if wait and not v.armed and not gl.wait_for(lambda: _prearm_ok(gl) is not False,
                                                      max(deadline - time.monotonic(), 0.0)):
-            texts = [t for t in gl.texts_since(t0, v.autopilot_comp) if t.startswith(("PreArm", "Arm"))]
+            texts = [t for t in gl.texts_since(t0, v.autopilot_comp) if v.profile.arming_refusal(t)]
             why = f": {texts[-1]}" if texts else ""
             raise GcsError(f"arm: the autopilot's pre-arm checks still fail after {gl.timeout:g} s{why}",
                            TIMEOUT)
-        if v.mode != P.GUIDED and not v.armed:
-            _ack_outcome("guided", gl.command(None, mavlink.MAV_CMD_DO_SET_MODE,
-                                              mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, P.GUIDED,
-                                              done=lambda: v.mode == P.GUIDED, name="mode GUIDED"),
-                         "autopilot", _vehicle_context(gl))
+        launch_mode = v.profile.launch_mode
+        if not v.profile.in_mode(v.mode, launch_mode) and not v.armed:
+            _ack_outcome(launch_mode.lower(), gl.command(
+                None, mavlink.MAV_CMD_DO_SET_MODE, *v.profile.set_mode_params(launch_mode),
+                done=lambda: v.profile.in_mode(v.mode, launch_mode), name=f"mode {launch_mode}"),
+                "autopilot", _vehicle_context(gl))
         ack = gl.command(None, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, done=lambda: bool(v.armed), name="arm")
         if ack.ok or not wait or time.monotonic() + ARM_RETRY_S > deadline:
             break
@@ -214,7 +239,6 @@ def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
     (onboard/app/autopilot_profiles.py). ``wait``: until at ``alt`` and reported in the air; a
     climb takes as long as it takes, so --timeout bounds the time without progress (less
     than CLIMB_PROGRESS_M gained), not the whole climb."""
-    from onboard.app.autopilot_profiles import takeoff_params
     from onboard.app.pose import heading_from_global_position_int
 
     v = gl.v
@@ -225,10 +249,8 @@ def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
         raise GcsError(f"takeoff: no position from the autopilot within {min(gl.timeout, 2.0):g} s "
                        f"(a take-off is sent with the vehicle's own position){_vehicle_context(gl)}", TIMEOUT)
     gp = v.get("GLOBAL_POSITION_INT")
-    hb = v.get("HEARTBEAT")
-    params = takeoff_params(hb.autopilot if hb is not None else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                            gp.lat * 1e-7, gp.lon * 1e-7, heading_from_global_position_int(gp.hdg),
-                            alt, (gp.alt - gp.relative_alt) * 1e-3)
+    params = v.profile.takeoff_params(gp.lat * 1e-7, gp.lon * 1e-7, heading_from_global_position_int(gp.hdg),
+                                      alt, (gp.alt - gp.relative_alt) * 1e-3)
     climbing = (mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR)
     ack = gl.command(None, mavlink.MAV_CMD_NAV_TAKEOFF, *params,
                      done=lambda: v.landed_state in climbing, name="takeoff")

@@ -68,10 +68,17 @@ class Vehicle:
         return None if hb is None else hb.custom_mode
 
     @property
-    def mode_name(self) -> str:
-        from pymavlink import mavutil
+    def profile(self):
+        """The autopilot's profile (onboard/app/autopilot_profiles.py), by its HEARTBEAT."""
+        from onboard.app.autopilot_profiles import UNKNOWN, profile_for
         hb = self.get("HEARTBEAT")
-        return "unknown" if hb is None else mavutil.mode_string_v10(hb)
+        return UNKNOWN if hb is None else profile_for(hb.autopilot)
+
+    @property
+    def mode_name(self) -> str:
+        """The autopilot's mode in its firmware's names (ArduCopter's, PX4's)."""
+        hb = self.get("HEARTBEAT")
+        return "unknown" if hb is None else self.profile.mode_name(hb.custom_mode)
 
     @property
     def landed_state(self) -> int | None:
@@ -95,17 +102,21 @@ class Vehicle:
 
 class GcsLink:
     def __init__(self, url: str, timeout: float = 5.0, sysid: int | None = None,
-                 tlog_path: str | None = None, signing_key: bytes | None = None):
+                 tlog_path: str | None = None, signing_key: bytes | None = None,
+                 autopilot_unsigned: bool = False):
         """``signing_key``: 32 bytes (``onboard.app.signing.load_key``): every packet sent is
-        signed, and received ones are accepted only with a good signature."""
+        signed, and received ones are accepted only with a good signature; ``autopilot_unsigned``:
+        except the autopilot's own (component 1 of ``sysid``, default 1: PX4 cannot sign), while
+        the app's, which the autopilot forwards, must still be signed."""
         self.url = url
         self.timeout = timeout
         self.want_sysid = sysid
         try:
             _probe_tcp(url, timeout)
             with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints its retries
+                unsigned = ((sysid or 1, mavlink.MAV_COMP_ID_AUTOPILOT1),) if autopilot_unsigned else ()
                 self.link = Link(url, tlog_path=tlog_path, source_system=P.GCS_SYSID,
-                                 source_component=P.GCS_COMPID, signing_key=signing_key)
+                                 source_component=P.GCS_COMPID, signing_key=signing_key, unsigned_from=unsigned)
         except (OSError, ConnectionError) as exc:
             raise GcsError(f"cannot open {url}: {exc.strerror or exc}{in_use_hint(url)}{silent_link_hint(url)}",
                            TIMEOUT) from exc
@@ -238,7 +249,8 @@ class GcsLink:
             what += silent_link_hint(self.url)  # a one-client TCP port another process holds
             if self.link.signing and self.link.mav.signing.reject_count:
                 what = (f"{self.link.mav.signing.reject_count} packets failed the signature check: "
-                        "wrong --signing-key, or the vehicle does not sign")
+                        "wrong --signing-key, or the vehicle does not sign (an autopilot that cannot, "
+                        "PX4, needs --autopilot-unsigned)")
             raise GcsError(f"{who} heard on {self.url} within {self.timeout:g} s ({what})", TIMEOUT)
         return self
 

@@ -386,6 +386,7 @@ def run_cli(args, key, sc, console) -> Outcome:
         cfg = config_from_args(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    with HubLink(args.connect, args.timeout, args.sysid, signing_key=key) as gl:
+    with HubLink(args.connect, args.timeout, args.sysid, signing_key=key,
+                 autopilot_unsigned=getattr(args, "autopilot_unsigned", False)) as gl:
         gl.connect()
         return serve(gl, sc, cfg, args.duration, args.json, console)

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass
 
 from onboard.app import contract as C  # sets MAVLINK20 before pymavlink loads
-from onboard.app.autopilot_profiles import ARDUPILOT
+from onboard.app.autopilot_profiles import ARDUPILOT, PX4
 from onboard.app.launch import PHASES
 from onboard.app.mavlink_connection import mavlink
 
@@ -26,14 +26,20 @@ REASONS = {int(r): text for r, text in C.REASON_TEXT.items()}
 GUIDED, LOITER, RTL, LAND, BRAKE = (ARDUPILOT.mode_number(m) for m in ("GUIDED", "LOITER", "RTL", "LAND", "BRAKE"))
 
 
-def mode_names() -> list[str]:
-    """ArduCopter's flight mode names, as pymavlink maps them."""
-    return ARDUPILOT.mode_names()
+def mode_names(firmware: str = "ArduPilot") -> list[str]:
+    """A firmware's flight mode names (ArduCopter's as pymavlink maps them; PX4's)."""
+    return (PX4 if firmware == "PX4" else ARDUPILOT).mode_names()
 
 
 def mode_number(name: str) -> int | None:
     """ArduCopter's custom_mode for a mode name (any case), or None."""
     return ARDUPILOT.mode_number(name)
+
+
+def known_mode(name: str) -> bool:
+    """A mode name some firmware the ground station knows has (checked again against the
+    vehicle's once connected)."""
+    return ARDUPILOT.mode_number(name) is not None or PX4.mode_number(name) is not None
 
 
 RESULTS = {k: e.name.removeprefix("MAV_RESULT_") for k, e in mavlink.enums["MAV_RESULT"].items()
@@ -81,7 +87,7 @@ class TargetEstimate:
 
 WARN_SPEED, WARN_ACCEL = C.WARN_SPEED, C.WARN_ACCEL  # PMON_STAT "warnings" bits
 # the launch sequence's phases (onboard/app/launch.py) in words, by PMON_STAT launch_phase
-_PHASE_WORDS = {"ready": "waiting for the autopilot to be ready", "mode": "switching to GUIDED",
+_PHASE_WORDS = {"ready": "waiting for the autopilot to be ready", "mode": "switching to the launch mode",
                 "arm": "arming", "takeoff": "taking off", "climb": "climbing", "start": "starting"}
 LAUNCH_PHASES = tuple(_PHASE_WORDS[p] for p in PHASES)
 

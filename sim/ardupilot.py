@@ -119,7 +119,7 @@ class ArduPilotSitl:
     defaults: Path | None = None  # None: copter.parm beside the binary
     model: str = "+"
     instance: int | None = None  # None: the first free one from FIRST_INSTANCE
-    workdir: Path | None = None  # None: a temporary directory, removed by stop()
+    workdir: Path | None = None  # None: a temporary directory; stop() keeps only its logs
     ports: int = 3  # MAVLink TCP ports: 3 (SERIAL0..2), 4 (and SERIAL5) or 5 (and SERIAL6)
     log_path: Path | None = None  # the firmware's stdout/stderr (None: workdir/arducopter.log)
     proc: subprocess.Popen | None = field(default=None, init=False)
@@ -161,9 +161,14 @@ class ArduPilotSitl:
         if self._lock is not None:
             self._lock.close()
             self._lock = None
-        if self._own_dir and self.workdir is not None:
-            shutil.rmtree(self.workdir, ignore_errors=True)
-            self.workdir = None
+        if self._own_dir and self.workdir is not None and self.workdir.is_dir():
+            # the console log it printed and the firmware's dataflash logs stay: a failed
+            # flight's evidence (the eeprom and the rest go)
+            for p in self.workdir.iterdir():
+                if p.name not in ("arducopter.log", "logs"):
+                    shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                self.workdir.rmdir()  # only if nothing was kept
 
     def __enter__(self) -> "ArduPilotSitl":
         return self.start()

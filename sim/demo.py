@@ -45,10 +45,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
                    help="the DF: datagram (default: the feed's datagrams) or kraken (a simulated KrakenSDR's "
                         "output over HTTP, which the app reads: docs/KRAKENSDR.md)")
-    p.add_argument("--autopilot", choices=("mock", "ardupilot"), default="mock",
-                   help="mock (default: sim/autopilot.py, booting in 5 s) or ardupilot: ArduPilot's own "
+    p.add_argument("--autopilot", choices=("mock", "ardupilot", "px4"), default="mock",
+                   help="mock (default: sim/autopilot.py, booting in 5 s), ardupilot: ArduPilot's own "
                    "ArduCopter SITL ($PMON_ARDUPILOT_SITL or ../shared/ardupilot/arducopter; ~43 s of "
-                   "simulated boot before it can arm)")
+                   "simulated boot before it can arm), or px4: PX4's own SITL, SIH quad ($PMON_PX4_SITL or "
+                   "../shared/px4; armable ~5 s after boot, its take-off ~25 s)")
 
 
 
@@ -103,12 +104,14 @@ def _speedup(args, sc, console) -> float | None:
 def _refusal(args, duration: int) -> str | None:
     if duration < 5:
         return "--duration must be >= 5 s"
-    if args.autopilot == "ardupilot":
-        from sim.ardupilot import skip_reason
-        if (why := skip_reason()):
-            return f"--autopilot ardupilot: {why}"
+    if args.autopilot != "mock":
+        from sim.ardupilot import skip_reason as ardupilot_problem
+        from sim.px4 import skip_reason as px4_problem
+        if (why := (ardupilot_problem if args.autopilot == "ardupilot" else px4_problem)()):
+            return f"--autopilot {args.autopilot}: {why}"
         if args.gcs:
-            return "--gcs streams from the mock; with ArduPilot connect to its SERIAL2 (the URL printed at start)"
+            return (f"--gcs streams from the mock; with {args.autopilot} connect to its ground-station port "
+                    "(the URL printed at start)")
     return None
 
 
@@ -134,18 +137,25 @@ def run(args) -> int:
     if (speedup := _speedup(args, sc, console)) is None:
         return 2
     mock = args.autopilot == "mock"
-    # the demo's vehicle; the mock boots in DEMO_READY_S, ArduPilot's SITL as it does
+    # the demo's vehicle; the mock boots in DEMO_READY_S, ArduPilot's SITL as it does; PX4 with
+    # the offboard-loss action docs/SITL.md recommends
+    extra = {}
+    if args.autopilot == "px4":
+        from sim.px4 import RECOMMENDED_PARAMS as PX4_PARAMS
+        extra["params"] = dict(PX4_PARAMS)
     rig = Rig(RigConfig(scenario=args.scenario, policy=args.policy, seed=args.seed, feed_seed=args.seed,
                         autopilot=args.autopilot, speedup=speedup, ready_s=DEMO_READY_S if mock else None,
                         ports=2 if mock else 3, gcs_udp_out=args.gcs, auto_launch=True,
-                        feed_duration_s=duration, df=args.df).records_in(out))
+                        feed_duration_s=duration, df=args.df, **extra).records_in(out))
     try:
         with rig:
             if not mock:
-                console.print(f"ArduCopter SITL -I {rig.ap.instance}; a ground station: {rig.url(GCS_PORT)} "
+                firmware = {"ardupilot": "ArduCopter SITL -I", "px4": "PX4 SITL (SIH) -i"}[args.autopilot]
+                console.print(f"{firmware} {rig.ap.instance}; a ground station: {rig.url(GCS_PORT)} "
                               f"(e.g. pmon gcs --connect {rig.url(GCS_PORT)} view)")
-            console.print(f"{args.autopilot} autopilot tcp:{rig.port(APP_PORT)} (app) tcp:{rig.port(FEED_PORT)} "
-                          f"(feed), DF {f'udp:{rig.df_port}' if rig.kraken_url is None else rig.kraken_url}, speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
+            console.print(f"{args.autopilot} autopilot {rig.url(APP_PORT)} (app) {rig.url(FEED_PORT)} "
+                          f"(feed), DF {f'udp:{rig.df_port}' if rig.kraken_url is None else rig.kraken_url}, "
+                          f"speedup {speedup:g}x, policy {args.policy}; logs in {out}/")
             _fly(rig, duration, console)
     except KeyboardInterrupt:
         console.print("interrupted: stopping every process")

@@ -56,7 +56,7 @@ from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.planners import ORBIT_RADIUS_M, PLANNERS, orbit_centre
 from onboard.policy import POLICIES, vehicle_motion
 from sim.guided import enu, fly_plan, ned
-from sim.multicopter import DEMO_VEHICLE_PARAMS, VehicleLimits, VehicleState, limits_from_params
+from sim.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
                          motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
@@ -75,8 +75,9 @@ __all__ = ["AUTOPILOTS", "DEFAULT_METHODS", "DEFAULT_WINDOW_S", "METHODS", "Meth
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
 # the ArduCopter parameters a vehicle method's copter flies with (sim.multicopter.limits_from_params):
-# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS)
-AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS)}
+# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS;
+# px4: PX4 v1.16's stock MPC_* parameters, its controller and SIH airframe)
+AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS), "px4": dict(PX4_DEFAULTS)}
 
 
 # --------------------------------------------------------------------------- methods

@@ -16,7 +16,11 @@ a message of the same sub-mode only replaces the target.
 
 ``fly`` is one tick of that; ``fly_plan`` is one tick of the evaluation's vehicle following
 its plan with the app's setpoint (onboard.core.setpoint); ``fly_timeline`` replays a timed
-sequence of setpoints (tests/test_vehicle.py replays the real SITL's with it). Frames: local
+sequence of setpoints (tests/test_vehicle.py replays the real SITL's with it). With
+``offboard=True`` it replays them as PX4's OFFBOARD takes them: each held as sent until the next
+(no sub-modes, no GUID_TIMEOUT; the stream's own loss timeout is not modelled). ``fly_plan`` with
+PX4's limits (``limits.shaping`` False) keeps ArduCopter's moving target: the app sends PX4 the
+plan's state again at 10 Hz, which that target follows between ticks. Frames: local
 NED, as sent; the mission frame's ENU point (x east, y north, z up) is NED (y, x, -z) (``ned``,
 ``enu``).
 """
@@ -78,12 +82,14 @@ def fly(state: VehicleState, setpoint: GuidedSetpoint, duration_s: float,
 def fly_timeline(state: VehicleState, sends: Sequence[tuple[float, GuidedSetpoint]],
                  sample_times: Iterable[float], limits: VehicleLimits = VehicleLimits(),
                  rate_hz: float = FIRMWARE_HZ, timeout_s: float = GUID_TIMEOUT_S,
-                 submode: Optional[str] = None, hold: Optional[Vec3] = None) -> list[VehicleState]:
+                 submode: Optional[str] = None, hold: Optional[Vec3] = None,
+                 offboard: bool = False) -> list[VehicleState]:
     """Replay setpoints received at times ``sends[i][0]`` (s, ascending, on the clock the state
     is at t = 0) and return the vehicle at each of ``sample_times`` (ascending, >= 0).
 
     Before the first send the copter holds ``hold`` (position only; None: where it is);
-    ``submode`` is the GUIDED sub-mode it was in (None: a new one, the controller restarts)."""
+    ``submode`` is the GUIDED sub-mode it was in (None: a new one, the controller restarts).
+    ``offboard``: PX4's OFFBOARD (see the module)."""
     dt = 1.0 / rate_hz
     times = list(sample_times)
     out: list[VehicleState] = []
@@ -97,14 +103,16 @@ def fly_timeline(state: VehicleState, sends: Sequence[tuple[float, GuidedSetpoin
             while i < len(sends) and sends[i][0] <= t + 1e-9:
                 cur_t, cur = sends[i]
                 i += 1
-                if cur.submode != cur_mode:
+                if cur.submode != cur_mode and not offboard:
                     state = replace(state, xy=None)  # pva_control_start: init_xy_controller
                     cur_mode = cur.submode
                 pos, vel, acc = cur.pos, cur.vel, cur.acc
             if t >= ts - 1e-9:
                 break
             timed_out = t - cur_t > timeout_s
-            if cur.submode == "posvelaccel":
+            if offboard:
+                state = step(state, Setpoint(pos=pos, vel=vel, acc=acc), dt, limits)
+            elif cur.submode == "posvelaccel":
                 v = (0.0, 0.0, 0.0) if timed_out or vel is None else vel
                 a = None if timed_out else acc
                 state = step(state, Setpoint(pos=pos, vel=v, acc=a), dt, limits)

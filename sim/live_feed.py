@@ -137,10 +137,11 @@ class Telemetry:
             self.utc.observe(msg.time_unix_usec, msg.time_boot_ms)
 
 
-def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002) -> bool:
+def _sleep_until(clock, t: float, stop: threading.Event, poll: float = 0.002, resets: int | None = None) -> bool:
     """Until the clock reads ``t`` (True), or ``stop`` (False), or the clock is reset: an
-    autopilot reboot (True: the caller sees ``clock.resets`` change)."""
-    resets = clock.resets
+    autopilot reboot (True: the caller sees ``clock.resets`` change). ``resets``: the count the
+    caller last saw (a reboot before the call returns at once, not at ``t`` of the new clock)."""
+    resets = clock.resets if resets is None else resets
     while not stop.is_set():
         now = clock.now()
         if (now is not None and now >= t) or clock.resets != resets:
@@ -288,7 +289,7 @@ class LiveFeed:
             self.log(f"feed: first scan at autopilot t={T:.0f} s, {n_scans} scans to {self.destination(dest)}")
             for k in range(n_scans):
                 states = ahead.next(self.stop_event)  # the truth at T (step k), normally ready
-                if states is None or not _sleep_until(tel.clock, T, self.stop_event):
+                if states is None or not _sleep_until(tel.clock, T, self.stop_event, resets=resets):
                     return 130
                 if tel.clock.resets != resets:
                     # the autopilot rebooted: its clock starts again from 0, and so do the

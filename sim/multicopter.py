@@ -1,5 +1,5 @@
 """Pure multicopter model for the mock autopilot and the evaluation: ArduCopter's position
-controller and the airframe it flies.
+controller (or PX4's, ``VehicleLimits.shaping`` False) and the airframe it flies.
 
 Frame: local NED (x north, y east, z down), metres, seconds, radians; yaw is the
 heading, 0 = north, positive clockwise (towards east). No sockets, threads or clocks:
@@ -24,6 +24,14 @@ The airframe terms (lean lag and drag) are fitted to ArduPilot's SITL '+' copter
 (bench/sitl_response.py, tests/data/sitl_response.json.gz, tests/sim/test_vehicle.py): its drag at
 ANGLE_MAX 30 deg caps level speed at 10.1 m/s whatever WPNAV_SPEED says. Vertically the vehicle
 flies the shaped kinematic target itself (altitude changes are slow and not what is measured).
+
+PX4 (v1.16 mc_pos_control's PositionControl, as OFFBOARD feeds it: ``limits_from_params`` with
+PX4's MPC_* names): no kinematic shaping, the setpoint is the target; velocity = MPC_XY_P times
+the position error plus the feed-forward, the feed-forward cut first to keep within
+MPC_XY_VEL_MAX; acceleration = velocity PID (D on the vehicle's acceleration, tracking
+anti-windup) plus the acceleration feed-forward, the tilt limited to MPC_TILTMAX_AIR. Its
+airframe terms are fitted to PX4's SIH quad (bench/sitl_response.py --autopilot px4,
+tests/data/sitl_response_px4.json.gz): SIH's drag is linear (SIH_KDV), hence ``drag_lin``.
 """
 
 from __future__ import annotations
@@ -70,6 +78,8 @@ class VehicleLimits:
     vel_filt_hz: float = 5.0  # PSC_VELXY_FLTE and _FLTD
     lean_tc: float = 0.354  # s: the lean flown lags the lean asked for (attitude loop), fitted
     drag: float = 0.056  # 1/m: airframe drag, a = -drag |v| v, fitted
+    drag_lin: float = 0.0  # 1/s: linear airframe drag, a = -drag_lin v (PX4's SIH: SIH_KDV / SIH_MASS)
+    shaping: bool = True  # ArduCopter's jerk-limited target; False: PX4's (the setpoint is the target)
 
     def jerk_xy_max(self) -> float:
         """The horizontal jerk the shaper uses: PSC_JERK_XY, capped as set_max_speed_accel_xy
@@ -78,12 +88,36 @@ class VehicleLimits:
         return min(self.jerk_xy, cap) if self.lean_accel_max > 0.0 else self.jerk_xy
 
 
+# PX4 v1.16's stock values of the parameters read (its SITL read back: bench/sitl_response.py)
+PX4_DEFAULTS = {"MPC_XY_VEL_MAX": 12.0, "MPC_ACC_HOR": 3.0, "MPC_Z_VEL_MAX_UP": 3.0, "MPC_Z_VEL_MAX_DN": 1.5,
+                "MPC_ACC_UP_MAX": 4.0, "MPC_JERK_MAX": 8.0, "MPC_TILTMAX_AIR": 45.0, "MPC_XY_P": 0.95,
+                "MPC_XY_VEL_P_ACC": 1.8, "MPC_XY_VEL_I_ACC": 0.4, "MPC_XY_VEL_D_ACC": 0.2}
+# the airframe terms fitted to PX4's SIH quad (SIH_MASS 1 kg, SIH_KDV 1 N/(m/s): 1.0 /s of drag by its
+# physics): python bench/sitl_response.py --fit tests/data/sitl_response_px4.json.gz
+PX4_SIH_AIRFRAME = {"lean_tc": 0.131, "drag": 0.0, "drag_lin": 1.012}
+
+
+def is_px4(params) -> bool:
+    """The parameter set is PX4's (its multicopter position controller's MPC_* names)."""
+    return any(name in params for name in PX4_DEFAULTS)
+
+
 def limits_from_params(params, pos_noise: float = VehicleLimits.pos_noise) -> VehicleLimits:
-    """VehicleLimits from ArduCopter parameters in its units (cm, cm/s, cdeg): any mapping that
+    """VehicleLimits from ArduCopter parameters in its units (cm, cm/s, cdeg), or from PX4's
+    (``is_px4``: m/s, m/s^2, deg; PX4's controller and its SIH airframe): any mapping that
     answers ``name in params`` and ``params[name]`` (the mock's Params, a dict of the values a
-    vehicle reported); a parameter missing keeps ArduCopter's default."""
+    vehicle reported); a parameter missing keeps the autopilot's default."""
     def get(name: str, default: float) -> float:
         return float(params[name]) if name in params else default
+
+    if is_px4(params):
+        px4 = {k: get(k, v) for k, v in PX4_DEFAULTS.items()}
+        return VehicleLimits(
+            speed_xy=max(px4["MPC_XY_VEL_MAX"], 0.1), speed_up=px4["MPC_Z_VEL_MAX_UP"],
+            speed_down=px4["MPC_Z_VEL_MAX_DN"], accel_xy=px4["MPC_ACC_HOR"], accel_z=px4["MPC_ACC_UP_MAX"],
+            jerk_z=px4["MPC_JERK_MAX"], angle_max=math.radians(px4["MPC_TILTMAX_AIR"]),
+            pos_p=px4["MPC_XY_P"], vel_p=px4["MPC_XY_VEL_P_ACC"], vel_i=px4["MPC_XY_VEL_I_ACC"],
+            vel_d=px4["MPC_XY_VEL_D_ACC"], pos_noise=pos_noise, shaping=False, **PX4_SIH_AIRFRAME)
 
     return VehicleLimits(
         speed_xy=max(get("WPNAV_SPEED", 1000.0), 20.0) / 100.0,  # AC_WPNav's minimum 20 cm/s
@@ -380,6 +414,52 @@ def _step_xy(state: VehicleState, sp: Setpoint, dt: float, lim: VehicleLimits,
                         lean_acc=lean, limit=limit), acc
 
 
+def _constrain_xy(v0: Vec2, v1: Vec2, vmax: float) -> Vec2:
+    """PX4's ControlMath::constrainXY: v0 + v1 within vmax, v0 kept first (v1 cut, then v0)."""
+    n0 = _len(*v0)
+    if n0 >= vmax:
+        return _limit(v0[0], v0[1], vmax)
+    s = (v0[0] + v1[0], v0[1] + v1[1])
+    if _len(*s) <= vmax:
+        return s
+    # the largest k in [0, 1] with |v0 + k v1| = vmax
+    a = v1[0] * v1[0] + v1[1] * v1[1]
+    b = 2.0 * (v0[0] * v1[0] + v0[1] * v1[1])
+    c = n0 * n0 - vmax * vmax
+    k = (-b + math.sqrt(max(b * b - 4.0 * a * c, 0.0))) / (2.0 * a)
+    return v0[0] + k * v1[0], v0[1] + k * v1[1]
+
+
+def _step_xy_px4(state: VehicleState, sp: Setpoint, dt: float, lim: VehicleLimits,
+                 vmax: float) -> tuple[XyController, Vec2]:
+    """One step of PX4's PositionControl, horizontally (see the module), and its airframe."""
+    c = state.xy if state.xy is not None else _init_xy(state)
+    pos, vel = (state.pos[0], state.pos[1]), (state.vel[0], state.vel[1])
+    ff = (0.0, 0.0) if sp.vel is None else (sp.vel[0], sp.vel[1])
+    acc_ff = (0.0, 0.0) if sp.acc is None else (sp.acc[0], sp.acc[1])
+    if sp.pos is None and sp.vel is None and sp.acc is None:  # nothing commanded: hold here
+        sp = Setpoint(pos=(c.pos[0], c.pos[1], state.pos[2]))
+    vp = (0.0, 0.0) if sp.pos is None else (lim.pos_p * (sp.pos[0] - pos[0]), lim.pos_p * (sp.pos[1] - pos[1]))
+    vsp = _constrain_xy(vp, ff, vmax) if sp.pos is not None or sp.vel is not None else vel
+    err = (vsp[0] - vel[0], vsp[1] - vel[1]) if sp.pos is not None or sp.vel is not None else (0.0, 0.0)
+    a_meas = (state.acc[0], state.acc[1])
+    ax = lim.vel_p * err[0] + c.integrator[0] - lim.vel_d * a_meas[0] + acc_ff[0]
+    ay = lim.vel_p * err[1] + c.integrator[1] - lim.vel_d * a_meas[1] + acc_ff[1]
+    lx, ly = _limit(ax, ay, GRAVITY * math.tan(lim.angle_max))
+    # tracking anti-windup (Rundqwist): the saturated part is taken off the error integrated
+    arw = 2.0 / lim.vel_p if lim.vel_p > 0.0 else 0.0
+    ix = c.integrator[0] + (err[0] - arw * (ax - lx)) * lim.vel_i * dt
+    iy = c.integrator[1] + (err[1] - arw * (ay - ly)) * lim.vel_i * dt
+    ix, iy = _limit(ix, iy, lim.vel_imax)
+    k = dt / (lim.lean_tc + dt) if lim.lean_tc > 0.0 else 1.0
+    lean = (c.lean_acc[0] + (lx - c.lean_acc[0]) * k, c.lean_acc[1] + (ly - c.lean_acc[1]) * k)
+    drag = lim.drag * _len(*vel) + lim.drag_lin
+    acc = (lean[0] - drag * vel[0], lean[1] - drag * vel[1])
+    target = (sp.pos[0], sp.pos[1]) if sp.pos is not None else pos
+    return XyController(pos=target, vel=vsp, acc=acc_ff, integrator=(ix, iy), error=err, error_rate=(0.0, 0.0),
+                        lean_acc=lean, limit=(0.0, 0.0)), acc
+
+
 def _shape_z(
     pos_err: Optional[float],
     vel_cmd: Optional[float],
@@ -436,7 +516,10 @@ def step(
     vmax = setpoint.speed_xy if setpoint.speed_xy else limits.speed_xy
     v_up = setpoint.speed_up if setpoint.speed_up else limits.speed_up
     v_down = setpoint.speed_down if setpoint.speed_down else limits.speed_down
-    xy, (ax, ay) = _step_xy(state, setpoint, dt, limits, vmax, v_up, v_down)
+    if limits.shaping:
+        xy, (ax, ay) = _step_xy(state, setpoint, dt, limits, vmax, v_up, v_down)
+    else:
+        xy, (ax, ay) = _step_xy_px4(state, setpoint, dt, limits, vmax)
     az = _shape_z(
         None if setpoint.pos is None else setpoint.pos[2] - state.pos[2],
         None if setpoint.vel is None else setpoint.vel[2],

@@ -1,5 +1,5 @@
 """The documented procedure (docs/SITL.md), flown with the real programs against ArduPilot's own
-SITL firmware: the conformance tests (tests/test_ardupilot.py) and bench/ardupilot.py use it.
+SITL firmware: the conformance tests (tests/firmware/test_ardupilot.py) and bench/ardupilot.py use it.
 
     with Mission(MissionConfig(speedup=2), out_dir) as m:     # SITL boots, app and feed start
         m.gcs("launch")                                         # as the operator types it
@@ -11,6 +11,8 @@ What runs, each as a process, as on a vehicle (the rig of sim/rig.py, and the op
 - ArduCopter SITL (sim/ardupilot.py) at the scenario's UAV start (its home), five MAVLink TCP
   ports: SERIAL0 the app, SERIAL1 the DF feed, SERIAL2 the operator's ``pmon gcs`` commands,
   SERIAL5 an observer, SERIAL6 a second ground station (``Mission.spare_url``: the live view);
+  or (``autopilot="px4"``) PX4 SITL (sim/px4.py): the app on PX4's offboard/API link, the rest
+  on its ground-station link (each a loopback port of its own through the driver's relay);
 - ``pmon run`` (optionally through sim/tcp_proxy.py's ``TcpProxy``, a telemetry link that a test
   can cut);
 - ``pmon feed live``;
@@ -31,14 +33,17 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
 
+from onboard.app.contract import MAV_CMD_PMON
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame
+from onboard.app.statustext import Reassembler
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 from sim.rig import Rig, RigConfig
 from sim.tick_account import TickAccount, scan_times
@@ -46,6 +51,18 @@ from sim.tick_account import TickAccount, scan_times
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
 OBSERVER_PORT, SPARE_PORT = 3, 4  # the autopilot's MAVLink ports after the rig's app, feed, GCS
 GUIDED = 4  # ArduCopter's custom_mode
+PX4_OFFBOARD = 6  # PX4's main mode (custom_mode bits 16-23)
+
+
+def app_mode(autopilot: str) -> Callable[[int], bool]:
+    """Whether a HEARTBEAT custom_mode is the mode the app flies in (GUIDED; PX4's OFFBOARD)."""
+    if autopilot == "px4":
+        return lambda m: m is not None and (m >> 16) & 0xFF == PX4_OFFBOARD
+    return lambda m: m == GUIDED
+
+
+PILOT_SYSID = 252  # a pilot's ground station with sticks (Mission.take_sticks)
+JOYSTICK_HZ = 20.0  # wall Hz of its MANUAL_CONTROL
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
 # ArduCopter parameters a fast multicopter is set up with, as docs/SITL.md recommends for the
 # paper's 20 m steps: the demo's vehicle's
@@ -54,7 +71,7 @@ RECOMMENDED_PARAMS = DEMO_VEHICLE_PARAMS
 
 @dataclass(frozen=True)
 class MissionConfig:
-    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | mock (python -m sim.autopilot)
+    autopilot: str = "ardupilot"  # ardupilot (the firmware's SITL) | px4 (PX4's SITL) | mock (python -m sim.autopilot)
     speedup: float = 2.0  # SITL --speedup (simulated s per wall s)
     params: Mapping[str, float] = field(default_factory=dict)  # autopilot params over copter.parm
     scenario: str = "paper"
@@ -79,10 +96,12 @@ class Observer:
         self.positions: list[tuple] = []  # (t, lat, lon, alt_amsl, rel_alt) deg, m
         self.targets: list[tuple] = []  # (t, x, y, z) POSITION_TARGET_LOCAL_NED, m (EKF origin)
         self.modes: list[tuple] = []  # (t, custom_mode, armed) on every change
+        self.beats: deque[float] = deque(maxlen=50)  # t of its latest heartbeats
         self.texts: list[tuple] = []  # (t, compid, text)
         self.estimates: list[tuple] = []  # (t, index, x, y, sigma_x, sigma_y) PMON_TGT
         self.app_state: str | None = None
         self._stop = threading.Event()
+        self._chunks = Reassembler()
         self._asked = -math.inf
         self._last_pos_local = -math.inf
         self._thread = threading.Thread(target=self._run, name="observer", daemon=True)
@@ -149,13 +168,15 @@ class Observer:
                 elif mtype == "POSITION_TARGET_LOCAL_NED":
                     self.targets.append((t, msg.x, msg.y, msg.z))
                 elif mtype == "HEARTBEAT":
+                    if t is not None:
+                        self.beats.append(t)
                     armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                     if not self.modes or self.modes[-1][1:] != (msg.custom_mode, armed):
                         self.modes.append((t, msg.custom_mode, armed))
                 elif mtype == "GPS_GLOBAL_ORIGIN":
                     self.origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-            if mtype == "STATUSTEXT":
-                self.texts.append((t, comp, msg.text))
+            if mtype == "STATUSTEXT":  # whole, as a ground station shows it (chunks joined)
+                self.texts.extend((t, comp, text) for text in self._chunks.feed(msg))
             elif comp == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:
                 if mtype == "DEBUG_FLOAT_ARRAY" and msg.name == "PMON_TGT":
                     d = msg.data
@@ -164,10 +185,50 @@ class Observer:
                     from groundstation.protocol import app_state_name
                     self.app_state = app_state_name(msg.custom_mode)
 
+    def heartbeat_period_s(self) -> float:
+        """The autopilot's HEARTBEAT period as heard, autopilot s (median; 1 s until known)."""
+        with self.lock:
+            beats = list(self.beats)
+        gaps = [b - a for a, b in zip(beats, beats[1:]) if 0 < b - a < 5.0]
+        return float(np.median(gaps)) if gaps else 1.0
+
     def app_texts(self, since_t: float = -math.inf) -> list[str]:
         with self.lock:
             return [x for (t, c, x) in self.texts if c == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
                     and (t is None or t >= since_t)]
+
+
+class Sticks:
+    """A pilot's sticks, centred, on a ground station of their own (sysid PILOT_SYSID):
+    MANUAL_CONTROL at JOYSTICK_HZ from a thread that does nothing else (PX4 takes POSCTL only
+    with manual control, and fails safe when it stops for COM_RC_LOSS_T)."""
+
+    def __init__(self, url: str):
+        self.link = Link(url, source_system=PILOT_SYSID, source_component=mavlink.MAV_COMP_ID_MISSIONPLANNER,
+                         wait_for_peer=True)
+        self.gap_s = 0.0  # the longest wall s between two
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sticks", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last = hb = None
+        while not self._stop.wait(1.0 / JOYSTICK_HZ):
+            now = time.monotonic()
+            if hb is None or now - hb >= 1.0:
+                hb = now
+                self.link.send(self.link.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                                              0, 0, mavlink.MAV_STATE_ACTIVE))
+            self.link.send(self.link.mav.manual_control_encode(1, 0, 0, 500, 0, 0))
+            self.gap_s = max(self.gap_s, now - last) if last is not None else 0.0
+            last = now
+            while self.link.recv() is not None:  # what the autopilot sends back is not read
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.link.close()
 
 
 @dataclass
@@ -186,7 +247,7 @@ class Mission:
 
     def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None):
         self.cfg = cfg
-        self.out = Path(out)
+        self.out = Path(out).resolve()  # the firmware runs in a directory of its own: no relative paths
         self.rig = Rig(RigConfig(scenario=cfg.scenario, seed=cfg.seed, autopilot_seed=1, autopilot=cfg.autopilot,
                                  binary=str(binary) if binary else None, speedup=cfg.speedup, params=cfg.params,
                                  ports=5, auto_launch=cfg.auto_launch, app_args=cfg.app_args,
@@ -196,6 +257,7 @@ class Mission:
         o = self.sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
         self.observer: Observer | None = None
+        self.sticks: Sticks | None = None
         self.commands: list[GcsCall] = []
 
     @property
@@ -230,7 +292,16 @@ class Mission:
         self.rig.start_feed()
         return self
 
+    def take_sticks(self) -> Sticks:
+        """A pilot's sticks from now on, on the observer's port (PX4's GCS link takes any number of
+        clients that speak first; ArduPilot's TCP port takes one)."""
+        if self.sticks is None:
+            self.sticks = Sticks(self.rig.url(OBSERVER_PORT))
+        return self.sticks
+
     def stop(self) -> None:
+        if self.sticks is not None:
+            self.sticks.close()
         self.rig.stop_programs()
         if self.observer is not None:
             self.observer.close()
@@ -301,10 +372,14 @@ class Mission:
         events = [(t, 1, (x, y, z)) for t, x, y, z in targets if t is not None]
         for rec in self.run_log():
             # a setpoint sent after a pilot took over, before the app heard of it, is not taken
-            # (ArduPilot ignores it outside GUIDED) and is not the app's miss; nor one sent
-            # within a target report (0.1 s) of the takeover: its receipt cannot be seen
+            # (ArduPilot ignores it outside GUIDED, PX4 outside OFFBOARD) and is not the app's
+            # miss; nor one sent within a target report (0.1 s) of the takeover: its receipt
+            # cannot be seen. The observer times a mode change to its heartbeats, so a change it
+            # saw may have come up to one heartbeat period earlier (PX4 sends HEARTBEAT at 1 Hz
+            # and refuses another rate; ArduPilot at the 4 Hz asked)
+            window = REPORT_S + self.observer.heartbeat_period_s()
             if rec["planned"] and rec["sent_t"] is not None and not (
-                    self.guided_at(rec["sent_t"]) and self.guided_at(rec["sent_t"] + REPORT_S)):
+                    self.guided_at(rec["sent_t"]) and self.guided_at(rec["sent_t"] + window)):
                 rec = {**rec, "planned": False}
             events.append((rec["t"], 0, rec))
         for t, kind, item in sorted(events, key=lambda e: (e[0], e[1])):
@@ -318,7 +393,7 @@ class Mission:
         """The autopilot was in GUIDED at autopilot time t (the observer's heartbeats)."""
         with self.observer.lock:
             modes = [m for m in self.observer.modes if m[0] is not None and m[0] <= t]
-        return bool(modes) and modes[-1][1] == GUIDED
+        return bool(modes) and app_mode(self.cfg.autopilot)(modes[-1][1])
 
     def follow_errors_m(self) -> list[float]:
         """How well the vehicle flies the plan: for each monitoring tick that sent a setpoint,
@@ -359,7 +434,7 @@ class Mission:
         none), from the app's own tlog (its setpoints carry its autopilot clock)."""
         with self.observer.lock:
             modes = list(self.observer.modes)
-        return takeover_reactions(self.out / "app.tlog", modes)
+        return takeover_reactions(self.out / "app.tlog", modes, app_mode(self.cfg.autopilot))
 
     def autopilot_crashes(self) -> int:
         """Floating point exceptions and other aborts the firmware printed (the mock: the
@@ -369,32 +444,44 @@ class Mission:
                                           "defect that crashes"))
 
 
-def takeover_reactions(tlog: Path, modes: list[tuple]) -> list[float]:
-    """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes."""
+def takeover_reactions(tlog: Path, modes: list[tuple], in_app_mode: Callable[[int], bool] = app_mode("ardupilot")
+                       ) -> list[float]:
+    """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes;
+    ``in_app_mode``: whether a custom_mode is the app's (``app_mode``)."""
     from pymavlink import mavutil
 
     episodes = []  # (left GUIDED, back in GUIDED or inf), autopilot s
     for i, (t0, mode, _) in enumerate(modes):
-        if t0 is None or mode == GUIDED or i == 0 or modes[i - 1][1] != GUIDED:
+        if t0 is None or in_app_mode(mode) or i == 0 or not in_app_mode(modes[i - 1][1]):
             continue
-        back = next((t for t, m, _ in modes[i + 1:] if m == GUIDED and t is not None), math.inf)
+        back = next((t for t, m, _ in modes[i + 1:] if in_app_mode(m) and t is not None), math.inf)
         episodes.append((t0, back))
-    last = [None] * len(episodes)
+    sent: list[float] = []  # the app's setpoints, its clock
+    told: list[float] = []  # autopilot time when an operator's command reached the app (resume ...)
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    while True:
-        m = conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")
-        if m is None:
-            break
-        t = m.time_boot_ms / 1000.0
-        for i, (a, b) in enumerate(episodes):
-            if a <= t < b:
-                last[i] = t
-    return [0.0 if sp is None else sp - a for (a, _), sp in zip(episodes, last)]
+    t = None
+    while (m := conn.recv_match()) is not None:
+        mtype = m.get_type()
+        if mtype == "SET_POSITION_TARGET_LOCAL_NED":
+            sent.append(m.time_boot_ms / 1000.0)
+        elif hasattr(m, "time_boot_ms") and m.get_srcComponent() == 1:
+            t = m.time_boot_ms / 1000.0
+        elif mtype == "COMMAND_LONG" and m.command == MAV_CMD_PMON and t is not None \
+                and m.target_component == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER:
+            told.append(t)
+    # setpoints after the operator's resume are the app's way back in (PX4: streamed before
+    # OFFBOARD is asked for), not a late reaction: an episode ends there
+    out = []
+    for a, b in episodes:
+        end = min(b, min((x for x in told if x > a), default=math.inf))
+        last = max((x for x in sent if a <= x < end), default=None)
+        out.append(0.0 if last is None else last - a)
+    return out
 
 
 def app_view(tlog: Path) -> dict:
     """What the app saw of its autopilot, from the app's own tlog: the comparison
-    tests/test_conformance.py makes between the mock and ArduPilot.
+    tests/firmware/test_conformance.py makes between the mock and ArduPilot.
 
     - ``rates_hz``: messages from the autopilot per autopilot second while the app monitored;
     - ``unasked``: message types it sent that the app never asked for (by id or stream);
@@ -414,6 +501,7 @@ def app_view(tlog: Path) -> dict:
                  "no_fix_positions": 0, "origin_t": None, "armed_t": None, "unasked": set()}
     timed: list[tuple[float, str]] = []  # (autopilot s, type) of every autopilot message
     monitored: list[float] = []  # autopilot s of the app's heartbeats saying "monitoring"
+    chunks = Reassembler(clock=lambda: 0.0)  # a recording: a text is whole when its last chunk is
     t = None
 
     def add(key, value):
@@ -427,8 +515,9 @@ def app_view(tlog: Path) -> dict:
             if mtype == "COMMAND_LONG" and m.command in (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                                                          mavlink.MAV_CMD_REQUEST_MESSAGE):
                 asked.add(int(m.param1))
-            elif mtype == "STATUSTEXT":
-                add("app_said", m.text.removeprefix("PMON: ").split(" (")[0].strip())
+            elif mtype == "STATUSTEXT":  # whole: a long text comes in chunks
+                for text in chunks.feed(m):
+                    add("app_said", text.removeprefix("PMON: ").split(" (")[0].strip())
             elif mtype == "HEARTBEAT" and m.custom_mode == 1 and t is not None:  # monitoring
                 monitored.append(t)
             continue
@@ -479,7 +568,7 @@ def app_view(tlog: Path) -> dict:
 
 def fly_launch_procedure(m: Mission, monitor_s: float, during: Callable[[Mission, dict], None] | None = None,
                          takeovers: tuple[tuple[str, ...], ...] = (("mode", "LOITER"), ("hold",))) -> dict:
-    """docs/SITL.md's procedure from the autopilot's boot, as tests/test_ardupilot.py (flight A)
+    """docs/SITL.md's procedure from the autopilot's boot, as tests/firmware/test_ardupilot.py (flight A)
     and bench/ardupilot.py fly it: ``pmon gcs launch`` at once; ``monitor_s`` autopilot s of
     monitoring (``during(m, rec)`` runs at its start, inside that time); then each takeover (a
     pilot's mode change), 3 s, ``pmon gcs resume``, 6 s. Returns each command's GcsCall and the

@@ -8,8 +8,11 @@ procedure (sim/procedure.py), ``python -m sim.stack``, the benches and the tests
 What runs:
 - an autopilot: the mock ArduCopter (sim/autopilot.py) or ArduPilot's own ArduCopter SITL
   (sim/ardupilot.py), at the scenario's UAV start, ``ports`` MAVLink TCP ports: 0 the app, 1 the
-  DF feed, 2 and on ground stations and observers (sim/ardupilot.py's SERIALn order);
-- the onboard app (``pmon run``), on port 0, through a ``TcpProxy`` a test can cut if asked;
+  DF feed, 2 and on ground stations and observers (sim/ardupilot.py's SERIALn order); or PX4's
+  own SITL (sim/px4.py), where the same port numbers name UDP links (``PX4_PORTS``): 0 PX4's
+  offboard/API link, the others its ground-station link, as on a vehicle;
+- the onboard app (``pmon run``), on port 0, through a ``TcpProxy`` (PX4: ``UdpProxy``) a test can
+  cut if asked;
 - the live DF feed (``pmon feed live``), on port 1, sending to the app's DF port: with the rig,
   later (``start_feed``) or not at all. With ``df="kraken"`` the feed is a simulated KrakenSDR
   instead (sim/kraken.py: its output served over HTTP, which the app reads with ``--kraken``); it
@@ -39,6 +42,9 @@ from onboard.policy import DEFAULT as DEFAULT_POLICY
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 
 APP_PORT, FEED_PORT, GCS_PORT = 0, 1, 2  # the autopilot's MAVLink ports, by user
+# PX4 (sim/px4.py): each port number as (link, listener index) on PX4's UDP links; None: a client
+# that sends first (the observer, sim/procedure.py)
+PX4_PORTS = {0: ("api", 0), 1: ("gcs", 1), 2: ("gcs", 0), 3: ("gcs", None), 4: ("gcs", 2)}
 
 
 @dataclass(frozen=True)
@@ -48,8 +54,8 @@ class RigConfig:
     seed: int = 1  # the app's
     feed_seed: int | None = None  # None: seed + 1
     autopilot_seed: int | None = None  # the mock's; None: seed
-    autopilot: str = "mock"  # mock (sim/autopilot.py) | ardupilot (the firmware's SITL)
-    binary: str | None = None  # ardupilot: the SITL binary (None: sim.ardupilot.find_binary())
+    autopilot: str = "mock"  # mock (sim/autopilot.py) | ardupilot (the firmware's SITL) | px4 (PX4's SITL)
+    binary: str | None = None  # the SITL binary, or PX4's folder (None: find_binary() / sim.px4.find_sitl())
     speedup: float = 1.0  # autopilot s per wall s
     params: Mapping[str, float] = field(default_factory=lambda: MappingProxyType(DEMO_VEHICLE_PARAMS))
     home: str = "start"  # where the copter boots: the scenario's UAV start, or its "origin"
@@ -63,7 +69,7 @@ class RigConfig:
     auto_launch: bool = False  # pmon run --auto-launch: GUIDED, arm, take off, monitor
     app_args: tuple[str, ...] = ()  # more pmon run options (the app as a process)
     app_config: Mapping = field(default_factory=dict)  # more AppConfig fields (the app in process)
-    link_proxy: bool = False  # the app reaches its port through a TcpProxy (Rig.proxy)
+    link_proxy: bool = False  # the app reaches its port through a TcpProxy, PX4's a UdpProxy (Rig.proxy)
     feed: str = "start"  # start (with the rig) | later (Rig.start_feed) | none
     df: str = "datagram"  # the DF: datagram (the feed's UDP datagrams) | kraken (a simulated KrakenSDR)
     multipath: bool = True  # kraken: the DF model's clutter drawn as multipath peaks in its spectrum
@@ -96,13 +102,13 @@ class Rig:
         from onboard.policy import POLICIES
         from sim.ardupilot import home_of
 
-        if cfg.autopilot not in ("mock", "ardupilot") or cfg.feed not in ("start", "later", "none") \
+        if cfg.autopilot not in ("mock", "ardupilot", "px4") or cfg.feed not in ("start", "later", "none") \
                 or cfg.df not in ("datagram", "kraken"):
             raise ValueError(f"rig: autopilot {cfg.autopilot!r}, feed {cfg.feed!r}, df {cfg.df!r}")
         if cfg.df == "kraken" and cfg.feed == "none":
             raise ValueError("rig: df kraken needs the feed (the simulated KrakenSDR)")
         if cfg.in_process and cfg.autopilot != "mock":
-            raise ValueError("rig: in_process needs the mock autopilot (ArduPilot SITL is a program)")
+            raise ValueError("rig: in_process needs the mock autopilot (a firmware's SITL is a program)")
         if (on_tick or on_setpoint) and not cfg.in_process:
             raise ValueError("rig: on_tick and on_setpoint look inside the app and the mock: in_process only")
         self.cfg = cfg
@@ -131,10 +137,20 @@ class Rig:
     def _autopilot(self):
         cfg = self.cfg
         seed = cfg.seed if cfg.autopilot_seed is None else cfg.autopilot_seed
+        # the firmware's own files (logs, parameters) in out/ when it is kept, else a temporary
+        # directory of the driver's whose logs stay
+        workdir = None if self._tmp else self.out / cfg.autopilot
         if cfg.autopilot == "ardupilot":
             from sim.ardupilot import ArduPilotSitl, find_binary
             return ArduPilotSitl(Path(cfg.binary) if cfg.binary else find_binary(), self.home, cfg.speedup,
-                                 dict(cfg.params), ports=cfg.ports, log_path=self.out / "autopilot.log")
+                                 dict(cfg.params), ports=cfg.ports, log_path=self.out / "autopilot.log",
+                                 workdir=workdir)
+        if cfg.autopilot == "px4":
+            from sim.px4 import Px4Sitl, find_sitl
+            gcs = sum(1 for n, (link, i) in PX4_PORTS.items() if n < cfg.ports and link == "gcs" and i is not None)
+            return Px4Sitl(Path(cfg.binary) if cfg.binary else find_sitl(), self.home[:3], cfg.speedup,
+                           dict(cfg.params), workdir=workdir, log_path=self.out / "autopilot.log",
+                           listeners={"gcs": gcs, "api": 1})
         if not cfg.in_process:
             from sim.processes import MockProcess
             return MockProcess(self.home, cfg.speedup, cfg.params, cfg.ports, self.out / "autopilot.log", seed,
@@ -167,7 +183,11 @@ class Rig:
         """The app on port 0 (or through the proxy); its DF port in ``df_port``."""
         cfg = self.cfg
         url = self.url(APP_PORT)
-        if cfg.link_proxy:
+        if cfg.link_proxy and cfg.autopilot == "px4":  # a UDP link: the relay takes the app's port
+            from sim.udp_proxy import UdpProxy
+            self.proxy = UdpProxy(int(url.rsplit(":", 1)[1]))
+            url = self.proxy.url
+        elif cfg.link_proxy:
             from sim.tcp_proxy import TcpProxy
             self.proxy = TcpProxy(("127.0.0.1", self.port(APP_PORT)))
             url = f"tcp:127.0.0.1:{self.proxy.port}"
@@ -191,6 +211,8 @@ class Rig:
                               ("--signing-key", cfg.signing_key_path)):
             argv += [option, str(value)] if value is not None else []
         argv += ["--auto-launch"] if cfg.auto_launch else []
+        if cfg.autopilot == "px4" and (events := self.ap.events_metadata()) is not None:
+            argv += ["--px4-events", str(events)]  # the build's: its EVENTs in words
         argv += ["--kraken", self.kraken_url] if self.kraken_url is not None else []
         self.app = Proc("app", argv + list(cfg.app_args), self.out / "app.log")
         self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
@@ -267,6 +289,10 @@ class Rig:
         return self.ap.port("tcpin", serial) if self.cfg.in_process else self.ap.port(serial)
 
     def url(self, serial: int) -> str:
+        """The MAVLink URL of port ``serial`` (PX4: a UDP link, ``PX4_PORTS``)."""
+        if self.cfg.autopilot == "px4":
+            link, i = PX4_PORTS[serial]
+            return self.ap.talk_url(link) if i is None else self.ap.url(link, i)
         return f"tcp:127.0.0.1:{self.port(serial)}"
 
     @property

@@ -18,6 +18,9 @@ from onboard.core.setpoint import plan_setpoint
 # and the autopilot's clocks differ by the link's delay (~10 m/s x 20 ms), the firmware advances
 # the target between messages itself
 SEGMENT_TOL_M = 0.5
+# ... or holds it as sent until the next message (PX4's OFFBOARD): the segment's position at the
+# report, or as it was up to one re-send period (10 Hz) and the report's delay before
+HELD_BACK_S = (0.0, 0.04, 0.08, 0.12, 0.16)
 
 
 class Dist:
@@ -88,15 +91,21 @@ class TickAccount:
     def _matches(r, p: dict) -> bool:
         """A received setpoint (or a target the autopilot reports holding) is the tick's: its
         point exactly, or, for a planned segment (position + velocity + acceleration, moved on
-        by the autopilot itself), the segment's position at that moment within SEGMENT_TOL_M."""
+        by the autopilot itself), the segment's position at that moment within SEGMENT_TOL_M, or
+        at a moment up to HELD_BACK_S before (a target held as sent: PX4)."""
         if r[0] < p["t"]:
             return False
         seg = p.get("segment")
         if seg is None:
             return abs(r[1] - p["n"]) < 0.01 and abs(r[2] - p["e"]) < 0.01 and abs(r[3] + p["u"]) < 0.01
-        d = min(max(r[0] - seg["t0"], 0.0), seg["tick_s"])
-        pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d)
-        return math.hypot(r[1] - pos[1], r[2] - pos[0]) < SEGMENT_TOL_M and abs(r[3] + seg["p0"][2]) < 0.05
+        if abs(r[3] + seg["p0"][2]) >= 0.05:
+            return False
+        for back in HELD_BACK_S:
+            d = min(max(r[0] - back - seg["t0"], 0.0), seg["tick_s"])
+            pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d)
+            if math.hypot(r[1] - pos[1], r[2] - pos[0]) < SEGMENT_TOL_M:
+                return True
+        return False
 
     def _resolve(self, p: dict, t_rx: float) -> None:
         d = t_rx - p["start"]

@@ -97,6 +97,9 @@ class AppConfig:
     # system ids whose commands and parameter writes are obeyed (reads are answered to anyone)
     gcs_sysids: tuple[int, ...] = (255,)
     signing_key_path: str | None = None  # MAVLink 2 signing key file (onboard/app/signing.py)
+    # with a key: the autopilot's own packets taken unsigned (one that cannot sign: PX4 v1.16);
+    # everyone else's must still be signed (docs/SAFETY.md)
+    autopilot_unsigned: bool = False
     history: int = 600  # tick records kept in memory (app.ticks, ~3 kB each); the run log keeps all
     watchdog_s: float = 3.0  # autopilot s a tick may run (or the io loop stall) before a report
     # autopilot s between returns of freed heap memory to the OS (glibc malloc_trim, by the idle
@@ -106,6 +109,8 @@ class AppConfig:
     # DF senders accepted (onboard/app/df_input.py); empty: the first peer whose datagram is valid
     df_sources: tuple[Source, ...] = ()
     df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
+    # PX4's event metadata (its build's etc/extras/all_events.json.xz): its EVENTs said in words
+    px4_events_path: str | None = None
     kraken: bool = False  # also read a KrakenSDR's DoA output at the scenario's kraken.url (kraken.py)
 
 
@@ -119,6 +124,10 @@ class OnboardApp:
         self.cfg = cfg
         self.mono = monotonic
         self.clock = clock if clock is not None else AutopilotClock(monotonic)
+        self.events_meta = None
+        if cfg.px4_events_path is not None:
+            from onboard.app.px4_events import EventMetadata
+            self.events_meta = EventMetadata.load(cfg.px4_events_path)  # EventMetadataError: refuse to start
         self.link = link or _open_link(cfg)
         self.params = ParamTable.from_scenario(scenario)
         self.counters = Counters()
@@ -152,7 +161,8 @@ class OnboardApp:
         self.publisher = Publisher(self.link, self.clock, vehicle, lambda: self.machine.state, self._status)
         say = self.publisher.say
         self.autopilot = AutopilotSide(self.link, self.clock, self.mono, Frame(o.lat_deg, o.lon_deg, o.alt_m),
-                                       vehicle, self, say, self.counters, cfg.target_system, cfg.link_timeout_s)
+                                       vehicle, self, say, self.counters, cfg.target_system, cfg.link_timeout_s,
+                                       self.events_meta)
         self.limits = PlanLimits(scenario, self.params, vehicle, say)
         self.core = MonitorCore(scenario, self.params, self.limits, np.random.default_rng(cfg.seed))
         self.stream = SetpointStream(self.link, self.autopilot, self.params, lambda: self.core.setup,
@@ -351,6 +361,7 @@ class OnboardApp:
         now = self.clock.now()
         self._handle("periodic heartbeat", self.publisher.beat, local)
         self._handle("periodic telemetry", self.autopilot.periodic_requests, local)
+        self._handle("periodic signing", self.autopilot.periodic_signing, local)
         self._handle("periodic link", self.autopilot.periodic_link, local)
         self._handle("periodic clock", self.autopilot.periodic_clock, now)
         self._handle("periodic DF input", self.df_scans.report)
@@ -382,8 +393,9 @@ def _open_link(cfg: AppConfig) -> Link:
         from onboard.app.signing import load_key
         key = load_key(cfg.signing_key_path)  # KeyFileError: refuse to start
     # an autopilot still booting (TCP refused) is waited for, as after a reboot
+    unsigned = ((cfg.target_system or 1, mavlink.MAV_COMP_ID_AUTOPILOT1),) if cfg.autopilot_unsigned else ()
     return Link(cfg.mavlink_url, cfg.baud, cfg.tlog_path, source_system=cfg.target_system or 1,
-                signing_key=key, wait_for_peer=True)
+                signing_key=key, wait_for_peer=True, unsigned_from=unsigned)
 
 
 def _msg_type(msg) -> str:

@@ -4,17 +4,32 @@ The app (and the ground station) talk MAVLink to whatever autopilot the first HE
 is (``HEARTBEAT.autopilot``); ``profile_for`` picks its profile, and every firmware-specific
 fact the app uses comes from that profile, never from a special case elsewhere:
 
-- mode names and numbers (``mode_number``, ``mode_name``, ``in_mode``) and the
+- mode names and numbers, both ways (``mode_number``, ``mode_name``, ``in_mode``; names a
+  firmware lacks get a line that says what to use instead, ``no_mode``) and the
   MAV_CMD_DO_SET_MODE that asks for one (``set_mode_params``);
-- the mode the app flies the mission in (``mission_mode``: ArduCopter's GUIDED, PX4's OFFBOARD);
+- the mode the app flies the mission in (``mission_mode``: ArduCopter's GUIDED, PX4's OFFBOARD),
+  how it is entered (``mode_lead_s``: autopilot s of setpoints streamed before asking: PX4's
+  OFFBOARD needs the stream already running) and where the app leaves the vehicle when it stops
+  commanding in it (``release_mode``: PX4 leaves OFFBOARD ~1 s after the last setpoint, into
+  its failsafe);
+- the launch: the mode it arms in (``launch_mode``) and the modes the autopilot takes by itself
+  on the way (``launch_own_modes``: PX4's take-off, which ends in Hold); a pilot's stop
+  (``hold_mode``: ArduCopter's BRAKE, PX4's Hold);
 - the take-off altitude's frame (``takeoff_params``);
-- the parameters that hold the vehicle's speed and acceleration limits (``limit_params``);
-- the pre-arm state (``prearm_ok``).
+- the parameters that hold the vehicle's speed and acceleration limits (``limit_params``),
+  others checked at connection (``checked_params``, ``param_warning``), and how PARAM_VALUE
+  carries an integer (``param_value``);
+- the pre-arm state (``prearm_ok``) and the texts that say why arming was refused
+  (``arming_refusal``);
+- whether it signs MAVLink 2 (``can_sign``).
 
-``ArduPilot`` is flown against its real SITL firmware (tests/test_ardupilot.py). ``Px4`` holds
-what the app knew of PX4 before it was flown (OFFBOARD's main mode, MPC_* limits, take-off AMSL;
-issue 30 adds what PX4 needs beyond that: a setpoint stream before OFFBOARD, mode changes
-confirmed by HEARTBEAT only, no signing). Light module (no core import): ``pmon gcs`` uses it.
+A mode change is never taken from its COMMAND_ACK (PX4 ACKs OFFBOARD with no stream, and POSCTL
+with no RC, ACCEPTED and stays where it was): the app, on every firmware, waits for HEARTBEAT to
+show it (onboard/app/state_machine.py).
+
+``ArduPilot`` is flown against its real SITL firmware (tests/firmware/test_ardupilot.py), ``Px4`` against
+PX4 v1.16's (tests/firmware/test_px4.py; ../shared/px4/README.md has what was measured there). Light
+module (no core import): ``pmon gcs`` uses it.
 
 MAV_CMD_NAV_TAKEOFF: the MAVLink spec lets latitude/longitude/yaw be NaN ("current"), but
 ArduCopter 4.4 converts a COMMAND_LONG's param5/6 to integers and aborts on NaN (floating point
@@ -27,6 +42,7 @@ AMSL.
 from __future__ import annotations
 
 import math
+import struct
 
 from pymavlink import mavutil
 
@@ -40,11 +56,25 @@ class AutopilotProfile:
 
     name = "unknown autopilot"
     mission_mode = "GUIDED"  # the mode the app flies the mission in (it asks for it, then streams)
+    mode_lead_s = 0.0  # autopilot s of setpoints streamed before the mission mode is asked for
+    # the mode the app asks for when it stops commanding while the vehicle is in the mission mode
+    # (pause, stop, a refused origin); None: the mission mode holds the vehicle by itself
+    release_mode: str | None = None
+    launch_mode = "GUIDED"  # the launch arms in it (ArduCopter takes off by command only in GUIDED)
+    launch_own_modes: tuple[str, ...] = ()  # modes the autopilot takes by itself during a launch
+    hold_mode = "BRAKE"  # stop and hold position (pmon gcs hold)
     takeoff_altitude_amsl = False  # MAV_CMD_NAV_TAKEOFF param7: above home (False) or AMSL (True)
     # ((speed parameter, factor to m/s), (acceleration parameter, factor to m/s^2)): the vehicle's
     # horizontal limits for guided position setpoints, read at connection; () where unknown
     limit_params: tuple[tuple[str, float], ...] = ()
+    checked_params: tuple[str, ...] = ()  # read at connection; ``param_warning`` judges them
+    params_bytewise = False  # PARAM_VALUE carries an integer's bytes in its float (PX4)
+    can_sign = True  # MAVLink 2 signing
+    # said as the reason of a refused arm when the autopilot gives its reasons where the app
+    # cannot read them (PX4: EVENTs, without the build's event metadata); None: it says them
+    refusal_elsewhere: str | None = None
     _modes: dict[int, str] = mavutil.mode_mapping_acm  # custom_mode -> name
+    _advice: dict[str, str] = {}  # a mode name this firmware lacks -> what to use instead
 
     # ----- modes
     def mode_names(self) -> list[str]:
@@ -59,6 +89,13 @@ class AutopilotProfile:
             return "?"
         return self._modes.get(custom_mode, str(custom_mode))
 
+    def no_mode(self, name: str) -> str:
+        """One line for a mode name this firmware does not have."""
+        key = name.strip().upper()
+        advice = self._advice.get(key)
+        return f"{self.name} has no mode {key}" + (f": {advice}" if advice else
+                                                  f" (its modes: {', '.join(self.mode_names())})")
+
     def in_mode(self, custom_mode: int | None, name: str) -> bool:
         """HEARTBEAT.custom_mode is the mode ``name``."""
         return custom_mode is not None and custom_mode == self.mode_number(name)
@@ -66,11 +103,16 @@ class AutopilotProfile:
     def in_mission_mode(self, custom_mode: int | None) -> bool:
         return self.in_mode(custom_mode, self.mission_mode)
 
+    def in_launch_mode(self, custom_mode: int | None, own: bool = False) -> bool:
+        """In the launch's mode (``own``: or in one the autopilot takes by itself on the way)."""
+        names = (self.launch_mode, *self.launch_own_modes) if own else (self.launch_mode,)
+        return any(self.in_mode(custom_mode, n) for n in names)
+
     def set_mode_params(self, name: str) -> tuple[float, ...]:
         """MAV_CMD_DO_SET_MODE's parameters for the mode ``name`` (ValueError if unknown)."""
         number = self.mode_number(name)
         if number is None:
-            raise ValueError(f"{self.name} has no mode {name!r}")
+            raise ValueError(self.no_mode(name))
         return (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(number))
 
     # ----- take-off and pre-arm
@@ -89,11 +131,30 @@ class AutopilotProfile:
 
     def prearm_ok(self, sys_status) -> bool | None:
         """The pre-arm checks from a SYS_STATUS message (None where the firmware does not report
-        them: the bit absent from onboard_control_sensors_present, as PX4 leaves it)."""
+        them: the bit absent from onboard_control_sensors_present)."""
         bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
         if sys_status is None or not sys_status.onboard_control_sensors_present & bit:
             return None
         return bool(sys_status.onboard_control_sensors_health & bit)
+
+    def arming_refusal(self, text: str) -> bool:
+        """A STATUSTEXT that says why the autopilot refuses to arm."""
+        return text.startswith(("PreArm:", "Arm:"))
+
+    # ----- parameters
+    def param_value(self, msg) -> float:
+        """PARAM_VALUE's value as a number: a float as sent, or an integer parameter as the
+        firmware encodes it (``params_bytewise``: the integer's bytes in the float's)."""
+        value = float(msg.param_value)
+        if self.params_bytewise and msg.param_type in _INT_TYPES:
+            fmt = _INT_TYPES[msg.param_type]
+            raw = struct.pack("<f", value)[:struct.calcsize(fmt)]
+            return float(struct.unpack(fmt, raw)[0])
+        return value
+
+    def param_warning(self, name: str, value: float) -> str | None:
+        """What is unsafe about a ``checked_params`` value for the app's flight (None: fine)."""
+        return None
 
 
 class ArduPilot(AutopilotProfile):
@@ -103,42 +164,101 @@ class ArduPilot(AutopilotProfile):
     limit_params = (("WPNAV_SPEED", 0.01), ("WPNAV_ACCEL", 0.01))  # cm/s, cm/s^2
 
 
+# PX4's modes by name (px4_custom_mode.h: custom_mode = main << 16 | sub << 24), in the names its
+# own console and MAVSDK use; pymavlink's and the operator's everyday names as aliases
+_PX4_MODES = {"MANUAL": (1, 0), "ALTCTL": (2, 0), "POSCTL": (3, 0), "AUTO.TAKEOFF": (4, 2),
+              "AUTO.LOITER": (4, 3), "AUTO.MISSION": (4, 4), "AUTO.RTL": (4, 5), "AUTO.LAND": (4, 6),
+              "AUTO.FOLLOW_TARGET": (4, 8), "AUTO.PRECLAND": (4, 9), "ACRO": (5, 0), "OFFBOARD": (6, 0),
+              "STABILIZED": (7, 0)}
+_PX4_ALIASES = {"HOLD": "AUTO.LOITER", "LOITER": "AUTO.LOITER", "TAKEOFF": "AUTO.TAKEOFF",
+                "MISSION": "AUTO.MISSION", "RTL": "AUTO.RTL", "LAND": "AUTO.LAND", "POSITION": "POSCTL",
+                "ALTITUDE": "ALTCTL", "FOLLOWME": "AUTO.FOLLOW_TARGET", "STABILIZE": "STABILIZED"}
+# COM_OBL_RC_ACT (commander: what PX4 does when the offboard stream stops), by value
+_OBL_RC_ACT = {0: "Position mode", 1: "Altitude mode", 2: "Manual", 3: "Return", 4: "Land", 5: "Hold",
+               6: "Terminate", 7: "Disarm"}
+_INT_TYPES = {mavlink.MAV_PARAM_TYPE_UINT8: "<B", mavlink.MAV_PARAM_TYPE_INT8: "<b",
+              mavlink.MAV_PARAM_TYPE_UINT16: "<H", mavlink.MAV_PARAM_TYPE_INT16: "<h",
+              mavlink.MAV_PARAM_TYPE_UINT32: "<I", mavlink.MAV_PARAM_TYPE_INT32: "<i"}
+
+
 class Px4(AutopilotProfile):
-    """PX4: ``custom_mode = (main << 16) | (sub << 24)``, modes as pymavlink names them."""
+    """PX4 (flown against its v1.16 SITL firmware, SIH quad): ``custom_mode = (main << 16) |
+    (sub << 24)``; OFFBOARD needs setpoints streaming before it is asked for and leaves ~1 s
+    after they stop (COM_OF_LOSS_T) into COM_OBL_RC_ACT; arming in Hold, the take-off AMSL and
+    ended in Hold by PX4; MPC_* limits; integers bytewise in PARAM_VALUE; no MAVLink signing."""
 
     name = "PX4"
     mission_mode = "OFFBOARD"
+    # ~1 s of stream before the switch worked (../shared/px4/README.md); 1.2: a margin on PX4's clock
+    mode_lead_s = 1.2
+    release_mode = "AUTO.LOITER"  # Hold: stops and holds where it is, needs no stream
+    launch_mode = "AUTO.LOITER"  # PX4 boots in Hold, arms there and takes off by command
+    launch_own_modes = ("AUTO.TAKEOFF",)
+    hold_mode = "AUTO.LOITER"
     takeoff_altitude_amsl = True
-    limit_params = (("MPC_XY_CRUISE", 1.0), ("MPC_ACC_HOR", 1.0))  # m/s, m/s^2
+    limit_params = (("MPC_XY_VEL_MAX", 1.0), ("MPC_ACC_HOR", 1.0))  # m/s, m/s^2
+    checked_params = ("COM_OBL_RC_ACT",)
+    params_bytewise = True
+    can_sign = False  # v1.16: no SETUP_SIGNING, signatures not checked, nothing signed
+    refusal_elsewhere = "refused by PX4 (see its console / events)"
+    _advice = {"GUIDED": "the app flies OFFBOARD (pmon gcs start / resume)",
+               "BRAKE": "use AUTO.LOITER (Hold; pmon gcs hold)",
+               "POSHOLD": "use POSCTL", "ALT_HOLD": "use ALTCTL", "SMART_RTL": "use AUTO.RTL"}
 
     def mode_names(self) -> list[str]:
-        return sorted(mavutil.px4_map)
+        return sorted(_PX4_MODES)
+
+    def _canonical(self, name: str) -> str | None:
+        key = name.strip().upper()
+        key = _PX4_ALIASES.get(key, key)
+        return key if key in _PX4_MODES else None
 
     def mode_number(self, name: str) -> int | None:
-        entry = mavutil.px4_map.get(name.strip().upper())
-        return None if entry is None else (entry[1] << 16) | (entry[2] << 24)
+        key = self._canonical(name)
+        if key is None:
+            return None
+        main, sub = _PX4_MODES[key]
+        return (main << 16) | (sub << 24)
 
     def mode_name(self, custom_mode: int | None) -> str:
         if custom_mode is None:
             return "?"
-        for name in mavutil.px4_map:
+        for name in _PX4_MODES:
             if self.in_mode(custom_mode, name):
                 return name
-        return str(custom_mode)
+        return f"PX4 mode {(custom_mode >> 16) & 0xFF}.{(custom_mode >> 24) & 0xFF}"
 
     def in_mode(self, custom_mode: int | None, name: str) -> bool:
-        """By main mode, and by sub mode where the mode has one (OFFBOARD has none)."""
-        entry = mavutil.px4_map.get(name.strip().upper())
-        if custom_mode is None or entry is None:
+        """By main mode, and by sub mode where the mode has one (OFFBOARD, POSCTL have none)."""
+        key = self._canonical(name)
+        if custom_mode is None or key is None:
             return False
         main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-        return main == entry[1] and (entry[2] == 0 or sub == entry[2])
+        want_main, want_sub = _PX4_MODES[key]
+        return main == want_main and (want_sub == 0 or sub == want_sub)
 
     def set_mode_params(self, name: str) -> tuple[float, ...]:
-        entry = mavutil.px4_map.get(name.strip().upper())
-        if entry is None:
-            raise ValueError(f"{self.name} has no mode {name!r}")
-        return (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(entry[1]), float(entry[2]))
+        key = self._canonical(name)
+        if key is None:
+            raise ValueError(self.no_mode(name))
+        main, sub = _PX4_MODES[key]
+        return (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(main), float(sub))
+
+    def prearm_ok(self, sys_status) -> bool | None:
+        """PX4 sets SYS_STATUS's pre-arm *health* bit when it can arm but never the *present*
+        bit (measured on v1.16: the bit came with the first accepted arm, ~5 s after boot)."""
+        if sys_status is None:
+            return None
+        return bool(sys_status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+
+    def arming_refusal(self, text: str) -> bool:
+        return text.startswith(("Arming denied", "Preflight Fail", "Preflight check failed"))
+
+    def param_warning(self, name: str, value: float) -> str | None:
+        if name == "COM_OBL_RC_ACT" and value in (0, 1, 2):
+            return (f"COM_OBL_RC_ACT = {value:g} ({_OBL_RC_ACT[int(value)]}): if the app's setpoints stop, PX4 "
+                    "flies it, which without RC sinks and drifts; set 5 (Hold)")
+        return None
 
 
 ARDUPILOT = ArduPilot()

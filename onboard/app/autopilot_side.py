@@ -22,9 +22,12 @@ from onboard.app.pose import (
     origin_of,
     valid_global_position_int,
 )
+from onboard.app.px4_events import ARMING_GROUPS, EventMetadata, decode_event
 from onboard.app.vehicle_state import Vehicle
 
 log = logging.getLogger("pmon.app")
+CHECK_WORDS = " check: "  # "PX4 check: ...": a reason from the autopilot's health and arming report (on_event)
+UNHEARD_S = 5.0  # local s without an autopilot, packets refused, before the app says why
 STALE_TELEMETRY_S = 2.0  # local s without GLOBAL_POSITION_INT while heartbeats come: ask again
 # (message id, Hz) the app asks for on its own link (any ArduPilot / PX4 honours these)
 TELEMETRY_HZ = ((mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 10.0),
@@ -49,7 +52,7 @@ class AutopilotEvents(Protocol):
 class AutopilotSide:
     def __init__(self, link: Link, clock, mono: Callable[[], float], frame: Frame, vehicle: Vehicle,
                  events: AutopilotEvents, say, counters: Counters, target_system: int | None = None,
-                 link_timeout_s: float = 3.0):
+                 link_timeout_s: float = 3.0, events_meta: EventMetadata | None = None):
         self.link = link
         self.clock = clock
         self.mono = mono
@@ -63,9 +66,11 @@ class AutopilotSide:
         self.counters = counters
         self.target_system = target_system  # None: the first autopilot heard
         self.link_timeout_s = link_timeout_s  # local s without a heartbeat -> link lost
+        self.events_meta = events_meta  # PX4's event metadata (its EVENTs in words), if given
         self.link_lost = False
         self._link_lost_local = -math.inf
         self._msg_interval_local = -math.inf
+        self._started_local = mono()
         self._clock_resets = 0
         self._clock_seen = (0, 0)  # clock.jumps, clock.jumps_ignored already reported
 
@@ -82,14 +87,18 @@ class AutopilotSide:
             self.command_long(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 
     def request_limits(self) -> None:
+        """The limit parameters and the ones the profile checks (``checked_params``)."""
         v = self.vehicle
-        for name, _ in v.profile.limit_params:
+        for name in [n for n, _ in v.profile.limit_params] + list(v.profile.checked_params):
             self.link.send(self.link.mav.param_request_read_encode(v.sysid, v.compid, name.encode(), -1))
+
+    def set_mode(self, name: str) -> None:
+        """Ask for a mode by the profile's name for it (only HEARTBEAT says whether it was taken)."""
+        self.command_long(mavlink.MAV_CMD_DO_SET_MODE, *self.vehicle.profile.set_mode_params(name))
 
     def set_mission_mode(self) -> None:
         """Ask for the mode the app flies in (the profile's: GUIDED, OFFBOARD)."""
-        profile = self.vehicle.profile
-        self.command_long(mavlink.MAV_CMD_DO_SET_MODE, *profile.set_mode_params(profile.mission_mode))
+        self.set_mode(self.vehicle.profile.mission_mode)
 
     def arm(self) -> None:
         self.vehicle.prearm_text = None  # a refusal now says why afresh
@@ -143,9 +152,21 @@ class AutopilotSide:
         v.profile = profile_for(msg.autopilot)
         self.link.set_source_system(sysid)  # the app is a component of this vehicle
         self.say(f"autopilot {sysid}/{compid} found")
+        if not v.profile.can_sign:
+            self._say_unsigned()
         self.request_telemetry()
         self.request_limits()
         self._msg_interval_local = self.mono()
+
+    def _say_unsigned(self) -> None:
+        """An autopilot that cannot sign: said plainly, at connection (docs/SAFETY.md)."""
+        name = self.vehicle.profile.name
+        if self.link.signing:
+            self.say(f"{name} cannot sign MAVLink: the autopilot link is UNSIGNED (its packets taken unsigned; "
+                     "ground-station commands still need the key; docs/SAFETY.md)", mavlink.MAV_SEVERITY_WARNING)
+        else:
+            self.say(f"{name} cannot sign MAVLink: the autopilot link cannot be signed (docs/SAFETY.md)",
+                     mavlink.MAV_SEVERITY_WARNING)
 
     def _link_back(self) -> None:
         self.link_lost = False
@@ -184,24 +205,69 @@ class AutopilotSide:
 
     def on_statustext(self, msg) -> None:
         text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
-        if text.startswith(("PreArm:", "Arm:")):  # why the autopilot refuses to arm
-            self.vehicle.prearm_text = text.split("\x00", 1)[0][:50]
+        text = text.split("\x00", 1)[0]
+        if self.vehicle.profile.arming_refusal(text):  # why the autopilot refuses to arm
+            self.vehicle.prearm_text = text[:50]
+
+    def on_event(self, msg) -> None:
+        """PX4's EVENT (id 410, which pymavlink 2.4.50 does not decode; onboard/app/px4_events.py)
+        in words where the build's event metadata was given (``events_meta``). Its health and
+        arming report (a summary, then every check that fails, each with the modes it blocks):
+        the first check at warning or worse that blocks the mode the vehicle is in is kept as
+        why arming fails (the launch says it), and a report clears what the last one said; an
+        "Arming denied" is kept where no check said more; anything else at warning or worse is
+        said once."""
+        ev = decode_event(msg)
+        if ev is None:
+            self.counters.add("events_malformed")
+            return
+        d = self.events_meta.describe(ev) if self.events_meta is not None else None
+        if d is None:
+            return
+        v = self.vehicle
+        checked = v.prearm_text is not None and CHECK_WORDS in v.prearm_text
+        if d.group in ARMING_GROUPS:
+            if d.summary:
+                if checked:
+                    v.prearm_text = None
+            elif ev.severity <= mavlink.MAV_SEVERITY_WARNING and not checked \
+                    and self.events_meta.blocks(d, v.custom_mode):
+                v.prearm_text = f"{v.profile.name}{CHECK_WORDS}{d.text}"[:80]
+        elif v.profile.arming_refusal(d.text):
+            if not checked:
+                v.prearm_text = d.text[:80]
+        elif ev.severity <= mavlink.MAV_SEVERITY_WARNING:
+            self.say(f"{v.profile.name}: {d.text}", ev.severity, once=f"event:{d.text}")
 
     def on_extended_sys_state(self, msg) -> None:
         self.vehicle.landed_state = msg.landed_state
 
     def on_command_ack(self, msg) -> None:
-        if msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
+        refused = msg.result not in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
+        v = self.vehicle
+        if refused:
             self.counters.add(f"autopilot_refused_{msg.command}")
+        if refused and msg.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM and v.prearm_text is None \
+                and self.events_meta is None and v.profile.refusal_elsewhere:
+            v.prearm_text = v.profile.refusal_elsewhere  # its reasons go where the app cannot read them
+        if msg.command == mavlink.MAV_CMD_DO_SET_MODE:  # not proof of the mode: said when one is not taken
+            self.vehicle.mode_ack = msg.result
 
     def on_param_value(self, msg) -> None:
         """The autopilot's speed / acceleration limit, read at connection and again whenever it
-        sends one (ArduPilot tells every link when a ground station changes it)."""
-        names = self.vehicle.profile.limit_params
+        sends one (ArduPilot tells every link when a ground station changes it); a parameter
+        the profile checks is judged and a bad value said (again whenever it changes)."""
+        profile = self.vehicle.profile
+        name, value = param_name(msg.param_id), profile.param_value(msg)
+        if name in profile.checked_params:
+            warning = profile.param_warning(name, value)
+            if warning is not None:
+                self.say(warning, mavlink.MAV_SEVERITY_WARNING, once=f"param:{name}={value:g}")
+            return
+        names = profile.limit_params
         if not names:
             return
         (speed_name, speed_k), (accel_name, accel_k) = names
-        name, value = param_name(msg.param_id), float(msg.param_value)
         if not math.isfinite(value) or value <= 0.0 or name not in (speed_name, accel_name):
             return
         if name == speed_name:
@@ -219,13 +285,18 @@ class AutopilotSide:
         if origin is None:
             self.counters.add("origin_invalid")
             return
+        if getattr(self.clock, "reboot_pending", False):
+            # a rebooted autopilot's new origin can come before its clock confirms the reboot
+            # (PX4 sends it unasked): not compared with the old boot's; asked again after
+            self.counters.add("origin_during_reboot")
+            return
         first = self.origin.value is None
         off = self.origin.offer(origin)
         if off is None:
             if first:
                 self.vehicle.ned_origin = self.origin.value
                 log.info("autopilot NED origin: %.7f %.7f %.2f m", *origin)
-                self.say("NED origin fixed")  # the same words whatever the place (tests/test_conformance.py)
+                self.say("NED origin fixed")  # the same words whatever the place (tests/firmware/test_conformance.py)
             return
         self.counters.add("origin_changes_refused")
         self.events.on_origin_moved(off)
@@ -240,6 +311,26 @@ class AutopilotSide:
         self.say("autopilot rebooted: DF scan times start over", mavlink.MAV_SEVERITY_WARNING)
 
     # ----- periodic jobs (io thread, under the lock)
+    def periodic_signing(self, local: float) -> None:
+        """What signing keeps out, said once each: no autopilot yet while unsigned packets are
+        refused (one that cannot sign is heard only with --autopilot-unsigned), and a sender
+        whose signatures fail (a wrong key; or forwarded by an autopilot that rewrites them)."""
+        if not self.link.signing:
+            return
+        from onboard.app.signing import bad_signatures
+        mav, v = self.link.mav, self.vehicle
+        refused = getattr(getattr(mav, "signing", None), "reject_count", 0)
+        if v.sysid is None and refused and local - self._started_local > UNHEARD_S:
+            self.say(f"no autopilot heard: {refused} unsigned packets refused (an autopilot that cannot sign, "
+                     "PX4, needs --autopilot-unsigned; docs/SAFETY.md)", mavlink.MAV_SEVERITY_WARNING,
+                     once="unsigned_refused")
+        for (sysid, compid), n in bad_signatures(mav).items():
+            why = (f"{v.profile.name} rewrites the signature of every message it forwards: sign on a path that "
+                   "does not pass through it" if v.sysid is not None and not v.profile.can_sign
+                   else "a wrong key, or a forgery")
+            self.say(f"packets from {sysid}/{compid} fail their signature ({why}; docs/SAFETY.md)",
+                     mavlink.MAV_SEVERITY_WARNING, once=f"badsig:{sysid}/{compid}")
+
     def periodic_requests(self, local: float) -> None:
         """Ask for the telemetry again while the origin is unknown or positions stop coming with
         heartbeats still there: an autopilot that rebooted (or a link reopened to it) starts

@@ -15,7 +15,8 @@ send a SYSTEM_TIME "from the autopilot": one an hour ahead used to move the cloc
 32 coast ticks in a burst and poison the rate the watchdog scales by). Such a sample is a
 *candidate*: the clock keeps its timeline and follows the candidate only when the samples after
 it confirm it (``CONFIRM_SAMPLES`` of them, continuing from it, over ``CONFIRM_LOCAL_S`` local
-seconds, none back on the old timeline). A sample back on the old timeline cancels it
+seconds, none back on the old timeline; one a little older than the candidate's newest, as
+PX4's streams stamp them, is skipped as it is on the timeline). A sample back on the old timeline cancels it
 (``jumps_ignored`` +1). A followed jump restarts the sample window (the rate is measured on the
 new timeline only) and counts in ``jumps`` (``last_jump_s``: by how much); the app reports both
 and restarts its tick schedule on a followed jump. "Far" is ``JUMP_TOL_S`` plus 0.1 local s and a
@@ -45,6 +46,7 @@ class AutopilotClock:
     REBOOT_S = 5.0  # a sample this far behind the newest one: a reboot candidate
     CONFIRM_SAMPLES = 3  # samples continuing from a candidate, over ...
     CONFIRM_LOCAL_S = 1.0  # ... at least this many local seconds, before it is followed
+    OUT_OF_ORDER_S = 1.0  # a sample this little behind the candidate's newest neither continues nor resets it
     MAX_RATE = 1000.0
 
     def __init__(self, monotonic: Callable[[], float] = time.monotonic):
@@ -92,7 +94,9 @@ class AutopilotClock:
 
     def _jump_candidate(self, local: float, ap: float) -> None:
         c = self._candidate
-        if c and c[-1][1] <= ap and not (ap < c[-1][1] - self.REBOOT_S):
+        if c and c[-1][1] - self.OUT_OF_ORDER_S <= ap < c[-1][1]:
+            return  # another stream's stamp, a little older (PX4's): no news, as on the timeline
+        if c and c[-1][1] <= ap:
             c.append((local, ap))  # continues from the candidate
         else:
             c[:] = [(local, ap)]
@@ -116,6 +120,12 @@ class AutopilotClock:
         (l0, a0), (l1, a1) = self._samples[0], self._samples[-1]
         if l1 - l0 >= 1.0:  # a rate over a shorter span is mostly read-out jitter
             self._rate = min(max((a1 - a0) / (l1 - l0), 1e-3), self.MAX_RATE)
+
+    @property
+    def reboot_pending(self) -> bool:
+        """Samples far behind the timeline are coming, not yet confirmed as a reboot."""
+        with self._lock:
+            return bool(self._candidate) and bool(self._samples) and self._candidate[0][1] < self._samples[-1][1]
 
     @property
     def rate(self) -> float:
@@ -191,6 +201,12 @@ class ManualClock:
 
     def now(self) -> float | None:
         return self.t
+
+    @property
+    def reboot_pending(self) -> bool:
+        """Samples far behind the timeline are coming, not yet confirmed as a reboot."""
+        with self._lock:
+            return bool(self._candidate) and bool(self._samples) and self._candidate[0][1] < self._samples[-1][1]
 
     @property
     def rate(self) -> float:

@@ -55,6 +55,7 @@ class Router:
             "GPS_GLOBAL_ORIGIN": autopilot.on_gps_global_origin,
             "COMMAND_ACK": autopilot.on_command_ack,
             "PARAM_VALUE": autopilot.on_param_value,
+            "UNKNOWN_410": autopilot.on_event,  # PX4's EVENT, not in pymavlink 2.4.50's dialects
         }
         self.for_app: dict[str, Handler] = {
             "COMMAND_LONG": self._on_command_long,

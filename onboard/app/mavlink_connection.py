@@ -43,6 +43,16 @@ def param_name(raw) -> str:
     return str(raw).split("\x00", 1)[0]
 
 
+def _header_of_unknown(msg, buf: bytes) -> None:
+    """pymavlink 2.4.50 leaves a message its dialect does not define (PX4's EVENT) without its
+    header: its source read 0/0. Read it from the frame, so such a message is routed by its
+    sender as every other one."""
+    if len(buf) >= 10 and buf[0] == mavlink.PROTOCOL_MARKER_V2:
+        msg._header = mavlink.MAVLink_header(msg.get_msgId(), buf[2], buf[3], buf[1], buf[4], buf[5], buf[6])
+    elif len(buf) >= 6 and buf[0] == mavlink.PROTOCOL_MARKER_V1:
+        msg._header = mavlink.MAVLink_header(msg.get_msgId(), 0, 0, buf[1], buf[2], buf[3], buf[4])
+
+
 def _is_stream(url: str) -> bool:
     return not url.startswith(("udp:", "udpin:", "udpout:", "udpbcast:"))
 
@@ -59,11 +69,13 @@ class Link:
 
     def __init__(self, url: str, baud: int = 57600, tlog_path: str | None = None,
                  source_system: int = 1, source_component: int = COMP_ID,
-                 signing_key: bytes | None = None, link_id: int = 1, wait_for_peer: bool = False):
+                 signing_key: bytes | None = None, link_id: int = 1, wait_for_peer: bool = False,
+                 unsigned_from: tuple[tuple[int, int], ...] = ()):
         self.url = url
         self.baud = baud
         self._source = [source_system, source_component]
         self._key = signing_key
+        self._unsigned_from = tuple(unsigned_from)  # senders taken unsigned (signing.configure)
         self._link_id = link_id
         self.signing = signing_key is not None
         self._lock = threading.Lock()
@@ -101,7 +113,7 @@ class Link:
         conn.handle_eof = gone
         if self._key is not None:  # unsigned / wrongly signed packets become BAD_DATA
             from onboard.app.signing import apply
-            apply(conn, self._key, self._link_id)
+            apply(conn, self._key, self._link_id, self._unsigned_from)
         return conn
 
     def _encoder(self) -> mavlink.MAVLink:
@@ -230,6 +242,8 @@ class Link:
                 buf = msg.get_msgbuf()
                 if buf:
                     self._log(buf)
+                    if isinstance(msg, mavlink.MAVLink_unknown):
+                        _header_of_unknown(msg, bytes(buf))
             return msg
 
     def close(self) -> None:

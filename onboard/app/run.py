@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "one-step rule on its jump model); onboard/policy.py")
     p.add_argument("--sysid", type=integer(1, 255), help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--auto-launch", action="store_true",
-                   help="by itself: GUIDED, arm, take off to h, start monitoring (SITL/demo only)")
+                   help="by itself: arm, take off to h, the mission mode (ArduCopter GUIDED, PX4 OFFBOARD), "
+                   "start monitoring (SITL/demo only)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="initial PMON_* parameter; repeatable")
     p.add_argument("--runlog", type=OUT_FILE, help="JSONL run log, one line per tick")
@@ -56,12 +57,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--signing-key", metavar="FILE",
                    help="MAVLink 2 signing key file (64 hex chars, mode 0600): sign every message, "
                    "drop unsigned or wrongly signed ones (docs/MAVLINK.md, Signing)")
+    p.add_argument("--autopilot-unsigned", action="store_true",
+                   help="with --signing-key: take the autopilot's own packets unsigned (component 1 of "
+                   "--sysid, default 1), for an autopilot that cannot sign (PX4 v1.16); every other "
+                   "sender, a ground station's commands included, must still sign (docs/SAFETY.md)")
+    p.add_argument("--px4-events", metavar="FILE",
+                   help="PX4's event metadata (its build's etc/extras/all_events.json.xz): PX4's arming "
+                   "refusals and failsafes in words; without it the app says only that PX4 refused")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--quiet", action="store_true", help="print only errors")
 
 
 def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
+    from onboard.app.px4_events import EventMetadataError
     from onboard.app.signing import KeyFileError
     from onboard.config import ConfigError, load_scenario, override
     from onboard.policy import POLICIES
@@ -70,6 +79,10 @@ def run(args) -> int:
                         format="%(message)s", stream=sys.stdout)
     host, port = args.df  # every argument is checked by its type= (onboard/argcheck.py)
     gcs = tuple(args.gcs_sysid or (255,))
+    if args.autopilot_unsigned and not args.signing_key:
+        print("pmon run: --autopilot-unsigned needs --signing-key (without a key nothing is signed)",
+              file=sys.stderr)
+        return 2
     try:  # a bad scenario refuses to start, with one error naming the field
         sc = load_scenario(args.scenario, POLICIES[args.policy])
         if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
@@ -79,10 +92,11 @@ def run(args) -> int:
         return 2
     cfg = AppConfig(args.mavlink, host, port, args.baud, args.sysid, args.auto_launch,
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
-                    df_sources=args.df_from, df_rate_hz=args.df_rate, kraken=args.kraken is not None)
+                    df_sources=args.df_from, df_rate_hz=args.df_rate, px4_events_path=args.px4_events,
+                    autopilot_unsigned=args.autopilot_unsigned, kraken=args.kraken is not None)
     try:
         app = OnboardApp(cfg, sc)
-    except (KeyFileError, ConfigError) as exc:  # ConfigError: --kraken without kraken.vfos
+    except (KeyFileError, EventMetadataError, ConfigError) as exc:  # ConfigError: --kraken without kraken.vfos
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # connection refused, address in use, a log file's directory missing ...

@@ -6,12 +6,23 @@ loss, a reboot, a moved origin); and the launch sequence's actions (onboard/app/
 Only ``monitoring`` sends setpoints, and only while the autopilot is in the mode the app put it
 in (the profile's mission mode: GUIDED, OFFBOARD); any other mode set by someone else -> pilot
 override, at once. Leaving ``monitoring`` drops the setpoint and bumps ``generation``: results of
-ticks already running are not sent. io thread, under the app lock.
+ticks already running are not sent; where the mission mode needs the stream to hold the vehicle
+(the profile's ``release_mode``: PX4's OFFBOARD), the app hands it to that mode (Hold) instead.
+
+Entering the mission mode (``ModeEntry``), the same way for every firmware: a hold setpoint at
+the vehicle's position streams first for the profile's ``mode_lead_s`` (PX4 takes OFFBOARD only
+with setpoints already coming; 0 for ArduCopter, whose GUIDED holds by itself), then the mode is
+asked for every ``MODE_RETRY_S`` until HEARTBEAT shows it (an ACK is not proof: PX4 ACKs OFFBOARD
+ACCEPTED and stays in Hold) or ``MODE_WAIT_S`` passes (paused, saying what the autopilot answered
+and which mode it is in); the hold streams on until the first tick's setpoint replaces it, so
+the stream never lapses. A mode other than the one it started from, meanwhile, is a pilot's.
+io thread, under the app lock.
 """
 from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 from onboard.app import launch
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
@@ -19,10 +30,22 @@ from onboard.app.dispatch import ack
 from onboard.app.mavlink_connection import mavlink
 
 log = logging.getLogger("pmon.app")
-MODE_WAIT_S = 3.0  # autopilot s the vehicle has to reach the mission mode after start/resume
+MODE_WAIT_S = 3.0  # autopilot s the vehicle has to reach the mission mode after it is first asked for
+MODE_RETRY_S = 1.0  # autopilot s between requests of the mission mode while it is not shown
+RELEASE_S = 3.0  # autopilot s the app asks for the release mode (every MODE_RETRY_S) until it is shown
 SENSOR_FRESH_S = 3.0  # start needs a DF scan this recent (autopilot s)
 SEVERITY = {"info": mavlink.MAV_SEVERITY_INFO, "warning": mavlink.MAV_SEVERITY_WARNING,
             "error": mavlink.MAV_SEVERITY_ERROR}
+
+
+@dataclass
+class ModeEntry:
+    """The way into the mission mode (see the module): autopilot s."""
+
+    ask_t: float  # first request (after the lead)
+    deadline: float
+    from_mode: int | None  # the mode the vehicle was in: another one meanwhile is a pilot's
+    asked_t: float = -math.inf
 
 
 class StateMachine:
@@ -43,25 +66,38 @@ class StateMachine:
         self.auto_launch = auto_launch
         self.state = State.IDLE
         self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
-        self.mode_deadline: float | None = None  # waiting for the mission mode after start/resume
+        self.entry: ModeEntry | None = None  # entering the mission mode after start/resume
+        self.release_until = -math.inf  # autopilot s: asking for the release mode until then
+        self.release_asked_t = -math.inf
         self.launch: launch.Launch | None = None
 
     # ----- what the state allows
     def commanding(self) -> bool:
         """Monitoring, with the vehicle in the mission mode: the tick's point is to be sent."""
-        return self.state == State.MONITORING and self.mode_deadline is None
+        return self.state == State.MONITORING and self.entry is None
 
     def may_stream(self) -> bool:
-        """The setpoint may be re-sent now."""
-        return self.commanding() and not self.autopilot.link_lost and self.autopilot.vehicle.in_mission_mode()
+        """The setpoint may be re-sent now: monitoring in the mission mode, or entering it."""
+        return self.state == State.MONITORING and not self.autopilot.link_lost and (
+            self.entry is not None or self.autopilot.vehicle.in_mission_mode())
 
     def set_state(self, new: State) -> None:
         if new != State.MONITORING:
             self.stream.clear()
             self.generation += 1  # results of ticks already running are not sent
-            self.mode_deadline = None
+            self.entry = None
+            self._release()
         self.state = new
         self.publisher.heartbeat()
+
+    def _release(self) -> None:
+        """The setpoints stop: where the mission mode needs them to hold the vehicle, hand it to
+        the profile's release mode (PX4: Hold) instead of letting the autopilot's failsafe act."""
+        v = self.autopilot.vehicle
+        if v.profile.release_mode is not None and v.in_mission_mode() and not self.autopilot.link_lost:
+            now = self.clock.now() or 0.0
+            self.release_until, self.release_asked_t = now + RELEASE_S, now
+            self.autopilot.set_mode(v.profile.release_mode)
 
     # ----- commands (MAV_CMD_PMON, param1 = action)
     def on_command(self, msg) -> None:
@@ -101,18 +137,42 @@ class StateMachine:
         return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
 
     def _enter_monitoring(self) -> None:
+        v = self.autopilot.vehicle
         self.set_state(State.MONITORING)
         self.stream.restart()
+        self.release_until = -math.inf
         if self.limits.warning:  # said again where an operator starting the mission hears it
             self.say(self.limits.warning, mavlink.MAV_SEVERITY_WARNING)
-        mode = self.autopilot.vehicle.profile.mission_mode
-        if self.autopilot.vehicle.in_mission_mode():
-            self.mode_deadline = None
+        mode = v.profile.mission_mode
+        if v.in_mission_mode():
+            self.entry = None
             self.say("monitoring started")
-        else:  # take the vehicle into the mission mode; not an override until it is there (or refuses)
-            self.mode_deadline = (self.clock.now() or 0.0) + MODE_WAIT_S
-            self.autopilot.set_mission_mode()
-            self.say(f"monitoring: switching to {mode}")
+            return
+        # take the vehicle into the mission mode; not an override until it is there (or refuses)
+        now = self.clock.now() or 0.0
+        lead = v.profile.mode_lead_s
+        self.entry = ModeEntry(now + lead, now + lead + MODE_WAIT_S, v.custom_mode)
+        if lead > 0.0 and not self._hold_here(now):
+            return
+        self.say(f"monitoring: switching to {mode}" + (f" (setpoints streaming {lead:g} s first)" if lead else ""))
+        self.periodic_mode(now)
+
+    def _hold_here(self, now: float) -> bool:
+        """Stream a hold setpoint where the vehicle is, at the mission altitude h as every
+        setpoint (fenced as every setpoint)."""
+        pose = self.autopilot.poses.latest()
+        setup = self.stream.setup()
+        if pose is not None:
+            here = (float(pose.pos[0]), float(pose.pos[1]), float(setup.grid.altitude_m))
+            sent, refused = self.stream.adopt(here, None, now, pose.pos, setup)
+            if self.stream.setpoint is not None:
+                return True
+        else:
+            refused = "no position"
+        self.set_state(State.PAUSED)
+        self.say(f"cannot hold here to enter {self.autopilot.vehicle.profile.mission_mode} ({refused}): paused",
+                 mavlink.MAV_SEVERITY_WARNING)
+        return False
 
     def start(self) -> tuple[int, Reason]:
         if self.state == State.MONITORING:
@@ -160,8 +220,10 @@ class StateMachine:
             return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
         # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
         # checks itself (onboard/app/launch.py), so the operator never has to try again
-        self.launch = launch.Launch(target_up_m=self.params["PMON_ALT"])
-        self.say(f"launch: {v.profile.mission_mode}, arm, take off")
+        p = v.profile
+        self.launch = launch.Launch(target_up_m=self.params["PMON_ALT"], launch_mode=p.launch_mode)
+        then = "" if p.mission_mode == p.launch_mode else f", {p.mission_mode}"
+        self.say(f"launch: {p.launch_mode}, arm, take off{then}")
         return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
 
     # ----- the autopilot's news (AutopilotEvents, through the app)
@@ -170,13 +232,17 @@ class StateMachine:
         v = self.autopilot.vehicle
         if self.state != State.MONITORING:
             return
-        if self.mode_deadline is not None:
+        if self.entry is not None:
             if v.in_mission_mode():
-                self.mode_deadline = None
+                self.entry = None
                 self.say(f"{v.profile.mission_mode}: monitoring")
-            return
+                return
+            # the mode it started from, or the autopilot's own launch modes (PX4 ending its
+            # take-off in Hold), are not a pilot's
+            if v.armed and (v.custom_mode == self.entry.from_mode or v.profile.in_launch_mode(v.custom_mode, own=True)):
+                return
         if not v.in_mission_mode() or not v.armed:
-            why = "disarmed" if not v.armed else f"mode {v.custom_mode}"
+            why = "disarmed" if not v.armed else f"mode {v.profile.mode_name(v.custom_mode)}"
             self.set_state(State.PILOT_OVERRIDE)
             self.say(f"pilot override ({why}): setpoints stopped", mavlink.MAV_SEVERITY_WARNING)
 
@@ -195,8 +261,9 @@ class StateMachine:
 
     def on_reboot(self) -> None:
         """The vehicle is not ours to fly until the operator says so (the link was lost
-        meanwhile, as a rule)."""
-        if self.state in (State.MONITORING, State.PAUSED):
+        meanwhile, as a rule; a PX4 back within the link timeout is seen first as a disarm: a
+        pilot override that no pilot made)."""
+        if self.state in (State.MONITORING, State.PAUSED, State.PILOT_OVERRIDE):
             self.set_state(State.FAULT)
 
     def on_origin_moved(self, off_m: float) -> None:
@@ -208,10 +275,23 @@ class StateMachine:
 
     # ----- periodic jobs (io thread, under the lock)
     def periodic_mode(self, now: float) -> None:
-        if self.state == State.MONITORING and self.mode_deadline is not None and now > self.mode_deadline:
-            self.set_state(State.PAUSED)
-            self.say(f"{self.autopilot.vehicle.profile.mission_mode} refused by the autopilot: paused",
-                     mavlink.MAV_SEVERITY_WARNING)
+        """Ask for the mission mode while entering it (until HEARTBEAT shows it or the deadline),
+        and for the release mode while it is not shown."""
+        v, e = self.autopilot.vehicle, self.entry
+        if self.state == State.MONITORING and e is not None and not self.autopilot.link_lost:
+            if now > e.deadline:
+                answer = mavlink.enums["MAV_RESULT"].get(v.mode_ack)
+                said = answer.name.removeprefix("MAV_RESULT_") if answer is not None else "nothing"
+                self.set_state(State.PAUSED)
+                self.say(f"{v.profile.mission_mode} not entered in {now - e.ask_t:.0f} s (the autopilot answered "
+                         f"{said}, it is in {v.profile.mode_name(v.custom_mode)}): paused", mavlink.MAV_SEVERITY_WARNING)
+            elif now >= e.ask_t and now - e.asked_t >= MODE_RETRY_S:
+                e.asked_t = now
+                self.autopilot.set_mission_mode()
+        elif now < self.release_until and v.in_mission_mode() and self.state != State.MONITORING \
+                and not self.autopilot.link_lost and now - self.release_asked_t >= MODE_RETRY_S:
+            self.release_asked_t = now
+            self.autopilot.set_mode(v.profile.release_mode)
 
     def periodic_launch(self, now: float) -> None:
         if self.auto_launch and self.state == State.IDLE and self.launch is None \
@@ -228,7 +308,10 @@ class StateMachine:
             else REASON_TEXT[reason]  # NOT_FLYING: the take-off is not reported done yet
         return launch.VehicleView(
             position=pose is not None and v.ned_origin is not None and v.lat_lon_deg is not None,
-            guided=v.in_mission_mode(), armed=v.armed, up_m=None if pose is None else float(pose.pos[2]),
+            in_launch_mode=v.profile.in_launch_mode(v.custom_mode),
+            in_own_mode=v.profile.in_launch_mode(v.custom_mode, own=True),
+            mode_name=v.profile.mode_name(v.custom_mode), armed=v.armed,
+            up_m=None if pose is None else float(pose.pos[2]),
             home_up_m=ap.home_up_m(), climbing=v.landed_state in (mavlink.MAV_LANDED_STATE_TAKEOFF,
                                                                 mavlink.MAV_LANDED_STATE_IN_AIR),
             prearm_ok=v.prearm_ok, prearm_text=v.prearm_text,
@@ -242,8 +325,8 @@ class StateMachine:
         for a in actions:
             if isinstance(a, launch.Say):
                 self.say(a.text, SEVERITY[a.level], once=None if a.once is None else f"launch:{a.once}")
-            elif a[0] == "guided":
-                self.autopilot.set_mission_mode()
+            elif a[0] == "mode":
+                self.autopilot.set_mode(self.autopilot.vehicle.profile.launch_mode)
             elif a[0] == "arm":
                 self.autopilot.arm()
             elif a[0] == "takeoff":

@@ -31,7 +31,8 @@ class Vehicle:
     heading_deg: float | None = None
     position_local: float = -math.inf  # local time of the last valid GLOBAL_POSITION_INT
     prearm_ok: bool | None = None  # the profile's reading of SYS_STATUS (None: not reported)
-    prearm_text: str | None = None  # its latest "PreArm: ..." / "Arm: ..." STATUSTEXT
+    prearm_text: str | None = None  # why it refuses to arm: its latest STATUSTEXT or event saying so
+    mode_ack: int | None = None  # MAV_RESULT of its latest answer to a DO_SET_MODE (not proof of the mode)
 
     def in_mission_mode(self) -> bool:
         """In the mode the app flies the mission in (ArduCopter's GUIDED, PX4's OFFBOARD)."""

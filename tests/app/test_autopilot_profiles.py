@@ -44,11 +44,32 @@ def test_ardupilot_modes_takeoff_and_limits():
 
 def test_px4_modes_are_main_and_sub_modes_and_its_takeoff_is_amsl():
     assert PX4.mission_mode == "OFFBOARD" and PX4.in_mission_mode(PX4_OFFBOARD)
-    assert not PX4.in_mission_mode(PX4_HOLD) and PX4.mode_name(PX4_HOLD) == "LOITER"
+    assert not PX4.in_mission_mode(PX4_HOLD) and PX4.mode_name(PX4_HOLD) == "AUTO.LOITER"
     assert PX4.mode_number("OFFBOARD") == PX4_OFFBOARD and PX4.mode_number("GUIDED") is None
     assert PX4.set_mode_params("offboard") == (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6.0, 0.0)
     assert PX4.takeoff_params(35.0, 33.0, 90.0, 40.0, 160.0)[6] == 200.0
-    assert [n for n, _ in PX4.limit_params] == ["MPC_XY_CRUISE", "MPC_ACC_HOR"]
+    assert [n for n, _ in PX4.limit_params] == ["MPC_XY_VEL_MAX", "MPC_ACC_HOR"]
+
+
+def test_px4_mode_names_both_ways_and_the_modes_it_lacks_said_plainly():
+    """PX4's own names and the everyday ones map to its main/sub modes; ArduCopter's names that
+    PX4 has no mode for are refused with what to use instead (LOITER = 5 would be PX4's ACRO,
+    BRAKE = 17 is ACKed and does nothing, GUIDED = 4 is AUTO.MISSION: measured on v1.16)."""
+    for name in ("hold", "HOLD", "loiter", "AUTO.LOITER"):
+        assert PX4.mode_number(name) == PX4_HOLD and PX4.set_mode_params(name)[1:] == (4.0, 3.0)
+    assert PX4.mode_name(3 << 16) == "POSCTL" and PX4.mode_number("position") == 3 << 16
+    assert PX4.mode_name((4 << 16) | (2 << 24)) == "AUTO.TAKEOFF" and PX4.mode_name(PX4_OFFBOARD) == "OFFBOARD"
+    assert PX4.mode_name((4 << 16) | (11 << 24)) == "PX4 mode 4.11"  # unknown sub mode: its numbers
+    assert PX4.hold_mode == "AUTO.LOITER" and ARDUPILOT.hold_mode == "BRAKE"
+    assert PX4.no_mode("brake") == "PX4 has no mode BRAKE: use AUTO.LOITER (Hold; pmon gcs hold)"
+    assert "the app flies OFFBOARD" in PX4.no_mode("GUIDED")
+    with pytest.raises(ValueError, match="PX4 has no mode BRAKE"):
+        PX4.set_mode_params("BRAKE")
+    assert ARDUPILOT.no_mode("OFFBOARD").startswith("ArduPilot has no mode OFFBOARD (its modes: ")
+    # the launch: PX4 arms in Hold, its take-off mode is its own; ArduCopter's is GUIDED
+    assert PX4.in_launch_mode(PX4_HOLD) and not PX4.in_launch_mode((4 << 16) | (2 << 24))
+    assert PX4.in_launch_mode((4 << 16) | (2 << 24), own=True) and not PX4.in_launch_mode(3 << 16, own=True)
+    assert ARDUPILOT.in_launch_mode(4) and not ARDUPILOT.in_launch_mode(5, own=True)
 
 
 def test_prearm_state_from_sys_status():
@@ -57,8 +78,27 @@ def test_prearm_state_from_sys_status():
     assert ARDUPILOT.prearm_ok(msg) is True
     msg.onboard_control_sensors_health = 0
     assert ARDUPILOT.prearm_ok(msg) is False
-    msg.onboard_control_sensors_present = 0  # as PX4 leaves it: not reported
-    assert PX4.prearm_ok(msg) is None and ARDUPILOT.prearm_ok(None) is None
+    msg.onboard_control_sensors_present = 0  # as PX4 leaves it: ArduPilot's reading says "not reported"
+    assert ARDUPILOT.prearm_ok(msg) is None and ARDUPILOT.prearm_ok(None) is None
+    # PX4 v1.16 sets the health bit (not the present bit) when it can arm
+    assert PX4.prearm_ok(msg) is False
+    msg.onboard_control_sensors_health = bit
+    assert PX4.prearm_ok(msg) is True and PX4.prearm_ok(None) is None
+
+
+def test_px4_sends_integer_parameters_bytewise_and_com_obl_rc_act_is_checked():
+    """COM_OBL_RC_ACT 5 arrives as the float whose bytes are the int 5 (7e-45); ArduPilot sends
+    the value itself whatever its type."""
+    import struct
+    as_bytes = struct.unpack("<f", struct.pack("<i", 5))[0]
+    msg = mavlink.MAVLink_param_value_message(b"COM_OBL_RC_ACT", as_bytes, mavlink.MAV_PARAM_TYPE_INT32, 1, 0)
+    assert PX4.param_value(msg) == 5.0 and ARDUPILOT.param_value(msg) == pytest.approx(7e-45, rel=0.1)
+    msg = mavlink.MAVLink_param_value_message(b"MPC_XY_VEL_MAX", 12.0, mavlink.MAV_PARAM_TYPE_REAL32, 1, 0)
+    assert PX4.param_value(msg) == 12.0
+    assert PX4.param_warning("COM_OBL_RC_ACT", 5) is None
+    for bad in (0, 1, 2):  # PX4's default 0 is Position mode: with no RC it sinks (measured: 22 m in 20 s)
+        assert "set 5 (Hold)" in PX4.param_warning("COM_OBL_RC_ACT", bad)
+    assert PX4.checked_params == ("COM_OBL_RC_ACT",) and ARDUPILOT.checked_params == ()
 
 
 @pytest.mark.timeout(30)
@@ -71,13 +111,13 @@ def test_the_app_flies_by_the_profile_its_autopilot_announced():
     try:
         asked = []
         deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and len(asked) < 2:
+        while time.monotonic() < deadline and len(asked) < 3:
             px4.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4,
                                    mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_OFFBOARD, 0)
             m = px4.recv_match(type="PARAM_REQUEST_READ", blocking=True, timeout=0.2)
             if m is not None:
                 asked.append(m.param_id)
-        assert asked == ["MPC_XY_CRUISE", "MPC_ACC_HOR"]
+        assert asked == ["MPC_XY_VEL_MAX", "MPC_ACC_HOR", "COM_OBL_RC_ACT"]
         assert wait_for(lambda: app.vehicle.profile is PX4 and app.vehicle.in_mission_mode(), 5)
     finally:
         px4.close()

@@ -46,6 +46,32 @@ def test_key_file_rules(tmp_path):
         signing.load_key(tmp_path / "missing.key")
 
 
+def test_an_autopilot_that_cannot_sign_is_heard_unsigned_and_no_one_else(tmp_path):
+    """PX4 v1.16 signs nothing: with ``unsigned_from`` its own packets (1/1) are taken unsigned,
+    while a ground station's still need the key, whatever path they take (PX4 forwards them with
+    their signature block rewritten, so they fail: tests/firmware/test_px4.py measures it)."""
+    key = bytes(range(1, 33))
+    rx = mavlink.MAVLink(None)
+    rx.robust_parsing = True  # as the app's link: a refused packet is BAD_DATA, not an exception
+    signing.configure(rx, key, 1, unsigned_from=((1, 1),))
+
+    def frame(sysid, compid, key_=None):
+        tx = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        if key_ is not None:
+            signing.configure(tx, key_, 2)
+        return mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 0, 3).pack(tx)
+
+    def heard(buf) -> bool:
+        return [m.get_type() for m in rx.parse_buffer(buf) or []] == ["HEARTBEAT"]
+    assert heard(frame(1, 1))  # the autopilot, unsigned
+    assert not heard(frame(255, 190)) and not heard(frame(1, 2))  # anyone else, unsigned
+    assert heard(frame(255, 190, key)) and not heard(frame(255, 191, bytes(32 * [7])))  # signed: by the key
+    plain = mavlink.MAVLink(None)
+    plain.robust_parsing = True
+    signing.configure(plain, key, 1)
+    assert [m.get_type() for m in plain.parse_buffer(frame(1, 1)) or []] != ["HEARTBEAT"]  # not without it
+
+
 def test_pmon_run_refuses_unsafe_key_bad_config_and_bad_args(tmp_path):
     wide = tmp_path / "k"
     wide.write_text("11" * 32)

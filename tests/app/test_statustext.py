@@ -100,3 +100,22 @@ def test_send_statustext_encodes_mavlink2_extension_fields():
     parser = mavlink.MAVLink(None)
     back = [parser.decode(bytearray(m.pack(L.mav))) for m in sent]
     assert [(b.id, b.chunk_seq) for b in back] == [(m.id, m.chunk_seq) for m in sent]
+
+
+def test_the_conformance_view_reads_the_apps_chunked_texts_whole(tmp_path):
+    """sim.procedure.app_view (tests/firmware/test_conformance.py) took each chunk of a long text as a
+    text of its own: 'ifted' of 'T2 guidance failed 3 ticks: previous plan shifted' failed the
+    comparison with ArduPilot's SITL (measured)."""
+    import struct
+
+    from sim.procedure import app_view
+
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    text = "PMON: T2 guidance failed 3 ticks: previous plan shifted (x)"
+    with open(tmp_path / "app.tlog", "wb") as f:
+        for seq, part in enumerate(chunks(text)):
+            f.write(struct.pack(">Q", 1) + mavlink.MAVLink_statustext_message(6, part, 7, seq).pack(mav))
+        f.write(struct.pack(">Q", 2) + mavlink.MAVLink_statustext_message(6, b"PMON: short", 0, 0).pack(mav))
+    assert len(chunks(text)) == 2
+    assert app_view(tmp_path / "app.tlog")["app_said"] == ["T2 guidance failed 3 ticks: previous plan shifted",
+                                                           "short"]

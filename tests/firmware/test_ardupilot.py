@@ -255,3 +255,19 @@ def test_autopilot_restart_is_survived_and_the_app_flies_again_only_when_told(fl
     taken = [r for r in sent if any(TickAccount._matches(g, _expected(r)) for g in got)]
     assert len(taken) >= len(sent) - 1, (len(taken), len(sent))
     assert m.autopilot_crashes() == 0
+
+
+def test_stop_keeps_the_firmware_log_it_printed(tmp_path):
+    """issue 30: stop() deleted the temporary working directory with the arducopter.log that
+    ``python -m sim.ardupilot`` had printed, so a failed flight lost it."""
+    from sim.ardupilot import ArduPilotSitl, find_binary
+
+    sitl = ArduPilotSitl(find_binary(), (35.145, 33.411, 160.0, 0.0), speedup=1).start()
+    log = sitl.workdir / "arducopter.log"
+    sitl.stop()
+    try:
+        assert log.is_file() and log.stat().st_size > 0, log
+        assert not (sitl.workdir / "eeprom.bin").exists()  # the rest of the scratch directory goes
+    finally:
+        import shutil
+        shutil.rmtree(sitl.workdir, ignore_errors=True)

@@ -311,3 +311,61 @@ def test_live_sitl_flies_a_short_route_as_the_model():
     assert all(s[1] == MASK_PVA for s in tr["sends"])
     assert rms_error(tr, limits_for(params)) < RMS_MAX_M
     assert np.max(distance_at_ticks(tr)) < 1.5
+
+
+# --------------------------------------------------------------------------- PX4 (issue 30)
+DATA_PX4 = Path(__file__).parent / "data" / "sitl_response_px4.json.gz"
+# RMS position error over each recorded PX4 trace, and the next-tick distance, model against SITL
+# (python bench/sitl_response.py --replay tests/data/sitl_response_px4.json.gz)
+RMS_MAX_PX4_M = 1.0
+
+
+@pytest.fixture(scope="module")
+def px4():
+    return load(DATA_PX4)["px4"]
+
+
+@pytest.mark.timeout(120)
+def test_model_flies_each_recorded_px4_trace(px4):
+    """sim.multicopter with PX4's parameters (limits_from_params on its MPC_* names: its position
+    controller, no kinematic shaping, SIH's linear drag) given the setpoints PX4 SITL was sent, each
+    held until the next as PX4 does. ArduCopter's controller on the same setpoints misses by
+    metres: the test fails on a model that is not PX4's."""
+    lim = limits_for(px4["params"])
+    assert not lim.shaping and lim.speed_xy == 12.0 and lim.accel_xy == 3.0
+    for tr in px4["traces"]:
+        if not in_envelope("px4", tr["name"]):
+            continue
+        assert rms_error(tr, lim, 250.0) < RMS_MAX_PX4_M, tr["name"]
+    route = next(t for t in px4["traces"] if t["name"] == "route90_pva")
+    assert rms_error(route, VehicleLimits(), 250.0) > 2 * rms_error(route, lim, 250.0)
+
+
+@pytest.mark.timeout(120)
+def test_distance_at_the_next_tick_as_px4_sitl(px4):
+    """PX4 lags the plan more than ArduCopter (SIH's linear drag is not in the feed-forward): at
+    the 90 % route's 8.6 m/s a median 2.4-2.7 m with the plan's state, 8.4 m with the point alone;
+    the model says the same within 0.5 m (median) and 1 m (p95)."""
+    lim = limits_for(px4["params"])
+    for tr in px4["traces"]:
+        if not tr["name"].startswith("route"):
+            continue
+        real = distance_at_ticks(tr)
+        model = distance_at_ticks({**tr, "pos": replay(tr, lim, 250.0).tolist()})
+        assert abs(np.median(model) - np.median(real)) < 0.5 + 0.1 * np.median(real), tr["name"]
+        assert abs(np.percentile(model, 95) - np.percentile(real, 95)) < 1.0 + 0.1 * np.percentile(real, 95)
+        if tr["name"].endswith("_pos"):
+            assert np.median(real) > 5.0
+        else:
+            assert np.median(real) < 3.0
+
+
+def test_the_evaluations_flight_at_px4_flies_px4s_model():
+    """``pmon eval --methods flight@px4``: the flown method's vehicle is PX4's (its parameters,
+    controller and SIH airframe), planned at its MPC_XY_VEL_MAX / MPC_ACC_HOR capped as the app caps."""
+    from sim.evaluation import AUTOPILOTS, method_named
+    from sim.multicopter import PX4_SIH_AIRFRAME, limits_from_params
+
+    lim = limits_from_params(AUTOPILOTS["px4"])
+    assert not lim.shaping and lim.drag_lin == PX4_SIH_AIRFRAME["drag_lin"] and lim.speed_xy == 12.0
+    assert method_named("flight@px4").autopilot == "px4"
