@@ -16,7 +16,7 @@ a message of the same sub-mode only replaces the target.
 
 ``fly`` is one tick of that; ``fly_plan`` is one tick of the evaluation's vehicle following
 its plan with the app's setpoint (onboard.core.setpoint); ``fly_timeline`` replays a timed
-sequence of setpoints (tests/test_vehicle.py replays the real SITL's with it). With
+sequence of setpoints (tests/sim/test_vehicle.py replays the real SITL's with it). With
 ``offboard=True`` it replays them as PX4's OFFBOARD takes them: each held as sent until the next
 (no sub-modes, no GUID_TIMEOUT; the stream's own loss timeout is not modelled). ``fly_plan`` with
 PX4's limits (``limits.shaping`` False) keeps ArduCopter's moving target: the app sends PX4 the
@@ -67,7 +67,7 @@ def fly(state: VehicleState, setpoint: GuidedSetpoint, duration_s: float,
     """The vehicle ``duration_s`` after ``setpoint`` arrives, with no other message meanwhile,
     stepped at ``rate_hz`` (the firmware's 400 Hz by default, about 6 ms of CPU per simulated second;
     the mock's 50 Hz moves the flown position by under 0.15 m over a recorded route,
-    tests/test_vehicle.py).
+    tests/sim/test_vehicle.py).
 
     ``new_submode``: the previous message was of another GUIDED sub-mode (or none was sent in
     GUIDED yet): the controller restarts at the vehicle, as ArduCopter does. Sending position +

@@ -186,7 +186,7 @@ def test_running_app_uses_every_good_scan_through_a_flood_of_bad_ones():
     # nothing listens there: the app runs without an autopilot (no pose: scans are dropped
     # before the core; what is checked here is the input path and the tick loop)
     # the flood comes from the DF's own address, faster than the per-source rate limit lets
-    # through (df_input.py; tests/test_df_input.py shows it): lifted here, so that every bad
+    # through (df_input.py; tests/app/test_hostile_df.py shows it): lifted here, so that every bad
     # datagram reaches the parser, which is what this test is about
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, df_rate_hz=1e9), sc, clock=clock).start()
     rng = random.Random(3)
