@@ -17,7 +17,7 @@ the monitor updates, predicts and (greedy) picks the UAV position for k+1; the p
 UAV there. So the UAV moves at most N_r Delta_r per tick and the estimates at tick k are
 posterior estimates given the scans up to k.
 
-Methods are registered by name in ``METHODS`` (name -> ``Method``); a method is a sensing mode
+Methods are registered by name in ``METHODS`` (name -> ``Method``; both in sim/methods.py); a method is a sensing mode
 and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: the paper's
 greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
 itself with ``register_method``.
@@ -53,10 +53,11 @@ from onboard.config import ConfigError, override
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
-from onboard.core.planners import ORBIT_RADIUS_M, PLANNERS, orbit_centre
-from onboard.policy import POLICIES, vehicle_motion
+from onboard.core.planners import ORBIT_RADIUS_M, orbit_centre
+from onboard.policy import vehicle_motion
 from sim.guided import enu, fly_plan, ned
-from sim.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS, VehicleLimits, VehicleState, limits_from_params
+from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
+from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
                          motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
@@ -65,8 +66,8 @@ from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
 from sim.workers import one_blas_thread as _one_blas_thread, worker_pool as _worker_pool
 
-# the evaluation's interface, wherever its parts are held (sim.metrics: the statistics; sim.report:
-# the outputs)
+# the evaluation's interface, wherever its parts are held (sim.methods: the methods; sim.metrics: the
+# statistics; sim.report: the outputs)
 __all__ = ["AUTOPILOTS", "DEFAULT_METHODS", "DEFAULT_WINDOW_S", "METHODS", "Method", "register_method", "EvalConfig",
            "make_config", "method_named", "MethodTrace", "TrialResult", "draw_start", "run_method", "run_trial",
            "run_trials", "summarise", "REFERENCE", "FIXED", "BOOTSTRAP_RESAMPLES", "MethodSummary", "Summary",
@@ -74,122 +75,6 @@ __all__ = ["AUTOPILOTS", "DEFAULT_METHODS", "DEFAULT_WINDOW_S", "METHODS", "Meth
            "machine_description", "results_markdown", "write_outputs"]
 
 DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
-# the ArduCopter parameters a vehicle method's copter flies with (sim.multicopter.limits_from_params):
-# ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS;
-# px4: PX4 v1.16's stock MPC_* parameters, its controller and SIH airframe)
-AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS), "px4": dict(PX4_DEFAULTS)}
-
-
-# --------------------------------------------------------------------------- methods
-
-
-@dataclass(frozen=True, eq=False)
-class Method:
-    """A sensing mode and, for a UAV, how it moves.
-
-    sensing: ``uav`` (the UAV's DF: p_D, Poisson clutter), ``fixed`` (the paper's three
-    ground DFs, no clutter, p_D = 1) or ``ceiling`` (bound only, no sensor and no filter run: the
-    path is the clairvoyant ceiling's, ``sim.ceiling_search.ceiling_path``, from the trial's
-    truth, gains and start at the method's vehicle limits; only its PCRB and path are defined). clutter_rate: Lambda for both the simulated DF and the
-    filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
-    from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
-    random); None: the scenario's ``planning.planner``.
-    settings: scenario settings that make this method what it is (``onboard.config.override``,
-    over the run's own ``--set``, as sensing, clutter_rate, planner and motion are).
-    motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
-    ``planning.speed_max_mps`` / ``accel_max_mps2``; None: the scenario's ``planning.motion``.
-    A UAV that the monitor's tick plans on the vehicle motion is *flown*: at each tick the app's
-    setpoint (the plan's position, velocity and acceleration) is given to the vehicle model
-    fitted to ArduCopter (sim.guided.fly_plan), and the next scan is taken where it is a tick
-    later, with the velocity it has then (not at the planned point).
-    jump_twin: for a vehicle method, the method with the same planner and the jump model; when
-    both run, the summary reports this method's RMSE over the twin's, paired, with its CI.
-    scenario_overrides: scenario settings of this method only (``onboard.policy.POLICIES``), under
-    the run's own ``--set`` (``onboard.config.override(..., beneath=True)``).
-    autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
-    (None: stock). follows: ``ceiling``: the UAV flies the clairvoyant ceiling's path (at the method's
-    limits, as the bound-only ``ceiling``), known in advance: no planning; the filter runs on its
-    bearings (what the filter makes of the best path for the bound). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
-    WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
-    airframe flies; ``onboard.policy.vehicle_motion``), as the app does; else with the
-    scenario's values.
-    """
-
-    name: str
-    description: str
-    sensing: str = "uav"
-    clutter_rate: float | None = None
-    planner: str | None = None
-    settings: tuple[tuple[str, Any], ...] = ()
-    motion: str | None = None
-    jump_twin: str | None = None
-    scenario_overrides: tuple[tuple[str, Any], ...] = ()
-    autopilot: str | None = None
-    autopilot_limits: bool = False
-    follows: str | None = None
-
-    def __post_init__(self):
-        if self.sensing not in ("uav", "fixed", "ceiling"):
-            raise ValueError(f"method {self.name}: sensing must be 'uav', 'fixed' or 'ceiling'")
-        if (self.sensing == "ceiling" or self.follows is not None) and self.motion != "vehicle":
-            raise ValueError(f"method {self.name}: a ceiling is a vehicle's (motion 'vehicle')")
-        if self.follows not in (None, "ceiling") or (self.follows and self.sensing != "uav"):
-            raise ValueError(f"method {self.name}: follows must be None or 'ceiling' (with sensing 'uav')")
-
-    @property
-    def bound_only(self) -> bool:
-        """No filter run (RMSE and NEES undefined): the clairvoyant ceiling."""
-        return self.sensing == "ceiling"
-        if self.planner is not None and self.planner not in PLANNERS:
-            raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
-        if self.motion not in (None, "jump", "vehicle"):
-            raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
-        if self.autopilot is not None and self.autopilot not in AUTOPILOTS:
-            raise ValueError(f"method {self.name}: autopilot must be one of {', '.join(AUTOPILOTS)}")
-
-
-METHODS: dict[str, Method] = {}
-
-
-def register_method(method: Method) -> Method:
-    """Add (or replace) a method by name; ``pmon eval --methods`` can then name it."""
-    METHODS[method.name] = method
-    return method
-
-
-for _m in (
-    Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", planner="greedy",
-           clutter_rate=1.0),
-    Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           planner="lookahead", clutter_rate=1.0, motion="jump"),
-    Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
-           "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", planner="lookahead",
-           clutter_rate=1.0, motion="vehicle", jump_twin="lookahead"),
-    Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1"),
-    Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
-           "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
-           "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
-           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("ceiling", "bound only: the path of a vehicle at the flight default's limits (its policy, the stock "
-           "autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies) that minimises the PCRB "
-           "knowing the true target trajectories (sim/ceiling.py, docs/PLANNING.md 'The clairvoyant ceiling'); "
-           "no filter run, Lambda = 1", sensing="ceiling", clutter_rate=1.0, motion="vehicle",
-           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("ceiling_flown", "single UAV flying the ceiling's path (clairvoyant, not a planner: the path of "
-           "'ceiling'), the flight default's filter on its bearings, Lambda = 1", clutter_rate=1.0, motion="vehicle",
-           follows="ceiling", scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
-    Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
-    # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
-    Method("hover", "single UAV hovering at its start, Lambda = 1", planner="hover", motion="jump", clutter_rate=1.0),
-    Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1", planner="orbit",
-           motion="jump", clutter_rate=1.0),
-    Method("random", "single UAV, uniformly random admissible move, Lambda = 1", planner="random", motion="jump",
-           clutter_rate=1.0),
-):
-    register_method(_m)
-DEFAULT_METHODS = ("greedy_l1", "greedy_l8", "fixed3", "hover", "orbit", "random")  # the paper's set
 
 
 # --------------------------------------------------------------------------- configuration
