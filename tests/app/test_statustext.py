@@ -103,12 +103,12 @@ def test_send_statustext_encodes_mavlink2_extension_fields():
 
 
 def test_the_conformance_view_reads_the_apps_chunked_texts_whole(tmp_path):
-    """sim.procedure.app_view (tests/firmware/test_conformance.py) took each chunk of a long text as a
+    """sim.app_tlog.app_view (tests/firmware/test_conformance.py) took each chunk of a long text as a
     text of its own: 'ifted' of 'T2 guidance failed 3 ticks: previous plan shifted' failed the
     comparison with ArduPilot's SITL (measured)."""
     import struct
 
-    from sim.procedure import app_view
+    from sim.app_tlog import app_view
 
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
     text = "PMON: T2 guidance failed 3 ticks: previous plan shifted (x)"

@@ -10,7 +10,8 @@ from __future__ import annotations
 import pytest
 
 from sim.ardupilot import skip_reason
-from sim.procedure import GUIDED, Mission, MissionConfig
+from sim.app_tlog import GUIDED
+from sim.procedure import Mission, MissionConfig
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from tests.support.mavlink_gcs import Gcs
