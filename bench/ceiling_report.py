@@ -385,13 +385,22 @@ def _figures(outdir: Path, trials, data, runs, greedy) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
 
     outdir.mkdir(parents=True, exist_ok=True)
-    setup = _setup()
     ps = _paths(trials, data, runs, greedy)
     colors = {"flight@stock": "tab:blue", "ceiling 9 m/s": "tab:red", "ceiling 20 m/s": "tab:purple",
               "myopic9": "tab:green"}
+    _paths_figure(plt, outdir, trials, data, ps, colors)
+    _time_figures(plt, outdir, data, ps, colors)
+    _bound_figure(plt, outdir, data, runs, greedy, ps, colors)
+    print(f"figures: {outdir}")
+
+
+def _paths_figure(plt, outdir: Path, trials, data, ps: dict, colors: dict) -> None:
+    """ceiling_paths.png: the paths of the first three trials every method has, whole and zoomed."""
+    from matplotlib.patches import Rectangle
+
+    setup = _setup()
     show = [t for t in trials[:6] if all(t in p for p in ps.values())][:3]
     fig, axes = plt.subplots(2, len(show), figsize=(6.5 * len(show), 13), squeeze=False)
     n, b, lo, hi = setup.uav_obstacles.lateral()
@@ -430,6 +439,10 @@ def _figures(outdir: Path, trials, data, runs, greedy) -> None:
     fig.tight_layout()
     fig.savefig(outdir / "ceiling_paths.png", dpi=110)
     plt.close(fig)
+
+
+def _time_figures(plt, outdir: Path, data, ps: dict, colors: dict) -> None:
+    """ceiling_range.png, ceiling_bearing_rate.png: the mean range and bearing rate against time."""
     for key, ylab, fname in (("range_t", "mean UAV-target range [m]", "ceiling_range.png"),
                              ("rate_t", "mean |bearing rate| [deg/s]", "ceiling_bearing_rate.png")):
         fig, ax = plt.subplots(figsize=(8, 4.5))
@@ -445,6 +458,10 @@ def _figures(outdir: Path, trials, data, runs, greedy) -> None:
         fig.tight_layout()
         fig.savefig(outdir / fname, dpi=110)
         plt.close(fig)
+
+
+def _bound_figure(plt, outdir: Path, data, runs, greedy, ps: dict, colors: dict) -> None:
+    """ceiling_bound.png: each path's PCRB against time, averaged as pmon eval averages it."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, p in ps.items():
         ts = sorted(p)
@@ -464,4 +481,3 @@ def _figures(outdir: Path, trials, data, runs, greedy) -> None:
     fig.tight_layout()
     fig.savefig(outdir / "ceiling_bound.png", dpi=110)
     plt.close(fig)
-    print(f"figures: {outdir}")
