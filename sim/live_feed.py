@@ -271,18 +271,7 @@ class LiveFeed:
             # wait for the truth world's first steps (its warm-up: ~1 s for the first), the
             # clock and a position (and the arming, if asked); the first scan is the next whole
             # second after all that, so no scan is late because the simulator was still starting
-            if not ahead.wait_ready(READY_STATES, self.stop_event):
-                return 130
-            waiting_said = False
-            while not self.stop_event.is_set():
-                if tel.clock.now() is not None and tel.poses.latest() is not None and \
-                        (tel.armed or self.cfg.start == "now"):
-                    break
-                if not waiting_said and self.cfg.start == "armed" and tel.sysid is not None:
-                    waiting_said = True
-                    self.log("feed: waiting for the vehicle to arm (--start now: scan at once)")
-                time.sleep(0.01)
-            if self.stop_event.is_set():
+            if not ahead.wait_ready(READY_STATES, self.stop_event) or not self._wait_for_vehicle(tel):
                 return 130
             T = math.floor(tel.clock.now()) + 1.0
             resets = tel.clock.resets
@@ -292,15 +281,10 @@ class LiveFeed:
                 if states is None or not _sleep_until(tel.clock, T, self.stop_event, resets=resets):
                     return 130
                 if tel.clock.resets != resets:
-                    # the autopilot rebooted: its clock starts again from 0, and so do the
-                    # scan times (a DF stamps with the clock it has); the targets go on
-                    while tel.clock.now() is None and not self.stop_event.is_set():
-                        time.sleep(0.01)
-                    resets = tel.clock.resets
-                    T = math.floor(tel.clock.now() or 0.0) + 1.0
-                    self.log(f"feed: the autopilot rebooted: next scan at t={T:.0f} s")
-                    if not _sleep_until(tel.clock, T, self.stop_event):
+                    restart = self._after_reboot(tel)
+                    if restart is None:
                         return 130
+                    T, resets = restart
                 # a telemetry sample at or after T makes the pose an interpolation, not a guess
                 deadline = time.monotonic() + 0.5
                 while (tel.poses.latest() is None or tel.poses.latest().t < T) \
@@ -334,6 +318,33 @@ class LiveFeed:
             sock.close()
             if out is not None:
                 out.close()
+
+    def _wait_for_vehicle(self, tel) -> bool:
+        """Until the clock and a position are known (and the vehicle armed, unless --start now);
+        False if stopped first."""
+        waiting_said = False
+        while not self.stop_event.is_set():
+            if tel.clock.now() is not None and tel.poses.latest() is not None and \
+                    (tel.armed or self.cfg.start == "now"):
+                break
+            if not waiting_said and self.cfg.start == "armed" and tel.sysid is not None:
+                waiting_said = True
+                self.log("feed: waiting for the vehicle to arm (--start now: scan at once)")
+            time.sleep(0.01)
+        return not self.stop_event.is_set()
+
+    def _after_reboot(self, tel) -> tuple[float, int] | None:
+        """The autopilot rebooted: its clock starts again from 0, and so do the scan times (a DF
+        stamps with the clock it has); the targets go on. Waits for its clock and until the next
+        whole second: (that time, the clock's reset count), or None if stopped."""
+        while tel.clock.now() is None and not self.stop_event.is_set():
+            time.sleep(0.01)
+        resets = tel.clock.resets
+        T = math.floor(tel.clock.now() or 0.0) + 1.0
+        self.log(f"feed: the autopilot rebooted: next scan at t={T:.0f} s")
+        if not _sleep_until(tel.clock, T, self.stop_event):
+            return None
+        return T, resets
 
     sent_unit = "datagrams"  # what ``sent`` counts
 
