@@ -51,6 +51,9 @@ steps, the time to come within 1 m, the overshoot and the peak speed. Last line:
 tests/sim/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the model
 (sim.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
 trace and its distance at the next tick beside the SITL's.
+
+Its parts: bench/sitl_response_flight.py (the MAVLink client and a trace), bench/sitl_response_cases.py
+(the cases and their figures), bench/sitl_response_model.py (the model on a saved flight, its fit).
 """
 from __future__ import annotations
 
