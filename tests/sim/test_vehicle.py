@@ -314,7 +314,7 @@ def test_live_sitl_flies_a_short_route_as_the_model():
 
 
 # --------------------------------------------------------------------------- PX4 (issue 30)
-DATA_PX4 = Path(__file__).parent / "data" / "sitl_response_px4.json.gz"
+DATA_PX4 = Path(__file__).parents[1] / "data" / "sitl_response_px4.json.gz"
 # RMS position error over each recorded PX4 trace, and the next-tick distance, model against SITL
 # (python bench/sitl_response.py --replay tests/data/sitl_response_px4.json.gz)
 RMS_MAX_PX4_M = 1.0
