@@ -56,6 +56,15 @@ def _trials(args) -> list[int]:
     return list(range(args.first, args.first + args.trials))
 
 
+def _pending(args, out: Path):
+    """(trial, its result file, its cached truth) for each trial of the run not yet written to out
+    (a stage resumes where it stopped)."""
+    for t in _trials(args):
+        f = out / f"t{t:03d}.npz"
+        if not f.exists():
+            yield t, f, load_trial(Path(args.cache), args.seed, t)
+
+
 def _ensure_cache(args) -> None:
     fill_cache(_trials(args), args.seed, ["flight@stock"], Path(args.cache), 1)
 
@@ -98,11 +107,7 @@ def cmd_check(args) -> dict:
     setup = _setup()
     out = Path(args.out) / label(args.speed, args.accel) / "check"
     out.mkdir(parents=True, exist_ok=True)
-    for t in _trials(args):
-        f = out / f"t{t:03d}.npz"
-        if f.exists():
-            continue
-        d = load_trial(Path(args.cache), args.seed, t)
+    for t, f, d in _pending(args, out):
         pb = problem(setup, d, args.speed, args.accel)
         flown = d[f"{FLIGHT}.uav"][:, :2]
         c0 = time.process_time()
@@ -134,11 +139,7 @@ def cmd_hop(args) -> dict:
     base = Path(args.out) / label(args.speed, args.accel) / args.starts
     out = Path(args.out) / label(args.speed, args.accel) / "hop"
     out.mkdir(parents=True, exist_ok=True)
-    for t in _trials(args):
-        f = out / f"t{t:03d}.npz"
-        if f.exists():
-            continue
-        d = load_trial(Path(args.cache), args.seed, t)
+    for t, f, d in _pending(args, out):
         pb = problem(setup, d, args.speed, args.accel)
         with np.load(base / f"t{t:03d}.npz") as r:
             best_acc, start_value = r["acc"], float(r["value"])
@@ -218,11 +219,7 @@ def cmd_greedy(args) -> dict:
     register()
     out = Path(args.out) / "greedy"
     out.mkdir(parents=True, exist_ok=True)
-    for t in _trials(args):
-        f = out / f"t{t:03d}.npz"
-        if f.exists():
-            continue
-        d = load_trial(Path(args.cache), args.seed, t)
+    for t, f, d in _pending(args, out):
         c0 = time.process_time()
         tr = run_greedy(args.seed, t, d)
         np.savez_compressed(f, uav=tr.uav, error_m=tr.error_m, bound_m2=tr.bound_m2, cpu_s=time.process_time() - c0)
