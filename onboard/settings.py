@@ -307,6 +307,10 @@ class Lookahead:
                              "guidance's free-law gain), as the PCRB does; false: open loop A")
     score: str = choice("trace", ("trace", "sqrt_trace"), "a route's score: the sum over ticks and targets of "
                         "tr P_pos, or of its square root (as the evaluation averages RMSEs)")
+    tail_ticks: int = integer(0, 0, 200, "ticks", "ticks scored after the horizon: the targets at their "
+                              "plans' last points, the UAV weaving round its route's (a terminal cost for the range "
+                              "to where the targets are going)")
+    tail_stride: int = integer(10, 1, 50, "ticks", "the tail is scored in steps of this many ticks")
 
 
 @dataclass(frozen=True)

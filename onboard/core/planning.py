@@ -238,13 +238,15 @@ class LookaheadParams:
     pursuit_lead: float = 1.0  # ticks of travel at the speed limit from the nearest route point to the carrot
     closed_loop: bool = False  # the targets' covariance propagated with A + B K (free-law gain K), else A
     score: str = "trace"  # trace | sqrt_trace: sum over ticks and targets of tr P_pos, or of sqrt(tr P_pos)
+    tail_ticks: int = 0  # ticks scored after the horizon, the UAV and the targets held at their last points
+    tail_stride: int = 10  # ticks per scored step of the tail
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
         """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
         the defaults, units and ranges)."""
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m,
-                   c.pursuit_lead, c.closed_loop, c.score)
+                   c.pursuit_lead, c.closed_loop, c.score, c.tail_ticks, c.tail_stride)
 
 
 def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -448,7 +450,7 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
     _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
     total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction,
-                          gain if params.closed_loop else None, params.score)
+                          gain if params.closed_loop else None, params.score, params.tail_ticks, params.tail_stride)
     scores = np.where(ok, total.sum(axis=1), np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
     return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
@@ -502,12 +504,14 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: Candidat
 
 def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, pos: np.ndarray,
                   model: MotionModel, sigma_rad: float, reduction: float, gain: np.ndarray | None = None,
-                  score: str = "trace") -> np.ndarray:
+                  score: str = "trace", tail_ticks: int = 0, tail_stride: int = 1) -> np.ndarray:
     """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos
     (score ``sqrt_trace``: of its square root), P the target's planar covariance from its
     particles, propagated with (A, Q) (with ``gain`` (3, 6), the guidance's feedback du/dx: with the
     closed loop A + B du/dx, as the PCRB's transition) and updated at each tick with an ideal
-    bearing to its planned position (EKF form, information times q)."""
+    bearing to its planned position (EKF form, information times q). ``tail_ticks`` more ticks are
+    scored after the horizon, the targets held at their plans' last points and the UAV weaving
+    round its route's last point (``_weaving_update``), in steps of ``tail_stride`` ticks."""
     A, B, Q = planar_model(model)
     if gain is not None:
         A = A + B @ np.asarray(gain, float)[:2][:, PLANAR]
@@ -526,4 +530,31 @@ def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: 
         P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
         tr = np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
         total += np.sqrt(tr) if score == "sqrt_trace" else tr
+    n_tail = tail_ticks // max(tail_stride, 1)
+    if n_tail:
+        As, Qs = np.eye(4), np.zeros((4, 4))
+        for _ in range(tail_stride):  # x_(k+s) = A^s x_k + sum_i A^i w_i
+            Qs = A @ Qs @ A.T + Q
+            As = A @ As
+        for _ in range(n_tail):
+            P = As @ P @ As.T + Qs
+            P = _weaving_update(P, target_paths[None, :, -1, :2], pos[:, None, -1], sigma_rad,
+                                reduction * tail_stride)
+            tr = np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
+            total += tail_stride * (np.sqrt(tr) if score == "sqrt_trace" else tr)
     return total
+
+
+def _weaving_update(P: np.ndarray, target_xy: np.ndarray, sensor_xy: np.ndarray, sigma_rad: float,
+                    reduction: float) -> np.ndarray:
+    """Covariance after bearings worth ``reduction`` / q scans from a sensor near ``sensor_xy`` whose
+    line of sight turns through every direction meanwhile (a UAV weaving round a point, as the
+    clairvoyant paths do among the targets): the information q / (sigma^2 r^2) split evenly
+    between the two horizontal directions, r^2 regularised by tr P_pos as in
+    ``kalman_pseudo_update``. P (..., 4, 4); returns (..., 4, 4)."""
+    d = np.asarray(target_xy, float)[..., :2] - np.asarray(sensor_xy, float)[..., :2]
+    r2 = np.sum(d * d, axis=-1) + np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
+    noise = 2.0 * sigma_rad**2 * r2 / max(reduction, 1e-12)  # (...,): variance per direction
+    S = P[..., :2, :2] + noise[..., None, None] * np.eye(2)
+    K = np.linalg.solve(S, P[..., :2, :]).swapaxes(-1, -2)  # (..., 4, 2) = P H^T S^-1 (S symmetric)
+    return P - K @ P[..., :2, :]

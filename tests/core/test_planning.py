@@ -203,3 +203,31 @@ def test_a_planners_draws_never_shift_the_filters(paper):
         moved += p_r.index != 0
     assert moved >= 2
     assert not np.array_equal(shared[-1][0], rand[-1][0])
+
+
+
+def test_lookahead_tail_rewards_ending_near_the_targets(rng):
+    """tail_ticks: after the horizon the UAV is taken to weave round its route's last point (the
+    information of a bearing at its range, split over both horizontal directions) while the
+    targets hold their plans' last points: among routes that differ only in their last point, the
+    tail costs more the farther that point is from the target; with no tail the score is the
+    horizon's alone."""
+    from onboard.core.planning import _route_traces, _weaving_update
+
+    particles, logw, plans = _still_targets(rng, [[0.0, 300.0]], H=10)
+    pos = np.zeros((3, 10, 2))
+    pos[:, :, 0] = np.linspace(-300.0, -200.0, 10)
+    pos[:, -1] = [[0.0, 270.0], [0.0, 200.0], [-200.0, 100.0]]  # 30, 100, 283 m from the target
+    args = (MODEL, math.radians(1.0), 0.95)
+    plain = _route_traces(particles, logw, plans, pos, *args)
+    tail = _route_traces(particles, logw, plans, pos, *args, tail_ticks=30, tail_stride=10)
+    np.testing.assert_array_equal(plain, _route_traces(particles, logw, plans, pos, *args, tail_ticks=0))
+    extra = (tail - plain)[:, 0]
+    assert (extra > 0).all() and extra[0] < extra[1] < extra[2]
+    # the update is the information form's: P^-1 + J I on the position, J = q / (2 sigma^2 (r^2 + tr P_pos))
+    P = np.diag([400.0, 900.0, 4.0, 4.0]) + 10.0
+    sig, q = math.radians(1.0), 9.5
+    r2 = 150.0**2 + np.trace(P[:2, :2])
+    J = np.diag([1.0, 1.0, 0.0, 0.0]) * q / (2 * sig**2 * r2)
+    np.testing.assert_allclose(_weaving_update(P, np.array([150.0, 0.0]), np.zeros(2), sig, q),
+                               np.linalg.inv(np.linalg.inv(P) + J), rtol=1e-9)
