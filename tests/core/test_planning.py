@@ -231,3 +231,21 @@ def test_lookahead_tail_rewards_ending_near_the_targets(rng):
     J = np.diag([1.0, 1.0, 0.0, 0.0]) * q / (2 * sig**2 * r2)
     np.testing.assert_allclose(_weaving_update(P, np.array([150.0, 0.0]), np.zeros(2), sig, q),
                                np.linalg.inv(np.linalg.inv(P) + J), rtol=1e-9)
+
+
+def test_route_pursuit_cruises_at_the_speed_limit_with_a_lead_of_one_and_a_quarter():
+    """_fly on a straight route at 9 m/s, 2 m spacing: with the carrot one tick of travel ahead
+    (8 m after rounding to the spacing) the pursuit settles at 8 m/s; 1.25 ticks (12 m) reaches
+    the 9 m/s limit, never above it, and |dv| <= a_max dt every tick."""
+    from onboard.core.planning import _fly
+
+    motion = VEHICLE.__class__("vehicle", 9.0, 2.5)
+    route = np.column_stack([np.arange(0.0, 2000.0, 2.0), np.zeros(1000)])[None]
+    for lead, cruise in ((1.0, 8.0), (1.25, 9.0)):
+        for v0 in (np.zeros(2), np.array([9.0, 0.0])):
+            _, vel = _fly(route, np.zeros(2), v0, motion, GRID, 40, 1.0, 2.0, lead)
+            speed = np.linalg.norm(vel[0], axis=1)
+            assert speed.max() <= 9.0 + 1e-9
+            np.testing.assert_allclose(speed[-10:], cruise, atol=0.01)
+            dv = np.diff(np.vstack([v0, vel[0]]), axis=0)
+            assert np.linalg.norm(dv, axis=1).max() <= 2.5 + 1e-9
