@@ -300,17 +300,6 @@ class Lookahead:
                                     "this radius", lo_open=True)
     corner_clearance_m: float = number(3.0, 0, 100, "m", "routes round the UAV's inflated obstacles this much wider")
     spacing_m: float = number(2.0, 0.1, 50, "m", "arc-length resolution of the sampled routes")
-    pursuit_lead: float = number(1.0, 0.5, 5, "ticks", "vehicle: the pursuit's carrot this many ticks of travel "
-                                 "at the speed limit ahead of the route point nearest the UAV, rounded to "
-                                 "spacing_m (1 at 9 m/s, 2 m: 8 m ahead, so it cruises at 8 m/s)")
-    closed_loop: bool = flag(False, "score routes with the targets' closed-loop transition A + B K (K: the "
-                             "guidance's free-law gain), as the PCRB does; false: open loop A")
-    score: str = choice("trace", ("trace", "sqrt_trace"), "a route's score: the sum over ticks and targets of "
-                        "tr P_pos, or of its square root (as the evaluation averages RMSEs)")
-    tail_ticks: int = integer(0, 0, 200, "ticks", "ticks scored after the horizon: the targets at their "
-                              "plans' last points, the UAV weaving round its route's (a terminal cost for the range "
-                              "to where the targets are going)")
-    tail_stride: int = integer(10, 1, 50, "ticks", "the tail is scored in steps of this many ticks")
 
 
 @dataclass(frozen=True)

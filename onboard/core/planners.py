@@ -105,14 +105,12 @@ class LookaheadPlanner(Planner):
     sigma_rad: float
     reduction: float  # information reduction factor q (p_D, clutter)
     params: LookaheadParams
-    gain: np.ndarray | None = None  # (3, 6) the guidance's free-law feedback (params.closed_loop)
 
     def plan(self, inputs: PlanningInputs, rng: np.random.Generator) -> PlanningResult:
         paths = np.stack([p.means[:self.steps] for p in inputs.plans])
         return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
                                 self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
-                                self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
-                                gain=self.gain)
+                                self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params)
 
 
 def _chosen(candidates: np.ndarray, ok: np.ndarray, index: int | None, n_targets: int) -> PlanningResult:
@@ -201,7 +199,7 @@ def _lookahead(setup: MonitorSetup) -> Planner:
     s = setup.sensor
     return LookaheadPlanner(setup.lookahead_steps, setup.grid, _area(setup), setup.motion, setup.model,
                             s.sigma_rad, information_reduction_factor(s.p_detect, s.clutter_rate, s.sigma_rad),
-                            setup.lookahead, None if setup.free_steering is None else setup.free_steering.gain)
+                            setup.lookahead)
 
 
 def orbit_centre(setup: MonitorSetup) -> np.ndarray:

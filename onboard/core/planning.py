@@ -235,18 +235,12 @@ class LookaheadParams:
     loiter_radius_m: float
     corner_clearance_m: float
     spacing_m: float  # arc-length resolution of the sampled routes, m
-    pursuit_lead: float = 1.0  # ticks of travel at the speed limit from the nearest route point to the carrot
-    closed_loop: bool = False  # the targets' covariance propagated with A + B K (free-law gain K), else A
-    score: str = "trace"  # trace | sqrt_trace: sum over ticks and targets of tr P_pos, or of sqrt(tr P_pos)
-    tail_ticks: int = 0  # ticks scored after the horizon, the UAV and the targets held at their last points
-    tail_stride: int = 10  # ticks per scored step of the tail
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
         """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
         the defaults, units and ranges)."""
-        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m,
-                   c.pursuit_lead, c.closed_loop, c.score, c.tail_ticks, c.tail_stride)
+        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
 def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -350,11 +344,10 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
 
 
 def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
-         steps: int, dt: float, ds: float, lead: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+         steps: int, dt: float, ds: float) -> tuple[np.ndarray, np.ndarray]:
     """Positions (C, steps, 2) and velocities (C, steps, 2) of the UAV following each sampled
     route (C, S, 2). Jump: full-speed arc length N_r Delta_r per tick along the route. Vehicle:
-    pursuit of a carrot on the route, ``lead`` ticks of travel at v_max beyond the route point
-    nearest the UAV (rounded to the spacing ds), with |dv| <= a_max dt and |v| <= v_max every tick."""
+    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick."""
     C, S, _ = routes.shape
     idx = np.arange(C)
     if motion.kind == "jump":
@@ -376,7 +369,7 @@ def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion"
         d2 = np.sum((routes[idx[:, None], win] - p[:, None]) ** 2, axis=2)
         near = win[idx, np.argmin(d2, axis=1)]
         prog = near * ds
-        carrot = routes[idx, np.minimum(near + int(round(lead * look / ds)), S - 1)]
+        carrot = routes[idx, np.minimum(near + int(round(look / ds)), S - 1)]
         to = carrot - p
         dist = np.linalg.norm(to, axis=1, keepdims=True)
         v_des = to / np.maximum(dist, 1e-9) * np.minimum(vmax, dist / dt)
@@ -412,8 +405,7 @@ def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: Loo
 def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, *, params: LookaheadParams,
-                     gain: np.ndarray | None = None) -> PlanningResult:
+                     uav_obstacles: Obstacles, *, params: LookaheadParams) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -443,14 +435,13 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
         return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
                                     area_max, uav_obstacles, "position_trace", motion, v0, dt)
-    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m, params.pursuit_lead)  # (C, H, 2)
+    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
     ok = _first_step(pos, vel, p0, grid, motion, dt, area_min, area_max, uav_obstacles)
     # a route that would leave the area or cross an obstacle later is scored as stopping there
     start3 = np.r_[p0, alt]
     paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
     _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
-    total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction,
-                          gain if params.closed_loop else None, params.score, params.tail_ticks, params.tail_stride)
+    total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction)
     scores = np.where(ok, total.sum(axis=1), np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
     return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
@@ -503,18 +494,11 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: Candidat
 
 
 def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, pos: np.ndarray,
-                  model: MotionModel, sigma_rad: float, reduction: float, gain: np.ndarray | None = None,
-                  score: str = "trace", tail_ticks: int = 0, tail_stride: int = 1) -> np.ndarray:
-    """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos
-    (score ``sqrt_trace``: of its square root), P the target's planar covariance from its
-    particles, propagated with (A, Q) (with ``gain`` (3, 6), the guidance's feedback du/dx: with the
-    closed loop A + B du/dx, as the PCRB's transition) and updated at each tick with an ideal
-    bearing to its planned position (EKF form, information times q). ``tail_ticks`` more ticks are
-    scored after the horizon, the targets held at their plans' last points and the UAV weaving
-    round its route's last point (``_weaving_update``), in steps of ``tail_stride`` ticks."""
-    A, B, Q = planar_model(model)
-    if gain is not None:
-        A = A + B @ np.asarray(gain, float)[:2][:, PLANAR]
+                  model: MotionModel, sigma_rad: float, reduction: float) -> np.ndarray:
+    """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos,
+    P the target's planar covariance from its particles, propagated with (A, Q) and updated at
+    each tick with an ideal bearing to its planned position (EKF form, information times q)."""
+    A, _, Q = planar_model(model)
     w = np.exp(log_weights - logsumexp(log_weights, axis=1, keepdims=True))  # (M, N)
     x = particles[:, :, PLANAR]
     mean = np.einsum("mn,mnd->md", w, x)
@@ -528,33 +512,5 @@ def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: 
         if i:
             P = A @ P @ A.T + Q
         P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
-        tr = np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
-        total += np.sqrt(tr) if score == "sqrt_trace" else tr
-    n_tail = tail_ticks // max(tail_stride, 1)
-    if n_tail:
-        As, Qs = np.eye(4), np.zeros((4, 4))
-        for _ in range(tail_stride):  # x_(k+s) = A^s x_k + sum_i A^i w_i
-            Qs = A @ Qs @ A.T + Q
-            As = A @ As
-        for _ in range(n_tail):
-            P = As @ P @ As.T + Qs
-            P = _weaving_update(P, target_paths[None, :, -1, :2], pos[:, None, -1], sigma_rad,
-                                reduction * tail_stride)
-            tr = np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
-            total += tail_stride * (np.sqrt(tr) if score == "sqrt_trace" else tr)
+        total += np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
     return total
-
-
-def _weaving_update(P: np.ndarray, target_xy: np.ndarray, sensor_xy: np.ndarray, sigma_rad: float,
-                    reduction: float) -> np.ndarray:
-    """Covariance after bearings worth ``reduction`` / q scans from a sensor near ``sensor_xy`` whose
-    line of sight turns through every direction meanwhile (a UAV weaving round a point, as the
-    clairvoyant paths do among the targets): the information q / (sigma^2 r^2) split evenly
-    between the two horizontal directions, r^2 regularised by tr P_pos as in
-    ``kalman_pseudo_update``. P (..., 4, 4); returns (..., 4, 4)."""
-    d = np.asarray(target_xy, float)[..., :2] - np.asarray(sensor_xy, float)[..., :2]
-    r2 = np.sum(d * d, axis=-1) + np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
-    noise = 2.0 * sigma_rad**2 * r2 / max(reduction, 1e-12)  # (...,): variance per direction
-    S = P[..., :2, :2] + noise[..., None, None] * np.eye(2)
-    K = np.linalg.solve(S, P[..., :2, :]).swapaxes(-1, -2)  # (..., 4, 2) = P H^T S^-1 (S symmetric)
-    return P - K @ P[..., :2, :]
