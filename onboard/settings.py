@@ -286,6 +286,8 @@ class Tracking:
                             "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
+    plan_side_floor: float = number(0.05, 0, 0.5, "", "the least share of a side mode's particles the other "
+                                    "side of an obstacle still ahead takes (the true target may switch sides)")
 
 
 @dataclass(frozen=True)
