@@ -286,11 +286,6 @@ class Tracking:
                             "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
-    plan_side_floor: float = number(0.05, 0, 0.5, "", "the least share of a side mode's particles the other "
-                                    "side of an obstacle within plan_side_floor_steps takes (the true target "
-                                    "may switch sides)")
-    plan_side_floor_steps: int = integer(15, 0, 200, "steps", "plan_side_floor holds for an obstacle a side "
-                                         "mode's plan meets within this many steps")
 
 
 @dataclass(frozen=True)

@@ -57,10 +57,6 @@ class PlanSteering:
     # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
     sides: bool
     side_temperature: float
-    # the least share the other side of an obstacle still ahead gets, at birth and again while no
-    # mode holds it (a true target's plan may switch sides: a budgeted search, a knife edge)
-    side_floor: float = 0.0
-    side_floor_steps: int = 0  # ... for an obstacle the mode's plan meets within this many steps
 
     @classmethod
     def from_config(cls, tr) -> "PlanSteering | None":
@@ -68,8 +64,7 @@ class PlanSteering:
         if not tr.plan_steering:
             return None
         return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
-                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature,
-                   tr.plan_side_floor, tr.plan_side_floor_steps)
+                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
 
 
 MAX_SIDE_MODES = 4  # per target

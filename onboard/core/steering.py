@@ -434,9 +434,7 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
 
 def _birth_sides(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], stats: list, planned: Callable,
                  rng: np.random.Generator) -> None:
-    """``side_modes``' step 2, in place on ``labels``, ``modes`` and ``stats``: sides born for the
-    obstacles a mode meets first, then (``side_floor`` > 0) the other side of an obstacle a mode's
-    plan meets within ``side_floor_steps``, when no mode holds it any more (``_split_side``)."""
+    """``side_modes``' step 2, in place on ``labels``, ``modes`` and ``stats``."""
     n_old = len(modes)
     for m in range(n_old):
         mode = modes[m]
@@ -444,57 +442,26 @@ def _birth_sides(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], st
         if p.active is None:
             continue
         wind = winding(p.faces)
-        first = _first_rows(p)
+        rows = p.active.obstacles.any(axis=2)  # (K, T-1)
         # a side is chosen ahead of the obstacle: a plan already against it has made its choice
-        for k in np.flatnonzero((first >= SIDE_LEAD_STEPS) & (wind != 0) & (mode.sides == 0)):
+        ahead = rows.any(axis=1) & ~rows[:, :SIDE_LEAD_STEPS].any(axis=1)
+        for k in np.flatnonzero(ahead & (wind != 0) & (mode.sides == 0)):
             held = mode.sides.copy()
             held[k] = np.sign(wind[k])
             modes[m] = mode = SideMode(p, held, mode.references)
-            _split_side(st, labels, modes, stats, planned, rng, m, k, floor=first[k] <= st.side_floor_steps)
-    if st.side_floor <= 0.0:
-        return
-    # a true target's plan may still switch sides near the obstacle (a budgeted search that ends
-    # on the other side, a plan that holds back in front of it): a side no mode holds any more
-    # comes back with side_floor of the particles while the obstacle is near, even against it (the
-    # bearings, informative there, decide); not further ahead, where a side of the particles kept
-    # on a costlier path only drifts with bearings that cannot tell the two apart yet
-    for m in range(n_old):
-        mode = modes[m]
-        if mode.plan.active is None:
-            continue
-        near = _first_rows(mode.plan) <= st.side_floor_steps
-        for k in np.flatnonzero(near & (mode.sides != 0)):
-            if not any(o.sides[k] == -mode.sides[k] for o in modes):
-                _split_side(st, labels, modes, stats, planned, rng, m, k, floor=True)
-
-
-def _first_rows(plan: Plan) -> np.ndarray:
-    """(K,) per obstacle, the first step of the plan with an active row on it (a large number: none)."""
-    rows = plan.active.obstacles.any(axis=2)  # (K, T-1)
-    return np.where(rows.any(axis=1), np.argmax(rows, axis=1), np.iinfo(np.int64).max)
-
-
-def _split_side(st: PlanSteering, labels: np.ndarray, modes: list[SideMode], stats: list, planned: Callable,
-                rng: np.random.Generator, m: int, k: int, floor: bool) -> None:
-    """Mode m's other side of obstacle k as a mode of its own, planned from mode m's centre, taking
-    each of its particles with probability 1 / (1 + exp(d / side_temperature)) (with ``floor``: at
-    least ``side_floor``), d the relative extra cost of its plan (a coin toss at the knife edge);
-    none past ``MAX_SIDE_MODES``, or below ``MIN_SIDE_SHARE``."""
-    if len(modes) >= MAX_SIDE_MODES:
-        return
-    p, other = modes[m].plan, modes[m].sides.copy()
-    other[k] = -other[k]
-    alt = planned(stats[m][0], None, other, strict=True, most=BIRTH_QPS)
-    if alt is None:
-        return
-    d = (alt.cost - p.cost) / max(abs(p.cost), 1e-9)
-    share = 1.0 / (1.0 + np.exp(min(d / st.side_temperature, 700.0)))
-    if floor:
-        share = max(share, st.side_floor)
-    members = np.flatnonzero(labels == m)
-    move = members[rng.random(len(members)) < share]
-    if share < MIN_SIDE_SHARE or not len(move):
-        return
-    labels[move] = len(modes)
-    modes.append(SideMode(alt, other))
-    stats.append(stats[m])
+            if len(modes) >= MAX_SIDE_MODES:
+                continue
+            other = held.copy()
+            other[k] = -held[k]
+            alt = planned(stats[m][0], None, other, strict=True, most=BIRTH_QPS)
+            if alt is None:
+                continue
+            d = (alt.cost - p.cost) / max(abs(p.cost), 1e-9)
+            share = 1.0 / (1.0 + np.exp(min(d / st.side_temperature, 700.0)))
+            members = np.flatnonzero(labels == m)
+            move = members[rng.random(len(members)) < share]
+            if share < MIN_SIDE_SHARE or not len(move):
+                continue
+            labels[move] = len(modes)
+            modes.append(SideMode(alt, other))
+            stats.append(stats[m])

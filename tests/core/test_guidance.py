@@ -456,43 +456,6 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
         np.testing.assert_allclose(modes2[i].plan.law.x_ref, centre[[0, 1, 3, 4]], atol=1e-6)
 
 
-def test_the_other_side_of_an_obstacle_ahead_keeps_a_floor_of_particles(paper, model, rng):
-    """tracking.plan_side_floor (issue 29's knife-edge tails, seed 2024 trial 98 T1 and trial 65
-    T4): a true target's plan can switch sides of an obstacle still ahead (there, a budgeted
-    search that ended on the far side), and a filter whose particles all hold the near side never
-    follows it. A cloud west of a box's axis, where the east costs P1 14 % more (70 side
-    temperatures: a share of 4e-31 by the cost alone; trial 98 T1's switch cost 55 %): without the
-    floor no particle takes the east; with it the east is a mode of its own with about the floor's
-    share, at birth and, once no mode holds it, again the next tick while the box is ahead."""
-    from onboard.core import tracking
-    from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import replanner
-    from onboard.core.steering import side_modes
-    mean = np.array([-80.0, 250.0, 0.0, 0.0, -10.0, 0.0])
-    cov = np.diag([100.0, 100.0, 1e-10, 1.0, 1.0, 1e-10])
-    ps = tracking.initialise(mean, cov, 2000, rng)
-    m, c = tracking.estimate(ps)
-    for floor in (0.0, 0.05):
-        setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0,
-                        plan_side_temperature=0.002, plan_side_floor=floor)
-        ws = GuidanceWorkspace()
-        goal = setup.goals[0]
-        plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=True)
-        replan = replanner(setup, goal, ws, lambda: 0.0)
-        laws, modes = side_modes(setup, ps, m, c, plan, (), None, replan, np.random.default_rng(1))
-        assert modes[0].sides[0] == 1  # the west, counterclockwise
-        if floor == 0.0:
-            assert len(modes) == 1 and np.all(laws.labels == 0)  # the east: no particle at all
-            continue
-        assert len(modes) == 2 and modes[1].sides[0] == -1
-        assert 0.03 < np.mean(laws.labels == 1) < 0.07
-        # the east's particles all gone (the bearings said west): it comes back next tick
-        west_only = tracking.ParticleSet(ps.particles, ps.log_weights, np.zeros(len(ps), dtype=int))
-        laws2, modes2 = side_modes(setup, west_only, m, c, plan, modes[:1], plan, replan, np.random.default_rng(2))
-        assert len(modes2) == 2 and [md.sides[0] for md in modes2] == [1, -1]
-        assert 0.03 < np.mean(laws2.labels == 1) < 0.07
-
-
 def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
     """Plan.shifted (the side-aware tracker's reuse of last tick's plans): the plan one tick on,
     from the state it predicted, with its second control as the law's reference and that
