@@ -306,6 +306,15 @@ def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits
         ev.Method("c", "x", sensing="ceiling", motion="jump")
 
 
+@pytest.mark.parametrize("kw, says", [({"planner": "astar"}, "planner must be one of"),
+                                       ({"motion": "teleport"}, "motion must be"),
+                                       ({"autopilot": "inav"}, "autopilot must be one of")])
+def test_a_method_naming_an_unknown_planner_motion_or_autopilot_is_refused(kw, says):
+    """A method is checked when declared (register_method, --methods), not when a worker runs it."""
+    with pytest.raises(ValueError, match=says):
+        ev.Method("m", "x", **kw)
+
+
 def test_workers_load_the_avx2_kernels_where_the_cpu_has_them():
     """sim.numerics: OpenBLAS's and numpy's AVX-512 kernels round differently from their AVX2
     ones, so the evaluation's workers load the AVX2 ones on every x86-64 that has them (a
