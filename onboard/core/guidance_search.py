@@ -87,6 +87,7 @@ class FaceSearch:
         self.best: Found | None = None
         self.tried: set[bytes] = set()
         self.found: list[tuple[float, np.ndarray, np.ndarray]] = []  # every feasible (cost, faces, path)
+        self.warm: tuple[np.ndarray, np.ndarray] | None = None  # last tick's assignment shifted, and its path
         # first working set of the QP: last tick's active rows shifted, then each solve's own
         self.hint = (previous.active.shifted(T) if previous is not None and previous.active is not None
                      and previous.faces.shape == (T - 1, K) else None)
@@ -199,6 +200,7 @@ class FaceSearch:
                 self.unstick()
             return
         if explore:
+            self.repair()
             self.explore()
             self.local_search()
 
@@ -214,8 +216,24 @@ class FaceSearch:
             path = np.vstack([self.x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
         else:
             faces, path = previous.faces, np.vstack([self.x0[:2], previous.means[:, :2]])
-        self.refine(self.geo.sanitise(faces, path))
+        faces = self.geo.sanitise(faces, path)
+        if shift:
+            self.warm = (faces, path)
+        self.refine(faces)
         return self.best is not None
+
+    def repair(self) -> None:
+        """The previous plan's assignment shifted, when infeasible, with each face switch moved one to
+        three steps (``neighbours``): a target pressed against a face near a corner can round it a
+        step later than the shift says, and the re-pick by clearance, timing the corner too early
+        again, repeats (seen with T4 of trial 65 at O3's corner: it then held back at 3x the cost).
+        The feasible ones join the local search's starts."""
+        if self.warm is None:
+            return
+        faces, path = self.warm
+        for f in self.neighbours(faces, path):
+            if f.tobytes() not in self.tried and self.budget_left():
+                self.evaluate(f)
 
     def stalled(self) -> bool:
         """The warm plan is stuck: an obstacle row is active and the target is planned to crawl

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from onboard.core.guidance import GuidanceParams, Plan, plan_guidance
+from onboard.core.guidance import GuidanceParams, Plan, plan_guidance, winding
 from onboard.core.obstacles import Obstacles
 from bench.miqp_reference import random_instance
 
@@ -534,3 +534,29 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
     clock = iter(np.cumsum(np.random.default_rng(0).uniform(0, 10, 100000)))
     a, b = run(time.perf_counter), run(lambda: float(next(clock)))
     np.testing.assert_array_equal(a, b)
+
+
+def test_a_target_at_a_corner_keeps_rounding_it_when_its_shifted_plan_is_a_step_early(paper, model):
+    """Trial 65 of seed 2024, T4 at t = 24 s (docs/GUIDANCE.md, "Cost jumps near corners"), as plain
+    arrays: 5 m north of O3's margin, 13 m west of its north-east corner, closing at 7.6 m/s. No
+    plan keeps the margin; without it, last tick's assignment shifted rounds the corner a step too
+    early (infeasible) and the re-pick repeats it, so the search used to end on a plan holding
+    back in front of O3 (winding 0, cost 2.23e6). Its switch moved a step later rounds O3 east as
+    before, at a third of that cost."""
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    goal = np.array([550.0, 150.0, 0.0])
+    x = np.array([692.40, 364.74, 0.0, 1.03, -7.61, 0.0])
+    T = params.horizon
+    faces = np.zeros((T - 1, 4), dtype=int)  # east 0, north 1, west 2, south 3
+    faces[:, 0] = [0] * 9 + [3] * 40  # O1, O2 passed; O3 north, east, south; O4 passed
+    faces[:, 1] = 3
+    faces[:, 2] = [1] * 2 + [0] * 6 + [3] * 41
+    faces[:, 3] = [0] * 18 + [3] * 31
+    means = np.zeros((T, 6))
+    means[:, :2] = x[:2] + np.linspace(0.0, 1.0, T)[:, None] * (goal[:2] - x[:2])
+    previous = Plan("optimal", 8.449e5, 0.0, 80, np.zeros((T, 3)), means, faces)
+    plan = plan_guidance(model, params, obs, x, goal, previous=previous)
+    assert plan.feasible and plan.margin_m == 0.0
+    assert winding(plan.faces)[2] < 0  # it rounds O3 clockwise (east), as last tick's plan did
+    assert plan.cost < 1.0e6
