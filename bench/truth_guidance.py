@@ -6,7 +6,8 @@
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
 target re-plans every step; a step without a feasible plan leaves it on its previous plan's
 controls (``fallback_previous``), open loop, which no tracker's motion model predicts. Prints
-the target-steps by plan status, the steps planned without the obstacle margin (``margin_m`` 0:
+the target-steps by plan status, the (trial, target) pairs whose plan's P1 cost ever jumps above 1.3
+times the step before's, the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
 (trial, target) pairs with at least one fallback, and one JSON line. ``--show 82:3``: also the
 times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
@@ -38,18 +39,26 @@ from sim.truth import TruthWorld  # noqa: E402
 from onboard.core.guidance import winding  # noqa: E402
 
 
-def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> list[list[str]]:
+JUMP = 1.3  # a plan costing more than this times the step before's is a jump (docs/GUIDANCE.md)
+
+
+def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> tuple[list[list[str]], list[bool]]:
     """Per target, the status of its plan at each step of trial ``trial`` (``margin0``: a plan
-    without the margin)."""
+    without the margin); and per target, whether its plan's P1 cost ever jumped (above ``JUMP``
+    times the step before's)."""
     cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
     out = [[] for _ in range(len(cfg.scenario.targets))]
+    last = [float("nan")] * len(out)
+    jumped = [False] * len(out)
     for _ in range(cfg.n_ticks - 1):
         world.step()
         for j, plan in enumerate(world.plans):
             margin = getattr(plan, "margin_m", None)  # absent before the field was added
             out[j].append("margin0" if margin == 0.0 else plan.status)
-    return out
+            jumped[j] |= bool(plan.cost > JUMP * last[j])  # False with either cost nan (a fallback)
+            last[j] = plan.cost
+    return out, jumped
 
 
 def pair_trace(overrides: dict, n_trials: int, seed: int, trial: int, target: int) -> list[str]:
@@ -83,8 +92,10 @@ def main() -> None:
         ap.error(f"--show takes TRIAL:TARGET, a trial below --trials and a target from 1: {args.show}")
     overrides = set_overrides(ap, args)
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        trials = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
-                               [args.seed] * args.trials, range(args.trials)))
+        runs = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
+                             [args.seed] * args.trials, range(args.trials)))
+    trials = [r[0] for r in runs]
+    jumps = [(i, j) for i, r in enumerate(runs) for j, jumped in enumerate(r[1]) if jumped]
     counts = Counter(s for trial in trials for target in trial for s in target)
     steps = sum(counts.values())
     fallback = counts["fallback_previous"] + counts["fallback_coast"]
@@ -96,6 +107,8 @@ def main() -> None:
     for status, n in sorted(counts.items(), key=lambda x: -x[1]):
         print(f"{status:20s} {n:12d} {n / steps:8.2%}")
     print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
+    print(f"(trial, target) pairs whose plan's cost jumps above {JUMP:g}x the step before's: {len(jumps)} of "
+          f"{n_pairs}, in {len({i for i, _ in jumps})} trials")
     for trial, target in shows:
         if target > len(trials[trial]):
             ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
@@ -110,6 +123,7 @@ def main() -> None:
             print("\n".join(pair_trace(overrides, args.trials, args.seed, trial, target)))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
                       "margin0_steps": counts["margin0"], "pairs_with_fallback": len(pairs),
+                      "pairs_with_cost_jump": len(jumps), "trials_with_cost_jump": len({i for i, _ in jumps}),
                       "pairs": n_pairs, "statuses": dict(counts)}))
 
 
