@@ -196,7 +196,10 @@ class FaceSearch:
             self.evaluate(np.full((self.T - 1, 0), NO_FACE))
             return
         if self.warm_start(previous) or any(self.warm_start(p, shift=False) for p in nearby):
-            if self.stalled():
+            if explore and self.no_progress(previous):
+                self.explore()
+                self.local_search()
+            elif self.stalled():
                 self.unstick()
             return
         if explore:
@@ -243,6 +246,16 @@ class FaceSearch:
         pressed = bool(np.any(b.sol.duals != 0.0))
         first_speed = float(np.linalg.norm(b.pts[1] - b.pts[0])) / self.model.dt_s
         return pressed and first_speed < _STALL_SPEED_FRACTION * self.params.speed_max_mps
+
+    def no_progress(self, previous: Plan | None) -> bool:
+        """The warm plan is pressed against an obstacle (a row active) and costs no less than
+        ``previous`` (last tick's plan) did: a shifted assignment holding the target back in front
+        of an obstacle, a local optimum that the warm start alone would keep (T4 of trial 65 of
+        seed 2024 drifted along O3's north face for 15 s on such a plan at 2.2e6, accepted at each
+        step, where rounding O3 cost 0.8e6-1.0e6). Explored as without a warm start."""
+        b = self.best
+        return (previous is not None and bool(np.any(b.sol.duals != 0.0))
+                and bool(b.cost >= previous.cost))  # False for a fallback's nan cost
 
     def follow_guides(self, thorough: bool) -> None:
         """Assignments along the shortest path around the obstacles timed at cruise speeds

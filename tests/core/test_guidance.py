@@ -560,3 +560,22 @@ def test_a_target_at_a_corner_keeps_rounding_it_when_its_shifted_plan_is_a_step_
     assert plan.feasible and plan.margin_m == 0.0
     assert winding(plan.faces)[2] < 0  # it rounds O3 clockwise (east), as last tick's plan did
     assert plan.cost < 1.0e6
+
+
+def test_a_warm_plan_holding_back_at_no_lower_cost_is_explored_past(paper, model):
+    """Trial 65 of seed 2024, T4 at t = 25 s, as plain arrays: last tick's plan held it back in front
+    of O3 (every obstacle on one face, winding 0, cost 2.23e6). Shifted, it is feasible and pressed
+    against O3's north face, and costs more than it did (2.30e6): the search used to accept it
+    (1 QP) for 15 s while rounding O3 cost about a third. It explores, and rounds O3."""
+    params = GuidanceParams.from_config(paper.guidance)
+    obs = Obstacles.from_boxes(paper.obstacles)
+    goal = np.array([550.0, 150.0, 0.0])
+    x = np.array([690.65, 369.23, 0.0, -4.44, -1.71, 0.0])
+    T = params.horizon
+    faces = np.tile([0, 3, 1, 0], (T - 1, 1))  # O1 east, O2 south, O3 north, O4 east: held back
+    means = np.tile(x, (T, 1))
+    previous = Plan("optimal", 2.227e6, 0.0, 55, np.zeros((T, 3)), means, faces)
+    plan = plan_guidance(model, params, obs, x, goal, previous=previous)
+    assert plan.feasible and plan.margin_m == params.obstacle_margin_m
+    assert winding(plan.faces)[2] != 0  # it rounds O3
+    assert plan.cost < 1.0e6
