@@ -7,7 +7,7 @@ The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (s
 target re-plans every step; a step without a feasible plan leaves it on its previous plan's
 controls (``fallback_previous``), open loop, which no tracker's motion model predicts. Prints
 the target-steps by plan status, the (trial, target) pairs whose plan's P1 cost ever jumps above 1.3
-times the step before's, the steps planned without the obstacle margin (``margin_m`` 0:
+times the step before's (and above 2e5), the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
 (trial, target) pairs with at least one fallback, and one JSON line. ``--show 82:3``: also the
 times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
@@ -40,12 +40,13 @@ from onboard.core.guidance import winding  # noqa: E402
 
 
 JUMP = 1.3  # a plan costing more than this times the step before's is a jump (docs/GUIDANCE.md)
+JUMP_FLOOR = 2e5  # ... and more than this: near the goal a few metres of noise change the cost by more
 
 
 def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> tuple[list[list[str]], list[bool]]:
     """Per target, the status of its plan at each step of trial ``trial`` (``margin0``: a plan
     without the margin); and per target, whether its plan's P1 cost ever jumped (above ``JUMP``
-    times the step before's)."""
+    times the step before's and above ``JUMP_FLOOR``)."""
     cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
     out = [[] for _ in range(len(cfg.scenario.targets))]
@@ -56,7 +57,7 @@ def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> tup
         for j, plan in enumerate(world.plans):
             margin = getattr(plan, "margin_m", None)  # absent before the field was added
             out[j].append("margin0" if margin == 0.0 else plan.status)
-            jumped[j] |= bool(plan.cost > JUMP * last[j])  # False with either cost nan (a fallback)
+            jumped[j] |= bool(plan.cost > max(JUMP * last[j], JUMP_FLOOR))  # False with a nan (a fallback)
             last[j] = plan.cost
     return out, jumped
 
@@ -107,8 +108,8 @@ def main() -> None:
     for status, n in sorted(counts.items(), key=lambda x: -x[1]):
         print(f"{status:20s} {n:12d} {n / steps:8.2%}")
     print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
-    print(f"(trial, target) pairs whose plan's cost jumps above {JUMP:g}x the step before's: {len(jumps)} of "
-          f"{n_pairs}, in {len({i for i, _ in jumps})} trials")
+    print(f"(trial, target) pairs whose plan's cost jumps above {JUMP:g}x the step before's (and {JUMP_FLOOR:g}): "
+          f"{len(jumps)} of {n_pairs}, in {len({i for i, _ in jumps})} trials")
     for trial, target in shows:
         if target > len(trials[trial]):
             ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
