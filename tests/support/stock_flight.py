@@ -91,6 +91,7 @@ def fly_stock(out: Path) -> dict:
         rec["m"] = m
         heard = Recorder(m.observer)
         rec["launch"] = m.gcs("launch")
+        m.fast_boot()  # the boot until 35 s at 10x
         assert m.wait(lambda o: o.app_state == "monitoring", 150 + 60 / m.cfg.speedup, "monitoring"), \
             m.observer.app_texts()
         rec["hub"] = hub_route(m, heard, HUB_S, during=lambda m: _new_h(m, rec))
