@@ -5,16 +5,21 @@ the admissible one (area, obstacles: ``planning.admissible``) that minimises the
 Frobenius norm of the targets' position covariances after one ideal bearing from it (EKF form,
 ``information.kalman_pseudo_update``, with the bound's q), from the predicted particle clouds:
 a one-step covariance-norm reward, no acceleration limit (a jump of at most 9 m per tick). The
-issue describes the rule, not its code; this is our reading of it. Its bearings run through our
-own filter (the evaluation's ``run_method``: same truth, same start).
+issue describes the rule, not its code; this is our reading of it. It is a planner like the
+product's (``onboard.core.planners.Planner``), registered here for the bench only (not a setting
+the app accepts); its bearings run through our own filter (the evaluation's ``run_method``: same
+truth, same start).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.information import information_reduction_factor, kalman_pseudo_update
-from onboard.core.planning import admissible
+from onboard.core.planners import PLANNERS, Area, Planner, PlanningInputs
+from onboard.core.planning import PlanningResult
 from onboard.core.tracking import logsumexp
 from sim import evaluation as ev
 
@@ -29,31 +34,43 @@ def candidates(uav: np.ndarray, altitude_m: float, reach_m: float = 9.0, n_headi
     return np.column_stack([xy, np.full(len(xy), altitude_m)])
 
 
-def myopic_policy(ctx: ev.PolicyContext) -> np.ndarray:
-    s = ctx.setup
-    cand = candidates(ctx.uav, s.grid.altitude_m)
-    ok = admissible(cand, ctx.uav, s.area_min, s.area_max, s.uav_obstacles)
-    if not ok.any():
-        return ctx.uav
-    covs, means = [], []
-    for b in ctx.state.beliefs:
-        w = np.exp(b.log_weights - logsumexp(b.log_weights))
-        x = b.particles[:, [0, 1, 3, 4]]
-        mu = w @ x
-        dev = x - mu
-        covs.append((w[:, None] * dev).T @ dev)
-        means.append(mu[:2])
-    q = information_reduction_factor(s.sensor.p_detect, s.sensor.clutter_rate, s.sensor.sigma_rad)
-    P = kalman_pseudo_update(np.array(covs)[None], np.array(means)[None], cand[:, None, :2], s.sensor.sigma_rad, q)
-    score = np.linalg.norm(P[..., :2, :2], axis=(-2, -1)).sum(axis=1)
-    score[~ok] = np.inf
-    return cand[int(np.argmin(score))]
+@dataclass(frozen=True, eq=False)
+class MyopicPlanner(Planner):
+    """The 33 points within 9 m, scored by the summed Frobenius norm of the pseudo-updated
+    position covariances."""
+
+    altitude_m: float
+    area: Area
+    sigma_rad: float
+    reduction: float  # the bound's information reduction factor q
+
+    def plan(self, inputs: PlanningInputs, rng: np.random.Generator) -> PlanningResult:
+        uav = np.asarray(inputs.position, float)
+        cand = candidates(uav, self.altitude_m)
+        ok = self.area.admissible(cand, uav)
+        w = np.exp(inputs.log_weights - logsumexp(inputs.log_weights, axis=1, keepdims=True))  # (M, N)
+        x = inputs.particles[:, :, [0, 1, 3, 4]]
+        mu = np.einsum("mn,mnd->md", w, x)
+        dev = x - mu[:, None]
+        covs = np.einsum("mn,mnd,mne->mde", w, dev, dev)
+        P = kalman_pseudo_update(covs[None], mu[None, :, :2], cand[:, None, :2], self.sigma_rad, self.reduction)
+        traces = np.linalg.norm(P[..., :2, :2], axis=(-2, -1))  # (C, M)
+        scores = np.where(ok, traces.sum(axis=1), np.inf)
+        index = int(np.argmin(scores)) if ok.any() else None
+        return PlanningResult(cand, ok, traces, scores, index)
+
+
+def _myopic(setup) -> Planner:
+    s = setup.sensor
+    area = Area(setup.area_min, setup.area_max, setup.uav_obstacles)
+    return MyopicPlanner(setup.grid.altitude_m, area, s.sigma_rad,
+                         information_reduction_factor(s.p_detect, s.clutter_rate, s.sigma_rad))
 
 
 def register() -> None:
+    PLANNERS[NAME] = _myopic
     ev.register_method(ev.Method(NAME, "single UAV, one-step greedy among 33 points within 9 m, covariance-norm "
-                                 "reward (bench/ceiling_greedy.py), Lambda = 1", policy=myopic_policy,
-                                 clutter_rate=1.0))
+                                 "reward (bench/ceiling_greedy.py), Lambda = 1", planner=NAME, clutter_rate=1.0))
 
 
 def run_greedy(seed: int, trial: int, d: dict) -> ev.MethodTrace:

@@ -1,6 +1,6 @@
 """How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
 
-    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...]
+    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
                                    [--set KEY=VALUE ...]
 
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
@@ -9,7 +9,10 @@ controls (``fallback_previous``), open loop, which no tracker's motion model pre
 the target-steps by plan status, the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
 (trial, target) pairs with at least one fallback, and one JSON line. ``--show 82:3``: also the
-times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``.
+times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
+``--trace``, every step of each shown pair: the plan's status, QP solves, P1 cost and winding about
+each obstacle (``guidance.winding``: + counterclockwise, - clockwise, 0 not rounded), where a
+switch of side, or a plan much costlier than the last, shows (docs/TRACKING.md, the tails).
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.truth import TruthWorld  # noqa: E402
+from onboard.core.guidance import winding  # noqa: E402
 
 
 def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> list[list[str]]:
@@ -48,6 +52,19 @@ def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> lis
     return out
 
 
+def pair_trace(overrides: dict, n_trials: int, seed: int, trial: int, target: int) -> list[str]:
+    """Per step, target ``target`` (from 1) of trial ``trial``: its position and plan, one line each."""
+    cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
+    world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
+    out = []
+    for k in range(cfg.n_ticks - 1):
+        world.step()
+        p, x = world.plans[target - 1], world.states[target - 1]
+        out.append(f"  t={k:3d}  ({x[0]:6.0f}, {x[1]:6.0f}) m  {p.status:18s} {p.qp_solves:3d} QPs  "
+                   f"cost {p.cost:12.0f}  winding {winding(p.faces).tolist()}")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
@@ -55,6 +72,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--show", action="append", default=[], metavar="TRIAL:TARGET",
                     help="print the times of that pair's non-optimal plans (target from 1, as T1)")
+    ap.add_argument("--trace", action="store_true", help="with --show: every step of the pair's plan")
     add_set_option(ap, "guidance.max_qp_solves=40")
     args = ap.parse_args()
     try:
@@ -88,6 +106,8 @@ def main() -> None:
                 runs.append(f"{status} at t = {k}" + (f"-{e} s" if e > k else " s"))
             k = e + 1
         print(f"trial {trial} T{target}: " + ("; ".join(runs) or "optimal at every step"))
+        if args.trace:
+            print("\n".join(pair_trace(overrides, args.trials, args.seed, trial, target)))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
                       "margin0_steps": counts["margin0"], "pairs_with_fallback": len(pairs),
                       "pairs": n_pairs, "statuses": dict(counts)}))

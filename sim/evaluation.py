@@ -55,6 +55,7 @@ from onboard.core.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.planners import ORBIT_RADIUS_M, orbit_centre
 from onboard.policy import vehicle_motion
+from onboard.settings import SETTINGS
 from sim.guided import enu, fly_plan, ned
 from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
 from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
@@ -223,8 +224,8 @@ def method_scenario(sc, method: Method):
         own.update({"sensor.p_detect": 1.0, "sensor.clutter_rate": 0.0})
     elif method.clutter_rate is not None:
         own["sensor.clutter_rate"] = method.clutter_rate
-    if method.planner is not None:
-        own["planning.planner"] = method.planner
+    if method.planner is not None and method.planner in SETTINGS["planning.planner"].choices:
+        own["planning.planner"] = method.planner  # (a bench's own planner is set on the setup: _setup_for)
     if method.motion is not None:
         own["planning.motion"] = method.motion
     return override(sc, own)
@@ -240,7 +241,11 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
         m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
         sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
     df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
-    return MonitorSetup.from_scenario(sc), df, limits
+    setup = MonitorSetup.from_scenario(sc)
+    if method.planner is not None and method.planner != setup.planner:
+        # a planner a bench registered in PLANNERS (not one the flight app may be configured with)
+        setup = replace(setup, planner=method.planner)
+    return setup, df, limits
 
 
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,

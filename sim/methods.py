@@ -69,17 +69,17 @@ class Method:
             raise ValueError(f"method {self.name}: a ceiling is a vehicle's (motion 'vehicle')")
         if self.follows not in (None, "ceiling") or (self.follows and self.sensing != "uav"):
             raise ValueError(f"method {self.name}: follows must be None or 'ceiling' (with sensing 'uav')")
-
-    @property
-    def bound_only(self) -> bool:
-        """No filter run (RMSE and NEES undefined): the clairvoyant ceiling."""
-        return self.sensing == "ceiling"
         if self.planner is not None and self.planner not in PLANNERS:
             raise ValueError(f"method {self.name}: planner must be one of {', '.join(PLANNERS)}")
         if self.motion not in (None, "jump", "vehicle"):
             raise ValueError(f"method {self.name}: motion must be 'jump', 'vehicle' or None")
         if self.autopilot is not None and self.autopilot not in AUTOPILOTS:
             raise ValueError(f"method {self.name}: autopilot must be one of {', '.join(AUTOPILOTS)}")
+
+    @property
+    def bound_only(self) -> bool:
+        """No filter run (RMSE and NEES undefined): the clairvoyant ceiling."""
+        return self.sensing == "ceiling"
 
 
 METHODS: dict[str, Method] = {}

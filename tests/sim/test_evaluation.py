@@ -16,7 +16,7 @@ import pytest
 import scipy
 from scipy import stats
 
-from onboard.config import Box, Target
+from onboard.config import Box, ConfigError, Target, override
 from sim import evaluation as ev
 
 
@@ -24,7 +24,6 @@ from sim import evaluation as ev
 def quick(paper):
     """The paper scenario with a shorter guidance horizon (same world, faster ticks); the lookahead
     scores the whole (shorter) plan, as it did before it was held to the horizon."""
-    from onboard.config import override
     return override(paper, {"guidance.horizon": 20, "planning.lookahead_steps": 20})
 
 
@@ -304,6 +303,39 @@ def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits
         (tmp_path / "results.md").read_text()
     with pytest.raises(ValueError, match="a ceiling is a vehicle's"):
         ev.Method("c", "x", sensing="ceiling", motion="jump")
+
+
+@pytest.mark.parametrize("kw, says", [({"planner": "astar"}, "planner must be one of"),
+                                       ({"motion": "teleport"}, "motion must be"),
+                                       ({"autopilot": "inav"}, "autopilot must be one of")])
+def test_a_method_naming_an_unknown_planner_motion_or_autopilot_is_refused(kw, says):
+    """A method is checked when declared (register_method, --methods), not when a worker runs it."""
+    with pytest.raises(ValueError, match=says):
+        ev.Method("m", "x", **kw)
+
+
+def test_a_planner_a_bench_registers_is_the_one_its_method_flies(quick):
+    """bench/ceiling_greedy.py's way: a Planner put in PLANNERS (not a setting the app accepts)
+    and a method naming it; the evaluation flies that planner, not the scenario's."""
+    from onboard.core.planners import PLANNERS, Planner
+    from onboard.core.planning import PlanningResult
+
+    class East(Planner):
+        def plan(self, inputs, rng):
+            here = np.asarray(inputs.position, float) + [4.0, 0.0, 0.0]
+            return PlanningResult(here[None], np.ones(1, bool), np.zeros((1, len(inputs.beliefs))), np.zeros(1), 0)
+
+    PLANNERS["east4"] = lambda setup: East()
+    try:
+        ev.register_method(ev.Method("east4", "x", planner="east4", clutter_rate=1.0))
+        cfg = ev.make_config(quick, 1, 3, ["east4"], duration_s=4, particles=100)
+        uav = ev.run_trial(cfg, 0).traces["east4"].uav
+        assert np.allclose(np.diff(uav[:, 0]), 4.0) and np.allclose(np.diff(uav[:, 1:], axis=0), 0.0)
+        with pytest.raises(ConfigError, match="planning.planner"):
+            override(quick, {"planning.planner": "east4"})  # the app's setting still refuses it
+    finally:
+        PLANNERS.pop("east4")
+        ev.METHODS.pop("east4", None)
 
 
 def test_workers_load_the_avx2_kernels_where_the_cpu_has_them():
