@@ -143,13 +143,53 @@ def main() -> int:
     return 0
 
 
+def hub_route(m: Mission, rec: Recorder, monitor_s: float, during=None) -> dict:
+    """The hub route on a monitoring flight: ``pmon gcs hub`` on the spare port (SERIAL6) with a
+    pymavlink ground station on it for ``monitor_s`` autopilot s (``during(m)`` runs at its start,
+    inside that time); what the client got, matched to the estimates, and what the observer
+    heard in that window (``rec``: a Recorder on the flight's observer from its start)."""
+    from groundstation.estimates import check
+    from onboard.app.pose import Frame
+    from tests.support.gcs_fake_vehicle import free_udp_port
+
+    frame = Frame(m.sc.origin.lat_deg, m.sc.origin.lon_deg, m.sc.origin.alt_m)
+    port = free_udp_port()
+    hub = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "hub", "--connect", m.spare_url,
+                            "--serve", f"udp:127.0.0.1:{port}", "--json", "--timeout", "20"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    client = HubClient(port)
+    tb0 = m.observer.t
+    if during is not None:
+        during(m)
+    m.sim_sleep(monitor_s - ((m.observer.t or tb0) - tb0))
+    tb1 = m.observer.t
+    client.close()
+    hub.send_signal(signal.SIGINT)
+    hub_out, hub_err = hub.communicate(timeout=20)
+    summary = json.loads(hub_out.strip().splitlines()[-1])
+    errors, per_tick = [], {}
+    for j, rows in client.markers.items():
+        per_tick[f"T{j + 1}"] = {"adsb": len(rows), "ticks": len(client.ticks.get(j, ()))}
+        for msg, tgt in rows:
+            est, _ = check(tgt, frame) if tgt is not None else (None, None)
+            if est is None:
+                continue
+            e, n, _ = frame.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.altitude * 1e-3)
+            errors.append(math.hypot(e - est.x_m, n - est.y_m))
+    return {"autopilot_s": [tb0, tb1], "per_target": per_tick,
+            "max_error_m": round(max(errors), 4) if errors else None, "matched": len(errors),
+            "mode_changes": mode_changes(m, tb0, tb1), **rec.counts(tb0, tb1),
+            "hub_summary": {k: summary.get(k) for k in ("adsb_sent", "forwarded_to_vehicle",
+                                                         "estimates_refused", "echoed_targets_dropped")}}
+
+
 def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Path) -> dict:
     """One flight: --monitor s of the hub route, then --inject s of the autopilot route (0:
     none). Returns the figures (the JSON line)."""
     from groundstation import adsb as A
     from groundstation.estimates import check
     from onboard.app.pose import Frame
-    from tests.support.gcs_fake_vehicle import free_udp_port
 
     cfg = MissionConfig(speedup=speedup, params=params, feed_duration_s=monitor_s + inject_s + 150)
     res: dict = {"avoidance": "on" if params else "off", "params": params, "speedup": speedup}
@@ -159,34 +199,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
         launch = m.gcs("launch")
         if not m.wait(lambda o: o.app_state == "monitoring", 200, "monitoring"):
             raise RuntimeError(f"not monitoring: {launch.stderr} {m.observer.app_texts()}")
-        # ---- B: the hub
-        port = free_udp_port()
-        hub = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "hub", "--connect", m.spare_url,
-                                "--serve", f"udp:127.0.0.1:{port}", "--json", "--timeout", "20"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
-        client = HubClient(port)
-        tb0 = m.observer.t
-        m.sim_sleep(monitor_s)
-        tb1 = m.observer.t
-        client.close()
-        hub.send_signal(signal.SIGINT)
-        hub_out, hub_err = hub.communicate(timeout=20)
-        summary = json.loads(hub_out.strip().splitlines()[-1])
-        errors, per_tick = [], {}
-        for j, rows in client.markers.items():
-            per_tick[f"T{j + 1}"] = {"adsb": len(rows), "ticks": len(client.ticks.get(j, ()))}
-            for msg, tgt in rows:
-                est, _ = check(tgt, frame) if tgt is not None else (None, None)
-                if est is None:
-                    continue
-                e, n, _ = frame.enu_from_geodetic(msg.lat * 1e-7, msg.lon * 1e-7, msg.altitude * 1e-3)
-                errors.append(math.hypot(e - est.x_m, n - est.y_m))
-        res["hub"] = {"autopilot_s": [tb0, tb1], "per_target": per_tick,
-                      "max_error_m": round(max(errors), 4) if errors else None, "matched": len(errors),
-                      "mode_changes": mode_changes(m, tb0, tb1), **rec.counts(tb0, tb1),
-                      "hub_summary": {k: summary.get(k) for k in ("adsb_sent", "forwarded_to_vehicle",
-                                                                   "estimates_refused", "echoed_targets_dropped")}}
+        res["hub"] = hub_route(m, rec, monitor_s)
         if inject_s <= 0:
             return res
         # ---- A: into the autopilot

@@ -51,6 +51,12 @@ from sim.tick_account import TickAccount, scan_times
 OBSERVER_SYSID = 250  # neither the operator's GCS (255) nor the feed (245)
 OBSERVER_PORT, SPARE_PORT = 3, 4  # the autopilot's MAVLink ports after the rig's app, feed, GCS
 
+# ArduCopter SITL's boot (no GPS fix, EKF origin, pre-arm: armable ~42.6 autopilot s after it,
+# sim/copter.py's BootTimeline) run at BOOT_SPEEDUP up to BOOT_FAST_UNTIL_S (Mission.fast_boot):
+# ArduPilot reads SIM_SPEEDUP at run time (measured on ../shared/ardupilot: 2x -> 10.97x -> 2.17x
+# within 0.3 s of each PARAM_SET); the arming, the take-off and the flight at the flight's speedup
+BOOT_SPEEDUP = 10.0
+BOOT_FAST_UNTIL_S = 35.0
 PILOT_SYSID = 252  # a pilot's ground station with sticks (Mission.take_sticks)
 JOYSTICK_HZ = 20.0  # wall Hz of its MANUAL_CONTROL
 REPORT_S = 0.2  # autopilot s: two periods of the observer's POSITION_TARGET_LOCAL_NED stream
@@ -249,6 +255,8 @@ class Mission:
         self.observer: Observer | None = None
         self.sticks: Sticks | None = None
         self.commands: list[GcsCall] = []
+        self._booted = threading.Event()  # ends fast_boot's thread
+        self._fast_boot: threading.Thread | None = None
 
     @property
     def sitl(self):
@@ -282,6 +290,26 @@ class Mission:
         self.rig.start_feed()
         return self
 
+    def fast_boot(self, until_s: float = BOOT_FAST_UNTIL_S) -> None:
+        """ArduCopter SITL at BOOT_SPEEDUP from now until autopilot ``until_s``, then at the
+        flight's speedup again (a thread sets SIM_SPEEDUP): for flights whose tests time nothing
+        in wall s before the copter can arm; a no-op past ``until_s`` or on another autopilot."""
+        if self.cfg.autopilot != "ardupilot" or (self.observer.t or 0.0) >= until_s:
+            return
+
+        def set_speedup(x: float) -> None:
+            link = self.observer.link
+            link.send(link.mav.param_set_encode(1, 1, b"SIM_SPEEDUP", x, mavlink.MAV_PARAM_TYPE_REAL32))
+
+        def run() -> None:
+            set_speedup(BOOT_SPEEDUP)
+            while (self.observer.t or 0.0) < until_s and not self._booted.is_set() and self.rig.problem() is None:
+                time.sleep(0.01)
+            set_speedup(self.cfg.speedup)
+        self._booted.clear()
+        self._fast_boot = threading.Thread(target=run, name="fast boot", daemon=True)
+        self._fast_boot.start()
+
     def take_sticks(self) -> Sticks:
         """A pilot's sticks from now on, on the observer's port (PX4's GCS link takes any number of
         clients that speak first; ArduPilot's TCP port takes one)."""
@@ -290,6 +318,9 @@ class Mission:
         return self.sticks
 
     def stop(self) -> None:
+        self._booted.set()
+        if self._fast_boot is not None:
+            self._fast_boot.join(timeout=5)
         if self.sticks is not None:
             self.sticks.close()
         self.rig.stop_programs()
@@ -435,14 +466,18 @@ class Mission:
 
 
 def fly_launch_procedure(m: Mission, monitor_s: float, during: Callable[[Mission, dict], None] | None = None,
-                         takeovers: tuple[tuple[str, ...], ...] = (("mode", "LOITER"), ("hold",))) -> dict:
+                         takeovers: tuple[tuple[str, ...], ...] = (("mode", "LOITER"), ("hold",)),
+                         fast_boot: bool = False) -> dict:
     """docs/SITL.md's procedure from the autopilot's boot, as tests/firmware/test_ardupilot.py (flight A)
     and bench/ardupilot.py fly it: ``pmon gcs launch`` at once; ``monitor_s`` autopilot s of
     monitoring (``during(m, rec)`` runs at its start, inside that time); then each takeover (a
-    pilot's mode change), 3 s, ``pmon gcs resume``, 6 s. Returns each command's GcsCall and the
-    app's state after it, keyed by what it was."""
+    pilot's mode change), 3 s, ``pmon gcs resume``, 6 s; ``fast_boot``: the rest of the boot
+    after the launch command at BOOT_SPEEDUP (Mission.fast_boot). Returns each command's GcsCall
+    and the app's state after it, keyed by what it was."""
     rec: dict = {"boot_t": m.observer.t}
     rec["launch"] = m.gcs("launch")  # at once: the autopilot is still booting
+    if fast_boot:
+        m.fast_boot()
     if not m.wait(lambda o: o.app_state == "monitoring", 150 + 60 / m.cfg.speedup, "monitoring"):
         raise RuntimeError(f"not monitoring; the app said {m.observer.app_texts()}")
     rec["start_t"] = t0 = m.observer.t

@@ -80,7 +80,7 @@ def flight_a(tmp_path_factory):
     # 1.5x: the 0.9 s tick budget is 0.6 s of wall time; a lookahead plan on a loaded 2-core
     # machine took 0.52 s once (at 2x it was late)
     with Mission(MissionConfig(speedup=1.5, feed_duration_s=MONITOR_S + 60, seed=1), out) as m:
-        rec = fly_launch_procedure(m, MONITOR_S, during)
+        rec = fly_launch_procedure(m, MONITOR_S, during, fast_boot=True)  # the boot until 35 s at 10x
         rec["m"] = m
         rec["gcs_saw_estimates"] = sorted({e[1] for e in m.observer.estimates})
     yield rec
@@ -171,6 +171,7 @@ def flight_b(tmp_path_factory):
                         link_proxy=True)
     with Mission(cfg, out) as m:
         rec["m"] = m
+        m.fast_boot()  # its boot until 35 s at 10x (the reboot below at 3x)
         rec["arm"] = m.gcs("arm", "--wait", timeout=120)  # at once: the autopilot is still booting
         rec["takeoff"] = m.gcs("takeoff", "40", "--wait")
         rec["start"] = m.gcs("start")

@@ -39,10 +39,11 @@ def test_statustext_chunks_pass_arducopters_routing_whole():
 
 
 @pytest.mark.timeout(600)
-def test_hub_draws_every_target_every_tick_without_triggering_avoidance(tmp_path):
-    from bench.adsb_route import AVOIDANCE, fly
-
-    res = fly(dict(AVOIDANCE), monitor_s=40.0, inject_s=0.0, speedup=2.0, out=tmp_path)
+def test_hub_draws_every_target_every_tick_without_triggering_avoidance(stock_flight):
+    """40 autopilot s of the hub route (bench/adsb_route.py's) in the flight
+    tests/firmware/test_ardupilot_altitude.py reads too (tests/support/stock_flight.py), with
+    the autopilot's ADS-B avoidance on."""
+    res = stock_flight
     hub = res["hub"]
     print(hub)
     assert hub["mode_changes"] == [] and hub["collision_msgs"] == 0 and hub["avoidance_texts"] == []
