@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -104,3 +105,16 @@ def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
             p.kill()
         gcs.close()
     assert _children_gone(out)
+
+
+def test_the_auto_speedup_keeps_the_measured_tick_within_a_fifth_of_an_autopilot_second():
+    """pmon demo --speedup auto: the tick measured (wall s) times the speedup stays <= 0.2
+    autopilot s above 1x, in steps of 0.5 between 1x and 8x; a loaded machine flies at 1x."""
+    from sim.demo import choose_speedup
+
+    for tick_s in np.geomspace(0.005, 2.0, 200):
+        s = choose_speedup(float(tick_s))
+        assert 1.0 <= s <= 8.0 and (2 * s).is_integer()
+        assert s == 1.0 or s * tick_s <= 0.2 + 1e-12
+        assert s == 8.0 or (s + 0.5) * tick_s > 0.2 - 1e-12  # the fastest that keeps it
+    assert choose_speedup(0.085) == 2.0 and choose_speedup(0.35) == 1.0
