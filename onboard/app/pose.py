@@ -154,9 +154,9 @@ class PoseHistory:
     def at(self, t: float) -> np.ndarray | None:
         """ENU position (3,) at autopilot time t, or None if not covered."""
         with self._lock:
-            if not self._t or t < self._t[0] - 0.05:
+            i = self._index(t)
+            if i is None:
                 return None
-            i = bisect.bisect_left(self._t, t)
             if i == len(self._t):
                 last = self._s[-1]
                 dt = t - last.t
@@ -169,14 +169,21 @@ class PoseHistory:
             w = (t - a.t) / (b.t - a.t)
             return a.pos + w * (b.pos - a.pos)
 
+    def _index(self, t: float) -> int | None:
+        """(under the lock) the first sample at or after t (len: after the newest); None if t is
+        before the oldest (50 ms of slack) or nothing is held."""
+        if not self._t or t < self._t[0] - 0.05:
+            return None
+        return bisect.bisect_left(self._t, t)
+
     def yaw_at(self, t: float) -> float | None:
         """Heading (rad, clockwise from north, (-pi, pi]) at autopilot time t, interpolated the
         short way round between the samples around it; after the newest the newest, for at most
         ``max_extrapolation_s`` (no yaw rate is known); None if not covered or unknown."""
         with self._lock:
-            if not self._t or t < self._t[0] - 0.05:
+            i = self._index(t)
+            if i is None:
                 return None
-            i = bisect.bisect_left(self._t, t)
             if i == len(self._t):
                 last = self._s[-1]
                 return last.yaw if t - last.t <= self.max_extrapolation_s and last.yaw is not None \
