@@ -102,7 +102,7 @@ class TickAccount:
             return False
         for back in HELD_BACK_S:
             d = min(max(r[0] - back - seg["t0"], 0.0), seg["tick_s"])
-            pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d)
+            pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d, seg.get("a0"))
             if math.hypot(r[1] - pos[1], r[2] - pos[0]) < SEGMENT_TOL_M:
                 return True
         return False
