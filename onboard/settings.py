@@ -325,6 +325,10 @@ class Planning:
                                   "WPNAV_SPEED default)", lo_open=True)
     accel_max_mps2: float = number(2.5, 0, 20, "m/s^2", "vehicle motion: acceleration limit (ArduCopter's "
                                    "WPNAV_ACCEL default)", lo_open=True)
+    jerk_max_mps3: float = number(0.0, 0, 100, "m/s^3", "vehicle motion: 0, the acceleration steps at "
+                                  "each tick; > 0, it is continuous, changing linearly over each tick by "
+                                  "at most this times the tick (what ArduCopter's jerk-limited GUIDED "
+                                  "follows: PSC_JERK_XY, 5 by default)")
     lookahead: Lookahead = section(Lookahead, "the lookahead planner's routes")
 
 

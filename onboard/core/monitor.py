@@ -194,11 +194,13 @@ def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState
 def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: np.random.Generator,
          plan_from: np.ndarray | None = None, workspace: GuidanceWorkspace | None = None,
          timer: Callable[[], float] = time.perf_counter, uav_velocity: np.ndarray | None = None,
-         planner_rng: np.random.Generator | None = None) -> tuple[MonitorState, TickResult]:
+         planner_rng: np.random.Generator | None = None, uav_acceleration: np.ndarray | None = None
+         ) -> tuple[MonitorState, TickResult]:
     """Run one tick (the module's steps 1-5). ``plan_from`` (ENU, m): where the UAV is or will be
     at the next tick, where the planner starts from; None skips the UAV planning (e.g. fixed
     sensors). ``uav_velocity`` (ENU, m/s, planar): the UAV's velocity there, for the vehicle
-    motion. ``planner_rng``: the planner's own random stream (the random baseline draws from it;
+    motion; ``uav_acceleration`` (ENU, m/s^2, planar): the plan's acceleration there, for a
+    continuous one (``planning.jerk_max_mps3`` > 0; None: 0). ``planner_rng``: the planner's own random stream (the random baseline draws from it;
     default ``rng``), so a planner's draws never shift the filter's."""
     t0 = timer()
     posts, means, covs, degenerate = _update_and_estimate(setup, state.beliefs, scans, rng)  # 1, 2
@@ -210,7 +212,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     planning = None
     if plan_from is not None:  # 5
         vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
-        planning = setup.uav_planner.plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel),
+        acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
+        planning = setup.uav_planner.plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
                                           rng if planner_rng is None else planner_rng)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
