@@ -286,6 +286,12 @@ class Tracking:
                             "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
+    recovery_prior: float = number(0.0, 0, 0.5, "", "probability per tick that a target left the motion "
+                                   "model's prediction (tracking.Recovery: found again along the bearings); 0: off")
+    recovery_share: float = number(0.02, 0, 1, "", "with recovery_prior: share of the particles drawn along "
+                                   "the bearings each tick")
+    recovery_sigma_m: float = number(50.0, 1, 5000, "m", "with recovery_prior: a target that left the "
+                                     "prediction is N(its mean, its covariance + this^2 I) in the plane")
 
 
 @dataclass(frozen=True)

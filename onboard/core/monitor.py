@@ -95,6 +95,7 @@ class MonitorSetup:
     regularise_bandwidth: float  # h of the regularised resampling (tracking.resample_if_needed)
     free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
+    recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
     planner: str  # greedy | lookahead
     lookahead_steps: int
     motion: UavMotion
@@ -123,6 +124,7 @@ class MonitorSetup:
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
             free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
             plan_steering=PlanSteering.from_config(sc.tracking),
+            recovery=tracking.Recovery.from_config(sc.tracking),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -229,10 +231,15 @@ def _update_and_estimate(setup: MonitorSetup, beliefs: Sequence[tracking.Particl
     for j in range(M):
         j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
                     None if s.clutter_rates is None else s.clutter_rates[j]) for s in scans]
-        upd = tracking.update(beliefs[j], j_scans, setup.sensor)
+        prior = beliefs[j]
+        if setup.recovery is not None and j_scans:  # the last scan's bearings propose where a lost target is
+            prior = tracking.recover(prior, j_scans[-1][0], j_scans[-1][1], setup.recovery, setup.sensor.sigma_rad,
+                                     rng)
+        upd = tracking.update(prior, j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
-        means[j], covs[j] = tracking.estimate(upd.particles)
-        posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng,
+        post = tracking.trim(upd.particles, len(beliefs[j]))
+        means[j], covs[j] = tracking.estimate(post)
+        posts.append(tracking.resample_if_needed(post, setup.resample_fraction, rng,
                                                  setup.regularise_bandwidth, covs[j]))
     return posts, means, covs, degenerate
 
