@@ -1,4 +1,3 @@
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -112,17 +111,3 @@ def test_a_programs_help_says_what_it_is_in_whole_sentences():
                              cwd=Path(__file__).resolve().parents[2]).stdout
         description = out.split("\n\n")[1]
         assert description.rstrip().endswith("."), (argv, description)
-
-
-def test_pmon_eval_says_where_its_results_went_in_a_table_and_warns_of_few_trials(tmp_path):
-    out = tmp_path / "ev"
-    res = run("eval", "--trials", "2", "--duration", "4", "--particles", "100", "--workers", "1",
-              "--methods", "greedy_l1,hover", "--out", str(out), "--quiet", "--no-figures")
-    assert res.returncode == 0, res.stderr
-    lines = res.stdout.strip().splitlines()
-    head = json.loads(lines[-1])  # the JSON line stays last
-    assert lines[0].split()[:2] == ["method", "RMSE"]
-    hover = next(x for x in lines if x.startswith("hover "))
-    assert f"{head['methods']['hover']['rmse_mean_m']:.1f}" in hover
-    assert f"results in {out}/: results.md" in res.stdout and (out / "results.md").exists()
-    assert "warning: 2 trials: a 95 % confidence interval means little below about 10" in res.stderr
