@@ -19,8 +19,8 @@ from onboard.core.planning import UavMotion
 
 POLICIES: dict[str, dict[str, Any]] = {
     "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
-               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5,
-               "tracking.plan_steering": True, "tracking.plan_sides": True},
+               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5, "planning.jerk_max_mps3": 5.0,
+               "tracking.plan_steering": True, "tracking.plan_sides": True, "tracking.recovery_prior": 0.01},
     "paper": {},
 }
 DEFAULT = "flight"
@@ -39,4 +39,4 @@ def vehicle_motion(planning, speed_mps: float, accel_mps2: float) -> UavMotion:
     ``accel_mps2``: WPNAV_SPEED, WPNAV_ACCEL in SI), capped by what the airframe flies
     (``planning.speed_max_mps``, ``planning.accel_max_mps2`` of the scenario with its policy)."""
     return UavMotion("vehicle", min(float(speed_mps), planning.speed_max_mps),
-                     min(float(accel_mps2), planning.accel_max_mps2))
+                     min(float(accel_mps2), planning.accel_max_mps2), planning.jerk_max_mps3)

@@ -169,6 +169,22 @@ class PoseHistory:
             w = (t - a.t) / (b.t - a.t)
             return a.pos + w * (b.pos - a.pos)
 
+    def velocity_at(self, t: float) -> np.ndarray | None:
+        """ENU velocity (3,) at autopilot time t, interpolated as ``at`` interpolates the position
+        (after the newest sample its velocity, for at most ``max_extrapolation_s``), or None."""
+        with self._lock:
+            i = self._index(t)
+            if i is None:
+                return None
+            if i == len(self._t):
+                last = self._s[-1]
+                return last.vel.copy() if t - last.t <= self.max_extrapolation_s else None
+            if i == 0 or self._t[i] == t:
+                return self._s[i].vel.copy()
+            a, b = self._s[i - 1], self._s[i]
+            w = (t - a.t) / (b.t - a.t)
+            return a.vel + w * (b.vel - a.vel)
+
     def _index(self, t: float) -> int | None:
         """(under the lock) the first sample at or after t (len: after the newest); None if t is
         before the oldest (50 ms of slack) or nothing is held."""

@@ -12,6 +12,7 @@ from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
 from onboard.core.obstacles import Obstacles, polygons_crossed
+from onboard.core.setpoint import ramp_end
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
@@ -102,12 +103,13 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center:
                          grid: CandidateGrid, sigma_rad: float, area_min, area_max,
                          uav_obstacles: Obstacles, objective: str = "trace",
                          motion: "UavMotion | None" = None, velocity: np.ndarray | None = None,
-                         dt: float = 1.0) -> PlanningResult:
+                         dt: float = 1.0, acceleration: np.ndarray | None = None) -> PlanningResult:
     """eq:optimization over the admissible next positions around ``center``: the paper's
-    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick."""
+    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick (from
+    ``velocity`` and, continuous acceleration, ``acceleration``)."""
     motion = motion or JUMP
     velocity = np.zeros(2) if velocity is None else velocity
-    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt)
+    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt, acceleration)
     cand = paths[:, 0]
     start = np.array([center[0], center[1], grid.altitude_m])
     ok = admissible(cand, start, area_min, area_max, uav_obstacles)
@@ -129,28 +131,51 @@ class UavMotion:
     ArduCopter's WPNAV_SPEED and WPNAV_ACCEL defaults, the scenario's, reproduce the measured 5.6 s
     for a 20 m step from hover); the next positions are those reached in one tick under a
     constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
+    ``jerk_max_mps3`` > 0: the acceleration is continuous instead, changing linearly over each
+    tick from where the last tick left it to the one asked for, by at most jerk_max_mps3 times
+    the tick (onboard/core/setpoint.py: what ArduCopter's jerk-limited GUIDED follows).
     """
 
     kind: str  # jump | vehicle
     speed_max_mps: float  # vehicle only
     accel_max_mps2: float  # vehicle only
+    jerk_max_mps3: float  # vehicle only; 0: the acceleration steps at each tick
 
     @classmethod
     def from_config(cls, planning) -> "UavMotion":
         """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
-        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2)
+        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2, planning.jerk_max_mps3)
+
+    def step(self, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_new: np.ndarray, dt: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Continuous acceleration (``jerk_max_mps3`` > 0): one tick from position, velocity and
+        acceleration ``a`` (C, 2) asking for the acceleration ``a_new`` (|a_new| <= a_max): it
+        ramps to it over the tick, the change capped at jerk_max_mps3 dt, the end speed at
+        speed_max_mps (the end acceleration then what gives that speed). Returns (p, v, a) at
+        the tick's end."""
+        dj = a_new - a
+        n = np.linalg.norm(dj, axis=-1, keepdims=True)
+        a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
+        _, v_new = ramp_end(v, a, a_end, dt)
+        sp = np.linalg.norm(v_new, axis=-1, keepdims=True)
+        v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
+        a_end = 2.0 * (v_new - v) / dt - a
+        disp, _ = ramp_end(v, a, a_end, dt)
+        return p + disp, v_new, a_end
 
 
-JUMP = UavMotion("jump", math.inf, math.inf)  # the paper's motion: no speed or acceleration limit applies
+JUMP = UavMotion("jump", math.inf, math.inf, 0.0)  # the paper's motion: no speed or acceleration limit applies
 
 
 def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
-                     steps: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+                     steps: int, dt: float, acceleration: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Candidate UAV paths over ``steps`` ticks: (C, steps, 3) positions and (C, steps, 2) velocities.
 
     Each candidate repeats one action: jump, the same grid displacement every tick (so the first
     step is the paper's S_(t+1)), plus each displacement once and then staying; vehicle, one
-    constant acceleration, the speed saturating at the limit, plus braking to a stop.
+    constant acceleration, the speed saturating at the limit, plus braking to a stop (with a
+    continuous acceleration, ``motion.jerk_max_mps3`` > 0, ramped to from ``acceleration``, the
+    plan's at the start, ENU m/s^2, default 0).
     """
     p0 = np.asarray(position, float)[:2]
     v0 = np.asarray(velocity, float)[:2]
@@ -176,15 +201,23 @@ def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: Candidate
         p, v = np.broadcast_to(p0, (C, 2)).copy(), np.broadcast_to(v0, (C, 2)).copy()
         is_brake = np.zeros(C, dtype=bool)
         is_brake[-1] = speed0 > 1e-9
-        for i in range(steps):
-            a = np.where(is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True)
-                                              <= motion.accel_max_mps2 * dt), -v / dt, acc)
-            v_new = v + a * dt
-            sp = np.linalg.norm(v_new, axis=1, keepdims=True)
-            v_new *= np.minimum(1.0, motion.speed_max_mps / np.maximum(sp, 1e-12))
-            p = p + 0.5 * (v + v_new) * dt
-            v = v_new
-            paths[:, i], vel[:, i] = p, v
+        if motion.jerk_max_mps3 > 0.0:
+            a = np.broadcast_to(np.zeros(2) if acceleration is None else np.asarray(acceleration, float)[:2],
+                                (C, 2)).copy()
+            for i in range(steps):
+                stop = is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True) <= motion.accel_max_mps2 * dt)
+                p, v, a = motion.step(p, v, a, np.where(stop, -v / dt, acc), dt)
+                paths[:, i], vel[:, i] = p, v
+        else:
+            for i in range(steps):
+                a = np.where(is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True)
+                                                  <= motion.accel_max_mps2 * dt), -v / dt, acc)
+                v_new = v + a * dt
+                sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+                v_new *= np.minimum(1.0, motion.speed_max_mps / np.maximum(sp, 1e-12))
+                p = p + 0.5 * (v + v_new) * dt
+                v = v_new
+                paths[:, i], vel[:, i] = p, v
     alt = np.full(paths.shape[:2] + (1,), grid.altitude_m)
     return np.concatenate([paths, alt], axis=2), vel
 
@@ -344,10 +377,12 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
 
 
 def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
-         steps: int, dt: float, ds: float) -> tuple[np.ndarray, np.ndarray]:
+         steps: int, dt: float, ds: float, a0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Positions (C, steps, 2) and velocities (C, steps, 2) of the UAV following each sampled
     route (C, S, 2). Jump: full-speed arc length N_r Delta_r per tick along the route. Vehicle:
-    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick."""
+    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick; with a
+    continuous acceleration (``motion.jerk_max_mps3`` > 0, from ``a0``) the acceleration asked
+    for is dv / dt (|.| <= a_max), ramped to over the tick (UavMotion.step)."""
     C, S, _ = routes.shape
     idx = np.arange(C)
     if motion.kind == "jump":
@@ -359,6 +394,8 @@ def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion"
     vmax, amax = motion.speed_max_mps, motion.accel_max_mps2
     p = np.broadcast_to(np.asarray(p0, float), (C, 2)).copy()
     v = np.broadcast_to(np.asarray(v0, float), (C, 2)).copy()
+    ramps = motion.jerk_max_mps3 > 0.0
+    a = np.broadcast_to(np.zeros(2) if a0 is None else np.asarray(a0, float)[:2], (C, 2)).copy()
     prog = np.zeros(C)  # arc length along the route reached so far
     pos, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
     look = vmax * dt
@@ -376,6 +413,10 @@ def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion"
         dv = v_des - v
         n = np.linalg.norm(dv, axis=1, keepdims=True)
         dv *= np.minimum(1.0, amax * dt / np.maximum(n, 1e-12))
+        if ramps:
+            p, v, a = motion.step(p, v, a, dv / dt, dt)
+            pos[:, i], vel[:, i] = p, v
+            continue
         v_new = v + dv
         sp = np.linalg.norm(v_new, axis=1, keepdims=True)
         v_new *= np.minimum(1.0, vmax / np.maximum(sp, 1e-12))
@@ -405,7 +446,8 @@ def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: Loo
 def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, *, params: LookaheadParams) -> PlanningResult:
+                     uav_obstacles: Obstacles, *, params: LookaheadParams,
+                     acceleration: np.ndarray | None = None) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -415,7 +457,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     predicted positions and centroid), the shortest polyline around the obstacles the UAV
     cannot overfly, flown at the speed limit, then a circle through the waypoint; the UAV's
     positions along it come from the motion model (jump: N_r Delta_r per tick; vehicle: speed
-    and acceleration limits from the current velocity). Along each route the planar covariance
+    and acceleration limits from the current velocity, and ``acceleration`` with a continuous
+    acceleration). Along each route the planar covariance
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
     reduction factor q). Score: sum over ticks and targets of tr P_pos (the position, whatever
@@ -434,8 +477,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     routes = _routes(p0, target_paths, grid, motion, params, dt, area_min, area_max, uav_obstacles)
     if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
         return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
-                                    area_max, uav_obstacles, "position_trace", motion, v0, dt)
-    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
+                                    area_max, uav_obstacles, "position_trace", motion, v0, dt, acceleration)
+    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m, acceleration)  # (C, H, 2)
     ok = _first_step(pos, vel, p0, grid, motion, dt, area_min, area_max, uav_obstacles)
     # a route that would leave the area or cross an obstacle later is scored as stopping there
     start3 = np.r_[p0, alt]
@@ -490,6 +533,8 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: Candidat
     ok = admissible(first, start3, area_min, area_max, uav_obstacles)
     sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
     stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
+    if motion.jerk_max_mps3 > 0.0:  # the braking acceleration is ramped to: up to 2 a_max / jerk later
+        stop = stop + vel[:, 0] * 2.0 * motion.accel_max_mps2 / motion.jerk_max_mps3
     return ok & admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max, uav_obstacles)
 
 

@@ -31,6 +31,7 @@ pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
 RMSE_MAX_M = 60.0  # time-averaged position error of every target's estimate over a flight
 MONITOR_S = 100.0  # autopilot s of monitoring in flight A before the pilot takes over
 TICK_S = 1.0  # one tick: the longest a takeover may take to stop the setpoints
+FOLLOW_MEDIAN_M, FOLLOW_P95_M = 0.5, 1.0  # copter from the planned point at the next tick (issue 29: p95 <= 1.5)
 
 
 def _ok(call, *want):
@@ -110,10 +111,15 @@ def test_every_scan_is_ticked_and_every_setpoint_reaches_the_autopilot(flight_a)
 def test_the_copter_flies_the_plan_instead_of_braking_to_each_point(flight_a):
     """issue 24: the plan's position + velocity + acceleration, carried on by ArduCopter between
     messages: at the next tick the copter is where the plan said (position-only setpoints, which
-    it brakes to, left it a median 15 m short: bench/ardupilot.py --policy paper)."""
+    it brakes to, left it a median 15 m short: bench/ardupilot.py --policy paper). Issue 29: within
+    FOLLOW_MEDIAN_M / FOLLOW_P95_M: each plan starts at its scan and its acceleration is continuous,
+    which the firmware's jerk-limited shaper follows (a plan from the tick's later snapshot with
+    an acceleration stepping at each tick: 0.66-0.75 m median, 1.39-1.82 m p95 in three runs of
+    bench/ardupilot.py, docs/SITL.md)."""
     d = np.array(flight_a["m"].follow_errors_m())
     assert len(d) >= MONITOR_S * 0.9
-    assert np.median(d) <= 3.0 and np.percentile(d, 95) <= 6.0, (np.median(d), np.percentile(d, 95))
+    assert np.median(d) <= FOLLOW_MEDIAN_M and np.percentile(d, 95) <= FOLLOW_P95_M, \
+        (np.median(d), np.percentile(d, 95))
 
 
 def test_the_copter_stays_in_the_area_and_out_of_the_obstacles(flight_a):
