@@ -409,11 +409,19 @@ def run_cli(*args):
 
 
 def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
+    """... and says where its results went, in a table, and warns of few trials (one run for both:
+    this was two runs of the same kind, one in tests/app/test_cli.py)."""
     out = tmp_path / "ev"
     res = run_cli("eval", "--trials", "2", "--duration", "4", "--particles", "100", "--workers", "1",
                   "--methods", "greedy_l1,fixed3,hover", "--out", str(out), "--quiet")
     assert res.returncode == 0, res.stderr
-    head = json.loads(res.stdout.strip().splitlines()[-1])
+    lines = res.stdout.strip().splitlines()
+    head = json.loads(lines[-1])  # the JSON line stays last
+    assert lines[0].split()[:2] == ["method", "RMSE"]
+    hover = next(x for x in lines if x.startswith("hover "))
+    assert f"{head['methods']['hover']['rmse_mean_m']:.1f}" in hover
+    assert f"results in {out}/: results.md" in res.stdout
+    assert "warning: 2 trials: a 95 % confidence interval means little below about 10" in res.stderr
     assert set(head["methods"]) == {"greedy_l1", "fixed3", "hover"}
     assert all(set(v) >= {"rmse_mean_m", "nees_mean", "bound_m", "rmse_over_bound", "ratio_vs_ref"}
                for v in head["methods"].values())
@@ -444,10 +452,17 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     (("--methods", "lookahead", "--set", "guidance.horizon=20"),
      "method lookahead: planning.lookahead_steps: must be <= guidance.horizon (20)"),
 ])
-def test_pmon_eval_bad_arguments(tmp_path, args, message):
-    res = run_cli("eval", "--out", str(tmp_path / "x"), *args)
-    assert res.returncode == 2
-    assert message in res.stderr and "Traceback" not in res.stderr
+def test_pmon_eval_bad_arguments(tmp_path, args, message, capsys):
+    """Through pmon's main(argv) in this process (no Python start-up per case; the real program
+    runs in the other tests here)."""
+    from onboard.cli import main
+    try:
+        rc = main(["eval", "--out", str(tmp_path / "x"), *args])
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()
 
 
