@@ -153,6 +153,17 @@ class PoseHistory:
 
     def at(self, t: float) -> np.ndarray | None:
         """ENU position (3,) at autopilot time t, or None if not covered."""
+        return self._interpolate(t, "pos")
+
+    def velocity_at(self, t: float) -> np.ndarray | None:
+        """ENU velocity (3,) at autopilot time t, interpolated as ``at`` interpolates the position
+        (after the newest sample its velocity, for at most ``max_extrapolation_s``), or None."""
+        return self._interpolate(t, "vel")
+
+    def _interpolate(self, t: float, field: str) -> np.ndarray | None:
+        """``field`` ("pos" or "vel") at t: linear between the samples around it; after the newest,
+        for at most ``max_extrapolation_s``, the position carried on at the newest velocity and
+        the velocity held."""
         with self._lock:
             i = self._index(t)
             if i is None:
@@ -162,28 +173,12 @@ class PoseHistory:
                 dt = t - last.t
                 if dt > self.max_extrapolation_s:
                     return None
-                return last.pos + last.vel * dt
+                return last.pos + last.vel * dt if field == "pos" else last.vel.copy()
             if i == 0 or self._t[i] == t:
-                return self._s[i].pos.copy()
-            a, b = self._s[i - 1], self._s[i]
-            w = (t - a.t) / (b.t - a.t)
-            return a.pos + w * (b.pos - a.pos)
-
-    def velocity_at(self, t: float) -> np.ndarray | None:
-        """ENU velocity (3,) at autopilot time t, interpolated as ``at`` interpolates the position
-        (after the newest sample its velocity, for at most ``max_extrapolation_s``), or None."""
-        with self._lock:
-            i = self._index(t)
-            if i is None:
-                return None
-            if i == len(self._t):
-                last = self._s[-1]
-                return last.vel.copy() if t - last.t <= self.max_extrapolation_s else None
-            if i == 0 or self._t[i] == t:
-                return self._s[i].vel.copy()
-            a, b = self._s[i - 1], self._s[i]
-            w = (t - a.t) / (b.t - a.t)
-            return a.vel + w * (b.vel - a.vel)
+                return getattr(self._s[i], field).copy()
+            a, b = getattr(self._s[i - 1], field), getattr(self._s[i], field)
+            w = (t - self._t[i - 1]) / (self._t[i] - self._t[i - 1])
+            return a + w * (b - a)
 
     def _index(self, t: float) -> int | None:
         """(under the lock) the first sample at or after t (len: after the newest); None if t is
