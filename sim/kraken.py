@@ -45,12 +45,16 @@ import numpy as np
 
 from onboard.core import doa
 from onboard.settings import ConfigError
-from sim.live_feed import LiveFeed, LiveFeedConfig, Telemetry
+from sim.live_feed import LiveFeed, LiveFeedConfig, Telemetry, _sleep_until
 
 DOC_NAME = "DOA_value.html"
 STATUS_NAME = "status.json"
 MIN_SPEED_FOR_HEADING = 2.0  # m/s: KrakenSDR takes the GPS course as heading above this ...
 MIN_DURATION_FOR_HEADING = 3.0  # ... held this long (krakensdr_doa MIN_SPEED_/MIN_DURATION_FOR_VALID_HEADING)
+# autopilot s a frame stays the document before the next replaces it: a feed that fell behind
+# (its process descheduled) holds its next frame, else it wrote the overdue frame and the due one
+# back to back and a reader (the app polls every 50 ms) lost the first (KrakenFeed._hold)
+MIN_SHOWN_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -227,6 +231,8 @@ class KrakenFeed(LiveFeed):
         self.heading_deg = 0.0  # KrakenSDR's GPS heading field
         self._moving_since: float | None = None
         self.skipped_no_time = 0
+        self._shown_since: float | None = None  # autopilot s the newest frame was written
+        self.held = 0  # frames held back (_hold)
 
     sent_unit = "KrakenSDR lines"
 
@@ -236,7 +242,8 @@ class KrakenFeed(LiveFeed):
     def run(self) -> int:
         rc = super().run()
         self.log(f"feed: KrakenSDR: {self.writer.frames} frames written, {self.skipped_no_time} scans without "
-                 "the autopilot's UTC or heading")
+                 f"the autopilot's UTC or heading, {self.held} held to keep the one before shown "
+                 f"{MIN_SHOWN_S:g} s (the feed fell behind)")
         return rc
 
     def scan(self, T, states, uav, tel: Telemetry):
@@ -277,8 +284,25 @@ class KrakenFeed(LiveFeed):
             return  # no VFO above the squelch: KrakenSDR writes nothing
         every = self.model.overdrive_every
         over = bool(every) and (self.writer.frames + 1) % every == 0
+        self._hold(tel.clock)
         self.writer.write(doc, status_json(epoch, overdrive=over))
+        self._shown_since = tel.clock.now()
         self.sent += doc.count("\n")
+
+    def _hold(self, clock) -> None:
+        """Keep the newest frame the document for ``MIN_SHOWN_S`` before writing the next. A
+        KrakenSDR writes a frame per acquisition and processing, never two at once; this
+        simulator, descheduled past a frame's time (a loaded machine), would write that frame
+        late and the next one, then due too, right after it: the document, which holds the
+        newest frame only, showed the first for 32 ms (measured, branch kflake), too short for
+        a reader polling every 50 ms. The held frame keeps its own time stamp (its measurement's)."""
+        now = clock.now()
+        if self._shown_since is None or now is None:
+            return
+        until = self._shown_since + MIN_SHOWN_S
+        if now < until <= now + MIN_SHOWN_S:  # (a clock gone back, a reboot: not held)
+            self.held += 1
+            _sleep_until(clock, until, self.stop_event)
 
 
 # ----------------------------------------------------------------------------- pmon feed live --df kraken
