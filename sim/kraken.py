@@ -294,8 +294,8 @@ class KrakenFeed(LiveFeed):
         KrakenSDR writes a frame per acquisition and processing, never two at once; this
         simulator, descheduled past a frame's time (a loaded machine), would write that frame
         late and the next one, then due too, right after it: the document, which holds the
-        newest frame only, showed the first for 32 ms (measured, branch kflake), too short for
-        a reader polling every 50 ms. The held frame keeps its own time stamp (its measurement's)."""
+        newest frame only, showed the first for milliseconds, too short for a reader polling
+        every 50 ms. The held frame keeps its own time stamp (its measurement's)."""
         now = clock.now()
         if self._shown_since is None or now is None:
             return

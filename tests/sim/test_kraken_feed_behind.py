@@ -1,6 +1,6 @@
 """The simulated KrakenSDR when its simulator falls behind (the flake of
 tests/firmware/test_kraken_ardupilot.py, branch kflake): the feed process descheduled for 0.3 s
-wrote its overdue frame and the next, due, one 32 ms apart, and the app, reading the document
+wrote its overdue frame and the next, due, one milliseconds apart, and the app, reading the document
 (which holds the newest frame only) every 50 ms, never saw the first: "KrakenSDR frames written
 but not read (a 2.0 s gap)". Each frame must stay the document long enough for a reader to take
 it (``MIN_SHOWN_S``), as each of a KrakenSDR's frames does."""
