@@ -239,6 +239,7 @@ class OnboardApp:
             "accel_limit_mps2": _nan(v.accel_limit_mps2), "accel_plan_mps2": lim.plan[1],
             "launch_phase": -1 if launch_phase is None else launch.PHASES.index(launch_phase.phase),
             **(self.kraken.status() if self.kraken is not None else dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan)),
+            "jerk_limit_mps3": _nan(v.jerk_limit_mps3), "jerk_plan_mps3": lim.plan[2],
         }
 
     # ------------------------------------------------------------------ lifecycle
