@@ -13,7 +13,7 @@ that own their state (each in its module):
   worker           worker.py           snapshot -> tick -> check -> send -> record
   core             monitor_core.py     the core setup and state between ticks
   setpoint stream  setpoint_stream.py  the adopted setpoint, re-sent, fenced as it goes out
-  plan limits      plan_limits.py      the planner's speed against the autopilot's
+  plan limits      plan_limits.py      the planner's speed, acceleration, jerk against the autopilot's
   publisher        publisher.py        HEARTBEAT, STATUSTEXT, PMON_STAT, PMON_TGT
   tick log         tick_log.py         tick records, run log, listeners
   watchdog         watchdog.py         a stuck loop or tick, reported

@@ -46,7 +46,7 @@ class AutopilotEvents(Protocol):
     def on_reboot(self) -> None: ...  # its clock went back
     def on_origin_moved(self, off_m: float) -> None: ...  # a different origin was refused
     def on_clock_jump(self, jump_s: float, now: float | None) -> None: ...  # a jump followed
-    def on_limits(self) -> None: ...  # a speed / acceleration limit was read
+    def on_limits(self) -> None: ...  # a speed / acceleration / jerk limit was read
 
 
 class AutopilotSide:
