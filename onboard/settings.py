@@ -328,7 +328,10 @@ class Planning:
     jerk_max_mps3: float = number(0.0, 0, 100, "m/s^3", "vehicle motion: 0, the acceleration steps at "
                                   "each tick; > 0, it is continuous, changing linearly over each tick by "
                                   "at most this times the tick (what ArduCopter's jerk-limited GUIDED "
-                                  "follows: PSC_JERK_XY, 5 by default)")
+                                  "follows). The app plans with the smaller of this and the autopilot's "
+                                  "own, read at connection (ArduPilot: PSC_JERK_XY, 5 by default, capped "
+                                  "by its attitude loop as AC_PosControl caps it; PX4's OFFBOARD shapes "
+                                  "none: this); 0 stays 0")
     lookahead: Lookahead = section(Lookahead, "the lookahead planner's routes")
 
 

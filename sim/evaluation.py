@@ -41,6 +41,7 @@ Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 import zlib
@@ -238,8 +239,11 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     flown = method.sensing != "fixed" and sc.planning.motion == "vehicle"  # the ceiling: its vehicle's limits
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
-        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
-        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
+        # PX4's OFFBOARD shapes no jerk (onboard/app/autopilot_profiles.py Px4): the scenario's stays
+        jerk = limits.jerk_xy_max() if limits.shaping else math.inf
+        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy, jerk)
+        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2,
+                           "planning.jerk_max_mps3": m.jerk_max_mps3})
     df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
     setup = MonitorSetup.from_scenario(sc)
     if method.planner is not None and method.planner != setup.planner:

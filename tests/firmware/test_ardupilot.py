@@ -21,6 +21,7 @@ import time
 import numpy as np
 import pytest
 
+from onboard.app.mavlink_connection import mavlink
 from sim.ardupilot import skip_reason
 from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
 from sim.tick_account import TickAccount
@@ -137,7 +138,7 @@ def test_estimates_are_within_the_stated_error(flight_a):
 def test_ground_station_on_another_port_sees_estimates_params_and_limits(flight_a):
     st = _ok(flight_a["status"], "onboard app: monitoring")
     # the flight policy plans at the autopilot's stock limits, capped at what the airframe flies
-    assert "speed     planned at" in st.stdout and "(autopilot 10 m/s, 2.5 m/s^2)" in st.stdout, st.stdout
+    assert "speed     planned at 9 m/s, 2.5 m/s^2, 5 m/s^3 (autopilot 10 m/s, 2.5 m/s^2, 5 m/s^3)" in st.stdout, st.stdout
     assert "WARNING" not in st.stdout, st.stdout
     assert flight_a["gcs_saw_estimates"] == [0, 1, 2, 3]
     _ok(flight_a["param_get"], "PMON_CLUTTER = 1")
@@ -183,6 +184,12 @@ def flight_b(tmp_path_factory):
         rec["start"] = m.gcs("start")
         rec["status"] = m.gcs("status")
         m.sim_sleep(20.0)
+        # the autopilot's jerk tuned down in flight (on the observer's link; ArduPilot tells every
+        # link): the app plans at it from then on
+        link = m.observer.link
+        link.send(link.mav.param_set_encode(1, 1, b"PSC_JERK_XY", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        rec["jerk_told"] = m.wait(lambda o: any(t.endswith(", 2 m/s^3") for t in o.app_texts()), 30, "jerk 2")
+        rec["jerk_status"] = m.gcs("status")
         # the telemetry link drops for 3 s (wall) and comes back
         rec["cut_t"] = m.observer.t
         m.proxy.cut(3.0)
@@ -218,8 +225,20 @@ def test_arm_wait_takeoff_wait_and_start_each_succeed_once(flight_b):
     _ok(flight_b["takeoff"], "at 40 m after")
     _ok(flight_b["start"], "app monitoring")
     st = _ok(flight_b["status"], "onboard app: monitoring")
-    assert "WARNING" not in st.stdout and "(autopilot 20 m/s, 5 m/s^2)" in st.stdout, st.stdout
+    # the demo's PSC_JERK_XY 20 is capped by the attitude loop at 15.3 (AC_PosControl), the plan at 5
+    assert "WARNING" not in st.stdout and "planned at 9 m/s, 2.5 m/s^2, 5 m/s^3 (autopilot 20 m/s, 5 m/s^2, 15.3" \
+        in st.stdout, st.stdout
     _ran_once(m)
+
+
+def test_the_autopilots_jerk_set_in_flight_is_planned_with(flight_b):
+    """PSC_JERK_XY set to 2 m/s^3 on the firmware while monitoring: the app says it plans at 2
+    and the ground station's status shows it (the autopilot's and the plan's)."""
+    m = flight_b["m"]
+    assert flight_b["jerk_told"], m.observer.app_texts()
+    assert "PMON: planning at 9 m/s, 2.5 m/s^2, 2 m/s^3" in m.observer.app_texts()
+    st = _ok(flight_b["jerk_status"], "onboard app: monitoring")
+    assert "planned at 9 m/s, 2.5 m/s^2, 2 m/s^3 (autopilot 20 m/s, 5 m/s^2, 2 m/s^3)" in st.stdout, st.stdout
 
 
 def test_link_loss_stops_commanding_reconnects_and_waits_for_resume(flight_b):

@@ -256,6 +256,24 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         ev.make_config(sc, 1, 5, ["flight@x"])
 
 
+def test_the_evaluation_plans_with_the_autopilots_jerk_as_the_app_does(monkeypatch):
+    """The flight default's jerk: min(the autopilot's, planning.jerk_max_mps3), as the app plans
+    (onboard/policy.py vehicle_motion): ArduCopter's PSC_JERK_XY as its attitude loop caps it
+    (stock 5; the demo's 20 capped at 15.3; 2 set), PX4's OFFBOARD none (the scenario's)."""
+    from onboard.config import load_scenario
+
+    monkeypatch.setitem(ev.AUTOPILOTS, "slowjerk", {"PSC_JERK_XY": 2.0})
+    sc = load_scenario("paper", {"planning.jerk_max_mps3": 8.0, "tracking.particles": 300})
+    want = {"flight": 5.0, "flight@demo": 8.0, "flight@px4": 8.0, "flight@slowjerk": 2.0}
+    cfg = ev.make_config(sc, 1, 5, list(want))
+    for m in cfg.methods:
+        setup, _, _ = ev._setup_for(cfg, m)
+        assert setup.motion.jerk_max_mps3 == want[m.name], m.name
+    steps = load_scenario("paper", {"planning.jerk_max_mps3": 0.0, "tracking.particles": 300})
+    cfg = ev.make_config(steps, 1, 5, ["flight@slowjerk"])
+    assert ev._setup_for(cfg, cfg.methods[0])[0].motion.jerk_max_mps3 == 0.0  # steps stay steps
+
+
 def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits(tmp_path):
     """``ceiling``: no filter runs (RMSE, NEES NaN; no RMSE rows), its path is a vehicle's at the
     flight default's limits from the trial's start, its bound is the evaluation's PCRB of that
