@@ -391,8 +391,6 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
 
     labels = np.full(len(ps), -1) if ps.labels is None else np.asarray(ps.labels).copy()
     labels[labels >= len(previous)] = -1
-    if len(previous) == 1:  # one mode: every particle is its own (a recovered particle, label -1,
-        labels[:] = 0  # would join it anyway), so its centre is the mean and the mean's plan is its
     kept = {}  # previous index -> (share, centre, covariance)
     for m in range(len(previous)):
         sel = labels == m

@@ -456,36 +456,6 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
         np.testing.assert_allclose(modes2[i].plan.law.x_ref, centre[[0, 1, 3, 4]], atol=1e-6)
 
 
-def test_recovered_particles_of_a_one_mode_cloud_are_its_own(paper, model, rng):
-    """tracking.recover's particles carry no side mode (label -1). With one mode they are its
-    own (the nearest of one), so its centre is the weighted mean and the mean's plan is its plan:
-    no second P1 search for the same target in the tick (that re-plan from a centre a hair off
-    the mean, every tick the recovery kept a particle, was the recovery's tick cost)."""
-    from onboard.core import tracking
-    from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.steering import SideMode, _carry_modes
-    setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
-    goal = setup.goals[0]
-    mean = np.array([0.0, 300.0, 0.0, 0.0, -10.0, 0.0])
-    ps = tracking.initialise(mean, np.diag([400.0, 400.0, 1e-10, 1.0, 1.0, 1e-10]), 500, rng)
-    ps = tracking.ParticleSet(ps.particles, ps.log_weights, np.r_[np.zeros(490, int), np.full(10, -1)])
-    m, c = tracking.estimate(ps)
-    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=GuidanceWorkspace(),
-                         with_feedback=True)
-    calls = []
-
-    def planned(*a, **k):
-        calls.append(a)
-        return None
-
-    metric = np.linalg.inv(c[:2, :2])
-    labels, modes, stats, _ = _carry_modes(ps, m, c, plan, (SideMode(plan, np.zeros(1, int)),), plan, planned,
-                                           metric, 1)
-    assert calls == [] and len(modes) == 1 and modes[0].plan is plan
-    np.testing.assert_array_equal(labels, 0)
-    np.testing.assert_allclose(stats[0][0], ps.weights @ ps.particles, rtol=1e-12)
-
-
 def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
     """Plan.shifted (the side-aware tracker's reuse of last tick's plans): the plan one tick on,
     from the state it predicted, with its second control as the law's reference and that
