@@ -10,13 +10,16 @@ autopilot only through MAVLink, the feed only through its own MAVLink link and U
 two busy Python loops (core tick and truth step) then run on two cores instead of sharing one GIL.
 
 The demo waits for the feed's last scan, stops everything (also on Ctrl-C or an error), then
-scores the run log against the truth: a per-target error table and a PNG of the flight.
+scores the run log against the truth: a per-target error table and a PNG of the flight. A launch
+the app aborts (a link loss, a disarm) or gives up ends the demo at once, exit 1, with the app's
+reason: the app flies again only when an operator says so.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import re
 import signal
 import time
 from pathlib import Path
@@ -184,6 +187,7 @@ def _fly(rig, duration: int, console) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     truth_path, run_path = Path(rig.cfg.truth_path), Path(rig.cfg.runlog_path)
+    app_log = _Tail(Path(rig.app.log.name))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                   TextColumn("{task.fields[info]}"), TimeElapsedColumn(), console=console) as prog:
         task = prog.add_task("mission", total=duration, info="taking off")
@@ -191,6 +195,11 @@ def _fly(rig, duration: int, console) -> None:
             time.sleep(0.25)
             if (why := rig.problem()):
                 raise RuntimeError(why.replace(" exited", " exited early"))
+            if (stopped := launch_stopped(app_log.read())):
+                # the app flies again only when an operator says so (onboard/app/launch.py): the
+                # feed, waiting for the arming that starts its world, would wait for ever
+                raise RuntimeError(f"the app's launch stopped ({stopped}); it flies again only when told "
+                                   f"(pmon gcs launch); see {rig.app.log.name}")
             n = max(_count_lines(truth_path) - 1, 0)
             last = _last_json(run_path)
             info = ""
@@ -205,6 +214,34 @@ def _fly(rig, duration: int, console) -> None:
     deadline = time.monotonic() + 5.0
     while last and time.monotonic() < deadline and ((_last_json(run_path) or {}).get("t", -1) < last["t"]):
         time.sleep(0.05)
+
+
+_LAUNCH_STOPPED = re.compile(r"PMON: (.*launch (?:aborted|failed).*)")
+
+
+def launch_stopped(text: str) -> str | None:
+    """The app's line saying its launch sequence ended without a flight (aborted: a link loss, a
+    disarm, the vehicle taken out of the launch's modes; failed: no climb), in ``text`` (log lines)."""
+    m = _LAUNCH_STOPPED.search(text)
+    return m.group(1).strip() if m else None
+
+
+class _Tail:
+    """The lines a growing log gained since the last read (whole lines only)."""
+
+    def __init__(self, path: Path):
+        self.path, self.at = Path(path), 0
+
+    def read(self) -> str:
+        try:
+            with self.path.open("rb") as f:
+                f.seek(self.at)
+                chunk = f.read()
+        except OSError:
+            return ""
+        end = chunk.rfind(b"\n") + 1
+        self.at += end
+        return chunk[:end].decode("utf-8", "replace")
 
 
 def _count_lines(path: Path) -> int:

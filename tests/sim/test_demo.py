@@ -1,6 +1,7 @@
 """`pmon demo` as a user runs it: exits 0, writes the table, the PNG and the logs, and leaves no
 process behind; Ctrl-C stops everything."""
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -75,6 +76,52 @@ def test_demo_ctrl_c_stops_every_process(tmp_path):
     p.send_signal(signal.SIGINT)
     p.wait(timeout=20)
     assert p.returncode in (130, 1)
+    assert _children_gone(out)
+
+
+def _child(pid: int, module: str) -> int | None:
+    """The pid of ``pid``'s child process running ``python -m module`` (Linux /proc)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (stat.parent / "cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == pid and module.encode() in cmd:
+            return int(stat.parent.name)
+    return None
+
+
+@pytest.mark.timeout(90)
+def test_a_launch_the_app_aborts_ends_the_demo_with_its_reason(tmp_path):
+    """The autopilot's link lost before the vehicle flew (the mock autopilot stopped 4.5 s, past
+    the app's 3 s link timeout): the app aborts its launch and flies again only when an operator
+    says so. The demo says why and exits 1 at once; it used to wait for ever for the arming that
+    starts the feed's world (seen at load 8.5: 10 minutes, until stopped by hand)."""
+    out = tmp_path / "d"
+    p = subprocess.Popen([sys.executable, "-m", "onboard.cli", "demo", "--duration", "10", "--out", str(out)],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        mock, deadline = None, time.monotonic() + 40
+        while time.monotonic() < deadline:
+            mock = mock or _child(p.pid, "sim.autopilot")
+            log = out / "app.log"
+            if mock and log.exists() and "PMON: launch" in log.read_text():
+                break  # the launch has begun, the vehicle is not flying yet
+            time.sleep(0.05)
+        assert mock is not None, "no mock autopilot process"
+        os.kill(mock, signal.SIGSTOP)
+        time.sleep(4.5)
+        os.kill(mock, signal.SIGCONT)
+        stdout, _ = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            p.wait(timeout=20)
+    said = " ".join(stdout.split())
+    assert p.returncode == 1, said[-1500:]
+    assert "pmon demo: the app's launch stopped (autopilot link lost" in said and "launch aborted" in said, said[-1500:]
+    assert "pmon gcs launch" in said
     assert _children_gone(out)
 
 
