@@ -210,6 +210,8 @@ class ArduPilot(AutopilotProfile):
         lo, hi = PSC_JERK_XY_RANGE
         if name == "PSC_JERK_XY" and math.isfinite(value) and value > 0.0 and not lo <= value <= hi:
             return f"outside {lo:g}-{hi:g} m/s^3"
+        if name in ("ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX") and value == 0.0:
+            return None  # the firmware's angular acceleration limit off: no cap on the jerk (a setting)
         return super().limit_refusal(name, value)
 
     def jerk_limit(self, values: Mapping[str, float]) -> float | None:

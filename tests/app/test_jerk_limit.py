@@ -138,3 +138,17 @@ def test_plan_limits_plan_at_the_autopilots_jerk_and_say_it():
     limits = PlanLimits(steps, None, side.vehicle, lambda text, *a, **k: said.append((text, None)))
     limits.check()
     assert limits.planner == (9.0, 2.5, 0.0) and said[-1][0] == "planning at 9 m/s, 2.5 m/s^2, acceleration steps"
+
+
+def test_an_angular_acceleration_limit_set_off_lifts_the_cap_and_is_no_refusal():
+    """ATC_ACCEL_R_MAX = 0 is ArduCopter's "no angular acceleration limit" (the cap's is_positive
+    fails): a setting, not a bad value, and the jerk is PSC_JERK_XY uncapped."""
+    side, said, _ = _side()
+    for name, value in (("WPNAV_ACCEL", 250.0), ("PSC_JERK_XY", 8.0), ("ATC_ACCEL_R_MAX", 20000.0),
+                        ("ATC_ACCEL_P_MAX", 110000.0)):
+        side.on_param_value(_param(name, value))
+    assert side.vehicle.jerk_limit_mps3 == pytest.approx(4.625, abs=1e-3)
+    side.on_param_value(_param("ATC_ACCEL_R_MAX", 0.0))
+    assert side.vehicle.jerk_limit_mps3 == 8.0 and said == []
+    side.on_param_value(_param("ATC_ACCEL_P_MAX", -1.0))  # negative is still no value
+    assert side.vehicle.jerk_limit_mps3 == 8.0 and len(said) == 1
