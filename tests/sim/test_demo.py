@@ -45,6 +45,11 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
     assert kinds.count("true_track") == 4 and kinds.count("estimate_track") == 4 and "uav_path" in kinds
     rep = json.loads((out / "report.json").read_text())
     assert rep["scored_ticks"] >= 18 and len(rep["rmse_m"]) == 4
+    # the scored mission is the paper's (pmon eval's): the UAV at h when the world starts, the
+    # app planning from the first scans on (it was 17 of them taken from the ground and the climb)
+    first = json.loads((out / "truth.jsonl").read_text().splitlines()[1])
+    assert first["k"] == 0 and first["uav_enu"][2] >= 39.0, first["uav_enu"]
+    assert rep["launch_ticks"] <= 2 and rep["monitoring_ticks"] >= rep["ticks"] - 2, rep
     assert _children_gone(out)
 
 
