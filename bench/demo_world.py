@@ -13,10 +13,11 @@ a time:
 
 - ``eval``: ``flight@stock`` as ``pmon eval`` flies it: at altitude at s_0 at t = 0;
 - ``demo_limits``: the same with the demo's vehicle (``flight@demo``: DEMO_VEHICLE_PARAMS);
-- ``launch``: ``eval`` with the demo's launch: the first ``--launch`` scans (17 in the demo: arming,
-  take-off, climb) taken from s_0 with the app tracking only (no plan, the vehicle held there),
-  the plans from scan ``--launch`` on;
-- ``demo``: both (the demo's limits and its launch).
+- ``launch``: ``eval`` with the old demo's launch: the first ``--launch`` scans (17 while the feed
+  started its world at the arming: take-off and climb) taken from s_0 with the app tracking only
+  (no plan, the vehicle held there), the plans from scan ``--launch`` on;
+- ``demo``: both (the demo's limits and that launch: the demo as it was; the demo now is
+  ``demo_limits``, its world starting with the UAV at h).
 
 Each variant runs ``--repeats`` draws of the DF's noise and the filter's particles on the same
 world (the same draws for every variant: repeat r uses the evaluation's streams of trial r for
@@ -61,7 +62,7 @@ VARIANTS = {  # name -> (autopilot parameters, launch)
     "launch": ("stock", True),
     "demo": ("demo", True),
 }
-DEMO_LAUNCH_SCANS = 17  # scans a demo takes before the app monitors (all five seeds, sim/demo.py's report)
+DEMO_LAUNCH_SCANS = 17  # scans the demo took before the app monitored, its world started at the arming (seeds 1-5)
 EVAL_SEED = 2024  # pmon eval paper's seed: its UAV starts for --starts
 
 
@@ -107,15 +108,19 @@ def fly(cfg: ev.EvalConfig, method: ev.Method, repeat: int, truth: np.ndarray, s
     return err
 
 
-def replay(sc, run_dir: Path, draws: int = 5) -> list[np.ndarray]:
+def replay(sc, run_dir: Path, draws: int = 5, guidance_s: float | None = None) -> list[np.ndarray]:
     """The demo run's recorded bearings, each from where its UAV was (truth.jsonl), through the
-    core tick of the flight policy, tracking only: errors (K, M) per draw of the filter."""
+    core tick of the flight policy, tracking only: errors (K, M) per draw of the filter.
+    ``guidance_s``: each guidance call's wall-time limit (the app's: PMON_GUID_S / speedup / M,
+    onboard/app/worker.py; None: none, as the evaluation)."""
+    from onboard.core.monitor import MonitorSetup
     from onboard.policy import with_policy
 
-    from onboard.core.monitor import MonitorSetup
     rec = [json.loads(line) for line in open(run_dir / "truth.jsonl") if line.strip()]
     rec = [r for r in rec if "header" not in r]
     setup = MonitorSetup.from_scenario(with_policy(sc, "flight"))
+    if guidance_s is not None:
+        setup = replace(setup, guidance=replace(setup.guidance, max_solve_time_s=guidance_s))
     truth = np.array([r["targets"] for r in rec])
     out = []
     for d in range(draws):
@@ -199,11 +204,13 @@ def main(argv=None) -> int:
         from sim.workers import one_blas_thread, worker_pool
         one_blas_thread()
         with worker_pool(mp.get_context("spawn"), args.workers) as pool:
-            for job, err, wall in pool.imap_unordered(run, jobs):
+            for i, (job, err, wall) in enumerate(pool.imap_unordered(run, jobs), 1):
                 results[job] = err
+                print(f"  {i}/{len(jobs)} {job} {wall:.0f} s", flush=True)
     else:
-        for job in jobs:
-            results[job[:4]] = run(job)[1]
+        for i, job in enumerate(jobs, 1):
+            job, results[job], wall = run(job)
+            print(f"  {i}/{len(jobs)} {job} {wall:.0f} s", flush=True)
     out: dict = {"bench": "demo_world", "seeds": seeds, "repeats": args.repeats, "launch": args.launch,
                  "variants": {}, "demo_runs": {}, "replay": {}, "starts": {}}
     print(f"\nper seed: r (RMSE from {ev.DEFAULT_WINDOW_S:g} s, all targets) mean over draws [min-max]; "
