@@ -10,12 +10,18 @@ import numpy as np
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
+from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
 from onboard.core.setpoint import ramp_end
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
+
+
+def _norms(xy: np.ndarray) -> np.ndarray:
+    """|xy| of planar vectors (C, 2) as (C, 1): np.linalg.norm's values (sqrt(x x + y y)) without
+    its generic path, which costs more than the arithmetic in the route planner's loops."""
+    return np.sqrt(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1])[:, None]
 
 
 @dataclass(frozen=True)
@@ -154,10 +160,10 @@ class UavMotion:
         speed_max_mps (the end acceleration then what gives that speed). Returns (p, v, a) at
         the tick's end."""
         dj = a_new - a
-        n = np.linalg.norm(dj, axis=-1, keepdims=True)
+        n = _norms(dj)
         a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
         _, v_new = ramp_end(v, a, a_end, dt)
-        sp = np.linalg.norm(v_new, axis=-1, keepdims=True)
+        sp = _norms(v_new)
         v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
         a_end = 2.0 * (v_new - v) / dt - a
         disp, _ = ramp_end(v, a, a_end, dt)
@@ -396,29 +402,33 @@ def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion"
     v = np.broadcast_to(np.asarray(v0, float), (C, 2)).copy()
     ramps = motion.jerk_max_mps3 > 0.0
     a = np.broadcast_to(np.zeros(2) if a0 is None else np.asarray(a0, float)[:2], (C, 2)).copy()
-    prog = np.zeros(C)  # arc length along the route reached so far
+    near = np.zeros(C, dtype=int)  # the route sample reached so far (progress, in samples of ds)
     pos, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
     look = vmax * dt
+    window = np.arange(int(2 * look / ds) + 2)[None]
+    lead = int(round(look / ds))
+    # the routes flat, x and y apart: the window's gathers are then 1-D takes (the loop's cost)
+    flat = routes.reshape(-1, 2)
+    rx, ry = np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1])
+    first = idx * S
     for i in range(steps):
         # progress: the route point nearest to p in a window ahead of the last progress
-        lo = np.round(prog / ds).astype(int)
-        win = np.minimum(lo[:, None] + np.arange(int(2 * look / ds) + 2)[None], S - 1)
-        d2 = np.sum((routes[idx[:, None], win] - p[:, None]) ** 2, axis=2)
-        near = win[idx, np.argmin(d2, axis=1)]
-        prog = near * ds
-        carrot = routes[idx, np.minimum(near + int(round(look / ds)), S - 1)]
+        win = first[:, None] + np.minimum(near[:, None] + window, S - 1)
+        dx, dy = rx.take(win) - p[:, :1], ry.take(win) - p[:, 1:]
+        near = win[idx, np.argmin(dx * dx + dy * dy, axis=1)] - first
+        carrot = flat[first + np.minimum(near + lead, S - 1)]
         to = carrot - p
-        dist = np.linalg.norm(to, axis=1, keepdims=True)
+        dist = _norms(to)
         v_des = to / np.maximum(dist, 1e-9) * np.minimum(vmax, dist / dt)
         dv = v_des - v
-        n = np.linalg.norm(dv, axis=1, keepdims=True)
+        n = _norms(dv)
         dv *= np.minimum(1.0, amax * dt / np.maximum(n, 1e-12))
         if ramps:
             p, v, a = motion.step(p, v, a, dv / dt, dt)
             pos[:, i], vel[:, i] = p, v
             continue
         v_new = v + dv
-        sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+        sp = _norms(v_new)
         v_new *= np.minimum(1.0, vmax / np.maximum(sp, 1e-12))
         p = p + 0.5 * (v + v_new) * dt
         v = v_new
@@ -543,19 +553,17 @@ def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: 
     """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos,
     P the target's planar covariance from its particles, propagated with (A, Q) and updated at
     each tick with an ideal bearing to its planned position (EKF form, information times q)."""
-    A, _, Q = planar_model(model)
     w = np.exp(log_weights - logsumexp(log_weights, axis=1, keepdims=True))  # (M, N)
     x = particles[:, :, PLANAR]
     mean = np.einsum("mn,mnd->md", w, x)
     dev = x - mean[:, None]
-    P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)  # (M, 4, 4) predicted covariance at t+1
+    P0 = np.einsum("mn,mni,mnj->ijm", w, dev, dev)  # (4, 4, M) predicted covariance at t+1, components first
     C, H = pos.shape[:2]
-    M = len(P0)
-    P = np.broadcast_to(P0, (C, M, 4, 4)).copy()
-    total = np.zeros((C, M))
+    P = np.broadcast_to(P0[:, :, None], (4, 4, C, len(w))).copy()  # (4, 4, C, M)
+    total = np.zeros(P.shape[2:])
     for i in range(H):
         if i:
-            P = A @ P @ A.T + Q
-        P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
-        total += np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
+            P = predict_planar_components(P, model)
+        P = bearing_update_components(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
+        total += P[0, 0] + P[1, 1]
     return total
