@@ -341,11 +341,11 @@ def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
     return out
 
 
-def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, length: float,
-                   ds: float) -> np.ndarray:
-    """(C, S, 2): for each polyline and side, points every ds metres along it, then along a circle of
-    ``radius`` that starts at its end, tangent to the last leg and turning to the side (+1 left,
-    -1 right), up to ``length``. All routes at once: the polylines are padded with zero legs."""
+def _sample_routes(polys: list[np.ndarray], radius: float, length: float, ds: float) -> np.ndarray:
+    """(2 C, S, 2): for each polyline, points every ds metres along it, then along a circle of
+    ``radius`` that starts at its end, tangent to the last leg, turning left (route 2c) or right
+    (route 2c + 1), up to ``length``. All routes at once: the polylines are padded with zero legs;
+    what both turns share (the polyline's samples, the arc's angles) is computed once."""
     C = len(polys)
     n_seg = np.array([len(pl) - 1 for pl in polys])
     V = int(n_seg.max()) + 1
@@ -358,13 +358,14 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
     cum = np.concatenate([np.zeros((C, 1)), np.cumsum(seg_len, axis=1)], axis=1)
     total = cum[np.arange(C), n_seg]
     s = np.arange(0.0, length + ds, ds)
-    out = np.empty((C, len(s), 2))
     on = s[None, :] <= total[:, None]  # (C, S) along the polyline, else on the circle
     end = poly[np.arange(C), n_seg]
+    # the last leg longer than 1e-9 m (the padding's zero legs come after n_seg): its direction
+    real = (seg_len > 1e-9) & (np.arange(V - 1)[None, :] < n_seg[:, None])
+    last = (V - 2) - np.argmax(real[:, ::-1], axis=1)
     tangent = np.tile([1.0, 0.0], (C, 1))
     for c in np.flatnonzero(total > 1e-9):
-        nz = seg[c, :n_seg[c]][seg_len[c, :n_seg[c]] > 1e-9]
-        tangent[c] = nz[-1] / np.linalg.norm(nz[-1])
+        tangent[c] = seg[c, last[c]] / np.linalg.norm(seg[c, last[c]])
     # on the polyline: the leg each sample falls on (searchsorted along each route's arc length)
     k = np.clip((cum[:, None, :] <= s[None, :, None]).sum(axis=2) - 1, 0, np.maximum(n_seg - 1, 0)[:, None])
     rows = np.arange(C)[:, None]
@@ -372,14 +373,17 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
     along = poly[rows, k] + frac[..., None] * seg[rows, k]
     flat = total <= 1e-9  # a route that is its end point: the circle at once
     along[flat] = end[flat][:, None]
-    normal = sides[:, None] * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    centre = end + radius * normal
     ang = (s[None, :] - total[:, None]) / radius  # arc angle travelled on the circle
-    r0 = -normal  # from the centre to the end point
-    r1 = sides[:, None] * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
-    circle = centre[:, None] + radius * (np.cos(ang)[..., None] * r0[:, None] + np.sin(ang)[..., None] * r1[:, None])
-    out[:] = np.where(on[..., None], along, circle)
-    return out
+    cos, sin = np.cos(ang)[..., None], np.sin(ang)[..., None]
+    out = np.empty((C, 2, len(s), 2))
+    for i, side in enumerate((1.0, -1.0)):
+        normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+        centre = end + radius * normal
+        r0 = -normal  # from the centre to the end point
+        r1 = side * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
+        circle = centre[:, None] + radius * (cos * r0[:, None] + sin * r1[:, None])
+        out[:, i] = np.where(on[..., None], along, circle)
+    return out.reshape(2 * C, len(s), 2)
 
 
 def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
@@ -514,11 +518,10 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     polys = route_polylines(p0, wp, normals, offsets, clearance)
     speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
     length = speed * dt * (H + 2)
-    kept = [pl for pl in polys if pl is not None for _ in (1.0, -1.0)]
+    kept = [pl for pl in polys if pl is not None]
     if not kept:
         return np.zeros((0, 0, 2))
-    sides = np.tile([1.0, -1.0], len(kept) // 2)
-    return _sample_routes(kept, sides, params.loiter_radius_m, length, params.spacing_m)
+    return _sample_routes(kept, params.loiter_radius_m, length, params.spacing_m)
 
 
 def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,
