@@ -12,7 +12,7 @@ from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
-from onboard.core.setpoint import ramp_end
+from onboard.core.setpoint import ramp_displacement, ramp_velocity
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
@@ -162,11 +162,11 @@ class UavMotion:
         dj = a_new - a
         n = _norms(dj)
         a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
-        _, v_new = ramp_end(v, a, a_end, dt)
+        v_new = ramp_velocity(v, a, a_end, dt)
         sp = _norms(v_new)
         v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
         a_end = 2.0 * (v_new - v) / dt - a
-        disp, _ = ramp_end(v, a, a_end, dt)
+        disp = ramp_displacement(v, a, a_end, dt)
         return p + disp, v_new, a_end
 
 
@@ -364,7 +364,8 @@ def _sample_routes(polys: list[np.ndarray], radius: float, length: float, ds: fl
     for c in np.flatnonzero(total > 1e-9):
         tangent[c] = seg[c, last[c]] / np.linalg.norm(seg[c, last[c]])
     # on the polyline: the leg each sample falls on (searchsorted along each route's arc length)
-    k = np.clip((cum[:, None, :] <= s[None, :, None]).sum(axis=2) - 1, 0, np.maximum(n_seg - 1, 0)[:, None])
+    k = np.clip(np.array([np.searchsorted(row, s, side="right") for row in cum]) - 1, 0,
+                np.maximum(n_seg - 1, 0)[:, None])
     rows = np.arange(C)[:, None]
     frac = (s[None, :] - cum[rows, k]) / np.maximum(seg_len[rows, k], 1e-12)
     along = poly[rows, k] + frac[..., None] * seg[rows, k]
