@@ -66,9 +66,13 @@ def plan_setpoint(p_k, v_k, v_next, tick_s: float, offset_s: float = 0.0, a_k=No
     return p + v * d + 0.5 * a0 * d * d + j * d ** 3 / 6.0, v + a0 * d + 0.5 * j * d * d, a0 + j * d
 
 
-def ramp_end(v_k, a_k, a_next, tick_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(displacement, velocity) one tick on, the acceleration changing linearly from ``a_k`` to
-    ``a_next`` over it (the module's continuous acceleration); any broadcastable shapes."""
-    v, a0, a1 = (np.asarray(x, dtype=float) for x in (v_k, a_k, a_next))
+def ramp_displacement(v_k, a_k, a_next, tick_s: float) -> np.ndarray:
+    """Displacement one tick on, the acceleration changing linearly from ``a_k`` to ``a_next``
+    over it (the module's continuous acceleration); arrays of any broadcastable shapes."""
     T = float(tick_s)
-    return v * T + T * T * (a0 / 3.0 + a1 / 6.0), v + 0.5 * (a0 + a1) * T
+    return v_k * T + T * T * (a_k / 3.0 + a_next / 6.0)
+
+
+def ramp_velocity(v_k, a_k, a_next, tick_s: float) -> np.ndarray:
+    """Velocity one tick on, as ``ramp_displacement``."""
+    return v_k + 0.5 * (a_k + a_next) * float(tick_s)
