@@ -2,7 +2,7 @@
 
     python bench/demo_world.py [--seeds 1,2,3,4,5] [--repeats 10] [--launch 17] [--workers 2]
                                [--variants eval,demo_limits,launch,demo] [--runs DIR_PATTERN]
-                               [--starts 0] [--set KEY=VALUE ...]
+                               [--starts 0] [--replay-draws 10] [--replay-guidance-s S] [--set KEY=VALUE ...]
 
 The demo's truth is the feed's (sim/live_feed.py: ``TruthWorld`` drawn from the first stream of
 ``SeedSequence(N).spawn(2)``), which ``simulate_truth`` reproduces to the last digit; its UAV
@@ -25,8 +25,10 @@ the method ``flight``), so the world's difficulty is told from a draw's luck. ``
 also runs ``eval`` from S of the evaluation's random UAV starts (seed 2024's trials 0..S-1, one
 repeat each): whether s_0 is a hard start. ``--runs DIR_PATTERN`` (e.g. '/tmp/before_s{seed}')
 scores the demo runs in those directories (sim/demo.py ``score``) and replays each one's
-recorded bearings, from where the demo's UAV was, through the core tick (tracking only, 5 draws
-of the filter): the filter on the demo's own data, to tell the app from the path.
+recorded bearings, from where the demo's UAV was, through the core tick (tracking only,
+``--replay-draws`` draws of the filter; ``--replay-guidance-s``: with the app's wall-time limit on
+each guidance call): the filter on the demo's own data, to tell the app from the path.
+``--repeats 0`` runs no closed loop (only the replays).
 
 Figures: r = the per-mission RMSE from 10 s over all targets (``pmon eval``'s per-trial figure,
 the demo's "this mission"), and the mean over targets of each target's RMSE from 10 s; per seed,
@@ -177,6 +179,10 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--starts", type=int, default=0, help="also fly 'eval' from this many of the eval's starts")
     ap.add_argument("--runs", help="demo run directories, '{seed}' for the seed: scored and replayed")
+    ap.add_argument("--replay-draws", type=int, default=10, help="--runs: draws of the filter per run")
+    ap.add_argument("--replay-guidance-s", type=float, default=None,
+                    help="--runs: each guidance call's wall-time limit, s (the app's PMON_GUID_S / speedup / "
+                         "targets; default none, as the evaluation)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--check", action="store_true", help="only check fly() against sim.evaluation.run_method")
     add_set_option(ap)
@@ -198,7 +204,7 @@ def main(argv=None) -> int:
           f"scans{set_label(args)}; {len(jobs)} closed loops on {args.workers} worker(s)", flush=True)
     results: dict = {}
     run = functools.partial(_job, sc, n_scans, args.launch)
-    if args.workers > 1:
+    if args.workers > 1 and jobs:
         import multiprocessing as mp
 
         from sim.workers import one_blas_thread, worker_pool
@@ -215,7 +221,7 @@ def main(argv=None) -> int:
                  "variants": {}, "demo_runs": {}, "replay": {}, "starts": {}}
     print(f"\nper seed: r (RMSE from {ev.DEFAULT_WINDOW_S:g} s, all targets) mean over draws [min-max]; "
           "mean per-target RMSE; per target (mean over draws)")
-    for v in variants:
+    for v in variants if args.repeats else ():
         rows = {}
         for s in seeds:
             figs = [figures(results[("s0", s, v, r)], w0) for r in range(args.repeats)]
@@ -243,12 +249,14 @@ def main(argv=None) -> int:
             if not (d / "run.jsonl").exists():
                 continue
             rep = score(d / "run.jsonl", d / "truth.jsonl", sc)
-            figs = [figures(e, w0) for e in replay(sc, d)]
+            figs = [figures(e, w0) for e in replay(sc, d, args.replay_draws, args.replay_guidance_s)]
+            r_ = [round(f[0], 1) for f in figs]
             out["demo_runs"][s] = {"r": rep["mission_rmse_m"], "per_target": rep["rmse_window_m"]}
-            out["replay"][s] = {"r_mean": round(float(np.mean([f[0] for f in figs])), 2),
+            out["replay"][s] = {"r_mean": round(float(np.mean(r_)), 2), "r": r_,
                                 "per_target": np.mean([f[2] for f in figs], axis=0).round(1).tolist()}
             print(f"demo run {d}: r {rep['mission_rmse_m']}, per target {rep['rmse_window_m']}; its bearings "
-                  f"replayed (tracking only, 5 draws): r {out['replay'][s]['r_mean']}, "
+                  f"replayed (tracking only, {args.replay_draws} draws, guidance limit {args.replay_guidance_s} s): "
+                  f"r {out['replay'][s]['r_mean']} (draws {min(r_)}-{max(r_)}), "
                   f"per target {out['replay'][s]['per_target']}")
     print(json.dumps(out))
     return 0
