@@ -44,9 +44,15 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sim.workers import one_blas_thread  # noqa: E402
+
+# before numpy loads BLAS: the side-aware filter amplifies last-bit differences (sim/evaluation.py
+# run_trials), so only one thread gives the same figures in this process as in the workers
+one_blas_thread()
+
+import numpy as np  # noqa: E402
 
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
@@ -74,6 +80,13 @@ def demo_truth(sc, seed: int, n_scans: int) -> tuple[np.ndarray, np.ndarray]:
     its truth world is drawn from the first of ``SeedSequence(seed).spawn(2)``."""
     truth_seq, _ = np.random.SeedSequence(seed).spawn(2)
     return simulate_truth(sc, n_scans - 1, np.random.default_rng(truth_seq), with_gains=True)
+
+
+def wall_stops(truth: np.ndarray) -> list[tuple[int, str]]:
+    """(scan k, target) where the truth held a target at an obstacle with zero velocity (sim/truth.py:
+    every noise draw and the noise-free step entered it)."""
+    K, M = truth.shape[:2]
+    return [(k, f"T{j + 1}") for k in range(1, K) for j in range(M) if not np.any(truth[k, j, 3:6])]
 
 
 def fly(cfg: ev.EvalConfig, method: ev.Method, repeat: int, truth: np.ndarray, start: np.ndarray,
@@ -200,6 +213,8 @@ def main(argv=None) -> int:
         ap.error(f"unknown variant {unknown[0]!r} (one of {', '.join(VARIANTS)})")
     jobs = [("s0", s, v, r) for s in seeds for v in variants for r in range(args.repeats)]
     jobs += [("start", s, "eval", r) for s in seeds for r in range(args.starts)]
+    for s in seeds:
+        print(f"seed {s}'s world: wall stops (scan, target) {wall_stops(demo_truth(sc, s, n_scans)[0])}")
     print(f"demo worlds {seeds}, {args.repeats} draws each, variants {', '.join(variants)}, launch {args.launch} "
           f"scans{set_label(args)}; {len(jobs)} closed loops on {args.workers} worker(s)", flush=True)
     results: dict = {}
@@ -207,8 +222,7 @@ def main(argv=None) -> int:
     if args.workers > 1 and jobs:
         import multiprocessing as mp
 
-        from sim.workers import one_blas_thread, worker_pool
-        one_blas_thread()
+        from sim.workers import worker_pool
         with worker_pool(mp.get_context("spawn"), args.workers) as pool:
             for i, (job, err, wall) in enumerate(pool.imap_unordered(run, jobs), 1):
                 results[job] = err
