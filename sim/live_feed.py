@@ -245,9 +245,8 @@ def ready_to_scan(start: str, armed: bool, pose, altitude_m: float) -> bool:
     "armed", the vehicle armed; for "altitude", also within AT_ALTITUDE_M of ``altitude_m`` (ENU
     m), the app's own test of a take-off's end (onboard/app/launch.py), so the world starts with
     the UAV at h as the paper's mission does. The app starts monitoring only with DF data, so the
-    feed cannot wait for the monitoring itself."""
-    if start not in START_MODES:
-        raise ValueError(f"start must be one of {', '.join(START_MODES)}, got {start!r}")
+    feed cannot wait for the monitoring itself. ``start`` is one of START_MODES (LiveFeedConfig
+    checks it)."""
     if pose is None:
         return False
     if start == "now":
