@@ -127,15 +127,13 @@ class AssignmentQP:
     def _start_terms(self, x0, goal, speed_bound):
         """What depends only on the start, goal and speed bound (the same for every QP of one
         plan, so kept for the last start): p1, the fixed rows' bounds, the cost vector f and
-        its whitened form Rinv^T f, and the fixed rows' bounds as ``solve`` tests them (widened by
-        TOL) and hands them to DAQP (infinite ones as +-1e30)."""
+        its whitened form Rinv^T f."""
         key = (x0.tobytes(), goal.tobytes(), speed_bound.tobytes())
         cached = self._start  # (key, terms), replaced in one assignment
         if cached is not None and cached[0] == key:
             return cached[1]
         p1, lo, hi, f = self._fixed_bounds(x0, goal, speed_bound)
-        terms = (p1, lo, hi, f, self.Rinv.T @ f, lo - self.TOL, hi + self.TOL,
-                 np.where(np.isfinite(lo), lo, -1e30), np.where(np.isfinite(hi), hi, 1e30))
+        terms = (p1, lo, hi, f, self.Rinv.T @ f)
         self._start = (key, terms)
         return terms
 
@@ -149,24 +147,17 @@ class AssignmentQP:
         hi = np.concatenate([(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1)])
         return p1, lo, hi, self._cost_of(Wc)
 
-    def _obstacle_terms(self, goal, coef, rhs):
-        """The obstacle rows present (finite rhs) in sparse form: their index (k, s, end),
-        coefficients (Ro, 2) on the columns 2j, 2j + 1 of y, and lower bounds (Ro,) (the upper
-        ones are infinite)."""
+    def _bounds(self, x0, goal, speed_bound, coef, rhs):
+        """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
+        p1, lower, upper (R,), obstacle index (k, s, end), coefficients (Ro, 2) on columns 2j, 2j+1."""
+        p1, lo_fixed, hi_fixed, _, _ = self._start_terms(x0, goal, speed_bound)
         # obstacle rows: coef . p_tau >= rhs for segment s (1..T-1) and end tau = s, s+1; p_1 fixed
         k_i, s_i, e_i = np.nonzero(np.isfinite(rhs))
         c = coef[k_i, s_i, e_i]
         j = s_i + e_i - 1  # column pair of p_tau, tau = s_i + 1 + e_i (y holds p_2..p_(T+1))
-        return (k_i, s_i, e_i), c, j, (rhs[k_i, s_i, e_i] - c @ goal) / self.L
-
-    def _bounds(self, x0, goal, speed_bound, coef, rhs):
-        """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
-        p1, lower, upper (R,), obstacle index (k, s, end), coefficients (Ro, 2) on columns 2j, 2j+1."""
-        p1, lo_fixed, hi_fixed = self._start_terms(x0, goal, speed_bound)[:3]
-        obs_index, c, j, lo_obs = self._obstacle_terms(goal, coef, rhs)
-        lo = np.concatenate([lo_fixed, lo_obs])
-        hi = np.concatenate([hi_fixed, np.full(len(lo_obs), np.inf)])
-        return p1, lo, hi, obs_index, c, j
+        lo = np.concatenate([lo_fixed, (rhs[k_i, s_i, e_i] - c @ goal) / self.L])
+        hi = np.concatenate([hi_fixed, np.full(len(k_i), np.inf)])
+        return p1, lo, hi, (k_i, s_i, e_i), c, j
 
     @staticmethod
     def _obstacle_rows(c: np.ndarray, j: np.ndarray, basis: np.ndarray) -> np.ndarray:
@@ -184,62 +175,57 @@ class AssignmentQP:
 
         ``hint``: rows active in a related solve (the previous assignment, or last tick's plan
         shifted), the first working set. None when the QP is infeasible (hard) or unsolved.
-        The fixed rows (box, speed) and the obstacle rows are kept apart (working sets, bounds,
-        multipliers) and meet only in DAQP's rows, fixed rows first.
         """
         T, L = self.T, self.L
         self.n_solves += 1
-        p1, _, _, f, fw, lo_f_tol, hi_f_tol, lo_f_daqp, hi_f_daqp = self._start_terms(x0, goal, speed_bound)
-        obs_index, c, j, lo_o = self._obstacle_terms(goal, coef, rhs)
-        c0, c1, col = c[:, 0], c[:, 1], 2 * j  # an obstacle row is c0 y[col] + c1 y[col + 1] >= lo_o
-        lo_o_tol, lo_o_daqp = lo_o - self.TOL, np.where(np.isfinite(lo_o), lo_o, -1e30)
+        p1, lo, hi, obs_index, c, j = self._bounds(x0, goal, speed_bound, coef, rhs)
+        c0, c1, col = c[:, 0], c[:, 1], 2 * j  # an obstacle row is c0 y[col] + c1 y[col + 1]
+        n_fixed = len(self.A_fixed)
+        _, _, _, f, fw = self._start_terms(x0, goal, speed_bound)  # min 1/2 |w|^2 + fw . w
+        work = np.zeros(len(lo), dtype=bool)
         if hint is not None:
-            work_f, work_o = hint.fixed.copy(), hint.obstacles[obs_index]
-        else:
-            work_f, work_o = np.zeros(len(self.A_fixed), dtype=bool), np.zeros(len(lo_o), dtype=bool)
-        w = -fw if not (work_f.any() or work_o.any()) else None
-        lam_f, lam_o = np.zeros(len(work_f)), np.zeros(len(lo_o))
+            work[:n_fixed] = hint.fixed
+            work[n_fixed:] = hint.obstacles[obs_index]
+        w = -fw if not work.any() else None
+        lam = np.zeros(len(lo))
+        lo_tol, hi_tol = lo - self.TOL, hi + self.TOL
+        lo_daqp, hi_daqp = np.where(np.isfinite(lo), lo, -1e30), np.where(np.isfinite(hi), hi, 1e30)
         for _ in range(self.MAX_ROUNDS):
             if w is not None:
                 y = self.Rinv @ w
-                r_f = self.M_fixed @ w
-                new_f = ((r_f < lo_f_tol) | (r_f > hi_f_tol)) & ~work_f
-                new_o = (c0 * y[col] + c1 * y[col + 1] < lo_o_tol) & ~work_o  # never above: no upper bound
-                if not (new_f.any() or new_o.any()):
+                r = np.concatenate([self.M_fixed @ w, c0 * y[col] + c1 * y[col + 1]])
+                new = ((r < lo_tol) | (r > hi_tol)) & ~work
+                if not new.any():
                     break
-                work_f |= new_f
-                work_o |= new_o
-            fi, oi = np.flatnonzero(work_f), np.flatnonzero(work_o)
-            rows = np.vstack([self.M_fixed[fi], self._obstacle_rows(c[oi], j[oi], self.Rinv)])
-            upper = np.concatenate([hi_f_daqp[fi], np.full(len(oi), 1e30)])
-            lower = np.concatenate([lo_f_daqp[fi], lo_o_daqp[oi]])
-            sense = np.repeat(np.array([0, 8], dtype=np.int32), [len(fi), len(oi)]) if soft else None
-            w_new, _, flag, info = daqp.solve(self.I, fw, rows, upper, lower, sense)
+                work |= new
+            idx = np.flatnonzero(work)
+            fixed, obs = idx[idx < n_fixed], idx[idx >= n_fixed] - n_fixed
+            rows = np.vstack([self.M_fixed[fixed], self._obstacle_rows(c[obs], j[obs], self.Rinv)])
+            sense = np.where(idx >= n_fixed, 8, 0).astype(np.int32) if soft else None
+            w_new, _, flag, info = daqp.solve(self.I, fw, rows, hi_daqp[idx], lo_daqp[idx], sense)
             if flag == -1 and not soft:
                 return None  # infeasible: a relaxation already is
             if flag not in (1, 2):
-                _, A, lo, hi = self._rows(x0, goal, speed_bound, coef, rhs)
+                _, A, _, _ = self._rows(x0, goal, speed_bound, coef, rhs)
                 y, lam = self._osqp(f, A, lo, hi)
                 if y is None:
                     return None
-                lam_f, lam_o = lam[:len(lam_f)], lam[len(lam_f):]
                 w = None
                 break
             w = np.asarray(w_new)
-            lam_f[:] = 0.0
-            lam_o[:] = 0.0
-            lam_f[fi], lam_o[oi] = info["lam"][:len(fi)], info["lam"][len(fi):]
+            lam[:] = 0.0
+            lam[idx] = info["lam"]
         if w is not None:
             y = self.Rinv @ w
-        gap = lo_o - (c0 * y[col] + c1 * y[col + 1])
+        gap = lo[n_fixed:] - (c0 * y[col] + c1 * y[col + 1])
         pts = np.vstack([p1, y.reshape(T, 2)]) * L + goal
         violation = L * float(np.max(gap, initial=0.0))
         duals = np.zeros((self.K, T - 1, 2))
-        duals[obs_index] = lam_o
+        duals[obs_index] = lam[n_fixed:]
+        active = lam != 0.0
         obstacles = np.zeros((self.K, T - 1, 2), dtype=bool)
-        obstacles[obs_index] = lam_o != 0.0
-        return QPSolution(pts, duals, violation, ActiveRows(lam_f != 0.0, obstacles), y,
-                          np.concatenate([lam_f, lam_o]))
+        obstacles[obs_index] = active[n_fixed:]
+        return QPSolution(pts, duals, violation, ActiveRows(active[:n_fixed], obstacles), y, lam)
 
     def sensitivity(self, x0: np.ndarray, goal: np.ndarray, speed_bound: np.ndarray, coef: np.ndarray,
                     rhs: np.ndarray, sol: QPSolution) -> np.ndarray:
@@ -270,10 +256,9 @@ class AssignmentQP:
         df, db = np.column_stack(df), np.column_stack(db)
         # Schur complement on the (few) active rows, H's Cholesky factor cached: dy = -H^-1 (df +
         # A_a^T dlam), A_a dy = db. Dependent active rows make S singular: least squares there.
-        # (H and the rows are finite by construction: no check)
-        Hi_df = cho_solve(self.H_chol, df, check_finite=False)
+        Hi_df = cho_solve(self.H_chol, df)
         if len(act):
-            Hi_At = cho_solve(self.H_chol, A_a.T, check_finite=False)
+            Hi_At = cho_solve(self.H_chol, A_a.T)
             S = A_a @ Hi_At
             dlam = np.linalg.lstsq(S, -(db + A_a @ Hi_df), rcond=1e-10)[0]
             d = -(Hi_df + Hi_At @ dlam)
