@@ -164,6 +164,10 @@ def hub_route(m: Mission, rec: Recorder, monitor_s: float, during=None) -> dict:
 
     frame = Frame(m.sc.origin.lat_deg, m.sc.origin.lon_deg, m.sc.origin.alt_m)
     port = free_udp_port()
+    # the hub is stopped by SIGINT below: a process started as a background job inherits SIGINT
+    # ignored, passes it on at exec, and the hub then never stops (as sim/demo.py does, so here)
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     hub = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "hub", "--connect", m.spare_url,
                             "--serve", f"udp:127.0.0.1:{port}", "--json", "--timeout", "20"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -176,7 +180,12 @@ def hub_route(m: Mission, rec: Recorder, monitor_s: float, during=None) -> dict:
     tb1 = m.observer.t
     client.close()
     hub.send_signal(signal.SIGINT)
-    hub_out, hub_err = hub.communicate(timeout=20)
+    try:
+        hub_out, hub_err = hub.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        hub.kill()  # never leave it holding the autopilot's port for the next flight
+        hub.communicate()
+        raise
     summary = json.loads(hub_out.strip().splitlines()[-1])
     errors, per_tick = [], {}
     for j, rows in client.markers.items():
