@@ -164,10 +164,6 @@ def hub_route(m: Mission, rec: Recorder, monitor_s: float, during=None) -> dict:
 
     frame = Frame(m.sc.origin.lat_deg, m.sc.origin.lon_deg, m.sc.origin.alt_m)
     port = free_udp_port()
-    # the hub is stopped by SIGINT below: a process started as a background job inherits SIGINT
-    # ignored, passes it on at exec, and the hub then never stops (as sim/demo.py does, so here)
-    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.default_int_handler)
     hub = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "hub", "--connect", m.spare_url,
                             "--serve", f"udp:127.0.0.1:{port}", "--json", "--timeout", "20"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
