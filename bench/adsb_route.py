@@ -93,6 +93,7 @@ class HubClient:
         self.last_tgt: dict[int, object] = {}
         self.ticks: dict[int, set] = {}
         self.markers: dict[int, list] = {}
+        self.closing = threading.Event()  # no new tick counted: the markers of those counted still come
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -110,12 +111,21 @@ class HubClient:
             t = m.get_type()
             if t == "DEBUG_FLOAT_ARRAY" and m.name == "PMON_TGT" and m.get_srcComponent() == 191:
                 self.last_tgt[m.array_id] = m
-                self.ticks.setdefault(m.array_id, set()).add(round(m.data[13], 3))
+                if not self.closing.is_set():
+                    self.ticks.setdefault(m.array_id, set()).add(round(m.data[13], 3))
             elif t == "ADSB_VEHICLE" and m.emitter_type != A.OA_DB_EMITTER:
                 j = (m.ICAO_address - A.MARKER_BASE) % 16
-                self.markers.setdefault(j, []).append((m, self.last_tgt.get(j)))
+                tgt = self.last_tgt.get(j)
+                if self.closing.is_set() and (tgt is None or round(tgt.data[13], 3) not in self.ticks.get(j, ())):
+                    continue  # made from a tick after the window
+                self.markers.setdefault(j, []).append((m, tgt))
 
-    def close(self):
+    def close(self, grace_s: float = 0.5):
+        """Stop counting ticks, then receive ``grace_s`` (wall s) more for the markers the hub
+        makes from the last ones counted (else a tick counted just before the end has its marker
+        in flight: one tick more than markers, a race of the window's edge, not a lost marker)."""
+        self.closing.set()
+        time.sleep(grace_s)
         self.stop.set()
         self.thread.join(timeout=2)
         self.conn.close()
@@ -166,7 +176,12 @@ def hub_route(m: Mission, rec: Recorder, monitor_s: float, during=None) -> dict:
     tb1 = m.observer.t
     client.close()
     hub.send_signal(signal.SIGINT)
-    hub_out, hub_err = hub.communicate(timeout=20)
+    try:
+        hub_out, hub_err = hub.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        hub.kill()  # never leave it holding the autopilot's port for the next flight
+        hub.communicate()
+        raise
     summary = json.loads(hub_out.strip().splitlines()[-1])
     errors, per_tick = [], {}
     for j, rows in client.markers.items():

@@ -305,7 +305,7 @@ def _route_pursuit_speed(vmax: float = 9.0, accel: float = 2.5) -> list[float]:
     2 km route at v_max 9 m/s, from rest and from 9 m/s: the mean over ticks 20-49 and 5-9."""
     from onboard.core.planning import CandidateGrid, UavMotion, _fly, _sample_route
 
-    motion, grid = UavMotion("vehicle", vmax, accel), CandidateGrid(5.0, 4, 15, 40.0)
+    motion, grid = UavMotion("vehicle", vmax, accel, 0.0), CandidateGrid(5.0, 4, 15, 40.0)
     route = _sample_route(np.array([[0.0, 0.0], [2000.0, 0.0]]), 1.0, 40.0, vmax * 52, 2.0)[None]
     out = []
     for v0, ticks in ((0.0, slice(20, 50)), (vmax, slice(5, 10))):

@@ -9,8 +9,9 @@ trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and pri
 the per-(trial, target) window-mean NEES (the bulk: 2 for a consistent filter, below for a
 conservative one), the five largest per-(trial, target) values (the tails: a filter confidently
 wrong on one trial shows here), the window RMSE, the three (trial, target) pairs with the largest
-shares of the window's squared error (the trials to look at first), and RMSE / PCRB per 10 s of
-the mission and the median of the per-trial ratio (where the bound gap comes from).
+shares of the window's squared error (the trials to look at first), for a UAV method the error
+along and across the lines of sight, near an obstacle and free (``error_split``), and RMSE / PCRB
+per 10 s of the mission and the median of the per-trial ratio (where the bound gap comes from).
 docs/TRACKING.md compares filter settings with it (``--set KEY=VALUE``: a scenario value changed,
 VALUE read as YAML). ``--out DIR`` also writes ``pmon eval``'s files for the same trials
 (per_trial.csv, rmse.csv, results.md; no figures), so one run gives both; a bound-only method
@@ -63,6 +64,8 @@ def figures(cfg, results) -> dict:
             {"trial": int(results[i].trial), "target": f"T{j + 1}", "rmse_m": round(float(np.sqrt(sq[i, j])), 1),
              "share": round(float(sq[i, j] / sq.sum()), 3), "nees": round(float(nees[i, j]), 1)}
             for i, j in zip(*np.unravel_index(np.argsort(sq, axis=None)[::-1][:3], sq.shape))]
+        if all(r.traces[m].uav is not None for r in results):
+            out[m]["error_split"] = error_split(cfg, results, m)
         if all(r.traces[m].bound_m2 is not None for r in results):
             # RMSE / PCRB (as pmon eval forms them) per 10 s of the mission, and per trial
             b_all = np.stack([r.traces[m].bound_m2 for r in results])
@@ -75,6 +78,41 @@ def figures(cfg, results) -> dict:
     return out
 
 
+NEAR_M = 60.0  # a target this close to an obstacle box (m, plan view) counts as rounding it
+
+
+def error_split(cfg, results, m: str) -> dict:
+    """Where a UAV method's window error lies: its RMS along and across each target's line of
+    sight from the UAV (m; along: the range error a bearing cannot see), for the ticks a target
+    is within ``NEAR_M`` of an obstacle (rounding it: the side the filter may not know) and the
+    rest, with each part's share of the squared error and its mean range (m)."""
+    boxes = [(np.asarray(b.center_m[:2], float), np.asarray(b.size_m[:2], float) / 2) for b in cfg.scenario.obstacles]
+    w = slice(cfg.window_start, None)
+    parts = {"near": [], "free": []}
+    for r in results:
+        t = r.truth[w, :, :2]  # (K, M, 2)
+        e = r.traces[m].estimate_xy[w] - t
+        los = t - r.traces[m].uav[w, None, :2]
+        rng_m = np.linalg.norm(los, axis=2)
+        u = los / np.maximum(rng_m, 1e-9)[..., None]
+        along = np.sum(e * u, axis=2)
+        across = e[..., 1] * u[..., 0] - e[..., 0] * u[..., 1]
+        d = np.min([np.linalg.norm(np.maximum(np.abs(t - c) - h, 0.0), axis=2) for c, h in boxes], axis=0) \
+            if boxes else np.full(rng_m.shape, np.inf)
+        for key, sel in (("near", d < NEAR_M), ("free", d >= NEAR_M)):
+            parts[key].append(np.stack([along[sel], across[sel], rng_m[sel]]))
+    total = sum(float(np.sum(np.hstack(v)[:2] ** 2)) for v in parts.values())
+    out = {}
+    for key, v in parts.items():
+        a = np.hstack(v)
+        if a.shape[1]:
+            out[key] = {"share": round(float(np.sum(a[:2] ** 2)) / total, 2), "cells": int(a.shape[1]),
+                        "along_m": round(float(np.sqrt(np.mean(a[0] ** 2))), 1),
+                        "across_m": round(float(np.sqrt(np.mean(a[1] ** 2))), 1),
+                        "range_m": round(float(np.mean(a[2])))}
+    return out
+
+
 def report(res: dict, label: str = "") -> None:
     """Print consistency()'s figures a method a line (and RMSE / bound a line), then the JSON."""
     for name, r in res.items():
@@ -83,6 +121,10 @@ def report(res: dict, label: str = "") -> None:
         worst = ", ".join(f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
                           for p in r["worst_pairs"])
         print(f"{'':{len(head)}s} largest shares of the squared error: {worst}")
+        for key, v in r.get("error_split", {}).items():
+            print(f"{'':{len(head)}s} {key + ' an obstacle' if key == 'near' else 'free':16s} {100 * v['share']:3.0f} % of "
+                  f"the squared error: RMS along the line of sight {v['along_m']} m, across {v['across_m']} m, "
+                  f"mean range {v['range_m']} m ({v['cells']} target-ticks)")
         if "over_bound_by_10s" in r:
             print(f"{'':{len(head)}s} RMSE / bound {r['over_bound']}; per 10 s {r['over_bound_by_10s']}; "
                   f"median over trials {r['over_bound_trial_median']}")

@@ -56,10 +56,11 @@ FLIGHT_FILTERS = {"flight": {}, "flight~free": {"tracking.plan_steering": False,
 def setup_for(sc, case: str) -> MonitorSetup:
     if case in FLIGHT_FILTERS:
         fl = override(with_policy(sc, "flight"), FLIGHT_FILTERS[case])
-        stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL
-        m = vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy)
+        stock = VehicleLimits()  # ArduCopter's stock WPNAV_SPEED, WPNAV_ACCEL, PSC_JERK_XY
+        m = vehicle_motion(fl.planning, stock.speed_xy, stock.accel_xy, stock.jerk_xy_max())
         return MonitorSetup.from_scenario(override(fl, {"planning.speed_max_mps": m.speed_max_mps,
-                                                        "planning.accel_max_mps2": m.accel_max_mps2}))
+                                                        "planning.accel_max_mps2": m.accel_max_mps2,
+                                                        "planning.jerk_max_mps3": m.jerk_max_mps3}))
     planner, motion = case.split("/")
     return MonitorSetup.from_scenario(override(sc, {"planning.planner": planner, "planning.motion": motion}))
 

@@ -11,7 +11,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 
 from groundstation.errors import INTERRUPTED, OK, USAGE, GcsError, UsageError
 
@@ -243,6 +245,10 @@ def _record(gl, duration, path):
 def main(argv: list[str] | None = None) -> int:
     """ground station: status, watch, commands, parameters over MAVLink (pmon gcs --help)"""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if threading.current_thread() is threading.main_thread():
+        # Ctrl-C (and a script's SIGINT) stops hub, watch and record even when started from a shell
+        # that ignores SIGINT: a background job inherits SIG_IGN (as pmon demo and pmon eval do)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         args = parser().parse_args(argv)
     except SystemExit as exc:  # argparse: usage errors are 2, --help is 0

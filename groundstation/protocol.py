@@ -111,7 +111,7 @@ class AppStatus:
     uav_enu: tuple[float, float, float] | None
     warnings: tuple[str, ...] = ()  # conditions that hold now, in words
     launch_phase: str | None = None  # None: no launch sequence running
-    limits: str | None = None  # the planner's speed and acceleration and the autopilot's, in words
+    limits: str | None = None  # the planner's speed, acceleration, jerk and the autopilot's, in words
     # a KrakenSDR input's frames used, lines and frames refused, sets gated; None: no KrakenSDR input
     kraken: tuple[int, int, int] | None = None
 
@@ -132,9 +132,14 @@ class AppStatus:
         phase = _int(d["launch_phase"], -1)
         limits = None
         if math.isfinite(speed_plan):
+            jerk, jerk_plan = d["jerk_limit_mps3"], d["jerk_plan_mps3"]
             accel_text = f", {_fmt(accel_plan)} m/s^2" if math.isfinite(accel_plan) else ""
+            if math.isfinite(accel_plan) and math.isfinite(jerk_plan):  # 0: the plan's acceleration steps
+                accel_text += f", {_fmt(jerk_plan)} m/s^3" if jerk_plan > 0.0 else ", acceleration steps"
+            # the autopilot's jerk where it shapes one (ArduPilot; not PX4's OFFBOARD: NaN)
+            jerk_text = f", {_fmt(jerk)} m/s^3" if math.isfinite(jerk) and jerk > 0.0 else ""
             limits = (f"planned at {_fmt(speed_plan)} m/s{accel_text} (autopilot {_fmt(speed)} m/s, "
-                      f"{_fmt(accel)} m/s^2)")
+                      f"{_fmt(accel)} m/s^2{jerk_text})")
         return AppStatus(app_state_name(d["state"]), d["tick_rate_hz"], _num(d["last_tick_time_s"]),
                          _num(d["tick_ms"]), nxt if all(math.isfinite(v) for v in nxt) else None,
                          _int(d["dgram_accepted"]), _int(d["dgram_rejected"]), _int(d["ticks"]),

@@ -21,6 +21,7 @@ are shown cut to ``SHOW_CHARS``, and every list is bounded by its declaration.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import MISSING, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -85,6 +86,9 @@ def _construct_int(loader: _Loader, node: yaml.ScalarNode):
 
 
 _Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+# YAML 1.1 (PyYAML) reads 1e-9 as a string: its floats need a dot. YAML 1.2 and every user read a number.
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
+                              list("-+0123456789"))
 
 
 def read_yaml(text: str, where: str = "", invalid: str = "not valid YAML") -> Any:

@@ -7,20 +7,22 @@ and so checked as a file is).
 - ``paper``: the scenario as written: the paper's one-step greedy rule on the jump model (what
   ``pmon eval paper`` evaluates as greedy_l1).
 
-The vehicle's speed and acceleration limits are the autopilot's own, read by the app at
-connection (WPNAV_SPEED / WPNAV_ACCEL on ArduPilot), capped by ``planning.speed_max_mps`` and
-``planning.accel_max_mps2`` (what the airframe can fly).
+The vehicle's speed, acceleration and jerk limits are the autopilot's own, read by the app at
+connection (WPNAV_SPEED / WPNAV_ACCEL / PSC_JERK_XY on ArduPilot; PX4's OFFBOARD shapes no jerk),
+capped by ``planning.speed_max_mps``, ``planning.accel_max_mps2`` and ``planning.jerk_max_mps3``
+(what the airframe can fly).
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from onboard.core.planning import UavMotion
 
 POLICIES: dict[str, dict[str, Any]] = {
     "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
-               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5,
-               "tracking.plan_steering": True, "tracking.plan_sides": True},
+               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5, "planning.jerk_max_mps3": 5.0,
+               "tracking.plan_steering": True, "tracking.plan_sides": True, "tracking.recovery_prior": 0.01},
     "paper": {},
 }
 DEFAULT = "flight"
@@ -34,9 +36,14 @@ def with_policy(sc, name: str):
     return override(sc, POLICIES[name], beneath=True)
 
 
-def vehicle_motion(planning, speed_mps: float, accel_mps2: float) -> UavMotion:
+def vehicle_motion(planning, speed_mps: float, accel_mps2: float, jerk_mps3: float = math.inf) -> UavMotion:
     """The vehicle motion the planner plans with: the autopilot's own limits (``speed_mps``,
-    ``accel_mps2``: WPNAV_SPEED, WPNAV_ACCEL in SI), capped by what the airframe flies
-    (``planning.speed_max_mps``, ``planning.accel_max_mps2`` of the scenario with its policy)."""
+    ``accel_mps2``, ``jerk_mps3``: WPNAV_SPEED, WPNAV_ACCEL and the jerk ArduCopter shapes guided
+    targets with, in SI; inf where unknown), capped by what the airframe flies
+    (``planning.speed_max_mps``, ``accel_max_mps2``, ``jerk_max_mps3`` of the scenario with its
+    policy). A ``jerk_max_mps3`` of 0 (the acceleration steps at each tick) stays 0."""
+    jerk = planning.jerk_max_mps3
+    if jerk > 0.0:
+        jerk = min(float(jerk_mps3), jerk)
     return UavMotion("vehicle", min(float(speed_mps), planning.speed_max_mps),
-                     min(float(accel_mps2), planning.accel_max_mps2))
+                     min(float(accel_mps2), planning.accel_max_mps2), jerk)

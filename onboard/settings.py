@@ -286,6 +286,12 @@ class Tracking:
                             "plans per side present (the side-aware filter, the flight policy's)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
+    recovery_prior: float = number(0.0, 0, 0.5, "", "probability per tick that a target left the motion "
+                                   "model's prediction (tracking.Recovery: found again along the bearings); 0: off")
+    recovery_share: float = number(0.02, 0, 1, "", "with recovery_prior: share of the particles drawn along "
+                                   "the bearings each tick")
+    recovery_sigma_m: float = number(50.0, 1, 5000, "m", "with recovery_prior: a target that left the "
+                                     "prediction is N(its mean, its covariance + this^2 I) in the plane")
 
 
 @dataclass(frozen=True)
@@ -319,6 +325,13 @@ class Planning:
                                   "WPNAV_SPEED default)", lo_open=True)
     accel_max_mps2: float = number(2.5, 0, 20, "m/s^2", "vehicle motion: acceleration limit (ArduCopter's "
                                    "WPNAV_ACCEL default)", lo_open=True)
+    jerk_max_mps3: float = number(0.0, 0, 100, "m/s^3", "vehicle motion: 0, the acceleration steps at "
+                                  "each tick; > 0, it is continuous, changing linearly over each tick by "
+                                  "at most this times the tick (what ArduCopter's jerk-limited GUIDED "
+                                  "follows). The app plans with the smaller of this and the autopilot's "
+                                  "own, read at connection (ArduPilot: PSC_JERK_XY, 5 by default, capped "
+                                  "by its attitude loop as AC_PosControl caps it; PX4's OFFBOARD shapes "
+                                  "none: this); 0 stays 0")
     lookahead: Lookahead = section(Lookahead, "the lookahead planner's routes")
 
 

@@ -95,6 +95,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("WPNAV_JERK", 1),
     ParamSpec("PSC_JERK_XY", 5),
     ParamSpec("PSC_JERK_Z", 5),
+    ParamSpec("ATC_ACCEL_R_MAX", 110000),  # cdeg/s^2: with ATC_ACCEL_P_MAX, caps PSC_JERK_XY
+    ParamSpec("ATC_ACCEL_P_MAX", 110000),
     ParamSpec("PILOT_SPEED_UP", 250, INT16),
     ParamSpec("PILOT_SPEED_DN", 0, INT16),
     ParamSpec("PILOT_TKOFF_ALT", 0),

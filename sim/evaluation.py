@@ -41,6 +41,7 @@ Metrics (``summarise``), all on the horizontal position (x, y) in metres:
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 import zlib
@@ -238,8 +239,11 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     flown = method.sensing != "fixed" and sc.planning.motion == "vehicle"  # the ceiling: its vehicle's limits
     limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
     if limits is not None and method.autopilot_limits:
-        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy)
-        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2})
+        # PX4's OFFBOARD shapes no jerk (onboard/app/autopilot_profiles.py Px4): the scenario's stays
+        jerk = limits.jerk_xy_max() if limits.shaping else math.inf
+        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy, jerk)
+        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2,
+                           "planning.jerk_max_mps3": m.jerk_max_mps3})
     df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
     setup = MonitorSetup.from_scenario(sc)
     if method.planner is not None and method.planner != setup.planner:
@@ -263,6 +267,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     ws = GuidanceWorkspace()  # per method and trial: OSQP warm starts never leak between runs
     uav = None if method.sensing == "fixed" else np.asarray(start, float).copy()
     uav_vel = np.zeros(2)  # planar UAV velocity at ``uav`` (vehicle motion); starts in hover
+    ramps = setup.motion.kind == "vehicle" and setup.motion.jerk_max_mps3 > 0.0
+    uav_acc = np.zeros(2) if ramps else None  # the plan's acceleration there (continuous acceleration)
     err, nees, est = np.zeros((K, M)), np.zeros((K, M)), np.zeros((K, M, 2))
     uav_track = None if uav is None else np.zeros((K, 3))
     degenerate, tick_time = 0, 0.0
@@ -277,7 +283,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
         state, res = tick(setup, state, scans, filter_rng, plan_from=None if path is not None else uav,
-                          workspace=ws, uav_velocity=uav_vel, planner_rng=policy_rng)
+                          workspace=ws, uav_velocity=uav_vel, planner_rng=policy_rng, uav_acceleration=uav_acc)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]
@@ -292,7 +298,10 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             ok = p is not None and p.index is not None
             v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
             planned = p.position[:2] if ok else uav[:2]
-            vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=k == 0)
+            vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=k == 0,
+                               a_k=uav_acc)
+            if ramps:  # where the plan's acceleration ended: the next plan's starts there
+                uav_acc = np.zeros(2) if v_next is None else 2.0 * (v_next - uav_vel) / setup.model.dt_s - uav_acc
             uav, uav_vel = enu(vehicle.pos), enu(vehicle.vel)[:2]
             miss[k] = float(np.linalg.norm(uav[:2] - planned))
             plan_speed[k] = 0.0 if v_next is None else float(np.linalg.norm(v_next))

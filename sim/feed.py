@@ -24,7 +24,7 @@ from typing import Callable, Iterator
 
 from onboard.app import datagram as dg
 from onboard.app.pose import Frame
-from sim.live_feed import LiveFeed, LiveFeedConfig, Telemetry, _sleep_until
+from sim.live_feed import START_MODES, LiveFeed, LiveFeedConfig, Telemetry, _sleep_until
 
 
 def read_recording(path: str | Path) -> Iterator[tuple[float, int, list[float]]]:
@@ -140,9 +140,12 @@ def main(argv=None) -> int:
     lv.add_argument("--truth", type=OUT_FILE, help="write the truth JSONL here")
     lv.add_argument("--seed", type=SEED, default=1)
     lv.add_argument("--duration", type=number(1.0, 1e7), help="scans to send (s); default: mission.duration_s")
-    lv.add_argument("--start", choices=("armed", "now"), default="armed",
-                    help="first scan when the vehicle arms (default), or as soon as its clock and "
-                         "position are known")
+    lv.add_argument("--start", choices=START_MODES, default="armed",
+                    help="first scan when the vehicle arms (default), when it is armed and at the mission "
+                         "altitude (altitude: the paper's mission, no take-off), or as soon as its clock "
+                         "and position are known (now)")
+    lv.add_argument("--altitude", type=number(0.0, 1e4), help="--start altitude: the mission altitude h, m "
+                    "(default: the scenario's uav.altitude_m)")
     lv.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file of the autopilot link")
     from sim.kraken import add_feed_arguments
     add_feed_arguments(lv)
@@ -166,7 +169,7 @@ def main(argv=None) -> int:
                 from onboard.app.signing import load_key
                 key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
             cfg = LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed, args.duration, args.start,
-                                 signing_key=key)
+                                 signing_key=key, altitude_m=args.altitude)
             log = lambda s: print(s, flush=True)  # noqa: E731
             writer = None
             if args.df == "kraken":

@@ -36,6 +36,7 @@ from sim.multicopter import Setpoint, Vec3, VehicleLimits, VehicleState, advance
 
 FIRMWARE_HZ = 400.0  # ArduCopter's main loop (SCHED_LOOP_RATE) runs the position controller
 GUID_TIMEOUT_S = 3.0  # GUID_TIMEOUT's default
+RESEND_HZ = 10.0  # the app's setpoint re-send rate (PMON_SP_HZ's default)
 
 
 @dataclass(frozen=True)
@@ -144,7 +145,7 @@ def enu(p_ned) -> np.ndarray:
 
 def fly_plan(state: VehicleState, v_next: Optional[Sequence[float]], altitude_m: float, tick_s: float,
              limits: VehicleLimits = VehicleLimits(), first: bool = False,
-             rate_hz: float = FIRMWARE_HZ) -> VehicleState:
+             rate_hz: float = FIRMWARE_HZ, a_k: Optional[Sequence[float]] = None) -> VehicleState:
     """The vehicle one tick after the app sends the plan's setpoint at the tick (no latency).
 
     The plan starts where the vehicle is, at its velocity (what the app's telemetry says), and
@@ -152,10 +153,22 @@ def fly_plan(state: VehicleState, v_next: Optional[Sequence[float]], altitude_m:
     plan's position + velocity + acceleration (onboard.core.setpoint.plan_setpoint) at
     ``altitude_m``. ``v_next`` None (no admissible move): the same kind of setpoint at rest
     where the vehicle is, which it brakes back to. ``first``: the first setpoint in GUIDED (the
-    controller starts at the vehicle); every later one is of the same sub-mode."""
+    controller starts at the vehicle); every later one is of the same sub-mode. ``a_k`` (ENU,
+    m/s^2): the plan's acceleration at the tick, for a continuous one (None: constant over the
+    tick): its state is sent again every 1 / RESEND_HZ s as the app does (the autopilot carries
+    each message's acceleration on as constant; a constant one needs no re-send here)."""
     here = enu(state.pos)
     if v_next is None:
         pos, vel, acc = here[:2], np.zeros(2), np.zeros(2)
+    elif a_k is not None:
+        v0, v1, a0 = enu(state.vel)[:2], np.asarray(v_next, float)[:2], np.asarray(a_k, float)[:2]
+        sends = []
+        for d in np.arange(0.0, tick_s - 1e-9, 1.0 / RESEND_HZ):
+            pos, vel, acc = plan_setpoint(here[:2], v0, v1, tick_s, float(d), a0)
+            sends.append((float(d), GuidedSetpoint(pos=ned((pos[0], pos[1], altitude_m)), vel=ned((vel[0], vel[1], 0.0)),
+                                                   acc=ned((acc[0], acc[1], 0.0)))))
+        return fly_timeline(state, sends, [tick_s], limits, rate_hz,
+                            submode=None if first else "posvelaccel")[-1]
     else:
         pos, vel, acc = plan_setpoint(here[:2], enu(state.vel)[:2], np.asarray(v_next, float)[:2], tick_s)
     sp = GuidedSetpoint(pos=ned((pos[0], pos[1], altitude_m)), vel=ned((vel[0], vel[1], 0.0)),

@@ -36,6 +36,7 @@ import json
 import math
 import os
 import threading
+import time
 from dataclasses import dataclass
 from functools import partial
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -51,6 +52,12 @@ DOC_NAME = "DOA_value.html"
 STATUS_NAME = "status.json"
 MIN_SPEED_FOR_HEADING = 2.0  # m/s: KrakenSDR takes the GPS course as heading above this ...
 MIN_DURATION_FOR_HEADING = 3.0  # ... held this long (krakensdr_doa MIN_SPEED_/MIN_DURATION_FOR_VALID_HEADING)
+# a feed that fell behind (its process descheduled) holds its next frame until the newest one was
+# the document this long (autopilot s) and, once a reader reads it, was read READS_TO_TAKE times
+# (the app takes a document two equal reads give), holding at most MIN_SHOWN_S: else it wrote the
+# overdue frame and the due one back to back and the app (polling every 50 ms) lost the first
+MIN_SHOWN_S = 0.5
+READS_TO_TAKE = 2
 
 
 @dataclass(frozen=True)
@@ -146,7 +153,10 @@ class _QuietHandler(SimpleHTTPRequestHandler):
         frames = writer.frames if writer is not None else 0
         super().do_GET()
         if writer is not None and self.path.split("?")[0].endswith(DOC_NAME):
-            writer.served = max(writer.served, frames)  # the document of this many frames was read
+            with writer.lock:
+                writer.served = max(writer.served, frames)  # the document of this many frames was read
+                if frames == writer.frames:  # ... and no frame written since this read began
+                    writer.newest_reads += 1
 
 
 class KrakenWriter:
@@ -169,6 +179,8 @@ class KrakenWriter:
             self._thread.start()
         self.frames = 0
         self.served = 0  # frames written when the document was last read over HTTP
+        self.newest_reads = 0  # reads over HTTP of the newest frame's document (begun after it was written)
+        self.lock = threading.Lock()
 
     @property
     def url(self) -> str:
@@ -188,7 +200,9 @@ class KrakenWriter:
         self._doc.write(doc)
         self._doc.truncate()
         self._doc.flush()
-        self.frames += 1
+        with self.lock:
+            self.frames += 1
+            self.newest_reads = 0
 
     def close(self, linger_s: float = 3.0) -> None:
         """Stop serving, once the last frame's document has been read (KrakenSDR keeps serving it:
@@ -227,6 +241,8 @@ class KrakenFeed(LiveFeed):
         self.heading_deg = 0.0  # KrakenSDR's GPS heading field
         self._moving_since: float | None = None
         self.skipped_no_time = 0
+        self._shown_since: float | None = None  # autopilot s the newest frame was written
+        self.held = 0  # frames held back (_hold)
 
     sent_unit = "KrakenSDR lines"
 
@@ -236,7 +252,8 @@ class KrakenFeed(LiveFeed):
     def run(self) -> int:
         rc = super().run()
         self.log(f"feed: KrakenSDR: {self.writer.frames} frames written, {self.skipped_no_time} scans without "
-                 "the autopilot's UTC or heading")
+                 f"the autopilot's UTC or heading, {self.held} held to keep the one before shown "
+                 f"{MIN_SHOWN_S:g} s (the feed fell behind)")
         return rc
 
     def scan(self, T, states, uav, tel: Telemetry):
@@ -277,8 +294,33 @@ class KrakenFeed(LiveFeed):
             return  # no VFO above the squelch: KrakenSDR writes nothing
         every = self.model.overdrive_every
         over = bool(every) and (self.writer.frames + 1) % every == 0
+        self._hold(tel.clock)
         self.writer.write(doc, status_json(epoch, overdrive=over))
+        self._shown_since = tel.clock.now()
         self.sent += doc.count("\n")
+
+    def _hold(self, clock) -> None:
+        """Keep the newest frame the document before writing the next (``MIN_SHOWN_S``,
+        ``READS_TO_TAKE``). A KrakenSDR is a device of its own that writes a frame per acquisition
+        and processing, never two at once; this simulator, descheduled past a frame's time (a
+        loaded machine), would write that frame late and the next one, then due too, right after
+        it, or write a frame just before it was descheduled (its server with it) and the next one
+        as it woke: the document, which holds the newest frame only, was readable for
+        milliseconds, too short for a reader polling every 50 ms. The held frame keeps its own
+        time stamp (its measurement's)."""
+        start = clock.now()
+        w = self.writer
+        readers = w.server is not None and w.served > 0  # someone reads the document over HTTP
+        held = False
+        while self._shown_since is not None and start is not None and not self.stop_event.is_set():
+            now = clock.now()
+            if now is None or now < self._shown_since or now >= start + MIN_SHOWN_S:
+                break  # (a clock gone back, a reboot: not held; nor longer than MIN_SHOWN_S)
+            if now >= self._shown_since + MIN_SHOWN_S and (not readers or w.newest_reads >= READS_TO_TAKE):
+                break
+            held = True
+            time.sleep(0.002)
+        self.held += held
 
 
 # ----------------------------------------------------------------------------- pmon feed live --df kraken

@@ -36,6 +36,7 @@ import numpy as np
 
 from onboard.app import datagram as dg
 from onboard.app.clock import AutopilotClock, UtcMap
+from onboard.app.launch import AT_ALTITUDE_M
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.pose import Frame, PoseHistory, valid_global_position_int
 
@@ -45,6 +46,7 @@ READY_STATES = 5  # truth states computed before the first scan is sent
 LATE_S = 0.25
 FEED_SYSID = 245  # a client of its own, never mistaken for the vehicle or the app
 FEED_COMPID = mavlink.MAV_COMP_ID_USER1
+START_MODES = ("armed", "altitude", "now")  # LiveFeedConfig.start: when the first scan goes out
 
 
 class Telemetry:
@@ -224,11 +226,32 @@ class LiveFeedConfig:
     seed: int = 1
     duration_s: float | None = None  # None: the scenario's mission.duration_s
     # when the first scan goes out: "armed" (the vehicle arms: the scans then last the mission,
-    # however long the autopilot takes to get ready) or "now" (the clock and a position known)
+    # however long the autopilot takes to get ready), "altitude" (armed and within
+    # AT_ALTITUDE_M of the mission altitude ``altitude_m``: the paper's mission, the UAV at h at
+    # t = 0, without the take-off and climb) or "now" (the clock and a position known)
     start: str = "armed"
+    altitude_m: float | None = None  # "altitude": h, ENU m (None: the scenario's uav.altitude_m)
     tlog_path: str | None = None
     ahead: int = 60  # truth states computed ahead of the scans (TruthAhead)
     signing_key: bytes | None = None  # MAVLink 2 signing on the feed's autopilot link
+
+    def __post_init__(self):
+        if self.start not in START_MODES:
+            raise ValueError(f"feed start must be one of {', '.join(START_MODES)}, got {self.start!r}")
+
+
+def ready_to_scan(start: str, armed: bool, pose, altitude_m: float) -> bool:
+    """Whether the first scan may go out (``LiveFeedConfig.start``): a position known and, for
+    "armed", the vehicle armed; for "altitude", also within AT_ALTITUDE_M of ``altitude_m`` (ENU
+    m), the app's own test of a take-off's end (onboard/app/launch.py), so the world starts with
+    the UAV at h as the paper's mission does. The app starts monitoring only with DF data, so the
+    feed cannot wait for the monitoring itself. ``start`` is one of START_MODES (LiveFeedConfig
+    checks it)."""
+    if pose is None:
+        return False
+    if start == "now":
+        return True
+    return armed and (start == "armed" or float(pose.pos[2]) >= altitude_m - AT_ALTITUDE_M)
 
 
 class LiveFeed:
@@ -320,16 +343,18 @@ class LiveFeed:
                 out.close()
 
     def _wait_for_vehicle(self, tel) -> bool:
-        """Until the clock and a position are known (and the vehicle armed, unless --start now);
-        False if stopped first."""
+        """Until the clock and a position are known and the vehicle is as ``start`` asks
+        (``ready_to_scan``); False if stopped first."""
+        h = self.sc.uav.altitude_m if self.cfg.altitude_m is None else self.cfg.altitude_m
         waiting_said = False
         while not self.stop_event.is_set():
-            if tel.clock.now() is not None and tel.poses.latest() is not None and \
-                    (tel.armed or self.cfg.start == "now"):
+            pose = tel.poses.latest()
+            if tel.clock.now() is not None and ready_to_scan(self.cfg.start, tel.armed, pose, h):
                 break
-            if not waiting_said and self.cfg.start == "armed" and tel.sysid is not None:
+            if not waiting_said and self.cfg.start != "now" and tel.sysid is not None:
                 waiting_said = True
-                self.log("feed: waiting for the vehicle to arm (--start now: scan at once)")
+                self.log("feed: waiting for the vehicle to arm" + (f" and reach {h:g} m" if self.cfg.start == "altitude"
+                                                                    else "") + " (--start now: scan at once)")
             time.sleep(0.01)
         return not self.stop_event.is_set()
 

@@ -43,10 +43,10 @@ class Method:
     autopilot: the ArduCopter parameter set (``AUTOPILOTS``) a flown method's copter flies with
     (None: stock). follows: ``ceiling``: the UAV flies the clairvoyant ceiling's path (at the method's
     limits, as the bound-only ``ceiling``), known in advance: no planning; the filter runs on its
-    bearings (what the filter makes of the best path for the bound). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED and
-    WPNAV_ACCEL capped by the scenario's planning.speed_max_mps / accel_max_mps2 (what the
-    airframe flies; ``onboard.policy.vehicle_motion``), as the app does; else with the
-    scenario's values.
+    bearings (what the filter makes of the best path for the bound). autopilot_limits: the planner plans with the autopilot's WPNAV_SPEED,
+    WPNAV_ACCEL and jerk (PSC_JERK_XY, capped as the firmware caps it) capped by the scenario's
+    planning.speed_max_mps / accel_max_mps2 / jerk_max_mps3 (what the airframe flies;
+    ``onboard.policy.vehicle_motion``), as the app does; else with the scenario's values.
     """
 
     name: str

@@ -42,6 +42,8 @@ from typing import Optional
 
 import numpy as np
 
+from onboard.app.autopilot_profiles import arducopter_jerk_xy
+
 Vec3 = tuple[float, float, float]
 Vec2 = tuple[float, float]
 
@@ -83,9 +85,9 @@ class VehicleLimits:
 
     def jerk_xy_max(self) -> float:
         """The horizontal jerk the shaper uses: PSC_JERK_XY, capped as set_max_speed_accel_xy
-        does by the average jerk the attitude loop can give, 0.5 sqrt(accel * g * lean accel)."""
-        cap = 0.5 * math.sqrt(self.accel_xy * GRAVITY * self.lean_accel_max)
-        return min(self.jerk_xy, cap) if self.lean_accel_max > 0.0 else self.jerk_xy
+        does by the average jerk the attitude loop can give (the app's reading of the same
+        parameters: onboard/app/autopilot_profiles.py ``arducopter_jerk_xy``)."""
+        return arducopter_jerk_xy(self.jerk_xy, self.accel_xy, self.lean_accel_max)
 
 
 # PX4 v1.16's stock values of the parameters read (its SITL read back: bench/sitl_response.py)

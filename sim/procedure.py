@@ -417,14 +417,8 @@ class Mission:
         return bool(modes) and app_mode(self.cfg.autopilot)(modes[-1][1])
 
     def follow_errors_m(self) -> list[float]:
-        """How well the vehicle flies the plan: for each monitoring tick that sent a setpoint,
-        the distance (m, horizontal) from its planned point to where the vehicle was at the next
-        tick's scan (the run log's own telemetry; ticks a pilot or a link loss interrupted are
-        left out: the next record must also be a monitoring tick one second on)."""
-        recs = self.run_log()
-        return [math.hypot(b["uav_enu"][0] - a["next"][0], b["uav_enu"][1] - a["next"][1])
-                for a, b in zip(recs, recs[1:])
-                if a["sent"] and a["next"] and b["planned"] and b["uav_enu"] and abs(b["t"] - a["t"] - 1.0) < 1e-6]
+        """How well the vehicle flies the plan (``follow_errors_m`` of the run log)."""
+        return follow_errors_m(self.run_log())
 
     def containment(self) -> dict:
         """The vehicle's reported positions against the area and the obstacles (3D: the UAV may
@@ -463,6 +457,16 @@ class Mission:
         log = (self.out / "autopilot.log").read_text(errors="replace")
         return sum(log.count(s) for s in ("Floating point exception", "Segmentation fault", "abort",
                                           "defect that crashes"))
+
+
+def follow_errors_m(recs: list[dict]) -> list[float]:
+    """How well the vehicle flies the plan: for each monitoring tick (app tick records, in
+    order) that sent a setpoint, the distance (m, horizontal) from its planned point to where
+    the vehicle was at the next tick's scan (the app's own telemetry; ticks a pilot or a link
+    loss interrupted are left out: the next record must also be a monitoring tick one second on)."""
+    return [math.hypot(b["uav_enu"][0] - a["next"][0], b["uav_enu"][1] - a["next"][1])
+            for a, b in zip(recs, recs[1:])
+            if a["sent"] and a["next"] and b["planned"] and b["uav_enu"] and abs(b["t"] - a["t"] - 1.0) < 1e-6]
 
 
 def fly_launch_procedure(m: Mission, monitor_s: float, during: Callable[[Mission, dict], None] | None = None,

@@ -73,7 +73,10 @@ class RigConfig:
     feed: str = "start"  # start (with the rig) | later (Rig.start_feed) | none
     df: str = "datagram"  # the DF: datagram (the feed's UDP datagrams) | kraken (a simulated KrakenSDR)
     multipath: bool = True  # kraken: the DF model's clutter drawn as multipath peaks in its spectrum
-    feed_duration_s: float | None = None  # scans sent (from arming); None: the scenario's mission
+    feed_duration_s: float | None = None  # scans sent (from feed_start); None: the scenario's mission
+    # the feed's first scan (pmon feed live --start): at the arming, or once armed at the mission
+    # altitude (the paper's mission: the UAV at h at t = 0, pmon demo), or "now"
+    feed_start: str = "armed"
     out_dir: str | None = None  # the programs' logs; None: a temporary directory, removed at stop
     runlog_path: str | None = None  # the app's JSONL run log (None: none)
     truth_path: str | None = None  # the feed's truth JSONL (None: none)
@@ -105,6 +108,9 @@ class Rig:
         if cfg.autopilot not in ("mock", "ardupilot", "px4") or cfg.feed not in ("start", "later", "none") \
                 or cfg.df not in ("datagram", "kraken"):
             raise ValueError(f"rig: autopilot {cfg.autopilot!r}, feed {cfg.feed!r}, df {cfg.df!r}")
+        from sim.live_feed import START_MODES
+        if cfg.feed_start not in START_MODES:
+            raise ValueError(f"rig: feed_start {cfg.feed_start!r} (one of {', '.join(START_MODES)})")
         if cfg.df == "kraken" and cfg.feed == "none":
             raise ValueError("rig: df kraken needs the feed (the simulated KrakenSDR)")
         if cfg.in_process and cfg.autopilot != "mock":
@@ -220,7 +226,8 @@ class Rig:
     def start_feed(self):
         """``pmon feed live`` on port 1 to the app's DF port (or, ``df="kraken"``, as a KrakenSDR
         serving its output: started before the app, and this returns it): scans from the moment
-        the vehicle is armed, ``feed_duration_s`` of them. The feed's ``Proc``."""
+        the vehicle is armed (``feed_start``: or armed at h), ``feed_duration_s`` of them. The
+        feed's ``Proc``."""
         from sim.processes import Proc
 
         cfg = self.cfg
@@ -230,7 +237,8 @@ class Rig:
         seed = cfg.seed + 1 if cfg.feed_seed is None else cfg.feed_seed
         duration = cfg.feed_duration_s if cfg.feed_duration_s is not None else self.sc.mission.duration_s
         argv = [sys.executable, "-m", "sim.feed", "live", "--mavlink", self.url(FEED_PORT),
-                "--scenario", cfg.scenario, "--seed", str(seed), "--duration", f"{duration:g}"]
+                "--scenario", cfg.scenario, "--seed", str(seed), "--duration", f"{duration:g}",
+                "--start", cfg.feed_start]
         if cfg.df == "kraken":
             argv += ["--df", "kraken", "--kraken-dir", str(self.out / "kraken"),
                      "--multipath", "on" if cfg.multipath else "off"]

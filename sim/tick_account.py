@@ -92,8 +92,11 @@ class TickAccount:
         """A received setpoint (or a target the autopilot reports holding) is the tick's: its
         point exactly, or, for a planned segment (position + velocity + acceleration, moved on
         by the autopilot itself), the segment's position at that moment within SEGMENT_TOL_M, or
-        at a moment up to HELD_BACK_S before (a target held as sent: PX4)."""
-        if r[0] < p["t"]:
+        at a moment up to HELD_BACK_S before (a target held as sent: PX4). Not before the app
+        sent it (its ``sent_t``, autopilot s): a plan continuous with the last one (it starts at
+        the scan, where the vehicle flying the last one was) is within SEGMENT_TOL_M of the
+        target the autopilot already holds, which is not the tick's setpoint's receipt."""
+        if r[0] < max(p["t"], p.get("sent_t") or p["t"]):
             return False
         seg = p.get("segment")
         if seg is None:
@@ -102,7 +105,7 @@ class TickAccount:
             return False
         for back in HELD_BACK_S:
             d = min(max(r[0] - back - seg["t0"], 0.0), seg["tick_s"])
-            pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d)
+            pos, _, _ = plan_setpoint(seg["p0"][:2], seg["v0"], seg["v1"], seg["tick_s"], d, seg.get("a0"))
             if math.hypot(r[1] - pos[1], r[2] - pos[0]) < SEGMENT_TOL_M:
                 return True
         return False
@@ -156,7 +159,7 @@ class TickAccount:
                 return
             e, n, u = rec["next"]
             p = {"t": t, "start": start, "budget": budget, "e": e, "n": n, "u": u,
-                 "segment": rec.get("segment")}
+                 "segment": rec.get("segment"), "sent_t": rec.get("sent_t")}
             hit = next((r for r in self._rx if self._matches(r, p)), None)
             if hit is not None:
                 self._resolve(p, hit[0])

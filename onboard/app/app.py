@@ -13,7 +13,7 @@ that own their state (each in its module):
   worker           worker.py           snapshot -> tick -> check -> send -> record
   core             monitor_core.py     the core setup and state between ticks
   setpoint stream  setpoint_stream.py  the adopted setpoint, re-sent, fenced as it goes out
-  plan limits      plan_limits.py      the planner's speed against the autopilot's
+  plan limits      plan_limits.py      the planner's speed, acceleration, jerk against the autopilot's
   publisher        publisher.py        HEARTBEAT, STATUSTEXT, PMON_STAT, PMON_TGT
   tick log         tick_log.py         tick records, run log, listeners
   watchdog         watchdog.py         a stuck loop or tick, reported
@@ -239,6 +239,7 @@ class OnboardApp:
             "accel_limit_mps2": _nan(v.accel_limit_mps2), "accel_plan_mps2": lim.plan[1],
             "launch_phase": -1 if launch_phase is None else launch.PHASES.index(launch_phase.phase),
             **(self.kraken.status() if self.kraken is not None else dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan)),
+            "jerk_limit_mps3": _nan(v.jerk_limit_mps3), "jerk_plan_mps3": lim.plan[2],
         }
 
     # ------------------------------------------------------------------ lifecycle

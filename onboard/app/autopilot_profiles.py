@@ -16,9 +16,10 @@ fact the app uses comes from that profile, never from a special case elsewhere:
   on the way (``launch_own_modes``: PX4's take-off, which ends in Hold); a pilot's stop
   (``hold_mode``: ArduCopter's BRAKE, PX4's Hold);
 - the take-off altitude's frame (``takeoff_params``);
-- the parameters that hold the vehicle's speed and acceleration limits (``limit_params``),
-  others checked at connection (``checked_params``, ``param_warning``), and how PARAM_VALUE
-  carries an integer (``param_value``);
+- the parameters that hold the vehicle's speed and acceleration limits (``limit_params``) and
+  the jerk its guided setpoints are shaped with (``jerk_params``, ``jerk_limit``), which values
+  of them are no limit (``limit_refusal``), others checked at connection (``checked_params``,
+  ``param_warning``), and how PARAM_VALUE carries an integer (``param_value``);
 - the pre-arm state (``prearm_ok``) and the texts that say why arming was refused
   (``arming_refusal``);
 - whether it signs MAVLink 2 (``can_sign``).
@@ -43,6 +44,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Mapping
 
 from pymavlink import mavutil
 
@@ -67,6 +69,9 @@ class AutopilotProfile:
     # ((speed parameter, factor to m/s), (acceleration parameter, factor to m/s^2)): the vehicle's
     # horizontal limits for guided position setpoints, read at connection; () where unknown
     limit_params: tuple[tuple[str, float], ...] = ()
+    # the parameters ``jerk_limit`` makes the horizontal jerk of guided setpoints from, read with
+    # ``limit_params``; () where the autopilot shapes none (the planner keeps the scenario's)
+    jerk_params: tuple[str, ...] = ()
     checked_params: tuple[str, ...] = ()  # read at connection; ``param_warning`` judges them
     params_bytewise = False  # PARAM_VALUE carries an integer's bytes in its float (PX4)
     can_sign = True  # MAVLink 2 signing
@@ -156,12 +161,69 @@ class AutopilotProfile:
         """What is unsafe about a ``checked_params`` value for the app's flight (None: fine)."""
         return None
 
+    def limit_refusal(self, name: str, value: float) -> str | None:
+        """Why a ``limit_params`` / ``jerk_params`` value read cannot be planned with (None: it
+        can): NaN, infinite, zero or negative is no limit."""
+        if not math.isfinite(value) or value <= 0.0:
+            return "not a positive number"
+        return None
+
+    def jerk_limit(self, values: Mapping[str, float]) -> float | None:
+        """The horizontal jerk (m/s^3) the autopilot shapes guided position + velocity +
+        acceleration setpoints with, from the ``limit_params`` and ``jerk_params`` values read so
+        far (by name, in the autopilot's units); None: none known, or none applies."""
+        return None
+
+
+GRAVITY_MSS = 9.80665  # ArduPilot's GRAVITY_MSS
+# PSC_JERK_XY values planned with, m/s^3: ArduPilot documents 1-20 (AC_PosControl.cpp @Range);
+# outside a tenth of its lowest and 50 times its highest it is a mis-set parameter, not a tuning
+PSC_JERK_XY_RANGE = (0.1, 1000.0)
+
+
+def arducopter_jerk_xy(jerk_mps3: float, accel_mps2: float, lean_accel_radss: float) -> float:
+    """The horizontal jerk (m/s^3) ArduCopter 4.4 shapes guided targets with (AC_PosControl::
+    set_max_speed_accel_xy, called by ModeGuided::pva_control_start with WPNAV_SPEED and
+    WPNAV_ACCEL): PSC_JERK_XY (``jerk_mps3``) capped by the largest average jerk the attitude
+    loop can give, 0.5 sqrt(accel * g * angular acceleration), the angular acceleration the
+    smaller of ATC_ACCEL_R_MAX and ATC_ACCEL_P_MAX (``lean_accel_radss``; 0: no cap, as the
+    firmware's is_positive). The firmware's other cap, ATC_RATE_R_MAX / ATC_RATE_P_MAX times g,
+    is off at their default 0 and not modelled; both caps apply only with ATC_RATE_FF_ENAB (on by
+    default). sim/multicopter.py's vehicle flies with this one."""
+    if lean_accel_radss > 0.0:
+        return min(jerk_mps3, 0.5 * math.sqrt(accel_mps2 * GRAVITY_MSS * lean_accel_radss))
+    return jerk_mps3
+
 
 class ArduPilot(AutopilotProfile):
     """ArduCopter (flown against its 4.4 SITL firmware)."""
 
     name = "ArduPilot"
     limit_params = (("WPNAV_SPEED", 0.01), ("WPNAV_ACCEL", 0.01))  # cm/s, cm/s^2
+    # GUIDED's position + velocity + acceleration targets (ModeGuided::posvelaccel_control_run ->
+    # AC_PosControl::input_pos_vel_accel_xy -> shape_pos_vel_accel_xy) change their acceleration
+    # at most at the jerk ``arducopter_jerk_xy`` gives: PSC_JERK_XY (m/s^3), ATC_ACCEL_R_MAX and
+    # ATC_ACCEL_P_MAX (cdeg/s^2)
+    jerk_params = ("PSC_JERK_XY", "ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX")
+
+    def limit_refusal(self, name: str, value: float) -> str | None:
+        lo, hi = PSC_JERK_XY_RANGE
+        if name == "PSC_JERK_XY" and math.isfinite(value) and value > 0.0 and not lo <= value <= hi:
+            return f"outside {lo:g}-{hi:g} m/s^3"
+        if name in ("ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX") and value == 0.0:
+            return None  # the firmware's angular acceleration limit off: no cap on the jerk (a setting)
+        return super().limit_refusal(name, value)
+
+    def jerk_limit(self, values: Mapping[str, float]) -> float | None:
+        """PSC_JERK_XY, capped (``arducopter_jerk_xy``) once WPNAV_ACCEL and both ATC_ACCEL_*_MAX
+        are known; None until PSC_JERK_XY is."""
+        jerk = values.get("PSC_JERK_XY")
+        if jerk is None:
+            return None
+        accel, roll, pitch = (values.get(n) for n in ("WPNAV_ACCEL", "ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX"))
+        if accel is None or roll is None or pitch is None:
+            return jerk
+        return arducopter_jerk_xy(jerk, accel * 0.01, math.radians(min(roll, pitch) * 0.01))
 
 
 # PX4's modes by name (px4_custom_mode.h: custom_mode = main << 16 | sub << 24), in the names its
@@ -197,6 +259,11 @@ class Px4(AutopilotProfile):
     hold_mode = "AUTO.LOITER"
     takeoff_altitude_amsl = True
     limit_params = (("MPC_XY_VEL_MAX", 1.0), ("MPC_ACC_HOR", 1.0))  # m/s, m/s^2
+    # no jerk_params: OFFBOARD's setpoints reach the position controller unshaped (v1.16:
+    # mavlink_receiver.cpp handle_message_set_position_target_local_ned publishes them as the
+    # trajectory_setpoint; FlightModeManager::start_flight_task runs no flight task in OFFBOARD;
+    # PositionControl clamps the velocity to MPC_XY_VEL_MAX and the tilt, no jerk). MPC_JERK_AUTO /
+    # MPC_JERK_MAX shape PX4's own auto and manual modes only: the scenario's jerk is planned with
     checked_params = ("COM_OBL_RC_ACT",)
     params_bytewise = True
     can_sign = False  # v1.16: no SETUP_SIGNING, signatures not checked, nothing signed

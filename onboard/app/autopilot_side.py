@@ -46,7 +46,7 @@ class AutopilotEvents(Protocol):
     def on_reboot(self) -> None: ...  # its clock went back
     def on_origin_moved(self, off_m: float) -> None: ...  # a different origin was refused
     def on_clock_jump(self, jump_s: float, now: float | None) -> None: ...  # a jump followed
-    def on_limits(self) -> None: ...  # a speed / acceleration limit was read
+    def on_limits(self) -> None: ...  # a speed / acceleration / jerk limit was read
 
 
 class AutopilotSide:
@@ -89,7 +89,7 @@ class AutopilotSide:
     def request_limits(self) -> None:
         """The limit parameters and the ones the profile checks (``checked_params``)."""
         v = self.vehicle
-        for name in [n for n, _ in v.profile.limit_params] + list(v.profile.checked_params):
+        for name in [n for n, _ in v.profile.limit_params] + [*v.profile.jerk_params, *v.profile.checked_params]:
             self.link.send(self.link.mav.param_request_read_encode(v.sysid, v.compid, name.encode(), -1))
 
     def set_mode(self, name: str) -> None:
@@ -254,9 +254,11 @@ class AutopilotSide:
             self.vehicle.mode_ack = msg.result
 
     def on_param_value(self, msg) -> None:
-        """The autopilot's speed / acceleration limit, read at connection and again whenever it
-        sends one (ArduPilot tells every link when a ground station changes it); a parameter
-        the profile checks is judged and a bad value said (again whenever it changes)."""
+        """The autopilot's speed / acceleration / jerk limits, read at connection and again
+        whenever it sends one (ArduPilot tells every link when a ground station changes it); a
+        value that is no limit (the profile's ``limit_refusal``: NaN, zero, negative, absurd) is
+        said once and not used (the last good one, or none, stays); a parameter the profile
+        checks is judged and a bad value said (again whenever it changes)."""
         profile = self.vehicle.profile
         name, value = param_name(msg.param_id), profile.param_value(msg)
         if name in profile.checked_params:
@@ -264,16 +266,23 @@ class AutopilotSide:
             if warning is not None:
                 self.say(warning, mavlink.MAV_SEVERITY_WARNING, once=f"param:{name}={value:g}")
             return
-        names = profile.limit_params
-        if not names:
+        factors = dict(profile.limit_params)
+        if name not in factors and name not in profile.jerk_params:
             return
-        (speed_name, speed_k), (accel_name, accel_k) = names
-        if not math.isfinite(value) or value <= 0.0 or name not in (speed_name, accel_name):
+        refusal = profile.limit_refusal(name, value)
+        if refusal is not None:
+            self.counters.add("limit_params_refused")
+            self.say(f"autopilot {name} = {value:g} is no limit ({refusal}): not planned with",
+                     mavlink.MAV_SEVERITY_WARNING, once=f"limit:{name}={value:g}")
             return
+        v = self.vehicle
+        v.limit_values[name] = value
+        (speed_name, speed_k), (accel_name, accel_k) = profile.limit_params
         if name == speed_name:
-            self.vehicle.speed_limit_mps = value * speed_k
-        else:
-            self.vehicle.accel_limit_mps2 = value * accel_k
+            v.speed_limit_mps = value * speed_k
+        elif name == accel_name:
+            v.accel_limit_mps2 = value * accel_k
+        v.jerk_limit_mps3 = profile.jerk_limit(v.limit_values)
         self.events.on_limits()
 
     def on_gps_global_origin(self, msg) -> None:

@@ -73,7 +73,7 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
                "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
                "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
                "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase",
-               "kraken_frames", "kraken_rejected", "kraken_gated")
+               "kraken_frames", "kraken_rejected", "kraken_gated", "jerk_limit_mps3", "jerk_plan_mps3")
 # a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
 # empty (confidence, power, overdrive); NaN without one
 KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")

@@ -42,8 +42,9 @@ class MonitorCore:
             return self.setup
         sc = self.params.apply(self.base_scenario)
         if sc.planning.motion == "vehicle" and self.limits.planner is not None:
-            speed, accel = self.limits.planner
-            sc = replace(sc, planning=replace(sc.planning, speed_max_mps=speed, accel_max_mps2=accel))
+            speed, accel, jerk = self.limits.planner
+            sc = replace(sc, planning=replace(sc.planning, speed_max_mps=speed, accel_max_mps2=accel,
+                                              jerk_max_mps3=jerk))
         old = self.setup
         self.setup = MonitorSetup.from_scenario(sc)
         self.scenario = sc

@@ -1,8 +1,8 @@
-"""The planner's speed and acceleration against the autopilot's limits (docs/MAVLINK.md).
+"""The planner's speed, acceleration and jerk against the autopilot's limits (docs/MAVLINK.md).
 
 Vehicle motion (the flight policy): the planner flies at the autopilot's limits, capped by the
-scenario's ``planning.speed_max_mps`` / ``accel_max_mps2`` (what the airframe can fly): a change
-of either rebuilds the core setup (``planner``, read by onboard/app/monitor_core.py), and no plan
+scenario's ``planning.speed_max_mps`` / ``accel_max_mps2`` / ``jerk_max_mps3`` (what the airframe
+can fly; a jerk of 0 stays 0: the acceleration steps): a change of any rebuilds the core setup (``planner``, read by onboard/app/monitor_core.py), and no plan
 is faster than the autopilot flies. The jump model (the paper's policy) asks for its grid's
 rings each tick whatever the autopilot's limit: below it the vehicle lags its setpoints, a
 warning that holds until the limits or PMON_REACH change: PMON_STAT carries it every second
@@ -30,10 +30,11 @@ class PlanLimits:
         self.params = params
         self.vehicle = vehicle
         self.say = say
-        # (speed m/s, accel m/s^2) the vehicle-motion planner flies at; None until the autopilot's
-        # limits are read (the scenario's then)
-        self.planner: tuple[float, float] | None = None
-        self.plan = (math.nan, math.nan)  # (speed m/s, accel m/s^2) the planner assumes (PMON_STAT)
+        # (speed m/s, accel m/s^2, jerk m/s^3) the vehicle-motion planner flies at; None until the
+        # autopilot's limits are read (the scenario's then)
+        self.planner: tuple[float, float, float] | None = None
+        # (speed m/s, accel m/s^2, jerk m/s^3) the planner assumes (PMON_STAT; NaN: none assumed)
+        self.plan = (math.nan, math.nan, math.nan)
         self.warnings = 0  # WARN_* bits that hold now (PMON_STAT)
         self.warning: str | None = None  # the same in words, while it holds
 
@@ -49,11 +50,12 @@ class PlanLimits:
 
     def _plan_at_vehicle_limits(self) -> None:
         v = self.vehicle
-        m = vehicle_motion(self.scenario.planning, v.speed_limit_mps or math.inf, v.accel_limit_mps2 or math.inf)
-        speed, accel = m.speed_max_mps, m.accel_max_mps2
-        if (speed, accel) != self.planner:
-            self.planner = self.plan = (speed, accel)
-            self.say(f"planning at {speed:g} m/s, {accel:g} m/s^2")
+        m = vehicle_motion(self.scenario.planning, v.speed_limit_mps or math.inf, v.accel_limit_mps2 or math.inf,
+                           v.jerk_limit_mps3 or math.inf)
+        planner = (m.speed_max_mps, m.accel_max_mps2, m.jerk_max_mps3)
+        if planner != self.planner:
+            self.planner = self.plan = planner
+            self.say(plan_text(*planner))
         self.warnings, self.warning = 0, None
 
     def _check_jumps(self, speed_name: str) -> None:
@@ -61,7 +63,7 @@ class PlanLimits:
         sc, have = self.scenario, self.vehicle.speed_limit_mps
         reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
         need = reach / sc.dynamics.dt_s
-        self.plan = (need, math.nan)
+        self.plan = (need, math.nan, math.nan)
         short = have is not None and have < need - 1e-6  # not read yet, or enough: no warning
         text = f"{speed_name} {have:g} m/s < {need:g} planned" if short else None
         changed = text != self.warning
@@ -70,3 +72,9 @@ class PlanLimits:
             log.warning("autopilot %s = %g m/s is below the planner's steps (PMON_REACH) = %g m/s: "
                         "the vehicle will lag the setpoints", speed_name, have, need)
             self.say(text, mavlink.MAV_SEVERITY_WARNING)
+
+
+def plan_text(speed_mps: float, accel_mps2: float, jerk_mps3: float) -> str:
+    """What the vehicle-motion planner flies at, in words (a jerk of 0: the acceleration steps)."""
+    jerk = f"{jerk_mps3:g} m/s^3" if jerk_mps3 > 0.0 else "acceleration steps"
+    return f"planning at {speed_mps:g} m/s, {accel_mps2:g} m/s^2, {jerk}"

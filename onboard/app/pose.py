@@ -153,30 +153,48 @@ class PoseHistory:
 
     def at(self, t: float) -> np.ndarray | None:
         """ENU position (3,) at autopilot time t, or None if not covered."""
+        return self._interpolate(t, "pos")
+
+    def velocity_at(self, t: float) -> np.ndarray | None:
+        """ENU velocity (3,) at autopilot time t, interpolated as ``at`` interpolates the position
+        (after the newest sample its velocity, for at most ``max_extrapolation_s``), or None."""
+        return self._interpolate(t, "vel")
+
+    def _interpolate(self, t: float, field: str) -> np.ndarray | None:
+        """``field`` ("pos" or "vel") at t: linear between the samples around it; after the newest,
+        for at most ``max_extrapolation_s``, the position carried on at the newest velocity and
+        the velocity held."""
         with self._lock:
-            if not self._t or t < self._t[0] - 0.05:
+            i = self._index(t)
+            if i is None:
                 return None
-            i = bisect.bisect_left(self._t, t)
             if i == len(self._t):
                 last = self._s[-1]
                 dt = t - last.t
                 if dt > self.max_extrapolation_s:
                     return None
-                return last.pos + last.vel * dt
+                return last.pos + last.vel * dt if field == "pos" else last.vel.copy()
             if i == 0 or self._t[i] == t:
-                return self._s[i].pos.copy()
-            a, b = self._s[i - 1], self._s[i]
-            w = (t - a.t) / (b.t - a.t)
-            return a.pos + w * (b.pos - a.pos)
+                return getattr(self._s[i], field).copy()
+            a, b = getattr(self._s[i - 1], field), getattr(self._s[i], field)
+            w = (t - self._t[i - 1]) / (self._t[i] - self._t[i - 1])
+            return a + w * (b - a)
+
+    def _index(self, t: float) -> int | None:
+        """(under the lock) the first sample at or after t (len: after the newest); None if t is
+        before the oldest (50 ms of slack) or nothing is held."""
+        if not self._t or t < self._t[0] - 0.05:
+            return None
+        return bisect.bisect_left(self._t, t)
 
     def yaw_at(self, t: float) -> float | None:
         """Heading (rad, clockwise from north, (-pi, pi]) at autopilot time t, interpolated the
         short way round between the samples around it; after the newest the newest, for at most
         ``max_extrapolation_s`` (no yaw rate is known); None if not covered or unknown."""
         with self._lock:
-            if not self._t or t < self._t[0] - 0.05:
+            i = self._index(t)
+            if i is None:
                 return None
-            i = bisect.bisect_left(self._t, t)
             if i == len(self._t):
                 last = self._s[-1]
                 return last.yaw if t - last.t <= self.max_extrapolation_s and last.yaw is not None \

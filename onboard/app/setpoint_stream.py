@@ -2,11 +2,13 @@
 
 - The vehicle motion (the flight policy): the plan's state at the moment of sending, position +
   velocity + acceleration (type_mask 3072), from the segment the tick planned
-  (``onboard.core.setpoint.plan_setpoint``). ArduCopter's GUIDED carries such a target on by
-  itself between messages and flies through the planned point at speed; measured on its SITL
-  0.5-0.7 m from the planned point at the next tick, against 16-27 m with the position alone,
-  which it brakes to (bench/sitl_response.py, docs/PLANNING.md). PX4's OFFBOARD takes the same
-  fields as feed-forward.
+  (``onboard.core.setpoint.plan_setpoint``): it starts at the scan the tick answers, where the
+  vehicle was then, and its acceleration at the last segment's end (continuous, ramping over the
+  tick). ArduCopter's GUIDED carries such a target on by itself between messages and flies
+  through the planned point at speed; measured on its SITL 0.21-0.24 m median, 0.44-0.59 m p95
+  from the planned point at the next tick (bench/ardupilot.py, docs/SITL.md), against 16-27 m
+  with the position alone, which it brakes to (bench/sitl_response.py, docs/PLANNING.md).
+  PX4's OFFBOARD takes the same fields as feed-forward.
 - The jump model (the paper's policy): the planned point alone (type_mask 3576), as before.
 
 Frames: the plan is in the mission's ENU frame; the message in LOCAL_NED at the autopilot's
@@ -38,23 +40,30 @@ POS_VEL_ACCEL = 3072  # type_mask: yaw and yaw rate ignored (ArduCopter's PosVel
 @dataclass(frozen=True, eq=False)
 class PlannedSegment:
     """The plan between two ticks: from ``p0`` (ENU m) with velocity ``v0`` at autopilot time
-    ``t0`` to the next planned point with ``v1`` (planar ENU m/s) one tick (``tick_s``) later.
-    The plan is planar: its altitude is ``p0[2]``, the planned point's (h), held throughout."""
+    ``t0`` to the next planned point with ``v1`` (planar ENU m/s) one tick (``tick_s``) later;
+    ``a0`` (planar ENU m/s^2): its acceleration at ``t0``, continuous with the last segment's
+    (onboard/core/setpoint.py), None: constant over the tick. The plan is planar: its altitude
+    is ``p0[2]``, the planned point's (h), held throughout."""
 
     t0: float
     p0: np.ndarray  # (3,)
     v0: np.ndarray  # (2,)
     v1: np.ndarray  # (2,)
     tick_s: float
+    a0: np.ndarray | None = None  # (2,)
 
     def at(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(position, velocity, acceleration), ENU, of the plan at autopilot time ``now``
         (held at the segment's ends outside it: a late tick leaves the target on the planned
         point with its velocity, which the autopilot carries on)."""
         d = min(max(now - self.t0, 0.0), self.tick_s)
-        pos, vel, acc = plan_setpoint(self.p0[:2], self.v0, self.v1, self.tick_s, d)
+        pos, vel, acc = plan_setpoint(self.p0[:2], self.v0, self.v1, self.tick_s, d, self.a0)
         return (np.array([pos[0], pos[1], self.p0[2]]), np.array([vel[0], vel[1], 0.0]),
                 np.array([acc[0], acc[1], 0.0]))
+
+    def end_acceleration(self) -> np.ndarray:
+        """(2,) ENU m/s^2: the plan's acceleration at its end, where the next segment's starts."""
+        return self.at(self.t0 + self.tick_s)[2][:2]
 
 
 def enu_to_ned_vector(v) -> np.ndarray:

@@ -88,7 +88,8 @@ def record(job, res, state: int, sensor_pos, centre, sent, segment) -> dict:
         # the plan to "next" (vehicle motion): what the setpoints sent until the next tick carry
         "segment": None if not sent.sent or segment is None else {
             "t0": segment.t0, "p0": segment.p0.tolist(), "v0": segment.v0.tolist(),
-            "v1": segment.v1.tolist(), "tick_s": segment.tick_s},
+            "v1": segment.v1.tolist(), "tick_s": segment.tick_s,
+            "a0": None if segment.a0 is None else segment.a0.tolist()},
         "sent": sent.sent, "refused": sent.refused, "skipped_before": job.skipped,
         "n_candidates": None if res.planning is None else int(len(res.planning.candidates)),
         "n_admissible": None if res.planning is None else int(res.planning.admissible.sum()),

@@ -26,6 +26,10 @@ class Vehicle:
     mode_seen_local: float = -math.inf
     speed_limit_mps: float | None = None  # horizontal, from its parameters (profile.limit_params)
     accel_limit_mps2: float | None = None
+    jerk_limit_mps3: float | None = None  # of its guided setpoints' shaping (profile.jerk_limit)
+    # the limit_params / jerk_params values read and usable (profile.limit_refusal), by name, in
+    # the autopilot's units
+    limit_values: dict[str, float] = field(default_factory=dict)
     lat_lon_deg: tuple[float, float] | None = None  # last valid GLOBAL_POSITION_INT
     amsl_m: float | None = None
     heading_deg: float | None = None

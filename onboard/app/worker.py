@@ -36,6 +36,9 @@ from onboard.app.tick_schedule import PLAN_RESERVE_S, TickJob
 from onboard.core import monitor
 from onboard.core.monitor import MonitorSetup, Scan
 
+# ArduCopter's GUID_TIMEOUT default (s): a target older than this it no longer carries on
+GUID_TIMEOUT_S = 3.0
+
 log = logging.getLogger("pmon.app")
 FALLBACK_SAY_TICKS = 3  # a target's guidance on a fallback this many ticks in a row is said
 
@@ -49,8 +52,9 @@ class Snapshot:
     planning: bool  # the tick's point is to be sent
     now: float  # autopilot s
     sensor_pos: np.ndarray | None  # ENU m: where the DF was at the scan's time (telemetry)
-    centre: np.ndarray | None  # ENU m: where the vehicle is now (None: no plan this tick)
+    centre: np.ndarray | None  # ENU m: where the plan starts, the vehicle at the scan (None: no plan this tick)
     velocity: np.ndarray  # ENU m/s, planar: its velocity there
+    acceleration: np.ndarray  # ENU m/s^2, planar: the plan's there (the last segment's end; 0 without one)
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,8 @@ class TickWorker:
         scans = self._scans(job, snap)
         setup = self._with_guidance_time(snap.setup, job)
         self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=snap.centre,
-                                         workspace=self.core.workspace, uav_velocity=snap.velocity)
+                                         workspace=self.core.workspace, uav_velocity=snap.velocity,
+                                         uav_acceleration=snap.acceleration)
         reseeded = self.core.reseed_collapsed(setup, res)
         with self.lock:
             self._report(res, reseeded)
@@ -157,10 +162,27 @@ class TickWorker:
             # warm one: ~0.4 s of a 0.9 s budget measured on ArduCopter SITL at the start of
             # monitoring), but its point is sent only while monitoring
             plan = planning or (v.armed and v.airborne())
-            pose = poses.latest()
-            return Snapshot(setup, self.machine.generation, planning, now, poses.at(job.t),
-                            poses.at(now) if plan else None,
-                            pose.vel[:2].copy() if plan and pose is not None else np.zeros(2))
+            # the plan starts from the vehicle's state at the scan (job.t), not at the snapshot:
+            # its next point is then where the vehicle is to be at the next scan, one tick on.
+            # From the state at the snapshot (~0.09 s later on ArduCopter SITL) the plan ran that
+            # much past the next scan: at 8 m/s the copter was 0.6-0.7 m short of every planned
+            # point at it (bench/ardupilot.py, docs/SITL.md)
+            sensor = poses.at(job.t)
+            vel = poses.velocity_at(job.t) if plan else None
+            return Snapshot(setup, self.machine.generation, planning, now, sensor,
+                            sensor if plan else None, vel[:2].copy() if vel is not None else np.zeros(2),
+                            self._plan_acceleration(setup, job.t))
+
+    def _plan_acceleration(self, setup: MonitorSetup, t: float) -> np.ndarray:
+        """(under the lock) The acceleration the plan has at ``t`` with a continuous acceleration
+        (``planning.jerk_max_mps3`` > 0): the last segment's at its end, where the autopilot's
+        target carries it on (a segment ended GUID_TIMEOUT_S before ``t`` or none: 0, the
+        autopilot has stopped, or the vehicle was not in the app's hands)."""
+        seg = self.stream.segment
+        if setup.motion.jerk_max_mps3 <= 0.0 or seg is None or seg.a0 is None \
+                or not -0.5 * seg.tick_s <= t - (seg.t0 + seg.tick_s) <= GUID_TIMEOUT_S:
+            return np.zeros(2)
+        return seg.end_acceleration()
 
     def _scans(self, job: TickJob, snap: Snapshot) -> list[Scan]:
         """The job's bearings as core scans, each channel paired with where the DF was when it
@@ -214,7 +236,7 @@ class TickWorker:
             if self.machine.generation != snap.generation or self.machine.state != State.MONITORING:
                 refused = "state changed during the tick"
             else:
-                segment = _segment(setup, res, snap.now, snap.centre, snap.velocity)
+                segment = _segment(setup, res, job.t, snap.centre, snap.velocity, snap.acceleration)
                 sent, refused = self.stream.adopt(nxt, segment, self.clock.now() or job.t, snap.centre, setup)
         return Sent(sent, refused, t_start, self.mono(), self.clock.now())
 
@@ -269,14 +291,17 @@ def _malloc_trim():
     return fn
 
 
-def _segment(setup: MonitorSetup, res, t0: float, centre, velocity) -> PlannedSegment | None:
+def _segment(setup: MonitorSetup, res, t0: float, centre, velocity, acceleration) -> PlannedSegment | None:
     """The planned segment to the next point, for the vehicle motion (the jump model has none:
-    its point is sent alone). It starts where the vehicle is, in the plane, and at the planned
+    its point is sent alone). It starts at ``t0``, the scan's time, where the vehicle was then
+    (``centre``, at ``velocity``), in the plane, and at the planned
     point's altitude (h): the planner flies at h, so the setpoints hold h, and a vehicle off it
-    (h just changed, a pilot flew it lower) is flown back to it."""
+    (h just changed, a pilot flew it lower) is flown back to it. With a continuous acceleration
+    its acceleration starts at ``acceleration``, the plan's (Snapshot.acceleration)."""
     p = res.planning
     if setup.motion.kind != "vehicle" or p is None or p.index is None or p.velocities is None:
         return None
     start = np.array([centre[0], centre[1], res.next_position[2]], float)
+    a0 = np.asarray(acceleration, float)[:2].copy() if setup.motion.jerk_max_mps3 > 0.0 else None
     return PlannedSegment(t0, start, np.asarray(velocity, float)[:2],
-                          np.asarray(p.velocities[p.index], float)[:2], setup.model.dt_s)
+                          np.asarray(p.velocities[p.index], float)[:2], setup.model.dt_s, a0)

@@ -120,16 +120,14 @@ class FaceGeometry:
     def rows(self, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """QP obstacle rows for an assignment: coef (K, T-1, 2, 2), rhs (K, T-1, 2)."""
         Tm1, K = faces.shape
-        coef = np.zeros((K, Tm1, 2, 2))
-        rhs = np.full((K, Tm1, 2), -np.inf)
-        on = faces >= 0
-        s_idx, k_idx = np.nonzero(on)
-        f = faces[s_idx, k_idx]
-        a = self.normals[k_idx, f]
-        b = self.offsets[k_idx, f]
-        for end in (0, 1):
-            coef[k_idx, s_idx, end] = a
-            rhs[k_idx, s_idx, end] = b
+        f = faces.T  # (K, T-1)
+        on = f >= 0
+        k = np.arange(K)[:, None]
+        face = np.where(on, f, 0)
+        coef = np.where(on[:, :, None, None], self.normals[k, face][:, :, None, :], 0.0)
+        coef = np.broadcast_to(coef, (K, Tm1, 2, 2)).copy()  # the same row at both ends
+        rhs = np.where(on[:, :, None], self.offsets[k, face][:, :, None], -np.inf)
+        rhs = np.broadcast_to(rhs, (K, Tm1, 2)).copy()
         # p_1 is fixed by the current state: no row on it
         coef[:, 0, 0] = 0.0
         rhs[:, 0, 0] = -np.inf

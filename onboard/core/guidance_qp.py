@@ -145,7 +145,7 @@ class AssignmentQP:
         cv = np.einsum("kd,td->tk", self.speed_normals, Vc)
         lo = np.concatenate([(-box - Wc).reshape(-1), np.full(cv.size, -np.inf)])
         hi = np.concatenate([(box - Wc).reshape(-1), (speed_bound[:, None] / L - cv).reshape(-1)])
-        return p1, lo, hi, self._cost_vector(x0, goal)
+        return p1, lo, hi, self._cost_of(Wc)
 
     def _bounds(self, x0, goal, speed_bound, coef, rhs):
         """Bounds of every row (fixed rows, then obstacle rows) and the obstacle rows' sparse form:
@@ -188,11 +188,13 @@ class AssignmentQP:
             work[n_fixed:] = hint.obstacles[obs_index]
         w = -fw if not work.any() else None
         lam = np.zeros(len(lo))
+        lo_tol, hi_tol = lo - self.TOL, hi + self.TOL
+        lo_daqp, hi_daqp = np.where(np.isfinite(lo), lo, -1e30), np.where(np.isfinite(hi), hi, 1e30)
         for _ in range(self.MAX_ROUNDS):
             if w is not None:
                 y = self.Rinv @ w
                 r = np.concatenate([self.M_fixed @ w, c0 * y[col] + c1 * y[col + 1]])
-                new = ((r < lo - self.TOL) | (r > hi + self.TOL)) & ~work
+                new = ((r < lo_tol) | (r > hi_tol)) & ~work
                 if not new.any():
                     break
                 work |= new
@@ -200,8 +202,7 @@ class AssignmentQP:
             fixed, obs = idx[idx < n_fixed], idx[idx >= n_fixed] - n_fixed
             rows = np.vstack([self.M_fixed[fixed], self._obstacle_rows(c[obs], j[obs], self.Rinv)])
             sense = np.where(idx >= n_fixed, 8, 0).astype(np.int32) if soft else None
-            w_new, _, flag, info = daqp.solve(self.I, fw, rows, np.where(np.isfinite(hi[idx]), hi[idx], 1e30),
-                                              np.where(np.isfinite(lo[idx]), lo[idx], -1e30), sense)
+            w_new, _, flag, info = daqp.solve(self.I, fw, rows, hi_daqp[idx], lo_daqp[idx], sense)
             if flag == -1 and not soft:
                 return None  # infeasible: a relaxation already is
             if flag not in (1, 2):
@@ -248,7 +249,7 @@ class AssignmentQP:
             x1 = x0.copy()
             x1[i] += 1.0
             _, lo1, hi1, f1 = self._fixed_bounds(x1, goal, speed_bound)
-            b1 = np.where(lower, lo[act], hi[act])  # the obstacle rows' bounds: those at x0
+            b1 = b0.copy()  # the obstacle rows' bounds: those at x0
             b1[:len(fixed)] = np.where(lower[:len(fixed)], lo1[fixed], hi1[fixed])
             db.append(b1 - b0)
             df.append(f1 - f0)
@@ -266,7 +267,10 @@ class AssignmentQP:
         return d.reshape(self.T, 2, 4) * self.L
 
     def _cost_vector(self, x0, goal):
-        _, _, Wc = self._fixed_terms(x0, goal)
+        return self._cost_of(self._fixed_terms(x0, goal)[2])
+
+    def _cost_of(self, Wc):
+        """The cost vector f from the controls' constant part Wc (T, 2)."""
         return (2.0 * self.params.smooth_weight * self.DW.T @ np.diff(Wc, axis=0)).reshape(-1)
 
     def _osqp(self, f, A, lo, hi):

@@ -77,13 +77,39 @@ def kalman_pseudo_update(P: np.ndarray, target_xy: np.ndarray, sensor_xy: np.nda
     promises unbounded information as the sensor nears the target, which the particle
     pseudo-update (and the real filter) does not see when r is comparable to the target's
     own uncertainty; without this a planner flies onto the targets."""
+    Pc = bearing_update_components(np.moveaxis(P, (-2, -1), (0, 1)), target_xy, sensor_xy, sigma_rad, reduction)
+    return np.moveaxis(Pc, (0, 1), (-2, -1))
+
+
+def bearing_update_components(Pc: np.ndarray, target_xy: np.ndarray, sensor_xy: np.ndarray,
+                              sigma_rad: float, reduction: float = 1.0) -> np.ndarray:
+    """``kalman_pseudo_update`` on covariances stored components first, Pc (4, 4, ...): the
+    route planner's hot loop, where each component is then one contiguous array instead of the
+    (..., 4, 4) layout's strided and stacked products (the same values). H = [g, 0, 0] is
+    written out: P H^T is P's first two columns times g."""
     d = np.asarray(target_xy, float)[..., :2] - np.asarray(sensor_xy, float)[..., :2]
-    r2 = np.sum(d * d, axis=-1, keepdims=True) + np.trace(P[..., :2, :2], axis1=-2, axis2=-1)[..., None]
-    g = np.stack([d[..., 1], -d[..., 0]], axis=-1) / r2
-    H = np.concatenate([g, np.zeros_like(g)], axis=-1)  # (..., 4)
-    PH = np.einsum("...ij,...j->...i", P, H)
-    s = np.einsum("...i,...i->...", H, PH) + sigma_rad**2 / max(reduction, 1e-12)
-    return P - PH[..., :, None] * PH[..., None, :] / s[..., None, None]
+    dx, dy = d[..., 0], d[..., 1]
+    r2 = (dx * dx + dy * dy) + (Pc[0, 0] + Pc[1, 1])
+    gx, gy = dy / r2, -dx / r2
+    PH = Pc[:, 0] * gx + Pc[:, 1] * gy  # (4, ...)
+    s = (gx * PH[0] + gy * PH[1]) + sigma_rad**2 / max(reduction, 1e-12)
+    return Pc - PH[:, None] * PH[None, :] / s
+
+
+def predict_planar_components(Pc: np.ndarray, model: MotionModel) -> np.ndarray:
+    """A P A^T + Q on [px, py, vx, vy], P stored components first (4, 4, ...), with the model's
+    A = [[I, dt I], [0, (1 - eps) I]] and diagonal Q written out (the same values as the matrix
+    products, in a few contiguous array operations)."""
+    dt, decay = model.dt_s, 1.0 - model.friction
+    X = np.empty_like(Pc)
+    X[:2] = Pc[:2] + dt * Pc[2:]
+    X[2:] = decay * Pc[2:]
+    Y = np.empty_like(Pc)
+    Y[:, :2] = X[:, :2] + dt * X[:, 2:]
+    Y[:, 2:] = decay * X[:, 2:]
+    for k, q in enumerate(np.diag(model.Q)[PLANAR]):
+        Y[k, k] += q
+    return Y
 
 
 def pcrb(J0: np.ndarray, F: np.ndarray, Q: np.ndarray, info: np.ndarray) -> np.ndarray:

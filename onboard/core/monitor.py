@@ -95,6 +95,7 @@ class MonitorSetup:
     regularise_bandwidth: float  # h of the regularised resampling (tracking.resample_if_needed)
     free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
+    recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
     planner: str  # greedy | lookahead
     lookahead_steps: int
     motion: UavMotion
@@ -123,6 +124,7 @@ class MonitorSetup:
             regularise_bandwidth=sc.tracking.regularise_bandwidth,
             free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
             plan_steering=PlanSteering.from_config(sc.tracking),
+            recovery=tracking.Recovery.from_config(sc.tracking),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -192,11 +194,13 @@ def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState
 def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: np.random.Generator,
          plan_from: np.ndarray | None = None, workspace: GuidanceWorkspace | None = None,
          timer: Callable[[], float] = time.perf_counter, uav_velocity: np.ndarray | None = None,
-         planner_rng: np.random.Generator | None = None) -> tuple[MonitorState, TickResult]:
+         planner_rng: np.random.Generator | None = None, uav_acceleration: np.ndarray | None = None
+         ) -> tuple[MonitorState, TickResult]:
     """Run one tick (the module's steps 1-5). ``plan_from`` (ENU, m): where the UAV is or will be
     at the next tick, where the planner starts from; None skips the UAV planning (e.g. fixed
     sensors). ``uav_velocity`` (ENU, m/s, planar): the UAV's velocity there, for the vehicle
-    motion. ``planner_rng``: the planner's own random stream (the random baseline draws from it;
+    motion; ``uav_acceleration`` (ENU, m/s^2, planar): the plan's acceleration there, for a
+    continuous one (``planning.jerk_max_mps3`` > 0; None: 0). ``planner_rng``: the planner's own random stream (the random baseline draws from it;
     default ``rng``), so a planner's draws never shift the filter's."""
     t0 = timer()
     posts, means, covs, degenerate = _update_and_estimate(setup, state.beliefs, scans, rng)  # 1, 2
@@ -208,7 +212,8 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     planning = None
     if plan_from is not None:  # 5
         vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
-        planning = setup.uav_planner.plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel),
+        acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
+        planning = setup.uav_planner.plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
                                           rng if planner_rng is None else planner_rng)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
@@ -226,10 +231,15 @@ def _update_and_estimate(setup: MonitorSetup, beliefs: Sequence[tracking.Particl
     for j in range(M):
         j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
                     None if s.clutter_rates is None else s.clutter_rates[j]) for s in scans]
-        upd = tracking.update(beliefs[j], j_scans, setup.sensor)
+        prior = beliefs[j]
+        if setup.recovery is not None and j_scans:  # the last scan's bearings propose where a lost target is
+            prior = tracking.recover(prior, j_scans[-1][0], j_scans[-1][1], setup.recovery, setup.sensor.sigma_rad,
+                                     rng)
+        upd = tracking.update(prior, j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
-        means[j], covs[j] = tracking.estimate(upd.particles)
-        posts.append(tracking.resample_if_needed(upd.particles, setup.resample_fraction, rng,
+        post = tracking.trim(upd.particles, len(beliefs[j]))
+        means[j], covs[j] = tracking.estimate(post)
+        posts.append(tracking.resample_if_needed(post, setup.resample_fraction, rng,
                                                  setup.regularise_bandwidth, covs[j]))
     return posts, means, covs, degenerate
 

@@ -40,6 +40,7 @@ class PlanningInputs:
     plans: Sequence[Plan]  # per target, its guidance plan from the posterior mean
     position: np.ndarray  # (3,) ENU m: where the UAV is (or will be at the next tick)
     velocity: np.ndarray  # (2,) ENU m/s: the UAV's planar velocity there (the vehicle motion)
+    acceleration: np.ndarray | None = None  # (2,) ENU m/s^2: the plan's there (continuous acceleration); None: 0
 
     @property
     def particles(self) -> np.ndarray:
@@ -90,7 +91,7 @@ class GreedyPlanner(Planner):
     def plan(self, inputs: PlanningInputs, rng: np.random.Generator) -> PlanningResult:
         return choose_next_position(inputs.particles, inputs.log_weights, inputs.position, self.grid,
                                     self.sigma_rad, self.area.minimum, self.area.maximum, self.area.obstacles,
-                                    self.objective, self.motion, inputs.velocity, self.dt_s)
+                                    self.objective, self.motion, inputs.velocity, self.dt_s, inputs.acceleration)
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,7 +111,8 @@ class LookaheadPlanner(Planner):
         paths = np.stack([p.means[:self.steps] for p in inputs.plans])
         return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
                                 self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
-                                self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params)
+                                self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
+                                acceleration=inputs.acceleration)
 
 
 def _chosen(candidates: np.ndarray, ok: np.ndarray, index: int | None, n_targets: int) -> PlanningResult:

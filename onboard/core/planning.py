@@ -10,11 +10,18 @@ import numpy as np
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import PLANAR, kalman_pseudo_update, planar_model
+from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
+from onboard.core.setpoint import ramp_displacement, ramp_velocity
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
+
+
+def _norms(xy: np.ndarray) -> np.ndarray:
+    """|xy| of planar vectors (C, 2) as (C, 1): np.linalg.norm's values (sqrt(x x + y y)) without
+    its generic path, which costs more than the arithmetic in the route planner's loops."""
+    return np.sqrt(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1])[:, None]
 
 
 @dataclass(frozen=True)
@@ -102,12 +109,13 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center:
                          grid: CandidateGrid, sigma_rad: float, area_min, area_max,
                          uav_obstacles: Obstacles, objective: str = "trace",
                          motion: "UavMotion | None" = None, velocity: np.ndarray | None = None,
-                         dt: float = 1.0) -> PlanningResult:
+                         dt: float = 1.0, acceleration: np.ndarray | None = None) -> PlanningResult:
     """eq:optimization over the admissible next positions around ``center``: the paper's
-    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick."""
+    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick (from
+    ``velocity`` and, continuous acceleration, ``acceleration``)."""
     motion = motion or JUMP
     velocity = np.zeros(2) if velocity is None else velocity
-    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt)
+    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt, acceleration)
     cand = paths[:, 0]
     start = np.array([center[0], center[1], grid.altitude_m])
     ok = admissible(cand, start, area_min, area_max, uav_obstacles)
@@ -129,28 +137,51 @@ class UavMotion:
     ArduCopter's WPNAV_SPEED and WPNAV_ACCEL defaults, the scenario's, reproduce the measured 5.6 s
     for a 20 m step from hover); the next positions are those reached in one tick under a
     constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
+    ``jerk_max_mps3`` > 0: the acceleration is continuous instead, changing linearly over each
+    tick from where the last tick left it to the one asked for, by at most jerk_max_mps3 times
+    the tick (onboard/core/setpoint.py: what ArduCopter's jerk-limited GUIDED follows).
     """
 
     kind: str  # jump | vehicle
     speed_max_mps: float  # vehicle only
     accel_max_mps2: float  # vehicle only
+    jerk_max_mps3: float  # vehicle only; 0: the acceleration steps at each tick
 
     @classmethod
     def from_config(cls, planning) -> "UavMotion":
         """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
-        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2)
+        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2, planning.jerk_max_mps3)
+
+    def step(self, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_new: np.ndarray, dt: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Continuous acceleration (``jerk_max_mps3`` > 0): one tick from position, velocity and
+        acceleration ``a`` (C, 2) asking for the acceleration ``a_new`` (|a_new| <= a_max): it
+        ramps to it over the tick, the change capped at jerk_max_mps3 dt, the end speed at
+        speed_max_mps (the end acceleration then what gives that speed). Returns (p, v, a) at
+        the tick's end."""
+        dj = a_new - a
+        n = _norms(dj)
+        a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
+        v_new = ramp_velocity(v, a, a_end, dt)
+        sp = _norms(v_new)
+        v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
+        a_end = 2.0 * (v_new - v) / dt - a
+        disp = ramp_displacement(v, a, a_end, dt)
+        return p + disp, v_new, a_end
 
 
-JUMP = UavMotion("jump", math.inf, math.inf)  # the paper's motion: no speed or acceleration limit applies
+JUMP = UavMotion("jump", math.inf, math.inf, 0.0)  # the paper's motion: no speed or acceleration limit applies
 
 
 def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
-                     steps: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+                     steps: int, dt: float, acceleration: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Candidate UAV paths over ``steps`` ticks: (C, steps, 3) positions and (C, steps, 2) velocities.
 
     Each candidate repeats one action: jump, the same grid displacement every tick (so the first
     step is the paper's S_(t+1)), plus each displacement once and then staying; vehicle, one
-    constant acceleration, the speed saturating at the limit, plus braking to a stop.
+    constant acceleration, the speed saturating at the limit, plus braking to a stop (with a
+    continuous acceleration, ``motion.jerk_max_mps3`` > 0, ramped to from ``acceleration``, the
+    plan's at the start, ENU m/s^2, default 0).
     """
     p0 = np.asarray(position, float)[:2]
     v0 = np.asarray(velocity, float)[:2]
@@ -176,15 +207,23 @@ def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: Candidate
         p, v = np.broadcast_to(p0, (C, 2)).copy(), np.broadcast_to(v0, (C, 2)).copy()
         is_brake = np.zeros(C, dtype=bool)
         is_brake[-1] = speed0 > 1e-9
-        for i in range(steps):
-            a = np.where(is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True)
-                                              <= motion.accel_max_mps2 * dt), -v / dt, acc)
-            v_new = v + a * dt
-            sp = np.linalg.norm(v_new, axis=1, keepdims=True)
-            v_new *= np.minimum(1.0, motion.speed_max_mps / np.maximum(sp, 1e-12))
-            p = p + 0.5 * (v + v_new) * dt
-            v = v_new
-            paths[:, i], vel[:, i] = p, v
+        if motion.jerk_max_mps3 > 0.0:
+            a = np.broadcast_to(np.zeros(2) if acceleration is None else np.asarray(acceleration, float)[:2],
+                                (C, 2)).copy()
+            for i in range(steps):
+                stop = is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True) <= motion.accel_max_mps2 * dt)
+                p, v, a = motion.step(p, v, a, np.where(stop, -v / dt, acc), dt)
+                paths[:, i], vel[:, i] = p, v
+        else:
+            for i in range(steps):
+                a = np.where(is_brake[:, None] & (np.linalg.norm(v, axis=1, keepdims=True)
+                                                  <= motion.accel_max_mps2 * dt), -v / dt, acc)
+                v_new = v + a * dt
+                sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+                v_new *= np.minimum(1.0, motion.speed_max_mps / np.maximum(sp, 1e-12))
+                p = p + 0.5 * (v + v_new) * dt
+                v = v_new
+                paths[:, i], vel[:, i] = p, v
     alt = np.full(paths.shape[:2] + (1,), grid.altitude_m)
     return np.concatenate([paths, alt], axis=2), vel
 
@@ -193,28 +232,26 @@ def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
                       uav_obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
     """First step admissible (C,), and the paths held at their last admissible point (C, H, 3):
     from a route's first step that leaves the area or crosses an obstacle on, it stays where it
-    was (at the start if that is its first step). Every step is checked at once."""
+    was (at the start if that is its first step). Every step is checked at once; at one altitude
+    (the planner's paths) in the plane, against the side faces of the obstacles that block that
+    altitude (``blocking_2d``, as the routes were drawn): the same test, on fewer faces."""
     C, H, _ = paths.shape
     start = np.broadcast_to(np.asarray(start, float), (C, 1, 3))
     ext = np.concatenate([start, paths], axis=1)  # (C, H+1, 3): the start, then the path
-    ok = admissible(paths.reshape(-1, 3), ext[:, :-1].reshape(-1, 3), area_min, area_max,
-                    _at_level(uav_obstacles, ext[:, :, 2])).reshape(C, H)
+    ends, starts = paths.reshape(-1, 3), ext[:, :-1].reshape(-1, 3)
+    if np.ptp(ext[:, :, 2]) > 0.0:
+        ok = admissible(ends, starts, area_min, area_max, uav_obstacles)
+    else:
+        normals, offsets = blocking_2d(uav_obstacles, float(ext[0, 0, 2]))
+        ok = np.all((ends >= np.asarray(area_min)) & (ends <= np.asarray(area_max)), axis=1)
+        blocked = polygons_crossed(normals, offsets, starts[:, :2], ends[:, :2])
+        ok &= ~(blocked | _inside_2d(normals, offsets, ends[:, :2]))
+    ok = ok.reshape(C, H)
     alive = np.logical_and.accumulate(ok, axis=1)
     n_ok = alive.sum(axis=1)  # the steps before the first that is not admissible
     last = np.minimum(np.arange(H)[None, :], n_ok[:, None] - 1)  # -1: the start
     held = ext[np.arange(C)[:, None], last + 1]
     return alive[:, 0].copy(), held
-
-
-def _at_level(obstacles: Obstacles, z: np.ndarray) -> Obstacles:
-    """The obstacles a path at the one altitude z (every point's) can meet: those it is neither
-    above nor below (what ``admissible`` finds for the others is already known: nothing)."""
-    if not len(obstacles) or np.ptp(z) > 0.0:
-        return obstacles
-    _, _, z_lo, z_hi = obstacles.lateral()
-    level = float(z.flat[0])
-    keep = (z_lo < level + 1e-6) & (z_hi > level - 1e-6)
-    return obstacles if keep.all() else Obstacles(obstacles.normals[keep], obstacles.offsets[keep])
 
 
 @dataclass(frozen=True)
@@ -302,11 +339,11 @@ def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
     return out
 
 
-def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, length: float,
-                   ds: float) -> np.ndarray:
-    """(C, S, 2): for each polyline and side, points every ds metres along it, then along a circle of
-    ``radius`` that starts at its end, tangent to the last leg and turning to the side (+1 left,
-    -1 right), up to ``length``. All routes at once: the polylines are padded with zero legs."""
+def _sample_routes(polys: list[np.ndarray], radius: float, length: float, ds: float) -> np.ndarray:
+    """(2 C, S, 2): for each polyline, points every ds metres along it, then along a circle of
+    ``radius`` that starts at its end, tangent to the last leg, turning left (route 2c) or right
+    (route 2c + 1), up to ``length``. All routes at once: the polylines are padded with zero legs;
+    what both turns share (the polyline's samples, the arc's angles) is computed once."""
     C = len(polys)
     n_seg = np.array([len(pl) - 1 for pl in polys])
     V = int(n_seg.max()) + 1
@@ -319,35 +356,42 @@ def _sample_routes(polys: list[np.ndarray], sides: np.ndarray, radius: float, le
     cum = np.concatenate([np.zeros((C, 1)), np.cumsum(seg_len, axis=1)], axis=1)
     total = cum[np.arange(C), n_seg]
     s = np.arange(0.0, length + ds, ds)
-    out = np.empty((C, len(s), 2))
     on = s[None, :] <= total[:, None]  # (C, S) along the polyline, else on the circle
     end = poly[np.arange(C), n_seg]
+    # the last leg longer than 1e-9 m (the padding's zero legs come after n_seg): its direction
+    real = (seg_len > 1e-9) & (np.arange(V - 1)[None, :] < n_seg[:, None])
+    last = (V - 2) - np.argmax(real[:, ::-1], axis=1)
     tangent = np.tile([1.0, 0.0], (C, 1))
     for c in np.flatnonzero(total > 1e-9):
-        nz = seg[c, :n_seg[c]][seg_len[c, :n_seg[c]] > 1e-9]
-        tangent[c] = nz[-1] / np.linalg.norm(nz[-1])
+        tangent[c] = seg[c, last[c]] / np.linalg.norm(seg[c, last[c]])
     # on the polyline: the leg each sample falls on (searchsorted along each route's arc length)
-    k = np.clip((cum[:, None, :] <= s[None, :, None]).sum(axis=2) - 1, 0, np.maximum(n_seg - 1, 0)[:, None])
+    k = np.clip(np.array([np.searchsorted(row, s, side="right") for row in cum]) - 1, 0,
+                np.maximum(n_seg - 1, 0)[:, None])
     rows = np.arange(C)[:, None]
     frac = (s[None, :] - cum[rows, k]) / np.maximum(seg_len[rows, k], 1e-12)
     along = poly[rows, k] + frac[..., None] * seg[rows, k]
     flat = total <= 1e-9  # a route that is its end point: the circle at once
     along[flat] = end[flat][:, None]
-    normal = sides[:, None] * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    centre = end + radius * normal
     ang = (s[None, :] - total[:, None]) / radius  # arc angle travelled on the circle
-    r0 = -normal  # from the centre to the end point
-    r1 = sides[:, None] * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
-    circle = centre[:, None] + radius * (np.cos(ang)[..., None] * r0[:, None] + np.sin(ang)[..., None] * r1[:, None])
-    out[:] = np.where(on[..., None], along, circle)
-    return out
+    cos, sin = np.cos(ang)[..., None], np.sin(ang)[..., None]
+    out = np.empty((C, 2, len(s), 2))
+    for i, side in enumerate((1.0, -1.0)):
+        normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+        centre = end + radius * normal
+        r0 = -normal  # from the centre to the end point
+        r1 = side * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
+        circle = centre[:, None] + radius * (cos * r0[:, None] + sin * r1[:, None])
+        out[:, i] = np.where(on[..., None], along, circle)
+    return out.reshape(2 * C, len(s), 2)
 
 
 def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
-         steps: int, dt: float, ds: float) -> tuple[np.ndarray, np.ndarray]:
+         steps: int, dt: float, ds: float, a0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Positions (C, steps, 2) and velocities (C, steps, 2) of the UAV following each sampled
     route (C, S, 2). Jump: full-speed arc length N_r Delta_r per tick along the route. Vehicle:
-    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick."""
+    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick; with a
+    continuous acceleration (``motion.jerk_max_mps3`` > 0, from ``a0``) the acceleration asked
+    for is dv / dt (|.| <= a_max), ramped to over the tick (UavMotion.step)."""
     C, S, _ = routes.shape
     idx = np.arange(C)
     if motion.kind == "jump":
@@ -359,25 +403,35 @@ def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion"
     vmax, amax = motion.speed_max_mps, motion.accel_max_mps2
     p = np.broadcast_to(np.asarray(p0, float), (C, 2)).copy()
     v = np.broadcast_to(np.asarray(v0, float), (C, 2)).copy()
-    prog = np.zeros(C)  # arc length along the route reached so far
+    ramps = motion.jerk_max_mps3 > 0.0
+    a = np.broadcast_to(np.zeros(2) if a0 is None else np.asarray(a0, float)[:2], (C, 2)).copy()
+    near = np.zeros(C, dtype=int)  # the route sample reached so far (progress, in samples of ds)
     pos, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
     look = vmax * dt
+    window = np.arange(int(2 * look / ds) + 2)[None]
+    lead = int(round(look / ds))
+    # the routes flat, x and y apart: the window's gathers are then 1-D takes (the loop's cost)
+    flat = routes.reshape(-1, 2)
+    rx, ry = np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1])
+    first = idx * S
     for i in range(steps):
         # progress: the route point nearest to p in a window ahead of the last progress
-        lo = np.round(prog / ds).astype(int)
-        win = np.minimum(lo[:, None] + np.arange(int(2 * look / ds) + 2)[None], S - 1)
-        d2 = np.sum((routes[idx[:, None], win] - p[:, None]) ** 2, axis=2)
-        near = win[idx, np.argmin(d2, axis=1)]
-        prog = near * ds
-        carrot = routes[idx, np.minimum(near + int(round(look / ds)), S - 1)]
+        win = first[:, None] + np.minimum(near[:, None] + window, S - 1)
+        dx, dy = rx.take(win) - p[:, :1], ry.take(win) - p[:, 1:]
+        near = win[idx, np.argmin(dx * dx + dy * dy, axis=1)] - first
+        carrot = flat[first + np.minimum(near + lead, S - 1)]
         to = carrot - p
-        dist = np.linalg.norm(to, axis=1, keepdims=True)
+        dist = _norms(to)
         v_des = to / np.maximum(dist, 1e-9) * np.minimum(vmax, dist / dt)
         dv = v_des - v
-        n = np.linalg.norm(dv, axis=1, keepdims=True)
+        n = _norms(dv)
         dv *= np.minimum(1.0, amax * dt / np.maximum(n, 1e-12))
+        if ramps:
+            p, v, a = motion.step(p, v, a, dv / dt, dt)
+            pos[:, i], vel[:, i] = p, v
+            continue
         v_new = v + dv
-        sp = np.linalg.norm(v_new, axis=1, keepdims=True)
+        sp = _norms(v_new)
         v_new *= np.minimum(1.0, vmax / np.maximum(sp, 1e-12))
         p = p + 0.5 * (v + v_new) * dt
         v = v_new
@@ -405,7 +459,8 @@ def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: Loo
 def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, *, params: LookaheadParams) -> PlanningResult:
+                     uav_obstacles: Obstacles, *, params: LookaheadParams,
+                     acceleration: np.ndarray | None = None) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -415,7 +470,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     predicted positions and centroid), the shortest polyline around the obstacles the UAV
     cannot overfly, flown at the speed limit, then a circle through the waypoint; the UAV's
     positions along it come from the motion model (jump: N_r Delta_r per tick; vehicle: speed
-    and acceleration limits from the current velocity). Along each route the planar covariance
+    and acceleration limits from the current velocity, and ``acceleration`` with a continuous
+    acceleration). Along each route the planar covariance
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
     reduction factor q). Score: sum over ticks and targets of tr P_pos (the position, whatever
@@ -434,8 +490,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     routes = _routes(p0, target_paths, grid, motion, params, dt, area_min, area_max, uav_obstacles)
     if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
         return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
-                                    area_max, uav_obstacles, "position_trace", motion, v0, dt)
-    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m)  # (C, H, 2)
+                                    area_max, uav_obstacles, "position_trace", motion, v0, dt, acceleration)
+    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m, acceleration)  # (C, H, 2)
     ok = _first_step(pos, vel, p0, grid, motion, dt, area_min, area_max, uav_obstacles)
     # a route that would leave the area or cross an obstacle later is scored as stopping there
     start3 = np.r_[p0, alt]
@@ -461,11 +517,10 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     polys = route_polylines(p0, wp, normals, offsets, clearance)
     speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
     length = speed * dt * (H + 2)
-    kept = [pl for pl in polys if pl is not None for _ in (1.0, -1.0)]
+    kept = [pl for pl in polys if pl is not None]
     if not kept:
         return np.zeros((0, 0, 2))
-    sides = np.tile([1.0, -1.0], len(kept) // 2)
-    return _sample_routes(kept, sides, params.loiter_radius_m, length, params.spacing_m)
+    return _sample_routes(kept, params.loiter_radius_m, length, params.spacing_m)
 
 
 def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,
@@ -490,6 +545,8 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: Candidat
     ok = admissible(first, start3, area_min, area_max, uav_obstacles)
     sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
     stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
+    if motion.jerk_max_mps3 > 0.0:  # the braking acceleration is ramped to: up to 2 a_max / jerk later
+        stop = stop + vel[:, 0] * 2.0 * motion.accel_max_mps2 / motion.jerk_max_mps3
     return ok & admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max, uav_obstacles)
 
 
@@ -498,19 +555,17 @@ def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: 
     """(C, M): per route (positions pos (C, H, 2)) and target, the sum over the horizon of tr P_pos,
     P the target's planar covariance from its particles, propagated with (A, Q) and updated at
     each tick with an ideal bearing to its planned position (EKF form, information times q)."""
-    A, _, Q = planar_model(model)
     w = np.exp(log_weights - logsumexp(log_weights, axis=1, keepdims=True))  # (M, N)
     x = particles[:, :, PLANAR]
     mean = np.einsum("mn,mnd->md", w, x)
     dev = x - mean[:, None]
-    P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)  # (M, 4, 4) predicted covariance at t+1
+    P0 = np.einsum("mn,mni,mnj->ijm", w, dev, dev)  # (4, 4, M) predicted covariance at t+1, components first
     C, H = pos.shape[:2]
-    M = len(P0)
-    P = np.broadcast_to(P0, (C, M, 4, 4)).copy()
-    total = np.zeros((C, M))
+    P = np.broadcast_to(P0[:, :, None], (4, 4, C, len(w))).copy()  # (4, 4, C, M)
+    total = np.zeros(P.shape[2:])
     for i in range(H):
         if i:
-            P = A @ P @ A.T + Q
-        P = kalman_pseudo_update(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
-        total += np.trace(P[..., :2, :2], axis1=-2, axis2=-1)
+            P = predict_planar_components(P, model)
+        P = bearing_update_components(P, target_paths[None, :, i, :2], pos[:, None, i], sigma_rad, reduction)
+        total += P[0, 0] + P[1, 1]
     return total

@@ -52,7 +52,10 @@ STEER_MIN_QPS = 12  # ... but at least this many
 MODE_QPS = 8
 BIRTH_QPS = 12
 REFERENCE_QPS = 3
-LAW_COST = 1
+# a law (the sensitivity: a KKT solve on the active rows, and the next controls' gains) takes
+# 0.74 ms median against 0.45 ms for a face assignment's QP; counted as 2 it left the estimates
+# as accurate (N = 100: 1.004, CI 0.950-1.060) and the tick 14 ms shorter (docs/TRACKING.md)
+LAW_COST = 2
 AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
 
 # P1 from a state, warm-started by a plan, with its law (with_feedback), held to sides (strict:

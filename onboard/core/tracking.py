@@ -129,6 +129,100 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
     return UpdateResult(ParticleSet(ps.particles, logw, ps.labels), False)
 
 
+@dataclass(frozen=True)
+class Recovery:
+    """How a lost target is found again (docs/TRACKING.md "Recovery").
+
+    The predicted belief f becomes the mixture (1 - prior) f + prior u: with probability ``prior``
+    the target left what the motion model predicts (it took a side or a turn no particle took),
+    and u = N(f's mean, f's position covariance + sigma_m^2 I) in the plane: near the
+    prediction, wider than it. u is represented by ``share`` x N particles drawn along the scan's
+    bearings within 3 standard deviations of u, weighted u / q (importance sampling; q the density
+    they are drawn from), so they gain weight only when the bearings fit them better than f's
+    particles, and ``trim`` keeps the N heaviest after the update. A jump model with a
+    measurement-driven proposal: Thrun, Burgard and Fox, Probabilistic Robotics (2005), section
+    8.3.5 (random particles, sensor resetting), with the weights of a proper mixture prior
+    instead of a heuristic injection rate.
+    """
+
+    prior: float
+    share: float
+    sigma_m: float
+
+    @classmethod
+    def from_config(cls, tr) -> "Recovery | None":
+        """From the scenario's ``tracking.recovery_*`` (onboard/settings.py declares the defaults)."""
+        if tr.recovery_prior <= 0.0 or tr.recovery_share <= 0.0:
+            return None
+        return cls(tr.recovery_prior, tr.recovery_share, tr.recovery_sigma_m)
+
+
+def _ray_in_disc(sensor_xy: np.ndarray, bearings: np.ndarray, centre: np.ndarray, radius: float):
+    """Ranges [r1, r2] (m, r1 >= 0) along each bearing (rad from north) inside the disc; NaN
+    where the ray misses it."""
+    d = np.stack([np.sin(bearings), np.cos(bearings)], axis=-1)  # (n, 2) east, north
+    rel = centre - sensor_xy
+    along = d @ rel
+    disc = along ** 2 - (rel @ rel - radius ** 2)
+    with np.errstate(invalid="ignore"):
+        half = np.sqrt(disc)
+    r1, r2 = np.maximum(along - half, 0.0), along + half
+    miss = ~(disc > 0.0) | ~(r2 > 0.0)
+    return np.where(miss, np.nan, r1), np.where(miss, np.nan, r2)
+
+
+def recover(ps: ParticleSet, sensor_xy: np.ndarray, bearings: np.ndarray, rec: Recovery, sigma_rad: float,
+            rng: np.random.Generator) -> ParticleSet:
+    """The predicted belief with ``rec``'s mixture component added: K = ceil(share N) particles
+    drawn along ``bearings`` (one scan's, from ``sensor_xy``, ENU m) within 3 standard deviations
+    (the largest) of u, their velocities and heights those of particles drawn from ps; N + K
+    particles, log-weights of the mixture. ps unchanged (N particles) when no bearing passes there."""
+    b = np.asarray(bearings, dtype=float).reshape(-1)
+    b = b[np.isfinite(b)]
+    s = np.asarray(sensor_xy, float)[:2]
+    w = ps.weights
+    centre = w @ ps.particles[:, :2]
+    d = ps.particles[:, :2] - centre
+    cov = (d * w[:, None]).T @ d + rec.sigma_m ** 2 * np.eye(2)
+    r1, r2 = _ray_in_disc(s, b, centre, 3.0 * float(np.sqrt(np.linalg.eigvalsh(cov)[-1])))
+    use = np.isfinite(r1)
+    if not use.any():
+        return ps
+    b, r1, r2 = b[use], r1[use], r2[use]
+    n = len(ps)
+    k = int(np.ceil(rec.share * n))
+    pick = rng.integers(len(b), size=k)
+    theta = b[pick] + sigma_rad * rng.standard_normal(k)
+    r = r1[pick] + (r2[pick] - r1[pick]) * rng.random(k)
+    new = ps.particles[rng.choice(n, size=k, p=w / w.sum())].copy()
+    new[:, 0] = s[0] + r * np.sin(theta)
+    new[:, 1] = s[1] + r * np.cos(theta)
+    # q(x): the draw's density in the plane (polar density / r), over every bearing that could have drawn x
+    rng_x = np.maximum(np.hypot(new[:, 0] - s[0], new[:, 1] - s[1]), 1e-9)
+    ang = wrap(bearing(new[:, :2], s)[:, None] - b[None, :])
+    inside = (rng_x[:, None] >= r1[None, :]) & (rng_x[:, None] <= r2[None, :])
+    dens = np.exp(-0.5 * (ang / sigma_rad) ** 2) / (sigma_rad * np.sqrt(2.0 * np.pi)) * inside / (r2 - r1)[None, :]
+    q = dens.mean(axis=1) / rng_x
+    e = new[:, :2] - centre
+    log_u = -0.5 * np.einsum("ki,ij,kj->k", e, np.linalg.inv(cov), e) - 0.5 * np.log(np.linalg.det(cov)) - LOG_2PI
+    with np.errstate(divide="ignore"):
+        log_new = np.log(rec.prior) + log_u - np.log(q) - np.log(k)
+    logw = np.concatenate([np.log1p(-rec.prior) + ps.log_weights, log_new])
+    logw = logw - logsumexp(logw)
+    labels = None if ps.labels is None else np.concatenate([ps.labels, np.full(k, -1)])
+    return ParticleSet(np.vstack([ps.particles, new]), logw, labels)
+
+
+def trim(ps: ParticleSet, n: int) -> ParticleSet:
+    """The n heaviest particles, renormalised (``recover``'s set back to N after the update)."""
+    if len(ps) <= n:
+        return ps
+    keep = np.sort(np.argsort(-ps.log_weights, kind="stable")[:n])
+    logw = ps.log_weights[keep]
+    logw = logw - logsumexp(logw)
+    return ParticleSet(ps.particles[keep], logw, None if ps.labels is None else ps.labels[keep])
+
+
 def effective_sample_size(ps: ParticleSet) -> float:
     return float(np.exp(-logsumexp(2.0 * ps.log_weights)))
 

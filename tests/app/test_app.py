@@ -179,37 +179,48 @@ def test_autopilot_speed_limits_are_read_and_a_slower_vehicle_is_reported(rig):
 
 @pytest.mark.timeout(60)
 def test_vehicle_motion_plans_at_the_autopilots_limits_capped_by_the_airframes():
-    """planning.motion: vehicle capped at 8 m/s and 5 m/s^2 (what the airframe flies) against an
-    autopilot set to 20 m/s and 2.5 m/s^2: the planner flies at 8 m/s and 2.5 m/s^2, says so to
-    a ground station (on the autopilot's other link, connected before the app), warns of
-    nothing (no plan is faster than the autopilot flies), and follows a limit a ground station
-    changes in flight."""
+    """planning.motion: vehicle capped at 8 m/s, 5 m/s^2 and 5 m/s^3 (what the airframe flies)
+    against an autopilot set to 20 m/s, 2.5 m/s^2 and PSC_JERK_XY 2 m/s^3: the planner flies at 8
+    m/s, 2.5 m/s^2 and 2 m/s^3, says so to a ground station (on the autopilot's other link,
+    connected before the app), warns of nothing (no plan is faster than the autopilot flies),
+    follows a limit a ground station changes in flight, and says a jerk that is no limit (0)
+    without planning with it."""
     from dataclasses import replace
 
     sc = load_scenario("paper")
-    sc = replace(sc, planning=replace(sc.planning, motion="vehicle", speed_max_mps=8.0, accel_max_mps2=5.0))
+    sc = replace(sc, planning=replace(sc.planning, motion="vehicle", speed_max_mps=8.0, accel_max_mps2=5.0,
+                                      jerk_max_mps3=5.0))
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0, endpoints=["tcpin:127.0.0.1:0"] * 2,
-                       params={"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 250}, boot=BootTimeline.scaled(2.0)).start()
+                       params={"WPNAV_SPEED": 2000, "WPNAV_ACCEL": 250, "PSC_JERK_XY": 2},
+                       boot=BootTimeline.scaled(2.0)).start()
     gcs = Gcs(ap.port("tcpin", 1))
     app = None
     try:
         assert gcs.wait(lambda m: m.get_type() == "HEARTBEAT", 5) is not None
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0), sc).start()
         told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "planning at" in m.text
-                        and "2.5 m/s^2" in m.text, 10)
-        assert told is not None and told.text == "PMON: planning at 8 m/s, 2.5 m/s^2", told
-        assert app.limits.planner == (8.0, 2.5) and app.limits.warning is None and app.limits.warnings == 0
+                        and "2.5 m/s^2, 2 m/s^3" in m.text, 10)
+        assert told is not None and told.text == "PMON: planning at 8 m/s, 2.5 m/s^2, 2 m/s^3", told
+        assert app.limits.planner == (8.0, 2.5, 2.0) and app.limits.warning is None and app.limits.warnings == 0
         with app.lock:
             motion = app.core.build_setup().motion
-            assert (motion.speed_max_mps, motion.accel_max_mps2) == (8.0, 2.5)
+            assert (motion.speed_max_mps, motion.accel_max_mps2, motion.jerk_max_mps3) == (8.0, 2.5, 2.0)
+            status = app._status()
+            assert (status["jerk_limit_mps3"], status["jerk_plan_mps3"]) == (2.0, 2.0)
         since = len(gcs.msgs)
         assert gcs.param_set("WPNAV_SPEED", 500, comp=1) is not None  # the autopilot tells every link
-        assert gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and m.text == "PMON: planning at 5 m/s, 2.5 m/s^2",
-                        10, since) is not None
+        assert gcs.wait(lambda m: m.get_type() == "STATUSTEXT"
+                        and m.text == "PMON: planning at 5 m/s, 2.5 m/s^2, 2 m/s^3", 10, since) is not None
         with app.lock:
             assert app.core.build_setup().motion.speed_max_mps == 5.0
         assert not any("WPNAV" in t for t in gcs.texts())  # no warning: plans never outrun the autopilot
+        since = len(gcs.msgs)
+        gcs.conn.mav.param_set_send(1, 1, b"PSC_JERK_XY", 0.0, mavlink.MAV_PARAM_TYPE_REAL32)
+        told = gcs.wait(lambda m: m.get_type() == "STATUSTEXT" and "PSC_JERK_XY" in m.text, 10, since)
+        assert told is not None and told.text.startswith("PMON: autopilot PSC_JERK_XY = 0 is no limit"), told
+        with app.lock:
+            assert app.core.build_setup().motion.jerk_max_mps3 == 2.0  # the last good one stays
         assert app.counters.get("io_errors", 0) == 0  # one limit known before the other: no handler error
     finally:
         gcs.close()

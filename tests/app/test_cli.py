@@ -1,4 +1,3 @@
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,13 +9,25 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "onboard.cli", *args], capture_output=True, text=True, timeout=120)
 
 
-def test_check_config_ok_and_bad(tmp_path):
+def main_rc(capsys, *args) -> tuple[int, str, str]:
+    """``pmon ARGS`` through its entry point in this process (no Python start-up per case; the
+    real program runs in the other tests here): (exit code, stdout, stderr)."""
+    from onboard.cli import main
+    try:
+        rc = main(list(args))
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_check_config_ok_and_bad(tmp_path, capsys):
     ok = run("check-config")
     assert ok.returncode == 0 and "4 targets, 4 obstacles" in ok.stdout
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\n")
-    res = run("check-config", str(bad))
-    assert res.returncode == 2 and "origin: missing" in res.stderr and "Traceback" not in res.stderr
+    rc, _, err = main_rc(capsys, "check-config", str(bad))
+    assert rc == 2 and "origin: missing" in err and "Traceback" not in err
 
 
 def test_simulate_runs_a_short_mission():
@@ -26,9 +37,9 @@ def test_simulate_runs_a_short_mission():
     assert "error per target [m]" in res.stdout and "final [m]" in res.stdout  # units, not eaten as markup
 
 
-def test_bad_arguments_exit_nonzero():
-    assert run("simulate", "--ticks", "0").returncode == 2
-    assert run("fly").returncode == 2
+def test_bad_arguments_exit_nonzero(capsys):
+    assert main_rc(capsys, "simulate", "--ticks", "0")[0] == 2
+    assert main_rc(capsys, "fly")[0] == 2
 
 
 def test_the_flight_program_loads_no_simulator_ground_station_or_lab_packages():
@@ -83,15 +94,14 @@ def test_a_verb_whose_extra_is_not_installed_is_refused_in_one_line(monkeypatch,
     assert exc.value.code == 0 and "usage: pmon feed" in capsys.readouterr().out
 
 
-def test_the_ground_station_help_says_what_applies():
-    params = subprocess.run([sys.executable, "-m", "onboard.cli", "gcs", "params", "--help"],
-                            capture_output=True, text=True, timeout=60).stdout
+def test_the_ground_station_help_says_what_applies(capsys):
+    rc, params, _ = main_rc(capsys, "gcs", "params", "--help")
+    assert rc == 0
     for sub in ("list", "get", "set"):
         assert f"\n    {sub} " in params, params
     for offline in ("plot", "export"):
-        out = subprocess.run([sys.executable, "-m", "onboard.cli", "gcs", offline, "--help"],
-                             capture_output=True, text=True, timeout=60).stdout
-        assert "--json" in out and "--connect" not in out and "--timeout" not in out and "--sysid" not in out, out
+        rc, out, _ = main_rc(capsys, "gcs", offline, "--help")
+        assert rc == 0 and "--json" in out and "--connect" not in out and "--timeout" not in out and "--sysid" not in out, out
 
 
 def test_a_programs_help_says_what_it_is_in_whole_sentences():
@@ -101,17 +111,3 @@ def test_a_programs_help_says_what_it_is_in_whole_sentences():
                              cwd=Path(__file__).resolve().parents[2]).stdout
         description = out.split("\n\n")[1]
         assert description.rstrip().endswith("."), (argv, description)
-
-
-def test_pmon_eval_says_where_its_results_went_in_a_table_and_warns_of_few_trials(tmp_path):
-    out = tmp_path / "ev"
-    res = run("eval", "--trials", "2", "--duration", "4", "--particles", "100", "--workers", "1",
-              "--methods", "greedy_l1,hover", "--out", str(out), "--quiet", "--no-figures")
-    assert res.returncode == 0, res.stderr
-    lines = res.stdout.strip().splitlines()
-    head = json.loads(lines[-1])  # the JSON line stays last
-    assert lines[0].split()[:2] == ["method", "RMSE"]
-    hover = next(x for x in lines if x.startswith("hover "))
-    assert f"{head['methods']['hover']['rmse_mean_m']:.1f}" in hover
-    assert f"results in {out}/: results.md" in res.stdout and (out / "results.md").exists()
-    assert "warning: 2 trials: a 95 % confidence interval means little below about 10" in res.stderr

@@ -97,6 +97,9 @@ def test_first_valid_peer_locks_the_input_and_others_are_reported_not_parsed():
         _scan(df, app, 51.0)
         assert wait_for(lambda: app.df.locked is not None, 5)
         assert app.df.locked == Source("127.0.0.1", df.getsockname()[1])
+        # scan 51 ticked before the clock moves on: at 52 s it would be past its budget and, with
+        # scan 52 complete, skipped (the schedule's rule), which is not what this test is about
+        assert wait_for(lambda: _ticked(app) == [51.0], 5), _ticked(app)
         for k in range(50):  # the stranger's valid datagrams: dropped before the parser
             stranger.sendto(dg.encode(52.0, k % M, [0.2]), ("127.0.0.1", app.sensor_port))
         clock.t = 52.0

@@ -183,6 +183,14 @@ def test_bench_set_items_become_overrides():
         parse_overrides(["tracking.control_mix=!!python/object/apply:os.system ['true']"])
 
 
+def test_a_number_with_an_exponent_and_no_dot_is_a_number():
+    """PyYAML's YAML 1.1 reads 1e-9 as a string (its floats need a dot): `--set
+    tracking.control_mix=1e-9` was refused with "must be a number, got str"."""
+    assert parse_overrides(["tracking.control_mix=1e-9", "sensor.clutter_rate=2E0", "x=-3e+2", "y=1e"]) == \
+        {"tracking.control_mix": 1e-9, "sensor.clutter_rate": 2.0, "x": -300.0, "y": "1e"}
+    assert load_scenario("paper", {"tracking.control_mix": 1e-9}).tracking.control_mix == 1e-9
+
+
 def test_a_policy_goes_beneath_the_users_own_settings():
     """A flight policy (onboard.policy) applies its settings beneath the scenario's own changes
     (pmon eval --set wins over the policy's); the result is checked like a load."""

@@ -5,8 +5,8 @@ import math
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import (bearing_gradient, information_reduction_factor, kalman_pseudo_update, pcrb,
-                                      planar_model)
+from onboard.core.information import (bearing_gradient, bearing_update_components, information_reduction_factor,
+                                      kalman_pseudo_update, pcrb, planar_model, predict_planar_components)
 from onboard.core.planning import pseudo_posterior_traces
 
 SIGMA = math.radians(1.0)
@@ -38,6 +38,34 @@ def _beliefs(rng, n, mean_xy, cov_xy):
     x[0, :, :2] = rng.multivariate_normal(mean_xy, cov_xy, n)
     x[0, :, 3:5] = rng.normal(0.0, 2.0, (n, 2))
     return x, np.full((1, n), -math.log(n))
+
+
+def _spd(rng, shape):
+    B = rng.normal(size=shape + (4, 4)) * [10.0, 10.0, 2.0, 2.0]
+    return B @ np.swapaxes(B, -1, -2) + np.eye(4)
+
+
+def test_the_written_out_planar_prediction_and_update_are_the_matrix_forms(rng):
+    """The route planner's hot loop works on covariances components first with A, Q and H written
+    out: each must be the textbook matrix formula (a friction and dt other than the paper's too)."""
+    for model in (MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10]),
+                  MotionModel.create(0.5, 0.35, 900.0, [12.0, 7.0, 1e-10, 0.4, 2.5, 1e-10])):
+        A, _, Q = planar_model(model)
+        P = _spd(rng, (3, 5))
+        got = np.moveaxis(predict_planar_components(np.moveaxis(P, (-2, -1), (0, 1)).copy(), model), (0, 1), (-2, -1))
+        np.testing.assert_allclose(got, A @ P @ A.T + Q, rtol=1e-13, atol=1e-12)
+    P = _spd(rng, (3, 5))
+    tgt, sen = rng.normal(size=(3, 5, 2)) * 300.0, rng.normal(size=(5, 2)) * 300.0
+    d = tgt - sen
+    r2 = np.sum(d * d, axis=-1) + P[..., 0, 0] + P[..., 1, 1]
+    H = np.concatenate([np.stack([d[..., 1], -d[..., 0]], axis=-1) / r2[..., None], np.zeros((3, 5, 2))], axis=-1)
+    R = SIGMA**2 / 0.8
+    S = np.einsum("...i,...ij,...j->...", H, P, H) + R
+    K = np.einsum("...ij,...j->...i", P, H) / S[..., None]
+    want = P - K[..., :, None] * np.einsum("...j,...jk->...k", H, P)[..., None, :]
+    got = bearing_update_components(np.moveaxis(P, (-2, -1), (0, 1)).copy(), tgt, sen, SIGMA, 0.8)
+    np.testing.assert_allclose(np.moveaxis(got, (0, 1), (-2, -1)), want, rtol=1e-10, atol=1e-9)
+    np.testing.assert_array_equal(kalman_pseudo_update(P, tgt, sen, SIGMA, 0.8), np.moveaxis(got, (0, 1), (-2, -1)))
 
 
 def test_ekf_pseudo_update_matches_the_particle_pseudo_update(rng):

@@ -6,7 +6,7 @@ import pytest
 
 from onboard.config import override
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import admissible, candidate_positions, choose_next_position
+from onboard.core.planning import _admissible_paths, admissible, candidate_positions, choose_next_position
 from tests.support.planning_cases import AREA, GRID, LOOKAHEAD, MODEL, VEHICLE, still_targets as _still_targets
 
 
@@ -26,6 +26,35 @@ def test_admissibility_excludes_outside_and_blocked():
     c2 = candidate_positions(np.array([100.0, 0.0]), GRID)
     ok2 = admissible(c2, np.array([100, 0, 40.0]), (-1e4, -1e4, 0), (1e4, 1e4, 1e3), wall)
     assert not ok2[c2[:, 0] > 113].any() and ok2[c2[:, 0] < 110].all()
+
+
+def test_the_routes_planar_admissibility_is_the_3d_one(rng):
+    """The route planner checks its paths at one altitude in the plane, against the side faces of
+    the obstacles that block it; it must agree with ``admissible`` in 3D: a yawed box, a box whose
+    top is exactly the altitude (overflown: the paper's O2 inflated), one below, one above, and the
+    area's edge, on steps of 5-60 m that graze and cross them."""
+    boxes = [Box(center_m=(300, 300, 30), size_m=(120, 60, 60), yaw_rad=0.6),
+             Box(center_m=(600, 300, 20), size_m=(80, 80, 40), yaw_rad=0.0),   # top at h: overflown
+             Box(center_m=(300, 650, 10), size_m=(80, 80, 20), yaw_rad=0.2),   # below h
+             Box(center_m=(650, 650, 80), size_m=(90, 90, 60), yaw_rad=0.0),   # above h
+             Box(center_m=(480, 480, 50), size_m=(30, 200, 100), yaw_rad=0.0)]
+    obstacles = Obstacles.from_boxes(boxes)
+    h = 40.0
+    C, H = 400, 12
+    start = np.array([450.0, 450.0, h])
+    steps = rng.normal(0, 30, (C, H, 2))
+    paths = np.concatenate([start[:2] + np.cumsum(steps, axis=1), np.full((C, H, 1), h)], axis=2)
+    area_min, area_max = (0, 0, 0), (580, 1000, 1000)  # some paths leave the area eastward
+    first, held = _admissible_paths(paths, start, area_min, area_max, obstacles)
+    prev = np.concatenate([np.broadcast_to(start, (C, 1, 3)), paths[:, :-1]], axis=1)
+    ok = admissible(paths.reshape(-1, 3), prev.reshape(-1, 3), area_min, area_max, obstacles).reshape(C, H)
+    alive = np.logical_and.accumulate(ok, axis=1)
+    assert 0.2 < alive[:, -1].mean() < 0.8 and not ok.all(axis=0).any()  # both kinds, at every step
+    np.testing.assert_array_equal(first, alive[:, 0])
+    n_ok = alive.sum(axis=1)
+    for c in range(C):
+        want = paths[c, np.minimum(np.arange(H), n_ok[c] - 1)] if n_ok[c] else np.broadcast_to(start, (H, 3))
+        np.testing.assert_array_equal(held[c], want)
 
 
 def test_chooses_the_move_that_turns_the_line_of_sight(rng):

@@ -6,6 +6,7 @@ from scipy.stats import norm, poisson
 
 from onboard.core import tracking
 from onboard.core.bearings import bearing, wrap
+from onboard.core.dynamics import MotionModel
 
 SENSOR = tracking.SensorModel(sigma_rad=math.radians(1.0), p_detect=0.95, clutter_rate=1.0)
 
@@ -153,3 +154,80 @@ def test_regularised_resampling_spreads_copies_and_widens_by_one_plus_h_squared(
     ratio = np.diag(c1)[planar] / np.diag(c0)[planar]
     np.testing.assert_allclose(ratio, 1 + h ** 2, rtol=0.1)
     np.testing.assert_array_equal(np.sort(reg.particles[:, 2]), np.sort(plain.particles[:, 2]))
+
+
+# --- recovery: the jump mixture (1 - e) f + e u, u uniform on a disc, drawn along the bearings ---
+
+def _jump_posterior_share(ps, s, phis, rec, model):
+    """P(jumped | bearings) of the mixture prior, by quadrature: e Z_u / (e Z_u + (1 - e) Z_f),
+    Z_u = integral of u g on a 0.5 m grid over u's 3-sigma disc, Z_f = sum_i w_i g(x_i)."""
+    centre = ps.weights @ ps.particles[:, :2]
+    d = ps.particles[:, :2] - centre
+    cov = (d * ps.weights[:, None]).T @ d + rec.sigma_m ** 2 * np.eye(2)
+    radius = 3.0 * np.sqrt(np.linalg.eigvalsh(cov)[-1])
+    h = 0.5
+    ax = np.arange(-radius, radius + h, h)
+    gx, gy = np.meshgrid(ax, ax)
+    inside = gx ** 2 + gy ** 2 <= radius ** 2
+    e = np.stack([gx[inside], gy[inside]], axis=1)
+    u = np.exp(-0.5 * np.einsum("ki,ij,kj->k", e, np.linalg.inv(cov), e)) / (2 * np.pi * np.sqrt(np.linalg.det(cov)))
+    z_u = (u * np.exp(tracking.log_likelihood(e + centre, s, phis, model))).sum() * h * h
+    z_f = ps.weights @ np.exp(tracking.log_likelihood(ps.particles[:, :2], s, phis, model))
+    return rec.prior * z_u / (rec.prior * z_u + (1 - rec.prior) * z_f)
+
+
+@pytest.mark.parametrize("offset_m", [0.0, 40.0, 80.0])
+def test_recovery_weights_are_the_mixture_posterior(offset_m, rng):
+    # the cloud offset_m east of the bearing's ray; the injected particles' posterior weight must
+    # match the mixture's exact posterior probability of the jump (a wrong u/q, Jacobian or 1/K fails)
+    s = np.array([0.0, 0.0])
+    truth = np.array([0.0, 400.0])
+    phis = np.array([float(bearing(truth, s))])
+    ps = tracking.initialise([offset_m, 400, 0, 0, 0, 0], np.diag([25, 25, 1e-10, 1, 1, 1e-10]), 4000, rng)
+    rec = tracking.Recovery(prior=0.01, share=1.0, sigma_m=50.0)
+    expected = _jump_posterior_share(ps, s, phis, rec, SENSOR)
+    mixed = tracking.recover(ps, s, phis, rec, SENSOR.sigma_rad, rng)
+    assert len(mixed) == 8000 and mixed.labels is None
+    post = tracking.update(mixed, [(s, phis)], SENSOR).particles
+    got = post.weights[4000:].sum()
+    assert got == pytest.approx(expected, rel=0.1, abs=1e-4)
+    assert (expected < 0.01) if offset_m == 0.0 else expected > 0.5
+
+
+def test_recovery_finds_a_lost_target_that_the_filter_alone_does_not(rng):
+    truth = np.array([500.0, 500.0])
+    still = MotionModel.create(1.0, 0.5, 1.0, (4, 4, 1e-10, 0.1, 0.1, 1e-10))
+
+    def final_error(rec, seed):
+        r = np.random.default_rng(seed)
+        ps = tracking.initialise([600, 500, 0, 0, 0, 0], np.diag([100, 100, 1e-10, 1, 1, 1e-10]), 2000, r)
+        for t in range(25):
+            s = np.array([200.0 + 20 * t, 100.0 + 10 * t])
+            phis = np.concatenate([[float(bearing(truth, s)) + SENSOR.sigma_rad * r.standard_normal()],
+                                   r.uniform(-np.pi, np.pi, r.poisson(1.0))])
+            if rec is not None:
+                ps = tracking.recover(ps, s, phis, rec, SENSOR.sigma_rad, r)
+            ps = tracking.trim(tracking.update(ps, [(s, phis)], SENSOR).particles, 2000)
+            assert len(ps) == 2000
+            err = float(np.hypot(*(tracking.estimate(ps)[0][:2] - truth)))
+            ps = tracking.predict(tracking.resample_if_needed(ps, 0.5, r, 0.2), still, np.zeros(3), r)
+        return err
+
+    rec = tracking.Recovery(prior=0.01, share=0.02, sigma_m=50.0)
+    for seed in range(3):
+        assert final_error(None, seed) > 60.0
+        assert final_error(rec, seed) < 30.0
+
+
+def test_recovery_leaves_the_set_alone_when_no_bearing_passes_near_the_prediction(rng):
+    ps = tracking.initialise([0, 500, 0, 0, 0, 0], np.eye(6), 100, rng)
+    rec = tracking.Recovery(prior=0.01, share=0.5, sigma_m=10.0)
+    assert tracking.recover(ps, np.zeros(2), np.array([np.pi / 2, np.nan]), rec, SENSOR.sigma_rad, rng) is ps
+
+
+def test_trim_keeps_the_heaviest_renormalised_with_their_labels():
+    ps = tracking.ParticleSet(np.arange(12.0).reshape(6, 2).repeat(3, axis=1),
+                              np.log([0.1, 0.3, 0.05, 0.25, 0.2, 0.1]), np.arange(6))
+    out = tracking.trim(ps, 3)
+    np.testing.assert_array_equal(out.labels, [1, 3, 4])
+    np.testing.assert_allclose(out.weights, np.array([0.3, 0.25, 0.2]) / 0.75)

@@ -79,4 +79,4 @@ def test_sitl_setpoint_reaches_the_point():
     out = run("sitl_setpoint.py", "--north", "25", "--east", "-15", timeout=200)
     assert "setpoint sent: N 25 E -15 D -10 m" in out, out
     at = [line for line in out.splitlines() if line.startswith("at the setpoint")]
-    assert at and numbers(at[0])[-1] < 1.0, out
+    assert at and numbers(at[0])[-1] <= 1.0, out  # it stops within 1 m; 0.996 m prints as "1.00"

@@ -21,6 +21,7 @@ import time
 import numpy as np
 import pytest
 
+from onboard.app.mavlink_connection import mavlink
 from sim.ardupilot import skip_reason
 from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
 from sim.tick_account import TickAccount
@@ -31,6 +32,7 @@ pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
 RMSE_MAX_M = 60.0  # time-averaged position error of every target's estimate over a flight
 MONITOR_S = 100.0  # autopilot s of monitoring in flight A before the pilot takes over
 TICK_S = 1.0  # one tick: the longest a takeover may take to stop the setpoints
+FOLLOW_MEDIAN_M, FOLLOW_P95_M = 0.5, 1.0  # copter from the planned point at the next tick (issue 29: p95 <= 1.5)
 
 
 def _ok(call, *want):
@@ -110,10 +112,15 @@ def test_every_scan_is_ticked_and_every_setpoint_reaches_the_autopilot(flight_a)
 def test_the_copter_flies_the_plan_instead_of_braking_to_each_point(flight_a):
     """issue 24: the plan's position + velocity + acceleration, carried on by ArduCopter between
     messages: at the next tick the copter is where the plan said (position-only setpoints, which
-    it brakes to, left it a median 15 m short: bench/ardupilot.py --policy paper)."""
+    it brakes to, left it a median 15 m short: bench/ardupilot.py --policy paper). Issue 29: within
+    FOLLOW_MEDIAN_M / FOLLOW_P95_M: each plan starts at its scan and its acceleration is continuous,
+    which the firmware's jerk-limited shaper follows (a plan from the tick's later snapshot with
+    an acceleration stepping at each tick: 0.66-0.75 m median, 1.39-1.82 m p95 in three runs of
+    bench/ardupilot.py, docs/SITL.md)."""
     d = np.array(flight_a["m"].follow_errors_m())
     assert len(d) >= MONITOR_S * 0.9
-    assert np.median(d) <= 3.0 and np.percentile(d, 95) <= 6.0, (np.median(d), np.percentile(d, 95))
+    assert np.median(d) <= FOLLOW_MEDIAN_M and np.percentile(d, 95) <= FOLLOW_P95_M, \
+        (np.median(d), np.percentile(d, 95))
 
 
 def test_the_copter_stays_in_the_area_and_out_of_the_obstacles(flight_a):
@@ -131,7 +138,7 @@ def test_estimates_are_within_the_stated_error(flight_a):
 def test_ground_station_on_another_port_sees_estimates_params_and_limits(flight_a):
     st = _ok(flight_a["status"], "onboard app: monitoring")
     # the flight policy plans at the autopilot's stock limits, capped at what the airframe flies
-    assert "speed     planned at" in st.stdout and "(autopilot 10 m/s, 2.5 m/s^2)" in st.stdout, st.stdout
+    assert "speed     planned at 9 m/s, 2.5 m/s^2, 5 m/s^3 (autopilot 10 m/s, 2.5 m/s^2, 5 m/s^3)" in st.stdout, st.stdout
     assert "WARNING" not in st.stdout, st.stdout
     assert flight_a["gcs_saw_estimates"] == [0, 1, 2, 3]
     _ok(flight_a["param_get"], "PMON_CLUTTER = 1")
@@ -171,12 +178,18 @@ def flight_b(tmp_path_factory):
                         link_proxy=True)
     with Mission(cfg, out) as m:
         rec["m"] = m
-        m.fast_boot()  # its boot until 35 s at 10x (the reboot below at 3x)
+        m.fast_boot()  # its boot until 35 s at 10x (and the reboot's, below)
         rec["arm"] = m.gcs("arm", "--wait", timeout=120)  # at once: the autopilot is still booting
         rec["takeoff"] = m.gcs("takeoff", "40", "--wait")
         rec["start"] = m.gcs("start")
         rec["status"] = m.gcs("status")
         m.sim_sleep(20.0)
+        # the autopilot's jerk tuned down in flight (on the observer's link; ArduPilot tells every
+        # link): the app plans at it from then on
+        link = m.observer.link
+        link.send(link.mav.param_set_encode(1, 1, b"PSC_JERK_XY", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        rec["jerk_told"] = m.wait(lambda o: any(t.endswith(", 2 m/s^3") for t in o.app_texts()), 30, "jerk 2")
+        rec["jerk_status"] = m.gcs("status")
         # the telemetry link drops for 3 s (wall) and comes back
         rec["cut_t"] = m.observer.t
         m.proxy.cut(3.0)
@@ -192,6 +205,7 @@ def flight_b(tmp_path_factory):
         rec["restart_wall"] = time.monotonic()
         m.sitl.restart(down_s=2.0)
         rec["rebooted"] = m.wait(lambda o: o.boots >= 1 and o.t is not None, 60, "reboot")
+        m.fast_boot()  # nothing below is timed in wall s before the copter can arm again
         # (the ground station's own link is down during the reboot too: the app's log says it)
         rec["back_after_reboot"] = m.wait(lambda o: m.app_log().count("link back") >= 2, 60,
                                           "link back after reboot")
@@ -211,8 +225,20 @@ def test_arm_wait_takeoff_wait_and_start_each_succeed_once(flight_b):
     _ok(flight_b["takeoff"], "at 40 m after")
     _ok(flight_b["start"], "app monitoring")
     st = _ok(flight_b["status"], "onboard app: monitoring")
-    assert "WARNING" not in st.stdout and "(autopilot 20 m/s, 5 m/s^2)" in st.stdout, st.stdout
+    # the demo's PSC_JERK_XY 20 is capped by the attitude loop at 15.3 (AC_PosControl), the plan at 5
+    assert "WARNING" not in st.stdout and "planned at 9 m/s, 2.5 m/s^2, 5 m/s^3 (autopilot 20 m/s, 5 m/s^2, 15.3" \
+        in st.stdout, st.stdout
     _ran_once(m)
+
+
+def test_the_autopilots_jerk_set_in_flight_is_planned_with(flight_b):
+    """PSC_JERK_XY set to 2 m/s^3 on the firmware while monitoring: the app says it plans at 2
+    and the ground station's status shows it (the autopilot's and the plan's)."""
+    m = flight_b["m"]
+    assert flight_b["jerk_told"], m.observer.app_texts()
+    assert "PMON: planning at 9 m/s, 2.5 m/s^2, 2 m/s^3" in m.observer.app_texts()
+    st = _ok(flight_b["jerk_status"], "onboard app: monitoring")
+    assert "planned at 9 m/s, 2.5 m/s^2, 2 m/s^3 (autopilot 20 m/s, 5 m/s^2, 2 m/s^3)" in st.stdout, st.stdout
 
 
 def test_link_loss_stops_commanding_reconnects_and_waits_for_resume(flight_b):

@@ -1,7 +1,13 @@
 """``pmon demo --df kraken`` on ArduPilot's own ArduCopter SITL (issue 32): the simulated KrakenSDR
 stamps its frames with the firmware's UTC (SYSTEM_TIME) and draws them at its heading
 (GLOBAL_POSITION_INT.hdg); the app maps them back through the same messages. The mock's version:
-tests/sim/test_kraken_sitl.py."""
+tests/sim/test_kraken_sitl.py.
+
+Every run's app.log ends with "KrakenSDR unreachable: ... Connection reset by peer" and status.json
+refused: the feed closes its server once its last frame was read, before the app is stopped (not
+a failure). "Frames written but not read" is one: the feed, descheduled, once wrote two frames
+back to back, and the app lost the first (sim/kraken.py ``MIN_SHOWN_S`` now holds the second;
+tests/sim/test_kraken_feed_behind.py)."""
 from __future__ import annotations
 
 import json

@@ -131,10 +131,31 @@ def test_what_the_app_publishes_is_what_the_ground_station_decodes():
     assert (s.datagrams_accepted, s.datagrams_rejected, s.ticks, s.ticks_skipped, s.latency_ms) == (8, 9, 10, 11, 12.0)
     assert s.uav_enu == (15.0, 16.0, 17.0) and (s.ticks_late, s.setpoints_refused) == (19, 20)
     assert s.launch_phase == "arming" and len(s.warnings) == 2
-    assert s.limits == "planned at 23 m/s, 25 m/s^2 (autopilot 22 m/s, 24 m/s^2)"
+    assert s.limits == "planned at 23 m/s, 25 m/s^2, 31 m/s^3 (autopilot 22 m/s, 24 m/s^2, 30 m/s^3)"
     t = P.TargetEstimate.from_msg(wire.sent[1])
     assert (t.index, t.x, t.y, t.vx, t.vy, t.sigma_x, t.sigma_y, t.cov_xy) == (2, 10, 11, 13, 14, 16, 17, 19)
     assert t.since_detection_s is None and t.degenerate and t.tick_time_s == 23
+
+
+def test_status_says_the_planned_jerk_and_the_autopilots_where_it_has_one():
+    """PMON_STAT's jerk fields in words: a plan whose acceleration steps (0) says so; PX4 (no
+    jerk shaped: NaN) shows none of its own; an app older than the fields (their 0 padding)
+    shows no autopilot jerk."""
+    import math
+
+    from onboard.app.contract import STAT_FIELDS
+    from onboard.app.mavlink_connection import mavlink
+
+    def limits(**values):
+        d = dict.fromkeys(STAT_FIELDS, 0.0)
+        d.update(speed_limit_mps=12.0, speed_plan_mps=9.0, accel_limit_mps2=3.0, accel_plan_mps2=2.5, **values)
+        data = [d[f] for f in STAT_FIELDS] + [0.0] * (58 - len(STAT_FIELDS))
+        return P.AppStatus.from_msg(mavlink.MAVLink_debug_float_array_message(0, b"PMON_STAT", 0, data)).limits
+
+    assert limits(jerk_limit_mps3=math.nan, jerk_plan_mps3=5.0) == "planned at 9 m/s, 2.5 m/s^2, 5 m/s^3 (autopilot 12 m/s, 3 m/s^2)"
+    assert limits(jerk_limit_mps3=2.0, jerk_plan_mps3=0.0) == \
+        "planned at 9 m/s, 2.5 m/s^2, acceleration steps (autopilot 12 m/s, 3 m/s^2, 2 m/s^3)"
+    assert limits(jerk_limit_mps3=0.0, jerk_plan_mps3=math.nan) == "planned at 9 m/s, 2.5 m/s^2 (autopilot 12 m/s, 3 m/s^2)"
 
 
 # ----------------------------------------------------------------------------- against a vehicle

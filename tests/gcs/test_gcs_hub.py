@@ -229,3 +229,48 @@ def test_hub_usage_errors_are_one_line_exit_2_before_any_link(capsys):
         err = capsys.readouterr().err.strip()
         assert rc == 2 and len(err.splitlines()) == 1 and msg in err, (argv, err)
         assert time.monotonic() - t0 < 2.0  # refused before waiting for a vehicle
+
+
+@pytest.mark.timeout(60)
+def test_the_hub_stops_on_sigint_even_started_with_sigint_ignored():
+    """`pmon gcs hub` says "(Ctrl-C stops)": it must, also when started from a shell that ignores
+    SIGINT (a background job inherits SIG_IGN across exec; the shared ArduCopter flight's hub then
+    never stopped and held the autopilot's port)."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from tests.support.gcs_fake_vehicle import FakeVehicle, free_udp_port
+
+    vport, sport = free_udp_port(), free_udp_port()
+    veh = FakeVehicle(vport)
+    proc = subprocess.Popen([sys.executable, "-m", "onboard.cli", "gcs", "--connect", f"udpin:127.0.0.1:{vport}",
+                             "--json", "--timeout", "20", "hub", "--serve", f"udp:127.0.0.1:{sport}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        t0 = time.monotonic()
+        os.set_blocking(proc.stdout.fileno(), False)
+        first = ""
+        while not first and proc.poll() is None and time.monotonic() - t0 < 20:
+            veh.heartbeat()
+            time.sleep(0.2)
+            first = proc.stdout.readline()
+        assert first.startswith('{"hub"'), (first, proc.poll())
+        proc.send_signal(signal.SIGINT)
+        t1 = time.monotonic()
+        while proc.poll() is None and time.monotonic() - t1 < 10:
+            veh.heartbeat()
+            time.sleep(0.2)
+        assert proc.poll() is not None, "the hub ignored SIGINT"
+        os.set_blocking(proc.stdout.fileno(), True)
+        out = proc.stdout.read()
+        assert json.loads(out.strip().splitlines()[-1])["ok"] is True
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
+        veh.close()

@@ -256,6 +256,24 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         ev.make_config(sc, 1, 5, ["flight@x"])
 
 
+def test_the_evaluation_plans_with_the_autopilots_jerk_as_the_app_does(monkeypatch):
+    """The flight default's jerk: min(the autopilot's, planning.jerk_max_mps3), as the app plans
+    (onboard/policy.py vehicle_motion): ArduCopter's PSC_JERK_XY as its attitude loop caps it
+    (stock 5; the demo's 20 capped at 15.3; 2 set), PX4's OFFBOARD none (the scenario's)."""
+    from onboard.config import load_scenario
+
+    monkeypatch.setitem(ev.AUTOPILOTS, "slowjerk", {"PSC_JERK_XY": 2.0})
+    sc = load_scenario("paper", {"planning.jerk_max_mps3": 8.0, "tracking.particles": 300})
+    want = {"flight": 5.0, "flight@demo": 8.0, "flight@px4": 8.0, "flight@slowjerk": 2.0}
+    cfg = ev.make_config(sc, 1, 5, list(want))
+    for m in cfg.methods:
+        setup, _, _ = ev._setup_for(cfg, m)
+        assert setup.motion.jerk_max_mps3 == want[m.name], m.name
+    steps = load_scenario("paper", {"planning.jerk_max_mps3": 0.0, "tracking.particles": 300})
+    cfg = ev.make_config(steps, 1, 5, ["flight@slowjerk"])
+    assert ev._setup_for(cfg, cfg.methods[0])[0].motion.jerk_max_mps3 == 0.0  # steps stay steps
+
+
 def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits(tmp_path):
     """``ceiling``: no filter runs (RMSE, NEES NaN; no RMSE rows), its path is a vehicle's at the
     flight default's limits from the trial's start, its bound is the evaluation's PCRB of that
@@ -409,11 +427,19 @@ def run_cli(*args):
 
 
 def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
+    """... and says where its results went, in a table, and warns of few trials (one run for both:
+    this was two runs of the same kind, one in tests/app/test_cli.py)."""
     out = tmp_path / "ev"
     res = run_cli("eval", "--trials", "2", "--duration", "4", "--particles", "100", "--workers", "1",
                   "--methods", "greedy_l1,fixed3,hover", "--out", str(out), "--quiet")
     assert res.returncode == 0, res.stderr
-    head = json.loads(res.stdout.strip().splitlines()[-1])
+    lines = res.stdout.strip().splitlines()
+    head = json.loads(lines[-1])  # the JSON line stays last
+    assert lines[0].split()[:2] == ["method", "RMSE"]
+    hover = next(x for x in lines if x.startswith("hover "))
+    assert f"{head['methods']['hover']['rmse_mean_m']:.1f}" in hover
+    assert f"results in {out}/: results.md" in res.stdout
+    assert "warning: 2 trials: a 95 % confidence interval means little below about 10" in res.stderr
     assert set(head["methods"]) == {"greedy_l1", "fixed3", "hover"}
     assert all(set(v) >= {"rmse_mean_m", "nees_mean", "bound_m", "rmse_over_bound", "ratio_vs_ref"}
                for v in head["methods"].values())
@@ -444,10 +470,17 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     (("--methods", "lookahead", "--set", "guidance.horizon=20"),
      "method lookahead: planning.lookahead_steps: must be <= guidance.horizon (20)"),
 ])
-def test_pmon_eval_bad_arguments(tmp_path, args, message):
-    res = run_cli("eval", "--out", str(tmp_path / "x"), *args)
-    assert res.returncode == 2
-    assert message in res.stderr and "Traceback" not in res.stderr
+def test_pmon_eval_bad_arguments(tmp_path, args, message, capsys):
+    """Through pmon's main(argv) in this process (no Python start-up per case; the real program
+    runs in the other tests here)."""
+    from onboard.cli import main
+    try:
+        rc = main(["eval", "--out", str(tmp_path / "x"), *args])
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()
 
 

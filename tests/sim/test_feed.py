@@ -32,3 +32,25 @@ def test_a_bad_recording_is_named(tmp_path):
     bad.write_text('{"t": 1}\n')
     with pytest.raises(ValueError, match="bad.jsonl:1"):
         list(read_recording(bad))
+
+
+def test_the_live_feeds_start_waits_for_the_arming_or_the_mission_altitude():
+    """--start altitude (pmon demo's): the first scan only once the vehicle is armed within 1 m
+    of h (the app's own 'at altitude'), so the world's t = 0 has the UAV at h as the paper's
+    mission; --start armed scans from the ground; now as soon as a position is known."""
+    import numpy as np
+
+    from onboard.app.pose import PoseSample
+    from sim.live_feed import LiveFeedConfig, ready_to_scan
+
+    def at(up):
+        return PoseSample(10.0, np.array([150.0, 200.0, up]), np.zeros(3), None)
+    h = 40.0
+    assert not ready_to_scan("altitude", True, at(0.0), h) and ready_to_scan("armed", True, at(0.0), h)
+    assert not ready_to_scan("altitude", True, at(38.9), h)
+    assert ready_to_scan("altitude", True, at(39.1), h) and ready_to_scan("altitude", True, at(55.0), h)
+    assert not ready_to_scan("altitude", False, at(40.0), h) and not ready_to_scan("armed", False, at(40.0), h)
+    assert ready_to_scan("now", False, at(0.0), h)
+    assert not any(ready_to_scan(s, True, None, h) for s in ("armed", "altitude", "now"))  # no position yet
+    with pytest.raises(ValueError, match="feed start must be one of armed, altitude, now"):
+        LiveFeedConfig("tcp:127.0.0.1:1", start="airborne")

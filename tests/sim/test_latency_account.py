@@ -56,3 +56,22 @@ def test_a_clean_mission_has_no_miss_and_quantiles_come_from_the_histogram():
     assert f["ticks_missed"] == 0 and f["ticks"] == 100 and f["unticked_t"] == []
     assert abs(f["latency_ms_median"] - 25.0) <= 0.15 and f["latency_ms_max"] == 30.0
     assert abs(f["setpoint_delay_s_median"] - 0.2) <= 0.001
+
+
+def test_a_continuous_plans_receipt_is_not_the_target_held_before_it_was_sent():
+    """The flight policy's plan starts at the scan, where the vehicle flying the last plan was:
+    the target the autopilot holds until the tick's setpoint comes is on the new plan too
+    (within the match's 0.5 m). A report of it before the app sent the setpoint (sent_t) is not
+    the receipt: the one after is, and a tick sent too late for its budget is late."""
+    acc = latency.TickAccount()
+    seg = {"t0": 3.0, "p0": [0.0, 0.0, 40.0], "v0": [8.0, 0.0], "v1": [8.0, 0.0], "tick_s": 1.0, "a0": [0.0, 0.0]}
+    acc.on_setpoint(3.05, ned((0.4, 0.0, 40.0)))  # the last plan's target, carried on: on the new plan at 3.05
+    acc.on_tick({**rec(3.0, nxt=(8.0, 0.0, 40.0)), "segment": seg, "sent_t": 3.09}, 0.9)
+    acc.on_setpoint(3.15, ned((1.2, 0.0, 40.0)))  # the tick's setpoint, held
+    late = {**seg, "t0": 4.0, "p0": [8.0, 0.0, 40.0]}
+    acc.on_setpoint(4.5, ned((12.0, 0.0, 40.0)))  # before the late send: the last plan's target
+    acc.on_tick({**rec(4.0, nxt=(16.0, 0.0, 40.0)), "segment": late, "sent_t": 4.95}, 0.9)
+    acc.on_setpoint(5.0, ned((16.0, 0.0, 40.0)))
+    f = acc.finish(iter([3.0, 4.0]))
+    assert f["ticks_late"] == 1 and f["late_t"] == [4.0]
+    assert abs(f["setpoint_delay_s_median"] - 0.15) < 0.01

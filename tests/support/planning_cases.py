@@ -12,7 +12,7 @@ from onboard.settings import Lookahead
 
 GRID = CandidateGrid(step_m=5.0, n_radial=4, n_heading=15, altitude_m=40.0)
 MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10])
-VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5)
+VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5, jerk_max_mps3=0.0)
 LOOKAHEAD = LookaheadParams.from_config(Lookahead())  # the declared defaults
 AREA = ((-2e3, -2e3, 0.0), (2e3, 2e3, 1e3))
 

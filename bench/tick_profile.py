@@ -1,0 +1,64 @@
+"""Where a flight case's tick time goes: cProfile over bench/planner.py's closed loops.
+
+    python bench/tick_profile.py [--case flight] [--seeds 1,2,3] [--ticks 60] [--top 25] [--set KEY=VALUE ...]
+
+The same loops as `bench/planner.py --cases CASE` (one BLAS thread, the paper scenario under the
+flight policy at ArduCopter's stock limits), profiled whole; prints the functions of onboard/ by
+cumulative time with their call counts, then one JSON line: total seconds and calls of the
+guidance's searches (``plan_guidance``, ``FaceSearch.explore``) and the steering's plans
+(``steering.side_modes``), the counts that say why one setting's tick costs more than another's.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import cProfile  # noqa: E402
+import json  # noqa: E402
+import pstats  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench import add_set_option, set_overrides, tick_timings  # noqa: E402
+from bench.planner import CASES, setup_for  # noqa: E402
+from onboard.config import load_scenario  # noqa: E402
+
+WATCH = {"plan_guidance": "guidance.py", "explore": "guidance_search.py", "side_modes": "steering.py",
+         "tick": "monitor.py"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--case", default="flight", choices=CASES)
+    ap.add_argument("--seeds", default="1,2,3")
+    ap.add_argument("--ticks", type=int, default=60)
+    ap.add_argument("--top", type=int, default=25)
+    add_set_option(ap)
+    args = ap.parse_args()
+    setup = setup_for(load_scenario("paper", set_overrides(ap, args)), args.case)
+    prof = cProfile.Profile()
+    prof.enable()
+    for seed in (int(s) for s in args.seeds.split(",")):
+        tick_timings(setup, args.ticks, seed, timer=time.process_time)
+    prof.disable()
+    stats = pstats.Stats(prof)
+    rows = [(k, v) for k, v in stats.stats.items() if "/onboard/" in k[0]]
+    rows.sort(key=lambda kv: -kv[1][3])
+    print(f"{'cumulative [s]':>14} {'calls':>8}  function")
+    for (path, line, name), (_, calls, _, cum, _) in rows[:args.top]:
+        print(f"{cum:14.2f} {calls:8d}  {Path(path).name}:{line}({name})")
+    out = {}
+    for (path, _, name), (_, calls, _, cum, _) in rows:
+        if WATCH.get(name) == Path(path).name:
+            out[name] = {"s": round(cum, 2), "calls": calls}
+    print(json.dumps({"case": args.case, "seeds": args.seeds, "ticks": args.ticks, **out}))
+
+
+if __name__ == "__main__":
+    main()
