@@ -290,11 +290,12 @@ WINDOW_S = 10.0  # pmon eval scores a mission from 10 s after its first scan (si
 # the files named (docs/RESULTS.md; tests/sim/test_demo.py holds these figures to the files)
 SCALE = {
     "flight": ("the flight default at ArduCopter's stock limits (flight@stock)",
-               "docs/results_flight_default/per_trial.csv", "flight@stock", 21.6, 16.3, 35.2),
-    "paper": ("the paper's rule with 20 m jumps, which no copter flies (greedy_l1)", "docs/results/per_trial.csv",
-              "greedy_l1", 25.8, 20.1, 46.2),
-    "hover": ("a UAV hovering at its start (hover)", "docs/results/per_trial.csv", "hover", 27.1, 20.8, 48.2),
-    "fixed3": ("three fixed DFs (fixed3)", "docs/results_flight/per_trial.csv", "fixed3", 7.9, 7.5, 8.5),
+               "docs/results_flight_default/per_trial.csv", "flight@stock", 18.8, 16.1, 32.1),
+    "paper": ("the paper's rule with 20 m jumps, which no copter flies (greedy_l1)",
+              "docs/results_flight_default/per_trial.csv", "greedy_l1", 23.1, 19.0, 36.7),
+    "hover": ("a UAV hovering at its start (hover)", "docs/results_flight_default/per_trial.csv", "hover",
+              24.2, 19.7, 39.1),
+    "fixed3": ("three fixed DFs (fixed3)", "docs/results_flight_default/per_trial.csv", "fixed3", 8.0, 7.4, 8.4),
 }
 
 
