@@ -83,8 +83,7 @@ def main() -> None:
     for margin in (params.obstacle_margin_m, 0.0):
         search = FaceSearch(m, replace(params, max_qp_solves=10**6), obs, x, goal, prev, ws, time.perf_counter,
                             None, False, margin)
-        shifted = np.vstack([prev.faces[1:], prev.faces[-1:]])
-        base = search.geo.sanitise(shifted, np.vstack([search.x0[:2], prev.means[1:, :2], prev.means[-1:, :2]]))
+        base, _ = search.shifted(prev)
         n = 0
         for cuts in itertools.combinations(range(1, T - 1), len(seq) - 1):
             col = np.repeat(seq, np.diff((0,) + cuts + (T - 1,)))

@@ -215,15 +215,19 @@ class FaceSearch:
         if previous is None or not previous.feasible or previous.faces.shape != (T - 1, K):
             return False
         if shift:
-            faces = np.vstack([previous.faces[1:], previous.faces[-1:]])
-            path = np.vstack([self.x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
-        else:
-            faces, path = previous.faces, np.vstack([self.x0[:2], previous.means[:, :2]])
-        faces = self.geo.sanitise(faces, path)
-        if shift:
+            faces, path = self.shifted(previous)
             self.warm = (faces, path)
+        else:
+            path = np.vstack([self.x0[:2], previous.means[:, :2]])
+            faces = self.geo.sanitise(previous.faces, path)
         self.refine(faces)
         return self.best is not None
+
+    def shifted(self, previous: Plan) -> tuple[np.ndarray, np.ndarray]:
+        """Last tick's assignment shifted by one step (its last row repeated), made consistent with
+        its path from this tick's start (``sanitise``), and that path."""
+        path = np.vstack([self.x0[:2], previous.means[1:, :2], previous.means[-1:, :2]])
+        return self.geo.sanitise(np.vstack([previous.faces[1:], previous.faces[-1:]]), path), path
 
     def repair(self) -> None:
         """The previous plan's assignment shifted, when infeasible, with each face switch moved one to
