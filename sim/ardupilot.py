@@ -123,7 +123,8 @@ class ArduPilotSitl:
     ports: int = 3  # MAVLink TCP ports: 3 (SERIAL0..2), 4 (and SERIAL5) or 5 (and SERIAL6)
     log_path: Path | None = None  # the firmware's stdout/stderr (None: workdir/arducopter.log)
     proc: subprocess.Popen | None = field(default=None, init=False)
-    boots: int = field(default=0, init=False)
+    boots: int = field(default=0, init=False)  # boots that came up (a restart is one more)
+    boot_crashes: int = field(default=0, init=False)  # boots that crashed and were booted again
 
     def __post_init__(self):
         self.binary = Path(self.binary)
@@ -225,6 +226,30 @@ class ArduPilotSitl:
         return ",".join(files)
 
     def _boot(self, wipe: bool) -> None:
+        """Start the firmware and wait until every serial port listens. A crash at boot (killed by
+        a signal before its ports opened: once in a CI run, SIGABRT) is reported in its log and
+        on stderr and booted once more; a second crash, or an exit with a status (bad arguments,
+        a port taken), raises with the log's last lines."""
+        for attempt in (1, 2):
+            status, tail = self._boot_once(wipe)
+            if status is None:
+                return
+            if status >= 0 or attempt == 2:
+                break
+            self.boot_crashes += 1
+            note = (f"pmon: {self.binary.name} crashed at boot (signal {-status}); booting it again\n")
+            with open(self._log_file(), "a") as log:
+                log.write(note)
+            print(f"sim.ardupilot: {note.strip()}; its last lines: {tail}", file=sys.stderr)
+        raise SitlError(f"{self.binary.name} exited with {status} at boot ({tail}); "
+                        f"see {self._log_file()}")
+
+    def _log_file(self) -> Path:
+        return self.log_path or self.workdir / "arducopter.log"
+
+    def _boot_once(self, wipe: bool) -> tuple[int | None, str]:
+        """One boot: (None, "") once every port listens, else (its exit status, its log's last
+        lines joined by " | ")."""
         home = ",".join(f"{x:g}" for x in (*self.home[:3], self.home[3] if len(self.home) > 3 else 0))
         argv = [str(self.binary), "--model", self.model, "--speedup", f"{self.speedup:g}",
                 "-I", str(self.instance), "--home", home, "--disable-fgview"]
@@ -235,23 +260,27 @@ class ArduPilotSitl:
             argv += ["--defaults", defaults]
         for n, k in SERIALS[:self.ports]:
             argv += [f"--serial{n}", f"tcp:{k}"]
-        log = open(self.log_path or self.workdir / "arducopter.log", "ab")
+        path = self._log_file()
+        start = path.stat().st_size if path.exists() else 0
+        log = open(path, "ab")
         try:
             self.proc = subprocess.Popen(argv, cwd=self.workdir, stdout=log, stderr=subprocess.STDOUT,
                                          stdin=subprocess.DEVNULL, start_new_session=True)
         finally:
             log.close()
-        self.boots += 1
         deadline = time.monotonic() + 20.0
         while time.monotonic() < deadline:  # every serial port listening = booted
-            if self.proc.poll() is not None:
-                raise SitlError(f"{self.binary.name} exited with {self.proc.returncode} at boot; "
-                                f"see {self.log_path or self.workdir / 'arducopter.log'}")
+            status = self.proc.poll()
+            if status is not None:
+                self.proc = None
+                return status, _last_lines(path, start)
             if all(_listening(self.port(i)) for i in range(self.ports)):
-                return
+                self.boots += 1
+                return None, ""
             time.sleep(0.05)
         self._terminate()
-        raise SitlError(f"{self.binary.name} did not open its serial ports within 20 s")
+        raise SitlError(f"{self.binary.name} did not open its serial ports within 20 s "
+                        f"({_last_lines(path, start)}); see {path}")
 
     def _terminate(self) -> None:
         p, self.proc = self.proc, None
@@ -267,6 +296,18 @@ class ArduPilotSitl:
         deadline = time.monotonic() + 5.0  # the kernel frees the ports with the process
         while time.monotonic() < deadline and any(_listening(self.port(i)) for i in range(self.ports)):
             time.sleep(0.05)
+
+
+def _last_lines(path: Path, start: int, n: int = 4) -> str:
+    """The last ``n`` non-empty lines the firmware printed since byte ``start`` of its log."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(start)
+            text = f.read()[-4000:].decode("utf-8", "replace")
+    except OSError as exc:
+        return f"its log unreadable: {exc}"
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return " | ".join(lines[-n:]) or "it printed nothing"
 
 
 def _listening(port: int) -> bool:

@@ -298,3 +298,51 @@ def test_stop_keeps_the_firmware_log_it_printed(tmp_path):
     finally:
         import shutil
         shutil.rmtree(sitl.workdir, ignore_errors=True)
+
+
+def _wrapper(tmp_path, body: str):
+    w = tmp_path / "arducopter"
+    w.write_text("#!/bin/sh\n" + body)
+    w.chmod(0o755)
+    return w
+
+
+def test_a_crash_at_boot_is_reported_and_booted_once_more(tmp_path, capfd):
+    """A CI run lost flight A to 'arducopter exited with -6 at boot' with nothing to say why: the
+    firmware crashed (SIGABRT) before its ports opened. One crash at boot is written to the log,
+    said on stderr and booted again; the second boot is the real firmware, which must come up."""
+    from sim.ardupilot import ArduPilotSitl, find_binary
+
+    marker = tmp_path / "crashed-once"
+    w = _wrapper(tmp_path, f'if [ ! -e {marker} ]; then touch {marker}; echo "PANIC: test crash"; '
+                 f'kill -ABRT $$; fi\nexec {find_binary()} "$@"\n')
+    sitl = ArduPilotSitl(w, (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w").start()
+    try:
+        assert sitl.running and sitl.boots == 1 and sitl.boot_crashes == 1
+        log = (tmp_path / "w" / "arducopter.log").read_text()
+        assert "PANIC: test crash" in log and "crashed at boot (signal 6)" in log
+        assert "crashed at boot (signal 6)" in capfd.readouterr().err
+    finally:
+        sitl.stop()
+
+
+def test_a_firmware_that_keeps_crashing_raises_with_its_last_words(tmp_path):
+    from sim.ardupilot import ArduPilotSitl, SitlError
+
+    w = _wrapper(tmp_path, 'echo "ERROR: Floating point exception - aborting"; kill -ABRT $$\n')
+    sitl = ArduPilotSitl(w, (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
+    with pytest.raises(SitlError, match=r"exited with -6 at boot \(ERROR: Floating point exception"):
+        sitl.start()
+    sitl.stop()
+    assert sitl.boot_crashes == 1 and sitl.boots == 0
+
+
+def test_an_exit_with_a_status_is_not_booted_again(tmp_path):
+    from sim.ardupilot import ArduPilotSitl, SitlError
+
+    w = _wrapper(tmp_path, 'echo "bind failed on port 5960 - Address already in use"; exit 1\n')
+    sitl = ArduPilotSitl(w, (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
+    with pytest.raises(SitlError, match=r"exited with 1 at boot \(bind failed on port 5960"):
+        sitl.start()
+    sitl.stop()
+    assert sitl.boot_crashes == 0
