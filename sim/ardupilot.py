@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from onboard.argcheck import param_item  # NAME=VALUE, finite (bench/sitl_response.py imports it from here)
+from sim.processes import log_tail
 
 ENV_VAR = "PMON_ARDUPILOT_SITL"
 REPO = Path(__file__).resolve().parent.parent
@@ -273,14 +274,14 @@ class ArduPilotSitl:
             status = self.proc.poll()
             if status is not None:
                 self.proc = None
-                return status, _last_lines(path, start)
+                return status, log_tail(path, start)
             if all(_listening(self.port(i)) for i in range(self.ports)):
                 self.boots += 1
                 return None, ""
             time.sleep(0.05)
         self._terminate()
         raise SitlError(f"{self.binary.name} did not open its serial ports within 20 s "
-                        f"({_last_lines(path, start)}); see {path}")
+                        f"({log_tail(path, start)}); see {path}")
 
     def _terminate(self) -> None:
         p, self.proc = self.proc, None
@@ -296,18 +297,6 @@ class ArduPilotSitl:
         deadline = time.monotonic() + 5.0  # the kernel frees the ports with the process
         while time.monotonic() < deadline and any(_listening(self.port(i)) for i in range(self.ports)):
             time.sleep(0.05)
-
-
-def _last_lines(path: Path, start: int, n: int = 4) -> str:
-    """The last ``n`` non-empty lines the firmware printed since byte ``start`` of its log."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(start)
-            text = f.read()[-4000:].decode("utf-8", "replace")
-    except OSError as exc:
-        return f"its log unreadable: {exc}"
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return " | ".join(lines[-n:]) or "it printed nothing"
 
 
 def _listening(port: int) -> bool:

@@ -16,6 +16,19 @@ from pathlib import Path
 from typing import Mapping
 
 
+def log_tail(path: Path, start: int, n: int = 4) -> str:
+    """The last ``n`` non-empty lines a program printed since byte ``start`` of its log, joined by
+    " | ": what a boot failure's one-line error quotes."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(start)
+            text = f.read()[-4000:].decode("utf-8", "replace")
+    except OSError as exc:
+        return f"its log unreadable: {exc}"
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return " | ".join(lines[-n:]) or "it printed nothing"
+
+
 class Proc:
     """A child process whose stdout lines are collected on a thread."""
 

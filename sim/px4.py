@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Mapping
 
 from onboard.argcheck import param_item
+from sim.processes import log_tail
 
 ENV_VAR = "PMON_PX4_SITL"
 REPO = Path(__file__).resolve().parent.parent
@@ -341,14 +342,16 @@ class Px4Sitl:
         deadline = time.monotonic() + BOOT_TIMEOUT_S
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise SitlError(f"PX4 exited with {self.proc.returncode} at boot; see {self.log_file}")
+                raise SitlError(f"PX4 exited with {self.proc.returncode} at boot ({log_tail(self.log_file, start)}); "
+                                f"see {self.log_file}")
             with open(self.log_file, "rb") as f:
                 f.seek(start)
                 if BOOT_LINE.encode() in f.read():
                     return
             time.sleep(0.05)
         self._terminate()
-        raise SitlError(f"PX4 did not finish its startup script within {BOOT_TIMEOUT_S:g} s; see {self.log_file}")
+        raise SitlError(f"PX4 did not finish its startup script within {BOOT_TIMEOUT_S:g} s "
+                       f"({log_tail(self.log_file, start)}); see {self.log_file}")
 
     def _terminate(self) -> None:
         p, self.proc = self.proc, None
