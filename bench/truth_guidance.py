@@ -1,7 +1,7 @@
 """How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
 
     python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
-                                   [--set KEY=VALUE ...]
+                                   [--per-trial CSV ...] [--set KEY=VALUE ...]
 
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
 target re-plans every step; a step without a feasible plan leaves it on its previous plan's
@@ -9,7 +9,10 @@ controls (``fallback_previous``), open loop, which no tracker's motion model pre
 the target-steps by plan status, the (trial, target) pairs whose plan's P1 cost ever jumps above 1.3
 times the step before's (and above 2e5), the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
-(trial, target) pairs with at least one fallback, and one JSON line. ``--show 82:3``: also the
+(trial, target) pairs with at least one fallback, the wall stops (a target held at an obstacle
+with zero velocity for a step: sim/truth.py) and one JSON line; ``--per-trial CSV`` (a ``pmon
+eval`` run of the same trials): per method, its error on the trials with a wall stop and on the
+others. ``--show 82:3``: also the
 times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
 ``--trace``, every step of each shown pair: the plan's status, QP solves, P1 cost and winding about
 each obstacle (``guidance.winding``: + counterclockwise, - clockwise, 0 not rounded), where a
@@ -32,6 +35,8 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import numpy as np  # noqa: E402
+
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
@@ -43,23 +48,37 @@ JUMP = 1.3  # a plan costing more than this times the step before's is a jump (d
 JUMP_FLOOR = 2e5  # ... and more than this: near the goal a few metres of noise change the cost by more
 
 
-def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int) -> tuple[list[list[str]], list[bool]]:
+def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int
+                   ) -> tuple[list[list[str]], list[bool], list[tuple[int, int]]]:
     """Per target, the status of its plan at each step of trial ``trial`` (``margin0``: a plan
-    without the margin); and per target, whether its plan's P1 cost ever jumped (above ``JUMP``
-    times the step before's and above ``JUMP_FLOOR``)."""
+    without the margin); per target, whether its plan's P1 cost ever jumped (above ``JUMP``
+    times the step before's and above ``JUMP_FLOOR``); and the wall stops, (scan k, target from
+    1): the truth held the target where it was with zero velocity at scan k (sim/truth.py: every
+    noise draw and the noise-free step entered an obstacle)."""
     cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
     out = [[] for _ in range(len(cfg.scenario.targets))]
     last = [float("nan")] * len(out)
     jumped = [False] * len(out)
-    for _ in range(cfg.n_ticks - 1):
+    stops = []
+    for k in range(1, cfg.n_ticks):
+        held = world.stuck_steps.copy()
         world.step()
+        stops += [(k, j + 1) for j in np.flatnonzero(world.stuck_steps > held)]
         for j, plan in enumerate(world.plans):
             margin = getattr(plan, "margin_m", None)  # absent before the field was added
             out[j].append("margin0" if margin == 0.0 else plan.status)
             jumped[j] |= bool(plan.cost > max(JUMP * last[j], JUMP_FLOOR))  # False with a nan (a fallback)
             last[j] = plan.cost
-    return out, jumped
+    return out, jumped, stops
+
+
+def _depth(obstacles, xy: np.ndarray) -> float:
+    """How deep (m) the ground point xy is inside the deepest obstacle's footprint (<= 0: outside)."""
+    if not len(obstacles):
+        return -np.inf
+    n, b, _, _ = obstacles.lateral()  # (K, 4, 2), (K, 4)
+    return float(-(np.einsum("kfd,d->kf", n, xy) - b).max(axis=1).min())
 
 
 def pair_trace(overrides: dict, n_trials: int, seed: int, trial: int, target: int) -> list[str]:
@@ -67,12 +86,35 @@ def pair_trace(overrides: dict, n_trials: int, seed: int, trial: int, target: in
     cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
     out = []
+    j = target - 1
     for k in range(cfg.n_ticks - 1):
+        held = world.stuck_steps[j]
         world.step()
-        p, x = world.plans[target - 1], world.states[target - 1]
-        out.append(f"  t={k:3d}  ({x[0]:6.0f}, {x[1]:6.0f}) m  {p.status:18s} {p.qp_solves:3d} QPs  "
-                   f"cost {p.cost:12.0f}  winding {winding(p.faces).tolist()}")
+        p, x = world.plans[j], world.states[j]
+        # the plan made at t = k from the state of scan k; the state shown is scan k + 1's
+        gap = _depth(world.obstacles, p.means[0, :2])
+        out.append(f"  t={k:3d}  ({x[0]:6.1f}, {x[1]:6.1f}) m  ({x[3]:5.1f}, {x[4]:5.1f}) m/s  {p.status:18s} "
+                   f"{p.qp_solves:3d} QPs  cost {p.cost:12.0f}  margin {p.margin_m}  next mean "
+                   f"{'%.1f m inside' % gap if gap > 0 else 'clear'}  winding {winding(p.faces).tolist()}"
+                   + ("  HELD at the wall" if world.stuck_steps[j] > held else ""))
     return out
+
+
+def wall_stop_rows(path: str, stopped: set[int], n_trials: int) -> str:
+    """Lines: per method of a per_trial.csv (trial, method, rmse_window_m), the RMS of the window
+    RMSE over the trials in ``stopped`` and over the other trials below ``n_trials``."""
+    import csv
+
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(r["trial"]) < n_trials]
+    lines = [f"{path}: RMS of the window RMSE, trials with a wall stop / the others [m]"]
+    for method in sorted({r["method"] for r in rows}):
+        v = [(int(r["trial"]) in stopped, float(r["rmse_window_m"])) for r in rows if r["method"] == method]
+        a = np.array([x for s, x in v if s])
+        b = np.array([x for s, x in v if not s])
+        rms = [f"{np.sqrt(np.mean(x ** 2)):.1f} ({len(x)})" if len(x) else "- (0)" for x in (a, b)]
+        lines.append(f"  {method:20s} {rms[0]:>12s} / {rms[1]}")
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -83,6 +125,9 @@ def main() -> None:
     ap.add_argument("--show", action="append", default=[], metavar="TRIAL:TARGET",
                     help="print the times of that pair's non-optimal plans (target from 1, as T1)")
     ap.add_argument("--trace", action="store_true", help="with --show: every step of the pair's plan")
+    ap.add_argument("--per-trial", metavar="CSV", action="append", default=[],
+                    help="a pmon eval per_trial.csv of these trials: per method, the RMS of the window RMSE "
+                         "over the trials with a wall stop and over the others")
     add_set_option(ap, "guidance.max_qp_solves=40")
     args = ap.parse_args()
     try:
@@ -96,6 +141,7 @@ def main() -> None:
         runs = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
                              [args.seed] * args.trials, range(args.trials)))
     trials = [r[0] for r in runs]
+    stops = {i: r[2] for i, r in enumerate(runs) if r[2]}
     jumps = [(i, j) for i, r in enumerate(runs) for j, jumped in enumerate(r[1]) if jumped]
     counts = Counter(s for trial in trials for target in trial for s in target)
     steps = sum(counts.values())
@@ -110,6 +156,12 @@ def main() -> None:
     print(f"(trial, target) pairs with a fallback: {len(pairs)} of {n_pairs}")
     print(f"(trial, target) pairs whose plan's cost jumps above {JUMP:g}x the step before's (and {JUMP_FLOOR:g}): "
           f"{len(jumps)} of {n_pairs}, in {len({i for i, _ in jumps})} trials")
+    n_stops = sum(len(v) for v in stops.values())
+    print(f"wall stops (a target held at an obstacle with zero velocity for a step): {n_stops} in "
+          f"{len(stops)} of {args.trials} trials" + (": " if stops else "")
+          + ", ".join(f"{i} T{j} at scan {k}" for i, v in stops.items() for k, j in v))
+    for path in args.per_trial:
+        print(wall_stop_rows(path, set(stops), args.trials))
     for trial, target in shows:
         if target > len(trials[trial]):
             ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
@@ -124,7 +176,7 @@ def main() -> None:
             print("\n".join(pair_trace(overrides, args.trials, args.seed, trial, target)))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,
                       "margin0_steps": counts["margin0"], "pairs_with_fallback": len(pairs),
-                      "pairs_with_cost_jump": len(jumps), "trials_with_cost_jump": len({i for i, _ in jumps}),
+                      "pairs_with_cost_jump": len(jumps), "wall_stops": n_stops, "trials_with_wall_stop": len(stops), "trials_with_cost_jump": len({i for i, _ in jumps}),
                       "pairs": n_pairs, "statuses": dict(counts)}))
 
 

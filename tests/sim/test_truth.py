@@ -138,3 +138,23 @@ def test_recording_the_closed_loop_gains_changes_no_state(short):
     assert gains.shape == (6, len(short.targets), 3, 6)
     assert np.all(np.isfinite(gains)) and np.abs(gains).max() > 0.0
     assert np.all(gains[:, :, 2] == 0.0)  # u_z = 0: no vertical feedback
+
+
+def test_a_wall_stop_is_counted_where_the_truth_holds_a_target(paper):
+    """bench/truth_guidance.py counts the wall stops of pmon eval's truths (15 in 100 trials at
+    seed 2024, docs/TRACKING.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
+    import sys
+    from pathlib import Path
+
+    from sim import evaluation as ev
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    from truth_guidance import trial_statuses
+
+    cfg = ev.make_config(paper, 100, 2024, ["hover"])
+    world = TruthWorld.from_scenario(cfg.scenario, ev._rng(2024, 86, 0))
+    states = [world.states] + [world.step() for _ in range(10)]
+    assert world.stuck_steps.tolist() == [0, 1, 0, 0]
+    assert np.all(states[9][1, 3:] == 0.0) and np.any(states[8][1, 3:5] != 0.0)
+    assert np.array_equal(states[9][1, :3], states[8][1, :3])  # held where it was
+    stops = trial_statuses({"mission.duration_s": 12.0}, 100, 2024, 86)[2]
+    assert stops == [(9, 2)]
