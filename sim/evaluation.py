@@ -60,8 +60,8 @@ from onboard.settings import SETTINGS
 from sim.guided import enu, fly_plan, ned
 from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
 from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
-from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, Summary, bound_summary, is_flight,
-                         motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
+from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, MethodTrace, Summary, TrialResult,
+                         bound_summary, is_flight, motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
@@ -167,34 +167,6 @@ def method_named(name: str, sc=None) -> Method:
 
 
 # --------------------------------------------------------------------------- one trial
-
-
-@dataclass(frozen=True, eq=False)
-class MethodTrace:
-    """One method on one trial: (K, M) arrays over ticks and targets unless stated."""
-
-    error_m: np.ndarray  # horizontal position error |x^ - x|
-    nees: np.ndarray  # 2-D position NEES
-    estimate_xy: np.ndarray  # (K, M, 2) posterior mean positions
-    uav: np.ndarray | None  # (K, 3) where each scan was taken (None: fixed sensors)
-    degenerate: int  # updates that left no finite weight (prior kept)
-    tick_s: float  # mean wall time of a tick
-    bound_m2: np.ndarray | None = None  # (K, M) PCRB of the position (trace, m^2) along this path
-    # a flown method (Method's docstring): per tick k < K-1, the flown position at k+1 from the
-    # planned one (m), the plan's speed at k+1 (m/s); per tick, the vehicle's speed (m/s)
-    plan_miss_m: np.ndarray | None = None
-    plan_speed_mps: np.ndarray | None = None
-    speed_mps: np.ndarray | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class TrialResult:
-    trial: int
-    start: np.ndarray  # (3,) the UAV start of this trial
-    truth: np.ndarray  # (K, M, 6) true states at the ticks
-    traces: dict[str, MethodTrace]
-    wall_s: float
-    gains: np.ndarray | None = None  # (K-1, M, 3, 6) closed-loop guidance gains at the true states
 
 
 _rng = seeded_rng

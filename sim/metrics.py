@@ -1,19 +1,17 @@
 """The evaluation's statistics (``sim.evaluation`` runs the trials and ``summarise``s them with
 these; its module docstring defines every metric): NEES band, t-intervals, the paired bootstrap
-ratio, the PCRB along a flown path, how a UAV moved, and the summary types."""
+ratio, the PCRB along a flown path, how a UAV moved, and the types of a trial's traces and of the
+summary."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from onboard.core.information import PLANAR, bearing_information, pcrb, planar_model
-
-if TYPE_CHECKING:
-    from sim.evaluation import MethodTrace
 
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
@@ -65,6 +63,34 @@ def pcrb_position(model, initial_cov: np.ndarray, truth: np.ndarray, gains: np.n
         bound = pcrb(np.linalg.inv(P0), F, Q, info)
         out[:, j] = bound[:, 0, 0] + bound[:, 1, 1]
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class MethodTrace:
+    """One method on one trial: (K, M) arrays over ticks and targets unless stated."""
+
+    error_m: np.ndarray  # horizontal position error |x^ - x|
+    nees: np.ndarray  # 2-D position NEES
+    estimate_xy: np.ndarray  # (K, M, 2) posterior mean positions
+    uav: np.ndarray | None  # (K, 3) where each scan was taken (None: fixed sensors)
+    degenerate: int  # updates that left no finite weight (prior kept)
+    tick_s: float  # mean wall time of a tick
+    bound_m2: np.ndarray | None = None  # (K, M) PCRB of the position (trace, m^2) along this path
+    # a flown method (Method's docstring): per tick k < K-1, the flown position at k+1 from the
+    # planned one (m), the plan's speed at k+1 (m/s); per tick, the vehicle's speed (m/s)
+    plan_miss_m: np.ndarray | None = None
+    plan_speed_mps: np.ndarray | None = None
+    speed_mps: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class TrialResult:
+    trial: int
+    start: np.ndarray  # (3,) the UAV start of this trial
+    truth: np.ndarray  # (K, M, 6) true states at the ticks
+    traces: dict[str, MethodTrace]
+    wall_s: float
+    gains: np.ndarray | None = None  # (K-1, M, 3, 6) closed-loop guidance gains at the true states
 
 
 @dataclass(frozen=True, eq=False)

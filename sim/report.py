@@ -13,8 +13,7 @@ from sim.metrics import BOOTSTRAP_RESAMPLES, FIXED, REFERENCE
 from sim.numerics import numerics_description
 
 if TYPE_CHECKING:
-    from sim.evaluation import TrialResult
-    from sim.metrics import Summary
+    from sim.metrics import Summary, TrialResult
 
 
 def headline(summary: Summary) -> dict:

@@ -15,8 +15,8 @@ stable:
 
 Exactness is measured against an exact MIQP solve (``bench/guidance_vs_miqp.py``).
 
-This module holds the settings, the plan and ``plan_guidance``; by role: ``guidance_qp`` (the
-QP of one assignment), ``guidance_faces`` (assignments, their geometry and sides),
+This module holds ``plan_guidance`` and the guidance's interface; by role: ``guidance_params``
+(P1's settings), ``guidance_plan`` (the plan it gives), ``guidance_qp`` (the QP of one assignment), ``guidance_faces`` (assignments, their geometry and sides),
 ``guidance_search`` (the search, one method per phase), ``guidance_laws`` (the first control
 as a map of the start state, for the tracker).
 
@@ -38,7 +38,7 @@ Deliberate differences from the paper's text (docs/GUIDANCE.md says why):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -46,98 +46,15 @@ import numpy as np
 from onboard.core.dynamics import MotionModel, predict_mean
 from onboard.core.guidance_faces import NO_FACE, in_class, winding
 from onboard.core.guidance_laws import FreeLaw, LocalLaw, free_law
-from onboard.core.guidance_qp import KN, ActiveRows, GuidanceWorkspace
+from onboard.core.guidance_params import GuidanceParams
+from onboard.core.guidance_plan import Plan
+from onboard.core.guidance_qp import KN, GuidanceWorkspace
 from onboard.core.guidance_search import FaceSearch
 from onboard.core.obstacles import Obstacles
 
 # the guidance's interface, wherever its parts are held
 __all__ = ["GuidanceParams", "Plan", "plan_guidance", "GuidanceWorkspace", "LocalLaw", "FreeLaw", "free_law",
            "winding", "in_class", "KN"]
-
-
-@dataclass(frozen=True)
-class GuidanceParams:
-    """Problem P1's settings, each from the scenario (onboard/settings.py ``Guidance`` declares
-    their defaults, units and ranges; no defaults here that could disagree)."""
-
-    horizon: int
-    u_max_n: float
-    speed_max_mps: float
-    speed_polygon_sides: int
-    terminal_weight: float  # per m^2
-    stage_weight: float  # per m^2
-    smooth_weight: float  # per kN^2
-    obstacle_margin_m: float
-    max_qp_solves: int
-    max_solve_time_s: float | None  # per plan; None: no limit (deterministic, for evaluation)
-
-    @classmethod
-    def from_config(cls, g) -> "GuidanceParams":
-        return cls(g.horizon, g.u_max_n, g.speed_max_mps, g.speed_polygon_sides, g.terminal_weight,
-                   g.stage_weight, g.smooth_weight, g.obstacle_margin_m, g.max_qp_solves,
-                   g.max_solve_time_s)
-
-
-@dataclass(frozen=True, eq=False)
-class Plan:
-    """A guidance solution for one target.
-
-    ``status``: ``optimal`` (assignment stable, local search done), ``budget`` (best found when
-    the QP budget ran out), ``timeout`` (best found when ``max_solve_time_s`` ran out),
-    ``fallback_previous`` (no feasible plan: the previous plan shifted by one step) or ``fallback_coast`` (no feasible plan and none before: zero control, the target
-    coasting under friction). ``cost`` is P1's objective (nan for fallbacks). ``margin_m``: the
-    clearance from the obstacles the plan keeps: ``obstacle_margin_m``, or 0 where noise carried the
-    target too close to an obstacle, or too fast toward it, for any plan to keep the margin.
-    """
-
-    status: str
-    cost: float
-    solve_time_s: float
-    qp_solves: int
-    controls: np.ndarray  # (T, 3) N, u_(t+tau|t)
-    means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
-    faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
-    active: "ActiveRows | None" = None  # the QP rows active at the solution: next tick's warm start
-    law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (with_feedback=True)
-    margin_m: float | None = None  # m; None when not set (plans built by hand)
-    # the laws of the next controls at the states the plan predicts (``shifted``; plan_guidance(ahead=))
-    ahead: tuple[LocalLaw, ...] = ()
-
-    def shifted(self) -> "Plan":
-        """This plan one tick later, from the state it predicted (status ``shifted``): its controls
-        and path from the next step on, its assignment and active rows one step on, and as its law
-        the next control's (``ahead``; None when there is none). What the tracker keeps of a plan
-        it did not make again this tick."""
-        T = len(self.controls)
-        return Plan("shifted", self.cost, 0.0, 0, np.vstack([self.controls[1:], np.zeros((1, 3))]),
-                    np.vstack([self.means[1:], self.means[-1:]]), np.vstack([self.faces[1:], self.faces[-1:]]),
-                    None if self.active is None else self.active.shifted(T), self.ahead[0] if self.ahead else None,
-                    self.margin_m, self.ahead[1:])
-
-    @property
-    def feedback(self) -> np.ndarray | None:
-        """(3, 6) du_0/dx, N per state unit (with_feedback=True), else None."""
-        return None if self.law is None else self.law.gain
-
-    @property
-    def feasible(self) -> bool:
-        return not self.status.startswith("fallback")
-
-    @property
-    def next_control(self) -> np.ndarray:
-        return self.controls[0]
-
-    @property
-    def unconstrained(self) -> bool:
-        """No row of P1 is active (no obstacle face, input or speed limit): the plan is the free
-        optimum, which is affine in the state (``FreeLaw``). False when unknown."""
-        return self.active is not None and not self.active.fixed.any() and not self.active.obstacles.any()
-
-    @property
-    def touches_obstacle(self) -> bool:
-        """An obstacle row is active somewhere on the horizon: the plan rounds an obstacle, and a
-        target could take another way around it. True when unknown (fallback plans)."""
-        return self.active is None or bool(self.active.obstacles.any())
 
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,

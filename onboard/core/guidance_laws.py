@@ -13,7 +13,7 @@ from onboard.core.guidance_qp import KN, GuidanceWorkspace, QPSolution, controls
 from onboard.core.obstacles import Obstacles
 
 if TYPE_CHECKING:
-    from onboard.core.guidance import GuidanceParams
+    from onboard.core.guidance_params import GuidanceParams
 
 
 def first_control_gain(dP: np.ndarray, model: MotionModel, decay: float, gain: float) -> np.ndarray | None:

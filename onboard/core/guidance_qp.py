@@ -14,7 +14,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from onboard.core.dynamics import MotionModel, velocity_rollout
 
 if TYPE_CHECKING:
-    from onboard.core.guidance import GuidanceParams
+    from onboard.core.guidance_params import GuidanceParams
 
 KN = 1000.0  # the QP works in kilonewtons: keeps its numbers near unity
 

@@ -33,7 +33,8 @@ from onboard.core.guidance_qp import KN, GuidanceWorkspace, QPSolution, controls
 from onboard.core.obstacles import Obstacles
 
 if TYPE_CHECKING:
-    from onboard.core.guidance import GuidanceParams, Plan
+    from onboard.core.guidance_params import GuidanceParams
+    from onboard.core.guidance_plan import Plan
 
 _STALL_SPEED_FRACTION = 0.25  # a warm plan against an obstacle this slow (of v_max) is stuck
 _SWITCH_MOVES = (1, -1, 2, -2, 3, -3)  # local search: steps by which a face switch is moved
