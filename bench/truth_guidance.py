@@ -100,18 +100,39 @@ def pair_trace(overrides: dict, n_trials: int, seed: int, trial: int, target: in
     return out
 
 
-def wall_stop_rows(path: str, stopped: set[int], n_trials: int) -> str:
-    """Lines: per method of a per_trial.csv (trial, method, rmse_window_m), the RMS of the window
-    RMSE over the trials in ``stopped`` and over the other trials below ``n_trials``."""
+def read_per_trial(path: str) -> list[tuple[int, str, float]]:
+    """(trial, method, window RMSE m) rows of a ``pmon eval`` per_trial.csv; ValueError naming
+    what is wrong (the file, a missing column, a bad value)."""
     import csv
 
-    with open(path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if int(r["trial"]) < n_trials]
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            missing = {"trial", "method", "rmse_window_m"} - set(reader.fieldnames or ())
+            if missing:
+                raise ValueError(f"{path}: not a pmon eval per_trial.csv (no column {', '.join(sorted(missing))})")
+            rows = []
+            for n, r in enumerate(reader, 2):
+                try:
+                    rows.append((int(r["trial"]), r["method"], float(r["rmse_window_m"])))
+                except (TypeError, ValueError):
+                    raise ValueError(f"{path}, line {n}: trial {r['trial']!r} or rmse_window_m "
+                                     f"{r['rmse_window_m']!r} is not a number") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: {exc.strerror}") from None
+    if not rows:
+        raise ValueError(f"{path}: no rows")
+    return rows
+
+
+def wall_stop_rows(path: str, rows: list[tuple[int, str, float]], stopped: set[int], n_trials: int) -> str:
+    """Lines: per method of a per_trial.csv's rows, the RMS of the window RMSE over the trials in
+    ``stopped`` and over the other trials below ``n_trials``."""
+    rows = [r for r in rows if r[0] < n_trials]
     lines = [f"{path}: RMS of the window RMSE, trials with a wall stop / the others [m]"]
-    for method in sorted({r["method"] for r in rows}):
-        v = [(int(r["trial"]) in stopped, float(r["rmse_window_m"])) for r in rows if r["method"] == method]
-        a = np.array([x for s, x in v if s])
-        b = np.array([x for s, x in v if not s])
+    for method in sorted({m for _, m, _ in rows}):
+        a = np.array([x for i, m, x in rows if m == method and i in stopped])
+        b = np.array([x for i, m, x in rows if m == method and i not in stopped])
         rms = [f"{np.sqrt(np.mean(x ** 2)):.1f} ({len(x)})" if len(x) else "- (0)" for x in (a, b)]
         lines.append(f"  {method:20s} {rms[0]:>12s} / {rms[1]}")
     return "\n".join(lines)
@@ -137,6 +158,10 @@ def main() -> None:
     except ValueError:
         ap.error(f"--show takes TRIAL:TARGET, a trial below --trials and a target from 1: {args.show}")
     overrides = set_overrides(ap, args)
+    try:
+        per_trial = {path: read_per_trial(path) for path in args.per_trial}
+    except ValueError as exc:
+        ap.error(f"--per-trial: {exc}")
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         runs = list(pool.map(trial_statuses, [overrides] * args.trials, [args.trials] * args.trials,
                              [args.seed] * args.trials, range(args.trials)))
@@ -160,8 +185,8 @@ def main() -> None:
     print(f"wall stops (a target held at an obstacle with zero velocity for a step): {n_stops} in "
           f"{len(stops)} of {args.trials} trials" + (": " if stops else "")
           + ", ".join(f"{i} T{j} at scan {k}" for i, v in stops.items() for k, j in v))
-    for path in args.per_trial:
-        print(wall_stop_rows(path, set(stops), args.trials))
+    for path, rows in per_trial.items():
+        print(wall_stop_rows(path, rows, set(stops), args.trials))
     for trial, target in shows:
         if target > len(trials[trial]):
             ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
