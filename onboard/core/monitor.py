@@ -18,135 +18,37 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from functools import cached_property
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from onboard.core import tracking
-from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import FreeLaw, GuidanceParams, GuidanceWorkspace, Plan, free_law, plan_guidance
-from onboard.core.obstacles import Obstacles
+from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
-from onboard.core.planning import CandidateGrid, LookaheadParams, PlanningResult, UavMotion
+from onboard.core.planning import PlanningResult
 from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
                                    SideMode, SideSteering, TargetTick)
 
 __all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "initial_state",
-           "tick", "replanner"]
+           "tick", "replanner", "uav_planner", "particle_steering"]
 
 
-@dataclass(frozen=True)
-class PlanSteering:
-    """How the particles of a target whose plan is constrained are steered (docs/TRACKING.md):
-    by the affine law (``LocalLaw``) of the nearest reference plan, the posterior mean's or one
-    of ``references`` more (an even number: pairs out to ``spread_sigma`` standard deviations
-    either side along the cloud's major axis), if it lies within ``trust_sigma`` standard
-    deviations (Mahalanobis, position) of one. A share ``1 - steered_share``, and every particle
-    farther out, keeps the mean plan's control (robustness where the target's plan differs from
-    all of them). Used while the mean's plan has an active row (rounding an obstacle, or at an
-    input or speed limit): elsewhere the free law is exact."""
-
-    references: int
-    spread_sigma: float
-    steered_share: float
-    trust_sigma: float
-    max_qp_solves: int  # per reference plan (capped by the guidance's budget, which the mean's has)
-    # each particle carries the side of each obstacle its target takes, and each side present has
-    # its own mean's plan and spread pairs (``_side_modes``); a side costing P1 d more (relative)
-    # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
-    sides: bool
-    side_temperature: float
-
-    @classmethod
-    def from_config(cls, tr) -> "PlanSteering | None":
-        """From the scenario's ``tracking.plan_*`` (onboard/settings.py declares the defaults)."""
-        if not tr.plan_steering:
-            return None
-        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
-                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
+def uav_planner(setup: MonitorSetup) -> Planner:
+    """The UAV planner ``setup.planner`` names (onboard/core/planners.py), built once per setup."""
+    if "planner" not in setup.parts:
+        setup.parts["planner"] = make_planner(setup)
+    return setup.parts["planner"]
 
 
-MAX_SIDE_MODES = 4  # per target
-MIN_SIDE_SHARE = 0.01  # a side mode holding less of the posterior weight is dropped
-SIDE_LEAD_STEPS = 3  # an obstacle first met this many steps ahead or later gets two sides
-
-
-@dataclass(frozen=True, eq=False)
-class MonitorSetup:
-    """Everything static about a mission, built once from a scenario (``from_scenario``: every
-    value from it; onboard/settings.py declares the defaults, so none here)."""
-
-    model: MotionModel
-    sensor: tracking.SensorModel
-    guidance: GuidanceParams
-    obstacles: Obstacles  # as built; the guidance inflates by its own margin
-    uav_obstacles: Obstacles  # inflated by the UAV's clearance margin
-    goals: np.ndarray  # (M, 3) goal centroid per target
-    initial_means: np.ndarray  # (M, 6)
-    initial_cov: np.ndarray  # (6, 6)
-    grid: CandidateGrid
-    area_min: np.ndarray
-    area_max: np.ndarray
-    n_particles: int
-    resample_fraction: float
-    objective: str
-    control_mix: float  # fraction of particles predicted with a random control
-    regularise_bandwidth: float  # h of the regularised resampling (tracking.resample_if_needed)
-    free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
-    plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
-    recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
-    planner: str  # greedy | lookahead
-    lookahead_steps: int
-    motion: UavMotion
-    lookahead: LookaheadParams
-
-    @classmethod
-    def from_scenario(cls, sc) -> "MonitorSetup":
-        """From a scenario; to change a setting, change the scenario (``onboard.config.override``)."""
-        obstacles = Obstacles.from_boxes(sc.obstacles)
-        d = sc.dynamics
-        model = MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag)
-        return cls(
-            model=model,
-            sensor=tracking.SensorModel.from_config(sc.sensor),
-            guidance=GuidanceParams.from_config(sc.guidance),
-            obstacles=obstacles,
-            uav_obstacles=obstacles.inflate(sc.uav.obstacle_margin_m),
-            goals=np.array([sc.goal_of(t).center_m for t in sc.targets], dtype=float),
-            initial_means=np.array([t.mean for t in sc.targets]),
-            initial_cov=sc.initial_cov,
-            grid=CandidateGrid.from_config(sc.uav),
-            area_min=np.array(sc.area.min_m), area_max=np.array(sc.area.max_m),
-            n_particles=sc.tracking.particles,
-            resample_fraction=sc.tracking.resample_ess_fraction,
-            control_mix=sc.tracking.control_mix,
-            regularise_bandwidth=sc.tracking.regularise_bandwidth,
-            free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
-            plan_steering=PlanSteering.from_config(sc.tracking),
-            recovery=tracking.Recovery.from_config(sc.tracking),
-            objective=sc.planning.objective,
-            planner=sc.planning.planner,
-            lookahead_steps=sc.planning.lookahead_steps,
-            motion=UavMotion.from_config(sc.planning),
-            lookahead=LookaheadParams.from_config(sc.planning.lookahead),
-        )
-
-    @property
-    def n_targets(self) -> int:
-        return len(self.goals)
-
-    # what the configuration chooses once: the planner and the particle steering (derived, not
-    # settings: ``planner`` and ``plan_steering`` above name them)
-    @cached_property
-    def uav_planner(self) -> Planner:
-        return make_planner(self)
-
-    @cached_property
-    def steering(self) -> ParticleSteering:
-        if self.plan_steering is None:
-            return FreeSteering(self)
-        return SideSteering(self) if self.plan_steering.sides else ReferenceSteering(self)
+def particle_steering(setup: MonitorSetup) -> ParticleSteering:
+    """The particle steering ``setup.plan_steering`` chooses (onboard/core/steering.py): free,
+    by reference plans, or side-aware; built once per setup."""
+    if "steering" not in setup.parts:
+        ps = setup.plan_steering
+        setup.parts["steering"] = (FreeSteering(setup) if ps is None
+                                   else SideSteering(setup) if ps.sides else ReferenceSteering(setup))
+    return setup.parts["steering"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,7 +115,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     if plan_from is not None:  # 5
         vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
         acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
-        planning = setup.uav_planner.plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
+        planning = uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
                                           rng if planner_rng is None else planner_rng)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
@@ -267,11 +169,11 @@ def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.
     """Step 4: each posterior predicted to t+1 with the particle steering's controls (its
     reference plans count as tracking time); the beliefs and what the steering keeps."""
     beliefs, memory = [], []
-    budgets = setup.steering.budgets(plans)
+    budgets = particle_steering(setup).budgets(plans)
     for j in range(setup.n_targets):
         target = TargetTick(posts[j], means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
                             replanner(setup, setup.goals[j], workspace, timer), budgets[j])
-        steered = setup.steering.steer(target, state.steering[j] if state.steering else (), rng)
+        steered = particle_steering(setup).steer(target, state.steering[j] if state.steering else (), rng)
         post = replace(posts[j], labels=steered.labels)
         beliefs.append(tracking.predict(post, setup.model, steered.controls, rng))
         memory.append(steered.memory)

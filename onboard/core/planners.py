@@ -25,7 +25,7 @@ from onboard.core.planning import (CandidateGrid, LookaheadParams, PlanningResul
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel
     from onboard.core.guidance import Plan
-    from onboard.core.monitor import MonitorSetup
+    from onboard.core.monitor_setup import MonitorSetup
     from onboard.core.obstacles import Obstacles
     from onboard.core.tracking import ParticleSet
 

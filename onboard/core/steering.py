@@ -1,7 +1,7 @@
 """Particle steering: the control each particle of a target is predicted with (eq:prediction).
 
 One abstract class for the role (``ParticleSteering``), chosen once from the configuration
-(``monitor.MonitorSetup.steering``), three strategies (docs/TRACKING.md has the measurements):
+(``monitor.particle_steering``), three strategies (docs/TRACKING.md has the measurements):
 
 - ``FreeSteering`` (the default): the plan's first control for every particle, except a particle
   whose own P1 optimum is the free one (``FreeLaw.is_optimal``), which gets that optimum's control;
@@ -26,7 +26,7 @@ from onboard.core.guidance import LocalLaw, Plan, in_class, winding
 from onboard.core.tracking import ParticleSet
 
 if TYPE_CHECKING:
-    from onboard.core.monitor import MonitorSetup, PlanSteering
+    from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 
 
 @dataclass(frozen=True, eq=False)

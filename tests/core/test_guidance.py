@@ -498,7 +498,7 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
     from dataclasses import replace as dc_replace
     from onboard.core import monitor, steering
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    from onboard.core.monitor import MonitorSetup, Scan, initial_state, particle_steering, tick
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_sides=True))
     setup = MonitorSetup.from_scenario(sc)
     spent: list[int] = []
@@ -521,7 +521,7 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
             bearings = tuple(np.array([np.arctan2(truth[j, 0] - uav[0], truth[j, 1] - uav[1]) + rng.normal(0, 0.017)])
                              for j in range(setup.n_targets))
             state, res = tick(setup, state, [Scan(uav, bearings)], rng, workspace=ws, timer=timer)
-            shares = [b for b in setup.steering.budgets(res.plans) if b is not None]
+            shares = [b for b in particle_steering(setup).budgets(res.plans) if b is not None]
             # each target's steering stops when its share is spent; one plan (a search that gave up
             # the margin once) can overshoot it by its own cap, and each mode whose plan cannot be
             # shifted again is re-planned with its own cap past the budget

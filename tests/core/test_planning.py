@@ -177,31 +177,31 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
     has is refused with the names that exist."""
     from dataclasses import replace as dc_replace
 
-    from onboard.core.monitor import MonitorSetup
+    from onboard.core.monitor import MonitorSetup, particle_steering, uav_planner
     from onboard.core.planners import (GreedyPlanner, HoverPlanner, LookaheadPlanner, OrbitPlanner, RandomPlanner,
                                        make_planner)
     from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
 
     setup = MonitorSetup.from_scenario(paper)
-    assert isinstance(setup.uav_planner, GreedyPlanner) and setup.uav_planner is setup.uav_planner
+    assert isinstance(uav_planner(setup), GreedyPlanner) and uav_planner(setup) is uav_planner(setup)
     for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
                        ("random", RandomPlanner)):
-        assert isinstance(MonitorSetup.from_scenario(override(paper, {"planning.planner": name})).uav_planner, kind)
+        assert isinstance(uav_planner(MonitorSetup.from_scenario(override(paper, {"planning.planner": name}))), kind)
     with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
         make_planner(dc_replace(setup, planner="spiral"))
-    assert isinstance(setup.steering, FreeSteering)
+    assert isinstance(particle_steering(setup), FreeSteering)
 
     def steering(**tr):
-        return MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))).steering
+        return particle_steering(MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))))
     assert isinstance(steering(plan_steering=True), ReferenceSteering)
     assert isinstance(steering(plan_steering=True, plan_sides=True), SideSteering)
     # the flight policy flies the side-aware filter; one user setting gives back the free steering
     # (plan_sides, as every plan_* setting, is unused without plan_steering); --policy paper keeps it
     from onboard.policy import with_policy
-    assert isinstance(MonitorSetup.from_scenario(with_policy(paper, "flight")).steering, SideSteering)
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(paper, "flight"))), SideSteering)
     user = override(paper, {"tracking.plan_steering": False})
-    assert isinstance(MonitorSetup.from_scenario(with_policy(user, "flight")).steering, FreeSteering)
-    assert isinstance(MonitorSetup.from_scenario(with_policy(paper, "paper")).steering, FreeSteering)
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(user, "flight"))), FreeSteering)
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(paper, "paper"))), FreeSteering)
 
 
 def test_a_planners_draws_never_shift_the_filters(paper):

@@ -207,6 +207,7 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     WPNAV_SPEED) is not flown: the copter tops out near 10 m/s (its drag at ANGLE_MAX) and falls
     behind its plan."""
     from onboard.config import load_scenario
+    from onboard.core.monitor import particle_steering
     from onboard.core.steering import SideSteering
     from onboard.policy import POLICIES
 
@@ -225,7 +226,7 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
         if m is not fast_plan:  # the policy's settings, the user's own on top
             assert setup.planner == policy.planning.planner == "lookahead"
             assert setup.regularise_bandwidth == policy.tracking.regularise_bandwidth
-            assert isinstance(setup.steering, SideSteering)  # the side-aware filter (docs/TRACKING.md)
+            assert isinstance(particle_steering(setup), SideSteering)  # the side-aware filter (docs/TRACKING.md)
             assert setup.n_particles == 300 and setup.lookahead_steps == 20
     # the airframe's cap applies: the flight default on the demo's 20 m/s plans at its cap
     capped, _, _ = ev._setup_for(ev.make_config(sc, 1, 5, ["flight@demo"]), demo)

@@ -1,0 +1,113 @@
+"""What is static about a mission (``MonitorSetup``), built once from a scenario, and the
+particle steering's settings (``PlanSteering``): what the tick (onboard/core/monitor.py), the
+planners (onboard/core/planners.py) and the particle steering (onboard/core/steering.py) read."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.core import tracking
+from onboard.core.dynamics import MotionModel
+from onboard.core.guidance import FreeLaw, GuidanceParams, free_law
+from onboard.core.obstacles import Obstacles
+from onboard.core.planning import CandidateGrid, LookaheadParams, UavMotion
+
+
+@dataclass(frozen=True)
+class PlanSteering:
+    """How the particles of a target whose plan is constrained are steered (docs/TRACKING.md):
+    by the affine law (``LocalLaw``) of the nearest reference plan, the posterior mean's or one
+    of ``references`` more (an even number: pairs out to ``spread_sigma`` standard deviations
+    either side along the cloud's major axis), if it lies within ``trust_sigma`` standard
+    deviations (Mahalanobis, position) of one. A share ``1 - steered_share``, and every particle
+    farther out, keeps the mean plan's control (robustness where the target's plan differs from
+    all of them). Used while the mean's plan has an active row (rounding an obstacle, or at an
+    input or speed limit): elsewhere the free law is exact."""
+
+    references: int
+    spread_sigma: float
+    steered_share: float
+    trust_sigma: float
+    max_qp_solves: int  # per reference plan (capped by the guidance's budget, which the mean's has)
+    # each particle carries the side of each obstacle its target takes, and each side present has
+    # its own mean's plan and spread pairs (``_side_modes``); a side costing P1 d more (relative)
+    # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
+    sides: bool
+    side_temperature: float
+
+    @classmethod
+    def from_config(cls, tr) -> "PlanSteering | None":
+        """From the scenario's ``tracking.plan_*`` (onboard/settings.py declares the defaults)."""
+        if not tr.plan_steering:
+            return None
+        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
+                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
+
+
+@dataclass(frozen=True, eq=False)
+class MonitorSetup:
+    """Everything static about a mission, built once from a scenario (``from_scenario``: every
+    value from it; onboard/settings.py declares the defaults, so none here)."""
+
+    model: MotionModel
+    sensor: tracking.SensorModel
+    guidance: GuidanceParams
+    obstacles: Obstacles  # as built; the guidance inflates by its own margin
+    uav_obstacles: Obstacles  # inflated by the UAV's clearance margin
+    goals: np.ndarray  # (M, 3) goal centroid per target
+    initial_means: np.ndarray  # (M, 6)
+    initial_cov: np.ndarray  # (6, 6)
+    grid: CandidateGrid
+    area_min: np.ndarray
+    area_max: np.ndarray
+    n_particles: int
+    resample_fraction: float
+    objective: str
+    control_mix: float  # fraction of particles predicted with a random control
+    regularise_bandwidth: float  # h of the regularised resampling (tracking.resample_if_needed)
+    free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
+    plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
+    recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
+    planner: str  # greedy | lookahead
+    lookahead_steps: int
+    motion: UavMotion
+    lookahead: LookaheadParams
+    # the planner and the particle steering the configuration chooses, built once per setup by
+    # onboard/core/monitor.py (``uav_planner``, ``particle_steering``): derived, not settings
+    parts: dict = field(default_factory=dict, init=False, repr=False)
+
+    @classmethod
+    def from_scenario(cls, sc) -> "MonitorSetup":
+        """From a scenario; to change a setting, change the scenario (``onboard.config.override``)."""
+        obstacles = Obstacles.from_boxes(sc.obstacles)
+        d = sc.dynamics
+        model = MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag)
+        return cls(
+            model=model,
+            sensor=tracking.SensorModel.from_config(sc.sensor),
+            guidance=GuidanceParams.from_config(sc.guidance),
+            obstacles=obstacles,
+            uav_obstacles=obstacles.inflate(sc.uav.obstacle_margin_m),
+            goals=np.array([sc.goal_of(t).center_m for t in sc.targets], dtype=float),
+            initial_means=np.array([t.mean for t in sc.targets]),
+            initial_cov=sc.initial_cov,
+            grid=CandidateGrid.from_config(sc.uav),
+            area_min=np.array(sc.area.min_m), area_max=np.array(sc.area.max_m),
+            n_particles=sc.tracking.particles,
+            resample_fraction=sc.tracking.resample_ess_fraction,
+            control_mix=sc.tracking.control_mix,
+            regularise_bandwidth=sc.tracking.regularise_bandwidth,
+            free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
+            plan_steering=PlanSteering.from_config(sc.tracking),
+            recovery=tracking.Recovery.from_config(sc.tracking),
+            objective=sc.planning.objective,
+            planner=sc.planning.planner,
+            lookahead_steps=sc.planning.lookahead_steps,
+            motion=UavMotion.from_config(sc.planning),
+            lookahead=LookaheadParams.from_config(sc.planning.lookahead),
+        )
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.goals)
