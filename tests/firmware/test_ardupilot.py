@@ -326,23 +326,19 @@ def test_a_crash_at_boot_is_reported_and_booted_once_more(tmp_path, capfd):
         sitl.stop()
 
 
-def test_a_firmware_that_keeps_crashing_raises_with_its_last_words(tmp_path):
+@pytest.mark.parametrize("script, error, crashes", [
+    # a firmware that keeps crashing is booted once more, then raises with its last words
+    ('echo "ERROR: Floating point exception - aborting"; kill -ABRT $$\n',
+     r"exited with -6 at boot \(ERROR: Floating point exception", 1),
+    # an exit with a status (bad arguments, a port taken) is not booted again
+    ('echo "bind failed on port 5960 - Address already in use"; exit 1\n',
+     r"exited with 1 at boot \(bind failed on port 5960", 0),
+], ids=["crashes-twice", "exit-status"])
+def test_a_boot_that_fails_raises_with_the_firmwares_last_words(tmp_path, script, error, crashes):
     from sim.ardupilot import ArduPilotSitl, SitlError
 
-    w = _wrapper(tmp_path, 'echo "ERROR: Floating point exception - aborting"; kill -ABRT $$\n')
-    sitl = ArduPilotSitl(w, (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
-    with pytest.raises(SitlError, match=r"exited with -6 at boot \(ERROR: Floating point exception"):
+    sitl = ArduPilotSitl(_wrapper(tmp_path, script), (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
+    with pytest.raises(SitlError, match=error):
         sitl.start()
     sitl.stop()
-    assert sitl.boot_crashes == 1 and sitl.boots == 0
-
-
-def test_an_exit_with_a_status_is_not_booted_again(tmp_path):
-    from sim.ardupilot import ArduPilotSitl, SitlError
-
-    w = _wrapper(tmp_path, 'echo "bind failed on port 5960 - Address already in use"; exit 1\n')
-    sitl = ArduPilotSitl(w, (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
-    with pytest.raises(SitlError, match=r"exited with 1 at boot \(bind failed on port 5960"):
-        sitl.start()
-    sitl.stop()
-    assert sitl.boot_crashes == 0
+    assert sitl.boot_crashes == crashes and sitl.boots == 0
