@@ -29,7 +29,7 @@ def _fly(tmp_path, df: str, duration: float, **cfg) -> tuple[SitlStack, list, li
     """The stack (mock and app in this process, the feed a process of its own as on the
     vehicle) launching itself, ``duration`` scans from the arming; its run log and truth."""
     run, truth = tmp_path / f"run_{df}.jsonl", tmp_path / f"truth_{df}.jsonl"
-    st = SitlStack(speedup=3.0, ready_s=QUICK_BOOT_S, seed=7, df=df, auto_launch=True, feed_duration_s=duration,
+    st = SitlStack(speedup=2.0, ready_s=QUICK_BOOT_S, seed=7, df=df, auto_launch=True, feed_duration_s=duration,
                    runlog_path=str(run), truth_path=str(truth), out_dir=str(tmp_path / f"rig_{df}"), **cfg)
     st.start()
     st.kraken_scans = []
@@ -59,15 +59,21 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     by_t = {tk["t"]: tk for tk in ticks}
     written = re.search(r"feed: KrakenSDR: (\d+) frames written, (\d+) scans without", _feed_log(st))
     assert len(scans) == 30 and written and int(written.group(2)) == 0, _feed_log(st)[-2000:]
-    missing = [s["t"] for s in scans if s["t"] not in by_t or by_t[s["t"]]["channels"] != [0, 1, 2, 3]]
-    assert not missing, missing
+    # the KrakenSDR input's part: every frame read, whole, in time for its tick
     assert {r: n for r, n in src.rejected.items() if n} == {}, src.last_error
     assert src.frames == src.scans // 4 == int(written.group(1)) == 30 and src.decimated == 0
+    # each scan ticked with every target's set; on a starved machine a tick overrunning its
+    # budget skips the scans behind it (tick_schedule.py), counted by the tick that follows:
+    # those only, and few (the CI machine skipped 2 of 30 at speedup 3, a loaded one 6)
+    assert all(tk["channels"] == [0, 1, 2, 3] for tk in ticks if scans[0]["t"] <= tk["t"] <= scans[-1]["t"])
+    missing = [s["t"] for s in scans if s["t"] not in by_t]
+    skipped = sum(tk["skipped_before"] for tk in ticks if scans[0]["t"] < tk["t"] <= scans[-1]["t"] + 1)
+    assert len(missing) == skipped <= 3, (missing, skipped, dict(st.app.counters.items()))
     assert st.app.counters.get("io_errors", 0) == 0 and st.app.counters.get("tick_errors", 0) == 0
     # each scan's sets: the spectrum's peaks, at most one per lobe the KrakenSDR drew (lobes that
     # merge, or more than peak_floor_db under the strongest, are not peaks), at least the strongest
-    drawn = np.array([[len(b) for b in s["bearings"]] for s in scans])
-    found = np.array([by_t[s["t"]]["n_bearings"] for s in scans])
+    drawn = np.array([[len(b) for b in s["bearings"]] for s in scans if s["t"] in by_t])
+    found = np.array([by_t[s["t"]]["n_bearings"] for s in scans if s["t"] in by_t])
     assert (found <= drawn).all() and (found >= np.minimum(drawn, 1)).all() and found.sum() > drawn.sum() / 2, \
         (found.sum(), drawn.sum())
     assert sum(tk["state"] == 1 for tk in ticks) >= 10  # monitoring
