@@ -306,8 +306,6 @@ class Lookahead:
                                     "this radius", lo_open=True)
     corner_clearance_m: float = number(3.0, 0, 100, "m", "routes round the UAV's inflated obstacles this much wider")
     spacing_m: float = number(2.0, 0.1, 50, "m", "arc-length resolution of the sampled routes")
-    weave: bool = flag(False, "routes of two legs too: to each target's predicted position half-way "
-                       "through the horizon, then on to another's (or the targets' centroid) at its end")
 
 
 @dataclass(frozen=True)

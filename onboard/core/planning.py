@@ -272,14 +272,12 @@ class LookaheadParams:
     loiter_radius_m: float
     corner_clearance_m: float
     spacing_m: float  # arc-length resolution of the sampled routes, m
-    weave: bool = False  # two-leg routes among the targets' predicted positions too
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
         """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
         the defaults, units and ranges)."""
-        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m,
-                   c.weave)
+        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
 def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -517,37 +515,12 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     if motion.kind == "vehicle":  # it cuts corners: about half its turning radius v^2 / a
         clearance += 0.5 * motion.speed_max_mps ** 2 / motion.accel_max_mps2
     polys = route_polylines(p0, wp, normals, offsets, clearance)
-    if params.weave:
-        polys += _weave_polylines(p0, target_paths, area_min, area_max, normals, offsets, clearance,
-                                  params.corner_clearance_m)
     speed = grid.n_radial * grid.step_m / dt if motion.kind == "jump" else motion.speed_max_mps
     length = speed * dt * (H + 2)
     kept = [pl for pl in polys if pl is not None]
     if not kept:
         return np.zeros((0, 0, 2))
     return _sample_routes(kept, params.loiter_radius_m, length, params.spacing_m)
-
-
-def _weave_polylines(p0: np.ndarray, target_paths: np.ndarray, area_min, area_max, normals, offsets,
-                     clearance: float, margin: float) -> list:
-    """Two-leg polylines: to each target's predicted position half-way through the horizon, then
-    to each other target's at its end or to the targets' centroid there (M^2 routes)."""
-    H = target_paths.shape[1]
-    lo = np.asarray(area_min, float)[:2] + margin
-    hi = np.asarray(area_max, float)[:2] - margin
-    mid = np.clip(target_paths[:, max(H // 2 - 1, 0), :2], lo, hi)
-    end = target_paths[:, H - 1, :2]
-    end = np.clip(np.vstack([end, end.mean(axis=0, keepdims=True)]), lo, hi)
-    first = route_polylines(p0, mid, normals, offsets, clearance)
-    out = []
-    for a, leg in enumerate(first):
-        if leg is None or _inside_2d(normals, offsets, mid[a:a + 1])[0]:
-            continue
-        others = [b for b in range(len(end)) if b != a and not _inside_2d(normals, offsets, end[b:b + 1])[0]]
-        for b, leg2 in zip(others, route_polylines(mid[a], end[others], normals, offsets, clearance)):
-            if leg2 is not None:
-                out.append(np.vstack([leg, leg2[1:]]))
-    return out
 
 
 def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,
