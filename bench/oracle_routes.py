@@ -1,0 +1,76 @@
+"""What the route planner would fly if it knew where the targets will be: an oracle experiment.
+
+    python bench/oracle_routes.py --out DIR [--trials 100] [--seed 2024] [--methods flight@stock]
+                                  [--workers 2] [--set KEY=VALUE ...]
+
+``pmon eval paper`` on the same trials (same truths, starts and DF draws), with one change in the
+lookahead planner: each route is scored against the targets' TRUE positions over its horizon,
+x_(t+1..t+H) of the trial's truth (the last one held past the trial's end), instead of their
+predicted guidance plans mu_(t+1..t+H|t). The beliefs the score starts from, the routes and the
+flight are the evaluation's own. No planner can do this; it measures how much of the flown path's
+distance to the clairvoyant ceiling (docs/PLANNING.md) is the planner not knowing the targets'
+future, and how much is how routes are scored. Writes ``pmon eval``'s files to ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from onboard.core import planners as _planners  # noqa: E402
+from onboard.core.planning import choose_lookahead  # noqa: E402
+from sim import evaluation as _ev  # noqa: E402
+
+_NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run
+_run_method = _ev.run_method
+_tick = _ev.tick
+
+
+def _run_method_recording(cfg, method, trial, truth, start, gains=None, path=None):
+    _NOW["truth"] = truth
+    return _run_method(cfg, method, trial, truth, start, gains, path)
+
+
+def _tick_counting(setup, state, *args, **kwargs):
+    _NOW["tick"] = state.step
+    return _tick(setup, state, *args, **kwargs)
+
+
+def _oracle_plan(self, inputs, rng):
+    truth, k = _NOW["truth"], _NOW["tick"]
+    idx = np.minimum(np.arange(k + 1, k + 1 + self.steps), len(truth) - 1)
+    paths = np.ascontiguousarray(truth[idx].transpose(1, 0, 2))  # (M, H, 6)
+    return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
+                            self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
+                            self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
+                            acceleration=inputs.acceleration)
+
+
+# patched at import, so the evaluation's worker processes (spawned: they import this module) have it
+_ev.run_method = _run_method_recording
+_ev.tick = _tick_counting
+_planners.LookaheadPlanner.plan = _oracle_plan
+
+
+def main(argv=None) -> int:
+    from onboard.argcheck import SEED, integer
+    from onboard.cli import main as pmon
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="directory for pmon eval's files")
+    ap.add_argument("--trials", type=integer(1, 100_000), default=100)
+    ap.add_argument("--seed", type=SEED, default=2024)
+    ap.add_argument("--methods", default="flight@stock", help="comma-separated; the lookahead ones get the oracle")
+    ap.add_argument("--workers", type=integer(1, 1024), default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="as pmon eval's --set")
+    a = ap.parse_args(argv)
+    extra = [x for kv in a.set for x in ("--set", kv)]
+    return pmon(["eval", "paper", "--trials", str(a.trials), "--seed", str(a.seed), "--methods", a.methods,
+                 "--workers", str(a.workers), "--no-figures", "--quiet", "--out", a.out, *extra])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
