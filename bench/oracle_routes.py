@@ -1,7 +1,7 @@
 """What the route planner would fly if it knew where the targets will be: an oracle experiment.
 
     python bench/oracle_routes.py --out DIR [--trials 100] [--seed 2024] [--methods flight@stock]
-                                  [--workers 2] [--set KEY=VALUE ...]
+                                  [--workers 2] [--to-the-end] [--set KEY=VALUE ...]
 
 ``pmon eval paper`` on the same trials (same truths, starts and DF draws), with one change in the
 lookahead planner: each route is scored against the targets' TRUE positions over its horizon,
@@ -9,11 +9,14 @@ x_(t+1..t+H) of the trial's truth (the last one held past the trial's end), inst
 predicted guidance plans mu_(t+1..t+H|t). The beliefs the score starts from, the routes and the
 flight are the evaluation's own. No planner can do this; it measures how much of the flown path's
 distance to the clairvoyant ceiling (docs/PLANNING.md) is the planner not knowing the targets'
-future, and how much is how routes are scored. Writes ``pmon eval``'s files to ``--out``.
+future, and how much is how routes are scored. ``--to-the-end``: also the horizon cut at the
+trial's last tick, as the ceiling's window ends there (a mission's end no flying planner knows).
+Writes ``pmon eval``'s files to ``--out``.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -26,6 +29,7 @@ from onboard.core.planning import choose_lookahead  # noqa: E402
 from sim import evaluation as _ev  # noqa: E402
 
 _NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run
+TO_THE_END = "PMON_ORACLE_TO_THE_END"  # environment: inherited by the spawned workers
 _run_method = _ev.run_method
 _tick = _ev.tick
 
@@ -43,6 +47,8 @@ def _tick_counting(setup, state, *args, **kwargs):
 def _oracle_plan(self, inputs, rng):
     truth, k = _NOW["truth"], _NOW["tick"]
     idx = np.minimum(np.arange(k + 1, k + 1 + self.steps), len(truth) - 1)
+    if os.environ.get(TO_THE_END) == "1":
+        idx = np.unique(idx)  # the ticks up to the last, once each
     paths = np.ascontiguousarray(truth[idx].transpose(1, 0, 2))  # (M, H, 6)
     return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
                             self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
@@ -65,8 +71,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=SEED, default=2024)
     ap.add_argument("--methods", default="flight@stock", help="comma-separated; the lookahead ones get the oracle")
     ap.add_argument("--workers", type=integer(1, 1024), default=2)
+    ap.add_argument("--to-the-end", action="store_true", help="the horizon cut at the trial's last tick")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="as pmon eval's --set")
     a = ap.parse_args(argv)
+    os.environ[TO_THE_END] = "1" if a.to_the_end else "0"
     extra = [x for kv in a.set for x in ("--set", kv)]
     return pmon(["eval", "paper", "--trials", str(a.trials), "--seed", str(a.seed), "--methods", a.methods,
                  "--workers", str(a.workers), "--no-figures", "--quiet", "--out", a.out, *extra])

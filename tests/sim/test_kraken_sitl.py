@@ -1,7 +1,8 @@
 """The whole stack with a simulated KrakenSDR (issue 32): mock ArduCopter, the onboard app
 reading KrakenSDR's output over HTTP (``--kraken``), the simulated KrakenSDR writing it from the
 truth world and the vehicle's telemetry (heading, UTC), on loopback. The app launches itself.
-Every scan the KrakenSDR wrote is ticked with every target's set, nothing it wrote is refused,
+Every scan the KrakenSDR wrote reaches the app whole and in time, nothing it wrote is refused,
+each is ticked with every target's set (but those a tick overrunning its budget skipped, counted),
 and the bearings are the ones it drew. (Accuracy against the datagram feed: bench/kraken.py.)"""
 from __future__ import annotations
 
