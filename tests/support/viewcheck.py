@@ -95,7 +95,15 @@ def chromium(width: int = 1280, height: int = 800, phone: bool = False):
         opts.add_argument(f"--window-size={width},{height}")
     opts.add_argument(f"--user-data-dir={profile}")
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    # the browser only on idle CPU (chromedriver and the Chromium it starts in SCHED_IDLE, which
+    # they inherit and, unlike a nice value, Chromium does not change): an operator's browser runs
+    # on the ground station, not beside the onboard app, whose ticks it would otherwise delay on a
+    # 2-core test machine (ArduPilot's flight A had a 688 ms tick, late, as the browser started)
+    driver_sh = Path(profile) / "chromedriver-idle.sh"
+    driver_sh.write_text(f'#!/bin/sh\nchrt --idle 0 true 2>/dev/null && exec chrt --idle 0 "{CHROMEDRIVER}" "$@"\n'
+                         f'exec "{CHROMEDRIVER}" "$@"\n')
+    driver_sh.chmod(0o700)
+    driver = webdriver.Chrome(service=Service(str(driver_sh)), options=opts)
     try:
         driver.set_page_load_timeout(20)
         driver.set_script_timeout(20)
