@@ -19,6 +19,7 @@ import os
 import re
 import stat
 import sys
+import tempfile
 from typing import NoReturn
 
 MAVLINK_SCHEMES = ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin")
@@ -168,6 +169,10 @@ def writable_dir(text: str) -> str:
         probe = os.path.dirname(probe)
     if not os.path.isdir(probe) or not os.access(probe, os.W_OK):
         raise ValueError(f"{text}: {probe} is not a writable directory")
+    try:  # access() says yes to root everywhere, and to pseudo-filesystems (/proc): try one
+        os.rmdir(tempfile.mkdtemp(prefix=".pmon-probe-", dir=probe))
+    except OSError as err:
+        raise ValueError(f"{text}: cannot make a directory in {probe} ({err.strerror})") from None
     return text
 
 

@@ -41,13 +41,14 @@ DEMO_READY_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="pmon-demo", help="output directory (default ./pmon-demo/)")
+    from onboard.argcheck import OUT_DIR, SEED, number
+    p.add_argument("--out", default="pmon-demo", type=OUT_DIR, help="output directory (default ./pmon-demo/)")
     p.add_argument("--speedup", default="auto",
                    help="autopilot seconds per wall second, or 'auto': from a measured core tick")
-    p.add_argument("--duration", type=float, default=None,
-                   help="seconds of mission (DF scans); default: the scenario's (100 s)")
+    p.add_argument("--duration", type=number(5, 100_000), default=None,
+                   help="seconds of mission (DF scans), 5 s or more; default: the scenario's (100 s)")
     p.add_argument("--scenario", default="paper")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=SEED, default=1)
     from onboard.policy import DEFAULT, POLICIES
     p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
                    help="the app's flight policy (pmon run --policy; default flight)")
