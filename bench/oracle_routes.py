@@ -18,20 +18,22 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from onboard.core import planners as _planners  # noqa: E402
-from onboard.core.planning import choose_lookahead  # noqa: E402
 from sim import evaluation as _ev  # noqa: E402
 
 _NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run
 TO_THE_END = "PMON_ORACLE_TO_THE_END"  # environment: inherited by the spawned workers
 _run_method = _ev.run_method
 _tick = _ev.tick
+_plan = _planners.LookaheadPlanner.plan
 
 
 def _run_method_recording(cfg, method, trial, truth, start, gains=None, path=None):
@@ -45,15 +47,13 @@ def _tick_counting(setup, state, *args, **kwargs):
 
 
 def _oracle_plan(self, inputs, rng):
+    """The planner's own ``plan``, its targets' plans replaced by their true future (M, H, 6)."""
     truth, k = _NOW["truth"], _NOW["tick"]
     idx = np.minimum(np.arange(k + 1, k + 1 + self.steps), len(truth) - 1)
     if os.environ.get(TO_THE_END) == "1":
         idx = np.unique(idx)  # the ticks up to the last, once each
-    paths = np.ascontiguousarray(truth[idx].transpose(1, 0, 2))  # (M, H, 6)
-    return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
-                            self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
-                            self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
-                            acceleration=inputs.acceleration)
+    true_plans = tuple(SimpleNamespace(means=truth[idx, j]) for j in range(truth.shape[1]))
+    return _plan(self, replace(inputs, plans=true_plans), rng)
 
 
 # patched at import, so the evaluation's worker processes (spawned: they import this module) have it
