@@ -220,11 +220,13 @@ def test_particle_collapse_reseeds_that_target_only(flight):
     assert hit and all(t["reseeded"] == [0] for t in hit), [t["reseeded"] for t in hit]
     k = flight["ticks"].index(hit[0])
     at, after = hit[0], flight["ticks"][k + 1]  # the re-seed shows in the tick after it
-    # T1 was re-seeded at 4x its covariance plus the initial one: its spread at least doubles
-    # along the next bearing, which one bearing cannot narrow. T2..T4 carried on as they were
-    # (a tick's prediction and update change a spread by a few per cent; measured up to 8 %).
+    # T1 was re-seeded at 4x its covariance plus the initial one: its spread about doubles
+    # (one bearing narrows it across the bearing only; measured 1.80-2.23). A target re-seeded
+    # by mistake would double too; one carried on changes by its usual tick: +0-10 %, up to
+    # +22 % (a CI run) and +35 % (T4 the tick after, under two busy cores) as the static targets'
+    # beliefs spread under the moving-target model.
     spread = [np.hypot(*after["sigmas_xy"][j]) / np.hypot(*at["sigmas_xy"][j]) for j in range(4)]
-    assert spread[0] > 1.2 and all(0.5 < r < 1.2 for r in spread[1:]), spread
+    assert spread[0] > 1.5 and all(0.5 < r < 1.5 for r in spread[1:]), spread
     assert any("T1: particle collapse: re-seeded" in s for s in flight["texts"])
     later = flight["ticks"][k + 1:k + 4]
     assert all(np.all(np.isfinite(t["means"])) and not t["reseeded"] for t in later)
