@@ -25,10 +25,12 @@ ArduPilot's routing (PMON_TGT, PMON_STAT, STATUSTEXT).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
 import select
+import shutil
 import subprocess
 import sys
 import threading
@@ -227,15 +229,22 @@ class Sticks:
         self.link.close()
 
 
-def _off_the_companion() -> None:
-    """In the child before exec: the operator's ``pmon gcs`` runs on the ground, not on the
-    companion computer, so here it takes only the CPU the app and the autopilot leave
-    (SCHED_IDLE). Its interpreter's start beside the app had made ticks of 275-387 ms in the
-    ArduPilot flight's run logs (of a 900 ms budget at 2x)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux: an ordinary process
-        pass
+def _off_the_companion(argv: list[str]) -> list[str]:
+    """The operator's ``pmon gcs`` runs on the ground, not on the companion computer: here it
+    takes only the CPU the app and the autopilot leave (SCHED_IDLE, by chrt, as
+    tests/support/viewcheck.py runs the browser; not a preexec_fn, unsafe beside threads). Its
+    interpreter's start beside the app had made ticks of 275-387 ms in the ArduPilot flight's run
+    logs (of a 900 ms budget at 2x). Without chrt, or where it may not: an ordinary process."""
+    chrt = _idle_chrt()
+    return [chrt, "--idle", "0", *argv] if chrt else argv
+
+
+@functools.lru_cache(maxsize=1)
+def _idle_chrt() -> str | None:
+    chrt = shutil.which("chrt")
+    if chrt and subprocess.run([chrt, "--idle", "0", "true"], capture_output=True, timeout=10).returncode == 0:
+        return chrt
+    return None
 
 
 @dataclass
@@ -355,8 +364,8 @@ class Mission:
         argv = [sys.executable, "-m", "onboard.cli", "gcs", "--connect", self.rig.gcs_url,
                 "--timeout", f"{timeout:g}", *args]
         t0 = time.monotonic()
-        p = subprocess.run(argv, capture_output=True, text=True, timeout=wall_limit,
-                           env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_off_the_companion)
+        p = subprocess.run(_off_the_companion(argv), capture_output=True, text=True, timeout=wall_limit,
+                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
         call = GcsCall(tuple(args), p.returncode, p.stdout, p.stderr, time.monotonic() - t0, self.observer.t)
         self.commands.append(call)
         with open(self.out / "gcs.log", "a") as f:
