@@ -232,3 +232,41 @@ def test_a_planners_draws_never_shift_the_filters(paper):
         moved += p_r.index != 0
     assert moved >= 2
     assert not np.array_equal(shared[-1][0], rand[-1][0])
+
+
+def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
+    """bench/route_variants.py --refine (docs/PLANNING.md, not adopted) optimises the planner's own
+    route score: its forward pass must equal ``_route_traces`` on the same route. Its adjoint
+    gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
+    only; elsewhere it must point where central differences do (four targets 130-460 m out)."""
+    from bench.route_variants import score
+    from onboard.core.information import PLANAR, planar_model
+    from onboard.core.planning import _route_traces
+
+    H, M, N = 30, 4, 500
+    targets = rng.uniform(100, 900, size=(M, 2)) + np.arange(H)[:, None, None] * np.array([3.0, -2.0])
+    particles = np.zeros((M, N, 6))
+    particles[:, :, :2] = targets[0][:, None] + rng.normal(0, 40.0, size=(M, N, 2))
+    particles[:, :, 3:5] = rng.normal(0, 3.0, size=(M, N, 2))
+    route = np.array([500.0, 500.0]) + np.cumsum(rng.normal(0, 6.0, size=(H, 2)), axis=0)
+    plans = np.zeros((M, H, 6))
+    plans[:, :, :2] = targets.transpose(1, 0, 2)
+    sigma, q = math.radians(3.0), 0.6
+    c = sigma**2 / q
+    x = particles[:, :, PLANAR]
+    dev = x - x.mean(axis=1, keepdims=True)
+    P0 = np.einsum("mni,mnj->mij", dev, dev) / N
+    A, _, Q = planar_model(MODEL)
+    f, g = score(P0, A, Q, targets, route, c, grad=True)
+    assert f == pytest.approx(_route_traces(particles, np.zeros((M, N)), plans, route[None], MODEL, sigma, q).sum(),
+                              rel=1e-12)
+    fd = np.zeros_like(g)
+    for i in range(H):
+        for d in range(2):
+            up, down = route.copy(), route.copy()
+            up[i, d] += 1e-3
+            down[i, d] -= 1e-3
+            fd[i, d] = (score(P0, A, Q, targets, up, c) - score(P0, A, Q, targets, down, c)) / 2e-3
+    np.testing.assert_allclose(g[-1], fd[-1], rtol=1e-4)
+    assert np.sum(g * fd) / np.linalg.norm(g) / np.linalg.norm(fd) > 0.999
+    assert np.max(np.abs(g - fd)) < 0.05 * np.max(np.abs(fd))
