@@ -15,7 +15,6 @@ Writes ``pmon eval``'s files to ``--out``.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from dataclasses import replace
@@ -63,22 +62,12 @@ _planners.LookaheadPlanner.plan = _oracle_plan
 
 
 def main(argv=None) -> int:
-    from onboard.argcheck import SEED, integer
-    from onboard.cli import main as pmon
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="directory for pmon eval's files")
-    ap.add_argument("--trials", type=integer(1, 100_000), default=100)
-    ap.add_argument("--seed", type=SEED, default=2024)
-    ap.add_argument("--methods", default="flight@stock", help="comma-separated; the lookahead ones get the oracle")
-    ap.add_argument("--workers", type=integer(1, 1024), default=2)
+    from bench import patched_eval_parser, run_patched_eval
+    ap = patched_eval_parser(__doc__, "comma-separated; the lookahead ones get the oracle")
     ap.add_argument("--to-the-end", action="store_true", help="the horizon cut at the trial's last tick")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="as pmon eval's --set")
     a = ap.parse_args(argv)
     os.environ[TO_THE_END] = "1" if a.to_the_end else "0"
-    extra = [x for kv in a.set for x in ("--set", kv)]
-    return pmon(["eval", "paper", "--trials", str(a.trials), "--seed", str(a.seed), "--methods", a.methods,
-                 "--workers", str(a.workers), "--no-figures", "--quiet", "--out", a.out, *extra])
-
+    return run_patched_eval(a)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -25,7 +25,6 @@ planner changed in one of two ways (docs/PLANNING.md, "The best route refined by
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -255,18 +254,12 @@ if __name__ in ("__main__", "__mp_main__"):
 
 
 def main(argv=None) -> int:
-    from onboard.argcheck import SEED, integer
-    from onboard.cli import main as pmon
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="directory for pmon eval's files")
-    ap.add_argument("--trials", type=integer(1, 100_000), default=100)
-    ap.add_argument("--seed", type=SEED, default=2024)
-    ap.add_argument("--methods", default="flight@stock", help="comma-separated; the lookahead ones are refined")
-    ap.add_argument("--workers", type=integer(1, 1024), default=2)
+    from bench import patched_eval_parser, run_patched_eval
+    from onboard.argcheck import integer
+    ap = patched_eval_parser(__doc__, "comma-separated; the lookahead ones are changed")
     ap.add_argument("--refine", type=integer(0, 1000), default=0, help="SLSQP iterations per tick (0: none)")
     ap.add_argument("--block", type=integer(1, 50), default=3, help="ticks each refined acceleration is held")
     ap.add_argument("--per-target", choices=("trace", "sqrt"), default="trace", help="each target's term per tick")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="as pmon eval's --set")
     a = ap.parse_args(argv)
     if a.refine == 0 and a.per_target == "trace":
         ap.error("nothing to change: give --refine N or --per-target sqrt")
@@ -280,9 +273,7 @@ def main(argv=None) -> int:
         os.makedirs(a.out, exist_ok=True)
         os.environ[LOG] = log
         open(log, "w").close()
-    extra = [x for kv in a.set for x in ("--set", kv)]
-    rc = pmon(["eval", "paper", "--trials", str(a.trials), "--seed", str(a.seed), "--methods", a.methods,
-               "--workers", str(a.workers), "--no-figures", "--quiet", "--out", a.out, *extra])
+    rc = run_patched_eval(a)
     if a.refine and os.path.getsize(log):
         d = np.loadtxt(log, ndmin=2)
         gain = 1.0 - d[:, 3] / d[:, 2]
