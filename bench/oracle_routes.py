@@ -69,5 +69,6 @@ def main(argv=None) -> int:
     os.environ[TO_THE_END] = "1" if a.to_the_end else "0"
     return run_patched_eval(a)
 
+
 if __name__ == "__main__":
     sys.exit(main())
