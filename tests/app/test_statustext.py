@@ -74,6 +74,10 @@ def test_the_apps_long_text_reaches_pmon_gcs_whole():
         with GcsLink(f"tcp:127.0.0.1:{ap.port('tcpin', 1)}", timeout=10) as gl:
             gl.connect()
             assert gl.wait_for(lambda: app.vehicle.sysid is not None, 10)
+            # the autopilot forwards a broadcast only to links it has heard a system on
+            # (ArduPilot's routing, as the mock's): wait for the app's PMON_STAT to reach us, or a
+            # text said before our first heartbeat is routed is lost (3 failures in 20 runs)
+            assert gl.wait_for(lambda: gl.v.n_stat > 0, 10)
             t0 = time.monotonic()
             app.say(LONG.removeprefix("PMON: "), mavlink.MAV_SEVERITY_WARNING)
             assert gl.wait_for(lambda: LONG in gl.texts_since(t0, 191), 5), gl.texts_since(t0, 191)
