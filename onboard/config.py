@@ -234,6 +234,10 @@ class _Node:
             if len(v) > TEXT_CHARS:
                 raise self.fail(f"must be at most {TEXT_CHARS} characters, got {len(v)}")
             return v
+        if s.kind == "names":
+            if isinstance(self.value, tuple):
+                self.value = list(self.value)
+            return tuple(item.read(Setting("text", s.doc)) for item in self.items(0, s.max_items))
         if s.kind == "location":
             if not isinstance(v, str) or not v:
                 raise self.fail(f"must be a non-empty string, got {_kind(v)}")
@@ -299,8 +303,11 @@ def _unique_names(sc: Scenario) -> None:
 def _references(sc: Scenario) -> None:
     names = {g.name for g in sc.goals}
     for i, t in enumerate(sc.targets):
-        if t.goal not in names:
+        if t.goal is not None and t.goal not in names:
             raise ConfigError(f"targets[{i}].goal: no goal named {t.goal!r} in goals")
+        for j, g in enumerate(t.goals):
+            if g not in names:
+                raise ConfigError(f"targets[{i}].goals[{j}]: no goal named {g!r} in goals")
     for i, ob in enumerate(sc.obstacles):
         for j, size in enumerate(ob.size_m):
             if size <= 0:

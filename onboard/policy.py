@@ -22,7 +22,8 @@ from onboard.core.planning import UavMotion
 POLICIES: dict[str, dict[str, Any]] = {
     "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
                "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5, "planning.jerk_max_mps3": 5.0,
-               "tracking.plan_steering": True, "tracking.plan_sides": True, "tracking.recovery_prior": 0.01},
+               "tracking.plan_steering": True, "tracking.plan_sides": True, "tracking.recovery_prior": 0.01,
+               "tracking.intent": True},
     "paper": {},
 }
 DEFAULT = "flight"

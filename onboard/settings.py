@@ -32,7 +32,8 @@ class Setting:
     """How one setting is read, checked and shown.
 
     kind: ``number`` (a float), ``integer``, ``even`` (an even integer), ``flag`` (true/false),
-    ``choice`` (one of ``choices``), ``text`` (a name), ``location`` (where to read from: an
+    ``choice`` (one of ``choices``), ``text`` (a name), ``names`` (a list of up to ``max_items``
+    names), ``location`` (where to read from: an
     ``http://`` or ``file://`` URL or an absolute path, or one of the words in ``choices``),
     ``vector`` (``size`` numbers, or 1 to ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
     vector (``lo_open``/``hi_open``: the bound itself excluded). ``nullable``: ``null`` is a
@@ -62,6 +63,8 @@ class Setting:
             return "true or false"
         if self.kind == "text":
             return f"1 to {TEXT_CHARS} characters"
+        if self.kind == "names":
+            return f"a list of up to {self.max_items} names"
         if self.kind == "location":
             return " or ".join((LOCATION_FORMS,) + self.choices)
         if self.lo is None:
@@ -115,8 +118,12 @@ def choice(default, choices, doc, *, paper=False) -> Any:
     return _setting(default, "choice", doc, choices=tuple(choices), paper=paper)
 
 
-def text(default, doc) -> Any:
-    return _setting(default, "text", doc)
+def text(default, doc, *, nullable=False) -> Any:
+    return _setting(default, "text", doc, nullable=nullable)
+
+
+def names(default, max_items, doc) -> Any:
+    return _setting(default, "names", doc, max_items=max_items)
 
 
 def location(default, doc, *, words=(), nullable=False) -> Any:
@@ -184,7 +191,18 @@ class Target:
                                                     "mu_0: its initial mean position, inside the area")
     velocity_mps: tuple[float, float, float] = vector((0.0, 0.0, 0.0), 3, -100, 100, "m/s",
                                                       "its initial mean velocity (ground targets)")
-    goal: str = text(MISSING, "the name of its goal region in goals")
+    goal: str | None = text(None, "the name of the goal region in goals it heads for (a prior, not a certainty: "
+                            "docs/TRACKING.md 'Intent'); null or left out: not known", nullable=True)
+    goals: tuple[str, ...] = names((), 16, "candidate goal regions it may head for (equally likely), besides "
+                                   "its goal")
+    stationary: bool = flag(False, "it is expected to stand still (a transmitter being hunted): with "
+                            "tracking.intent, its stationary mode's prior is 0.8")
+
+    @property
+    def candidates(self) -> tuple[str, ...]:
+        """Its goal, then its other candidate goals: every goal it may head for."""
+        first = () if self.goal is None else (self.goal,)
+        return first + tuple(g for g in self.goals if g != self.goal)
 
     @property
     def mean(self):
@@ -292,6 +310,17 @@ class Tracking:
                                    "the bearings each tick")
     recovery_sigma_m: float = number(50.0, 1, 5000, "m", "with recovery_prior: a target that left the "
                                      "prediction is N(its mean, its covariance + this^2 I) in the plane")
+    intent: bool = flag(False, "a motion mode per particle: heading for each candidate goal, stationary, or "
+                        "free; their probabilities estimated from the bearings, and a target whose bearings "
+                        "no mode explains re-seeded along them (the flight policy's; docs/TRACKING.md 'Intent')")
+    intent_stationary_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal "
+                                            "stands still")
+    intent_free_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal moves "
+                                      "freely instead (heads somewhere not named, wanders)")
+    intent_switch_prob: float = number(0.02, 0, 0.5, "1/tick", "with intent: probability per tick that a "
+                                       "particle's mode is redrawn from the prior (stops, turns, goes)")
+    intent_free_accel_mps2: float = number(1.0, 0, 20, "m/s^2", "with intent: a free target's random "
+                                           "acceleration, per axis", lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -436,8 +465,18 @@ class Scenario:
     source: str = field(default="<memory>", compare=False)  # where it was read from, for messages
     overrides: tuple[tuple[str, Any], ...] = field(default=(), compare=False)  # KEY=VALUE applied, in order
 
-    def goal_of(self, target: Target) -> Box:
-        return next(g for g in self.goals if g.name == target.goal)
+    def goal_of(self, target: Target) -> Box | None:
+        """Its goal region; None when its goal is not known."""
+        return next((g for g in self.goals if g.name == target.goal), None)
+
+    def goal_point(self, target: Target) -> tuple[float, float, float]:
+        """Where one goal-directed model of the target steers it: its goal's centroid, or, its goal
+        unknown, its initial mean position (it stays: the paper's filter needs one goal)."""
+        g = self.goal_of(target)
+        return target.position_m if g is None else g.center_m
+
+    def goal_named(self, name: str) -> Box:
+        return next(g for g in self.goals if g.name == name)
 
     @property
     def initial_cov(self):

@@ -61,11 +61,13 @@ from sim.guided import enu, fly_plan, ned
 from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
 from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, MethodTrace, Summary, TrialResult,
-                         bound_summary, is_flight, motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval)
+                         bound_summary, is_flight, motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval,
+                         truth_stats)
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 from sim.truth import simulate_truth
+from sim.truth_kinds import KindDraw, check_kind, draw_kind, filter_scenario
 from sim.workers import one_blas_thread as _one_blas_thread, worker_pool as _worker_pool
 
 # the evaluation's interface, wherever its parts are held (sim.methods: the methods; sim.metrics: the
@@ -90,6 +92,8 @@ class EvalConfig:
     methods: tuple[Method, ...]
     n_ticks: int
     window_start: int  # first tick of the convergence window
+    truth_kind: str = "nominal"  # how the true targets move (sim/truth_kinds.py)
+    told: bool = False  # the filter is told each trial what its targets really do (truth_kinds.filter_scenario)
 
     @property
     def method_names(self) -> tuple[str, ...]:
@@ -112,8 +116,12 @@ class EvalConfig:
 
 def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_METHODS,
                 duration_s: float | None = None, particles: int | None = None,
-                window_s: float = DEFAULT_WINDOW_S) -> EvalConfig:
+                window_s: float = DEFAULT_WINDOW_S, truth: str = "nominal", told: bool = False) -> EvalConfig:
     """Validated configuration. Raises ValueError with a one-line reason."""
+    check_kind(sc, truth)
+    if told and truth not in ("candidate_goal", "stationary"):
+        raise ValueError(f"--told applies to --truth candidate_goal or stationary, not {truth}")
+    sc = filter_scenario(sc, truth)
     if n_trials < 1:
         raise ValueError(f"--trials must be >= 1, got {n_trials}")
     if seed < 0:
@@ -147,7 +155,7 @@ def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_M
     n_ticks = int(round(duration / dt))
     # the window starts at window_s, or halfway when the mission is too short for that
     window_start = min(int(round(window_s / dt)), n_ticks // 2)
-    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start)
+    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start, truth, told)
 
 
 def method_named(name: str, sc=None) -> Method:
@@ -224,12 +232,39 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     return setup, df, limits
 
 
+def _true_columns(setup: MonitorSetup, cfg: EvalConfig, draw: KindDraw | None) -> np.ndarray | None:
+    """Per target, the column of its filter's modes that is what it really does (its true goal's,
+    or stationary's); -1 where none is; None for a filter without modes."""
+    if setup.intents is None:
+        return None
+    out = np.full(setup.n_targets, -1)
+    for j, intent in enumerate(setup.intents):
+        if cfg.truth_kind == "stationary":
+            out[j] = intent.n_goals
+        elif cfg.truth_kind in ("nominal", "candidate_goal"):
+            name = cfg.scenario.targets[j].goal if draw is None else draw.goal_names[j]
+            if name in intent.names:
+                out[j] = intent.names.index(name)
+    return out
+
+
+def trial_draw(cfg: EvalConfig, trial: int) -> KindDraw | None:
+    """The truth kind's choices for a trial (None for the nominal truth)."""
+    if cfg.truth_kind == "nominal":
+        return None
+    return draw_kind(cfg.scenario, cfg.truth_kind, _rng(cfg.seed, trial, 3), cfg.n_ticks - 1)
+
+
 def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, start: np.ndarray,
                gains: np.ndarray | None = None, path: np.ndarray | None = None) -> MethodTrace:
     """Closed loop of one method on one trial's truth (K, M, 6); with the truth's closed-loop
     gains (K-1, M, 3, 6), also the PCRB along the flown path. ``path`` (K, 2): the UAV's
     positions given in advance (``Method.follows``; its start first): no planning, no flight."""
+    draw = trial_draw(cfg, trial)
+    if cfg.told:
+        cfg = replace(cfg, scenario=filter_scenario(cfg.scenario, cfg.truth_kind, draw, told=True))
     setup, df, limits = _setup_for(cfg, method)
+    true_col = _true_columns(setup, cfg, draw)
     if path is not None:
         limits = None
     ss = np.random.SeedSequence(cfg.seed, spawn_key=(trial, 2, _method_key(method.name)))
@@ -242,6 +277,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     ramps = setup.motion.kind == "vehicle" and setup.motion.jerk_max_mps3 > 0.0
     uav_acc = np.zeros(2) if ramps else None  # the plan's acceleration there (continuous acceleration)
     err, nees, est = np.zeros((K, M)), np.zeros((K, M)), np.zeros((K, M, 2))
+    mode_p = None if true_col is None else np.full((K, M), np.nan)
     uav_track = None if uav is None else np.zeros((K, 3))
     degenerate, tick_time = 0, 0.0
     if limits is not None:  # flown: a copter hovering at the start, in GUIDED
@@ -263,6 +299,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         P = res.covs[:, :2, :2]
         nees[k] = np.einsum("mi,mi->m", e, np.linalg.solve(P, e[..., None])[..., 0])
         degenerate += int(res.degenerate.sum())
+        if mode_p is not None and res.mode_probabilities is not None:
+            mode_p[k] = [p[c] if c >= 0 else np.nan for p, c in zip(res.mode_probabilities, true_col)]
         if path is not None and k < K - 1:
             uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
         elif uav is not None and k < K - 1 and limits is not None:
@@ -296,7 +334,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
         bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, sensors, setup.sensor.sigma_rad, q)
     flown = {} if limits is None else dict(plan_miss_m=miss, plan_speed_mps=plan_speed, speed_mps=speed)
-    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown)
+    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown, true_mode_prob=mode_p)
 
 
 def _ceiling_trace(cfg: EvalConfig, method: Method, truth: np.ndarray, gains: np.ndarray, path: np.ndarray,
@@ -320,7 +358,8 @@ def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
     from sim.ceiling_search import ceiling_path
 
     t0 = time.perf_counter()
-    truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True)
+    truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True,
+                                  kind=cfg.truth_kind, kind_rng=_rng(cfg.seed, trial, 3))
     start = draw_start(cfg, _rng(cfg.seed, trial, 1))
     planned = [m for m in cfg.methods if not m.bound_only and m.follows is None]
     traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in planned}
@@ -460,7 +499,8 @@ def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = fl
             *bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
             vs_jump=None if m.jump_twin not in errs else (m.jump_twin, paired_ratio(err, errs[m.jump_twin], w0,
                                                                                        cfg.seed)),
-            flown=_flown_stats(cfg, m, [t.traces[m.name] for t in trials]))
+            flown=_flown_stats(cfg, m, [t.traces[m.name] for t in trials]),
+            truth={} if m.bound_only else truth_stats([t.traces[m.name] for t in trials], w0, cfg.dt_s))
     ratio = ratio_ci = None
     if REFERENCE in out and FIXED in out:
         # the headline is the table's fixed3 row, so the two print one CI

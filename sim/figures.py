@@ -80,7 +80,7 @@ def planned_trajectories(sc):
     params = GuidanceParams.from_config(sc.guidance)
     obstacles = Obstacles.from_boxes(sc.obstacles)
     ws = GuidanceWorkspace()
-    plans = [plan_guidance(model, params, obstacles, t.mean, np.asarray(sc.goal_of(t).center_m), workspace=ws)
+    plans = [plan_guidance(model, params, obstacles, t.mean, np.asarray(sc.goal_point(t)), workspace=ws)
              for t in sc.targets]
     covs = predict_cov(model, sc.initial_cov, params.horizon)
     return plans, covs

@@ -81,6 +81,9 @@ class MethodTrace:
     plan_miss_m: np.ndarray | None = None
     plan_speed_mps: np.ndarray | None = None
     speed_mps: np.ndarray | None = None
+    # a filter with motion modes: per tick and target, the posterior probability of what the target
+    # really does (its true goal's mode, or stationary; NaN where no mode is its truth)
+    true_mode_prob: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +118,7 @@ class MethodSummary:
     # vehicle method whose jump twin ran: (twin, rmse_mean_m / twin's with its 95 % paired CI)
     vs_jump: tuple[str, tuple[float, float, float]] | None = None
     flown: dict = field(default_factory=dict)  # a flown method: how the vehicle flew its plans (_flown_stats)
+    truth: dict = field(default_factory=dict)  # how far off and how sure on the truth (truth_stats)
 
     @property
     def rmse_over_bound(self) -> float:
@@ -204,3 +208,24 @@ def motion_stats(trace: MethodTrace, truth: np.ndarray) -> dict:
     across = np.abs(unit[..., 0] * move[:, None, 1] - unit[..., 1] * move[:, None, 0])
     return dict(step_m=length, away_m=-along.mean(axis=1), across_m=across.mean(axis=1),
                 range_m=np.linalg.norm(truth[:, :, :2] - u[:, None, :], axis=2).mean(axis=1))
+
+
+FAR_M = 100.0  # a target estimated farther off than this is lost
+MODE_AT_S = 40.0  # when the true mode's probability is read
+
+
+def truth_stats(traces, w0: int, dt_s: float) -> dict:
+    """Over the trials' traces of one method: the share of (tick, target) cells from tick ``w0``
+    more than FAR_M off, the targets more than FAR_M off at the last tick (count, of how many),
+    and, for a filter with modes, the share of targets whose true mode holds >= 0.9 at MODE_AT_S."""
+    err = np.stack([t.error_m for t in traces])  # (N, K, M)
+    out = {"far_fraction": float(np.mean(err[:, w0:] > FAR_M)), "lost_at_end": int(np.sum(err[:, -1] > FAR_M)),
+           "targets": int(err.shape[0] * err.shape[2])}
+    probs = [t.true_mode_prob for t in traces if t.true_mode_prob is not None]
+    k = int(round(MODE_AT_S / dt_s))
+    if probs and k < probs[0].shape[0]:
+        at = np.stack([p[k] for p in probs])  # (N, M)
+        if np.isfinite(at).any():
+            out["true_mode_p90_at_40s"] = float(np.mean(at[np.isfinite(at)] >= 0.9))
+            out["true_mode_mean_at_40s"] = float(np.nanmean(at))
+    return out

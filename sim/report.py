@@ -26,8 +26,10 @@ def headline(summary: Summary) -> dict:
                         "ratio_vs_ref": None if s.ratio_vs_ref is None else [r(v) for v in s.ratio_vs_ref],
                         **({} if s.vs_jump is None else {"ratio_vs_jump": [r(v) for v in s.vs_jump[1]]}),
                         **({} if not s.flown else {"from_plan_median_m": r(s.flown["miss_median_m"]),
-                                                   "speed_peak_mps": r(s.flown["speed_peak_mps"])})}
+                                                   "speed_peak_mps": r(s.flown["speed_peak_mps"])}),
+                        **{k: (r(v) if isinstance(v, float) else v) for k, v in s.truth.items()}}
                     for n, s in summary.methods.items()},
+        "truth": summary.config.truth_kind + (" (filter told)" if summary.config.told else ""),
         "uav_vs_fixed_ratio": r(summary.ratio),
         "uav_vs_fixed_ratio_ci95": None if summary.ratio_ci is None else [r(v) for v in summary.ratio_ci],
         **({} if not summary.pairs else {"flight_over": {f"{a} / {b}": [r(v) for v in ratio]

@@ -30,7 +30,14 @@ from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 
-MISMATCH_KINDS = ("stop", "turn_back", "other_goal")
+MISMATCH_KINDS = ("stop", "turn_back", "other_goal", "resume")
+BEHAVIOURS = ("guided", "stationary", "wander")
+# a wandering target (``wander``): velocity kept with this factor per step plus white acceleration
+# of this sigma per axis, speed capped, pushed back inward within the margin of the area's edge
+WANDER_KEEP = 0.95
+WANDER_ACCEL_MPS2 = 1.0
+WANDER_SPEED_MPS = 6.0
+WANDER_EDGE_M = 100.0
 NOISE_REDRAWS = 20
 _Z_TOL_M = 1.0  # a target this far below an obstacle's base still counts as at its level
 
@@ -44,7 +51,8 @@ class Mismatch:
                      ``at_step``: its guidance goal becomes that position;
       ``turn_back``  it heads back to its initial mean position mu_0;
       ``other_goal`` it heads for goal region ``goal`` (an index into ``Scenario.goals``) instead
-                     of its own.
+                     of its own;
+      ``resume``     it heads again for the goal it had at the start (after a ``stop``).
     target is the target's index (0-based) in ``Scenario.targets``; at_step counts steps from 0
     (the mismatch applies to the step that starts at time ``at_step * dt``).
     """
@@ -63,18 +71,9 @@ class Mismatch:
             raise ValueError("mismatch kind 'other_goal' needs goal (an index into the scenario's goals)")
 
 
-def _extruded(obstacles: Obstacles, z: float) -> Obstacles:
-    """The obstacles whose height range covers altitude z, made infinitely tall (ground-plane test)."""
-    _, _, z_lo, z_hi = obstacles.lateral()
-    level = (z >= z_lo - _Z_TOL_M) & (z <= z_hi)
-    offsets = obstacles.offsets[level].copy()
-    offsets[:, 4:] = np.inf  # top (+z) and bottom (-z) faces never separate
-    return Obstacles(obstacles.normals[level], offsets)
-
-
 def blocked(obstacles: Obstacles, start: np.ndarray, end: np.ndarray) -> bool:
     """True when the ground-plane move start -> end (positions, m) ends inside or crosses an obstacle."""
-    ob = _extruded(obstacles, float(end[2]))
+    ob = obstacles.extruded(float(end[2]), _Z_TOL_M)
     if not len(ob):
         return False
     s, e = np.asarray(start, float)[:3], np.asarray(end, float)[:3]
@@ -112,11 +111,16 @@ class TruthWorld:
 
     def __init__(self, model: MotionModel, guidance: GuidanceParams, obstacles: Obstacles,
                  goals: np.ndarray, initial_states: np.ndarray, rng: np.random.Generator,
-                 mismatch: Sequence[Mismatch] = (), goal_choices: np.ndarray | None = None):
+                 mismatch: Sequence[Mismatch] = (), goal_choices: np.ndarray | None = None,
+                 behaviours: Sequence[str] | None = None, area: tuple[np.ndarray, np.ndarray] | None = None):
+        """behaviours: per target, ``guided`` (P1 to its goal, the paper's), ``stationary`` (never
+        moves) or ``wander`` (random acceleration within ``area`` (min, max) and out of the
+        obstacles); None: all guided."""
         self.model = model
         self.guidance = guidance
         self.obstacles = obstacles
         self._goals = np.array(goals, dtype=float)  # (M, 3), updated by mismatches
+        self._start_goals = self._goals.copy()
         self._states = np.array(initial_states, dtype=float)
         self._initial = self._states.copy()
         self._rng = rng
@@ -130,6 +134,12 @@ class TruthWorld:
                 if not 0 <= m.goal < n:
                     raise ValueError(f"mismatch goal must be an index into the scenario's {n} goal(s), got {m.goal}")
         self.mismatch = tuple(mismatch)
+        self.behaviours = tuple(behaviours) if behaviours is not None else ("guided",) * M
+        if len(self.behaviours) != M or any(b not in BEHAVIOURS for b in self.behaviours):
+            raise ValueError(f"behaviours must be {M} of {', '.join(BEHAVIOURS)}, got {self.behaviours}")
+        if "stationary" in self.behaviours or "wander" in self.behaviours:
+            self._states[[b != "guided" for b in self.behaviours], 3:] = 0.0  # they start at rest
+        self._area = area
         self._plans: list[Plan | None] = [None] * M
         self._ws = GuidanceWorkspace()
         self.step_count = 0
@@ -140,8 +150,10 @@ class TruthWorld:
         self.gains: list[np.ndarray] = []  # per step, (M, 3, 6) du_0/dx of each target's guidance at its true state
 
     @classmethod
-    def from_scenario(cls, sc, rng: np.random.Generator, mismatch: Sequence[Mismatch] = ()) -> "TruthWorld":
-        """Initial states drawn from N(mu_0, Sigma_0) per target, redrawn if one lands in an obstacle."""
+    def from_scenario(cls, sc, rng: np.random.Generator, mismatch: Sequence[Mismatch] = (),
+                      goals: np.ndarray | None = None, behaviours: Sequence[str] | None = None) -> "TruthWorld":
+        """Initial states drawn from N(mu_0, Sigma_0) per target, redrawn if one lands in an obstacle;
+        ``goals`` (M, 3): where each heads instead of its scenario goal (sim/truth_kinds.py)."""
         d = sc.dynamics
         model = MotionModel.create(d.dt_s, d.friction, d.mass_kg, d.process_noise_diag)
         obstacles = Obstacles.from_boxes(sc.obstacles)
@@ -155,10 +167,11 @@ class TruthWorld:
             else:
                 x = t.mean.copy()  # the config guarantees mu_0 is outside every obstacle
             states.append(x)
-        goals = np.array([sc.goal_of(t).center_m for t in sc.targets], dtype=float)
+        if goals is None:
+            goals = np.array([sc.goal_point(t) for t in sc.targets], dtype=float)
         goal_choices = np.array([g.center_m for g in sc.goals], dtype=float)
         return cls(model, GuidanceParams.from_config(sc.guidance), obstacles, goals, np.array(states), rng,
-                   mismatch, goal_choices)
+                   mismatch, goal_choices, behaviours, (np.array(sc.area.min_m), np.array(sc.area.max_m)))
 
     @property
     def states(self) -> np.ndarray:
@@ -184,6 +197,8 @@ class TruthWorld:
                 self._goals[j] = np.r_[self._states[j, :2], self._goals[j, 2]]
             elif m.kind == "turn_back":
                 self._goals[j] = np.r_[self._initial[j, :2], self._goals[j, 2]]
+            elif m.kind == "resume":
+                self._goals[j] = self._start_goals[j]
             else:
                 self._goals[j] = self._goal_choices[m.goal]
             self._plans[j] = None  # a new goal: the old plan is no warm start
@@ -195,6 +210,9 @@ class TruthWorld:
         new = np.empty_like(self._states)
         gains = np.zeros((len(self._states), 3, 6))
         for j, x in enumerate(self._states):
+            if self.behaviours[j] != "guided":
+                new[j] = x if self.behaviours[j] == "stationary" else self._wander(x)
+                continue
             plan = plan_guidance(self.model, self.guidance, self.obstacles, x, self._goals[j],
                                  previous=self._plans[j], workspace=self._ws, with_feedback=self.record_gains)
             self._plans[j] = plan
@@ -220,13 +238,35 @@ class TruthWorld:
         self.time_s = self.step_count * self.model.dt_s
         return self.states
 
+    def _wander(self, x: np.ndarray) -> np.ndarray:
+        """One step of a wandering target: velocity kept by WANDER_KEEP plus white acceleration,
+        pushed inward near the area's edge, speed capped; a draw that would cross an obstacle is
+        redrawn (then the target stops where it is)."""
+        lo, hi = self._area[0][:2], self._area[1][:2]
+        push = (np.clip(lo + WANDER_EDGE_M - x[:2], 0.0, None) - np.clip(x[:2] - (hi - WANDER_EDGE_M), 0.0, None))
+        for _ in range(NOISE_REDRAWS):
+            v = WANDER_KEEP * x[3:5] + self.model.dt_s * (WANDER_ACCEL_MPS2 * self._rng.standard_normal(2)
+                                                          + 0.02 * push)
+            speed = float(np.hypot(*v))
+            if speed > WANDER_SPEED_MPS:
+                v *= WANDER_SPEED_MPS / speed
+            p = np.clip(x[:2] + self.model.dt_s * v, lo, hi)
+            cand = np.r_[p, x[2], v, 0.0]
+            if not blocked(self.obstacles, x[:3], cand[:3]):
+                return cand
+        return np.r_[x[:3], 0.0, 0.0, 0.0]
+
 
 def simulate_truth(sc, n_steps: int, rng: np.random.Generator, mismatch: Sequence[Mismatch] = (),
-                   with_gains: bool = False):
+                   with_gains: bool = False, kind: str = "nominal", kind_rng: np.random.Generator | None = None):
     """(n_steps + 1, M, 6) true states at t = 0, dt, ..., n_steps dt; the same as stepping a TruthWorld.
     with_gains: also (n_steps, M, 3, 6), each step's closed-loop gain du/dx at the true state
-    (``closed_loop_gain``), for the posterior Cramer-Rao bound."""
-    world = TruthWorld.from_scenario(sc, rng, mismatch)
+    (``closed_loop_gain``), for the posterior Cramer-Rao bound. ``kind``: how the targets really
+    move (sim/truth_kinds.py ``TRUTH_KINDS``), drawn from ``kind_rng`` so the initial states and the
+    noise stream are the nominal truth's (paired trial by trial)."""
+    from sim.truth_kinds import truth_world
+
+    world = truth_world(sc, rng, kind, kind_rng, n_steps, mismatch)
     world.record_gains = with_gains
     out = [world.states]
     for _ in range(n_steps):

@@ -69,6 +69,11 @@ def evaluate(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a scenario value for this run (VALUE read as YAML; repeatable), "
                         "e.g. --set planning.speed_max_mps=15")
+    from sim.truth_kinds import TRUTH_KINDS
+    p.add_argument("--truth", choices=TRUTH_KINDS, default="nominal",
+                   help="how the true targets move (default nominal: as the scenario says; docs/RESULTS.md)")
+    p.add_argument("--told", action="store_true", help="with --truth candidate_goal or stationary: the filter is "
+                   "told what each target really does (the reference an untold filter is measured against)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -148,7 +153,8 @@ def _eval(args) -> int:
         args._parser.error(f"--workers must be >= 1, got {args.workers}")
     try:
         cfg = ev.make_config(sc, args.trials, args.seed, [m for m in args.methods.split(",") if m],
-                             duration_s=args.duration, particles=args.particles)
+                             duration_s=args.duration, particles=args.particles, truth=args.truth,
+                             told=args.told)
     except ValueError as exc:
         args._parser.error(str(exc))
     t0 = time.perf_counter()

@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.core import tracking
+from onboard.core import intent_tick, tracking
 from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
@@ -59,6 +59,9 @@ class MonitorState:
     # per target, what the particle steering kept from last tick (``Steered.memory``: the
     # reference plans, or the side modes; () for the free steering)
     steering: tuple[Any, ...] = ()
+    # per target, what its motion modes kept (``tracking.intent``: onboard/core/intent_tick.py); ()
+    # without modes, or when the app rebuilt the state (the modes start again)
+    intent: tuple[intent_tick.IntentMemory, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +84,11 @@ class TickResult:
     planning: PlanningResult | None
     degenerate: np.ndarray  # (M,) bool: the update left no finite weight; the prior was kept
     timings_s: dict = field(default_factory=dict)
+    # with motion modes (``tracking.intent``): per target, the posterior probability of each mode
+    # (its goals', stationary, free: ``Intent.label``), and whether it was re-seeded this tick
+    # because its bearings stopped agreeing with every mode
+    mode_probabilities: tuple[np.ndarray, ...] | None = None
+    reseeded: np.ndarray | None = None
 
     @property
     def next_position(self) -> np.ndarray | None:
@@ -88,6 +96,8 @@ class TickResult:
 
 
 def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState:
+    if setup.intents is not None:
+        return MonitorState(intent_tick.initial_beliefs(setup, rng), (None,) * setup.n_targets, 0)
     beliefs = tuple(tracking.initialise(m, setup.initial_cov, setup.n_particles, rng)
                     for m in setup.initial_means)
     return MonitorState(beliefs, (None,) * setup.n_targets, 0)
@@ -104,6 +114,9 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     motion; ``uav_acceleration`` (ENU, m/s^2, planar): the plan's acceleration there, for a
     continuous one (``planning.jerk_max_mps3`` > 0; None: 0). ``planner_rng``: the planner's own random stream (the random baseline draws from it;
     default ``rng``), so a planner's draws never shift the filter's."""
+    if setup.intents is not None:
+        return _tick_with_modes(setup, state, scans, rng, plan_from, workspace, timer, uav_velocity, planner_rng,
+                                uav_acceleration)
     t0 = timer()
     posts, means, covs, degenerate = _update_and_estimate(setup, state.beliefs, scans, rng)  # 1, 2
     t1 = timer()
@@ -111,16 +124,44 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
     t2 = timer()
     beliefs, memory = _predict(setup, state, posts, means, covs, plans, workspace, timer, rng)  # 4
     t3 = timer()
-    planning = None
-    if plan_from is not None:  # 5
-        vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
-        acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
-        planning = uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
-                                          rng if planner_rng is None else planner_rng)
+    planning = _plan_uav(setup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng)  # 5
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
     return (MonitorState(beliefs, plans, state.step + 1, memory),
             TickResult(means, covs, plans, planning, degenerate, timings))
+
+
+def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng):
+    """Step 5: the next UAV position from ``plan_from`` (None: no planning)."""
+    if plan_from is None:
+        return None
+    vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
+    acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
+    return uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
+                                   rng if planner_rng is None else planner_rng)
+
+
+def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_from, workspace, timer,
+                     uav_velocity, planner_rng, uav_acceleration):
+    """``tick`` for beliefs whose particles carry motion modes (onboard/core/intent_tick.py)."""
+    M = setup.n_targets
+    memory = state.intent if len(state.intent) == M else tuple(intent_tick.IntentMemory() for _ in range(M))
+    sides = setup.plan_steering is not None and setup.plan_steering.sides
+    t0 = timer()
+    upd = intent_tick.update(setup, state.beliefs, memory, scans, rng)  # 1, 2
+    t1 = timer()
+    per_target, plans = intent_tick.guidance(setup, upd.posts, upd.memory, workspace, timer, sides)  # 3
+    t2 = timer()
+    beliefs, memory = intent_tick.predict(setup, particle_steering(setup), upd.posts, per_target, plans, upd.memory,
+                                          lambda goal: replanner(setup, goal, workspace, timer), rng)  # 4
+    t3 = timer()
+    paths = intent_tick.planner_plans(setup, upd.posts, per_target, plans, upd.means)
+    planning = _plan_uav(setup, beliefs, paths, plan_from, uav_velocity, uav_acceleration, rng, planner_rng)  # 5
+    t4 = timer()
+    timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
+    return (MonitorState(beliefs, plans, state.step + 1, (), memory),
+            TickResult(upd.means, upd.covs, plans, planning, upd.degenerate, timings, upd.probabilities,
+                       upd.reseeded))
 
 
 def _update_and_estimate(setup: MonitorSetup, beliefs: Sequence[tracking.ParticleSet], scans: Sequence[Scan],

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from onboard.core import intent as intent_mod
 from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import FreeLaw, GuidanceParams, free_law
@@ -69,6 +70,11 @@ class MonitorSetup:
     free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
     recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
+    # per target, its candidate goals and mode prior (onboard/core/intent.py), and how modes move;
+    # None: the paper's filter, every particle heading for ``goals``
+    intents: tuple[intent_mod.Intent, ...] | None
+    intent: intent_mod.IntentParams | None
+    ground_obstacles: Obstacles  # the obstacles a ground target meets (``Obstacles.extruded`` at 0 m)
     planner: str  # greedy | lookahead
     lookahead_steps: int
     motion: UavMotion
@@ -89,7 +95,7 @@ class MonitorSetup:
             guidance=GuidanceParams.from_config(sc.guidance),
             obstacles=obstacles,
             uav_obstacles=obstacles.inflate(sc.uav.obstacle_margin_m),
-            goals=np.array([sc.goal_of(t).center_m for t in sc.targets], dtype=float),
+            goals=np.array([sc.goal_point(t) for t in sc.targets], dtype=float),
             initial_means=np.array([t.mean for t in sc.targets]),
             initial_cov=sc.initial_cov,
             grid=CandidateGrid.from_config(sc.uav),
@@ -101,6 +107,9 @@ class MonitorSetup:
             free_steering=free_law(model, GuidanceParams.from_config(sc.guidance)),
             plan_steering=PlanSteering.from_config(sc.tracking),
             recovery=tracking.Recovery.from_config(sc.tracking),
+            intents=target_intents(sc) if sc.tracking.intent else None,
+            intent=intent_params(sc) if sc.tracking.intent else None,
+            ground_obstacles=obstacles.extruded(0.0),
             objective=sc.planning.objective,
             planner=sc.planning.planner,
             lookahead_steps=sc.planning.lookahead_steps,
@@ -111,3 +120,36 @@ class MonitorSetup:
     @property
     def n_targets(self) -> int:
         return len(self.goals)
+
+
+STATIONARY_DECLARED = 0.8  # the stationary prior of a target the scenario says stands still
+UNKNOWN_STATIONARY = 0.5  # ... of a target whose goal is not known: standing or moving, even odds
+
+
+def target_intents(sc) -> tuple[intent_mod.Intent, ...]:
+    """Per target, what the scenario says it may do (``Target.goal``, ``goals``, ``stationary``)
+    as candidate goals and a mode prior: a declared stationary target 0.8 stationary; with
+    candidate goals, ``intent_stationary_prior`` and ``intent_free_prior``, the rest shared evenly
+    by the goals; with none, stationary or free at even odds."""
+    tr = sc.tracking
+    out = []
+    for t in sc.targets:
+        names = t.candidates
+        goals = np.array([sc.goal_named(n).center_m for n in names], dtype=float).reshape(-1, 3)
+        if names:
+            p_stat = STATIONARY_DECLARED if t.stationary else tr.intent_stationary_prior
+            p_free = min(tr.intent_free_prior, 1.0 - p_stat)
+        else:
+            p_stat = STATIONARY_DECLARED if t.stationary else UNKNOWN_STATIONARY
+            p_free = 1.0 - p_stat
+        rest = max(0.0, 1.0 - p_stat - p_free)
+        prior = np.r_[np.full(len(names), rest / len(names)) if names else [], p_stat, p_free]
+        out.append(intent_mod.Intent(goals, names, prior / prior.sum()))
+    return tuple(out)
+
+
+def intent_params(sc) -> intent_mod.IntentParams:
+    tr = sc.tracking
+    return intent_mod.IntentParams(tr.intent_switch_prob, tr.intent_free_accel_mps2, sc.guidance.speed_max_mps,
+                                   intent_mod.STATIONARY_SIGMA_M, intent_mod.SURPRISE_WINDOW,
+                                   intent_mod.SURPRISE_COUNT, intent_mod.RESEED_SHARE, intent_mod.RESEED_SIGMA_M)

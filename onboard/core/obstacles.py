@@ -80,6 +80,16 @@ class Obstacles:
         parallel_outside = np.any((den == 0) & (num <= tol), axis=-1)
         return (t_leave - t_enter > tol) & ~parallel_outside
 
+    def extruded(self, z: float, tol_m: float = 1.0) -> "Obstacles":
+        """The obstacles whose height range covers altitude z (down to ``tol_m`` below the base),
+        made infinitely tall: the ground-plane test for a ground target, which a box standing on
+        the ground must contain although the target is on its bottom face."""
+        _, _, z_lo, z_hi = self.lateral()
+        level = (z >= z_lo - tol_m) & (z <= z_hi)
+        offsets = self.offsets[level].copy()
+        offsets[:, 4:] = np.inf  # top (+z) and bottom (-z) faces never separate
+        return Obstacles(self.normals[level], offsets)
+
     def lateral(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Ground-plane view for the guidance: (normals (K,4,2), offsets (K,4), z_low (K,), z_high (K,)).
 

@@ -5,6 +5,7 @@ Weights are kept as normalised log-weights so that no underflow turns into NaN.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -41,6 +42,9 @@ class ParticleSet:
     # (N,) int, or None: which side of an obstacle each particle's target takes (the monitor's
     # plan_sides; -1 none); carried through prediction, update and resampling
     labels: np.ndarray | None = None
+    # (N,) int, or None: each particle's motion mode (onboard/core/intent.py: a goal's index,
+    # STATIONARY or FREE); carried like the labels
+    modes: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.log_weights)
@@ -62,7 +66,7 @@ def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.ra
     particles or (N, 3), one per particle (N)."""
     noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
     particles = ps.particles @ model.A.T + np.asarray(control, float) @ model.B.T + noise
-    return ParticleSet(particles, ps.log_weights, ps.labels)
+    return ParticleSet(particles, ps.log_weights, ps.labels, ps.modes)
 
 
 def logsumexp(a: np.ndarray, axis: int | None = None, keepdims: bool = False) -> np.ndarray | float:
@@ -105,6 +109,15 @@ def log_likelihood(positions: np.ndarray, sensor_xy: np.ndarray, bearings: np.nd
 class UpdateResult:
     particles: ParticleSet
     degenerate: bool  # every weight underflowed or was not finite: the prior was kept
+    # per scan, how much better the belief explains it than a missed target (``intent.explained``,
+    # log); NaN for a scan without bearings
+    explained: tuple[float, ...] = ()
+
+
+def log_missed(model: SensorModel) -> float:
+    """``log_likelihood``'s value (same constant) for a target that was missed: every bearing clutter."""
+    with np.errstate(divide="ignore"):
+        return float(np.log((1.0 - model.p_detect) * model.clutter_rate * model.clutter_density))
 
 
 def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
@@ -115,18 +128,26 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
     the target far from every bearing, or a scan holding a non-finite bearing), the prior weights
     are kept and ``degenerate`` is set.
     """
+    from onboard.core.intent import explained  # (intent imports this module)
+
     logw = ps.log_weights.copy()
+    told = []
     for scan in scans:
         sensor_xy, bearings = scan[0], scan[1]
         lam = scan[2] if len(scan) > 2 else None
         m = model if lam is None else replace(model, clutter_rate=float(lam))
-        logw = logw + log_likelihood(ps.particles[:, :2], sensor_xy, bearings, m)
+        ll = log_likelihood(ps.particles[:, :2], sensor_xy, bearings, m)
+        if np.asarray(bearings).size and np.isfinite(ll).all() and np.isfinite(logw).any():
+            told.append(explained(logw - logsumexp(logw), ll, log_missed(m)))
+        else:
+            told.append(float("nan"))
+        logw = logw + ll
     total = logsumexp(logw) if np.isfinite(logw).any() else -np.inf
     if not np.isfinite(total):
-        return UpdateResult(ps, True)
+        return UpdateResult(ps, True, tuple(told))
     logw = logw - total
     logw[~np.isfinite(logw)] = -np.inf
-    return UpdateResult(ParticleSet(ps.particles, logw, ps.labels), False)
+    return UpdateResult(ParticleSet(ps.particles, logw, ps.labels, ps.modes), False, tuple(told))
 
 
 @dataclass(frozen=True)
@@ -172,11 +193,12 @@ def _ray_in_disc(sensor_xy: np.ndarray, bearings: np.ndarray, centre: np.ndarray
 
 
 def recover(ps: ParticleSet, sensor_xy: np.ndarray, bearings: np.ndarray, rec: Recovery, sigma_rad: float,
-            rng: np.random.Generator) -> ParticleSet:
+            rng: np.random.Generator, new_modes: Callable[[int], np.ndarray] | None = None) -> ParticleSet:
     """The predicted belief with ``rec``'s mixture component added: K = ceil(share N) particles
     drawn along ``bearings`` (one scan's, from ``sensor_xy``, ENU m) within 3 standard deviations
-    (the largest) of u, their velocities and heights those of particles drawn from ps; N + K
-    particles, log-weights of the mixture. ps unchanged (N particles) when no bearing passes there."""
+    (the largest) of u, their velocities, heights and modes those of particles drawn from ps (the
+    modes from ``new_modes(K)`` when given); N + K particles, log-weights of the mixture. ps
+    unchanged (N particles) when no bearing passes there."""
     b = np.asarray(bearings, dtype=float).reshape(-1)
     b = b[np.isfinite(b)]
     s = np.asarray(sensor_xy, float)[:2]
@@ -194,7 +216,8 @@ def recover(ps: ParticleSet, sensor_xy: np.ndarray, bearings: np.ndarray, rec: R
     pick = rng.integers(len(b), size=k)
     theta = b[pick] + sigma_rad * rng.standard_normal(k)
     r = r1[pick] + (r2[pick] - r1[pick]) * rng.random(k)
-    new = ps.particles[rng.choice(n, size=k, p=w / w.sum())].copy()
+    source = rng.choice(n, size=k, p=w / w.sum())
+    new = ps.particles[source].copy()
     new[:, 0] = s[0] + r * np.sin(theta)
     new[:, 1] = s[1] + r * np.cos(theta)
     # q(x): the draw's density in the plane (polar density / r), over every bearing that could have drawn x
@@ -210,7 +233,9 @@ def recover(ps: ParticleSet, sensor_xy: np.ndarray, bearings: np.ndarray, rec: R
     logw = np.concatenate([np.log1p(-rec.prior) + ps.log_weights, log_new])
     logw = logw - logsumexp(logw)
     labels = None if ps.labels is None else np.concatenate([ps.labels, np.full(k, -1)])
-    return ParticleSet(np.vstack([ps.particles, new]), logw, labels)
+    modes = None if ps.modes is None else np.concatenate([ps.modes, ps.modes[source] if new_modes is None
+                                                          else new_modes(k)])
+    return ParticleSet(np.vstack([ps.particles, new]), logw, labels, modes)
 
 
 def trim(ps: ParticleSet, n: int) -> ParticleSet:
@@ -220,7 +245,8 @@ def trim(ps: ParticleSet, n: int) -> ParticleSet:
     keep = np.sort(np.argsort(-ps.log_weights, kind="stable")[:n])
     logw = ps.log_weights[keep]
     logw = logw - logsumexp(logw)
-    return ParticleSet(ps.particles[keep], logw, None if ps.labels is None else ps.labels[keep])
+    return ParticleSet(ps.particles[keep], logw, None if ps.labels is None else ps.labels[keep],
+                       None if ps.modes is None else ps.modes[keep])
 
 
 def effective_sample_size(ps: ParticleSet) -> float:
@@ -262,7 +288,8 @@ def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.rando
         if L is not None and np.all(np.isfinite(L)):
             particles = particles.copy()
             particles[:, PLANAR] += bandwidth * rng.standard_normal((n, 4)) @ L.T
-    return ParticleSet(particles, np.full(n, -np.log(n)), None if ps.labels is None else ps.labels[idx])
+    return ParticleSet(particles, np.full(n, -np.log(n)), None if ps.labels is None else ps.labels[idx],
+                       None if ps.modes is None else ps.modes[idx])
 
 
 def estimate(ps: ParticleSet) -> tuple[np.ndarray, np.ndarray]:

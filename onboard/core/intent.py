@@ -1,0 +1,178 @@
+"""What a target intends: a discrete motion mode per particle (docs/TRACKING.md "Intent").
+
+A target's belief is a multiple-model particle filter: each particle carries a mode,
+
+* ``k >= 0``   heading for candidate goal k with the P1 guidance (the paper's model, eq. (1)-(3)
+               with the goal G_o replaced by the k-th candidate),
+* ``STATIONARY`` standing still (a transmitter being hunted, a target that stopped),
+* ``FREE``     near-constant velocity with random acceleration, speed-bounded, kept in the area
+               and out of the obstacles (a target heading somewhere nobody named, or wandering),
+
+and the modes switch by a Markov chain: each tick a particle keeps its mode with probability
+1 - p_switch, else draws one from the target's prior. The mode probabilities are the particle
+weights summed per mode, so the bearings estimate them (a jump-Markov / multiple-model particle
+filter: Ristic, Arulampalam and Gordon, Beyond the Kalman Filter (2004), ch. 3 and 11;
+McGinnity and Irwin, "Multiple model bootstrap filter for maneuvering target tracking", IEEE
+TAES 36(3), 2000). Intent inference with one model per destination follows Ahmad, Godsill et al.,
+"Bayesian intent prediction in object tracking using bridging distributions", IEEE Trans.
+Cybernetics 48(1), 2018, in its simplest discrete form.
+
+Pure numpy: every random number from the caller's Generator.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.dynamics import MotionModel
+from onboard.core.obstacles import Obstacles
+
+STATIONARY = -1
+FREE = -2
+
+# The innovation monitor (docs/TRACKING.md "Honest when surprised"): a scan is unexplained when no
+# bearing falls where the belief predicts one (``explained`` < EXPLAINED_MIN: the best bearing
+# off the cloud by about 3 of its spreads); a target with SURPRISE_COUNT unexplained of its last
+# SURPRISE_WINDOW scans with bearings is re-seeded. A missed detection (1 - p_D = 5 % a scan) makes
+# one; four of six by chance is a 1e-4 event a tick.
+EXPLAINED_MIN = 2.0
+SURPRISE_WINDOW = 6
+SURPRISE_COUNT = 4
+RESEED_SHARE = 0.3  # the share of the particles re-drawn along the bearings
+RESEED_SIGMA_M = 300.0  # the re-seed's width about the estimate: most of a 1 km area
+RESEED_PRIOR = 0.5  # the re-seed's weight in the predicted mixture
+RESEED_SPEED_MPS = 5.0  # a re-seeded free particle's velocity spread, per axis
+STATIONARY_SIGMA_M = 0.5  # a stationary particle's position jitter per tick
+
+
+@dataclass(frozen=True, eq=False)
+class Intent:
+    """What the scenario says one target may do: candidate goals (K, 3) ENU m with their names,
+    and the prior over its modes, (K + 2,): the goals', then STATIONARY's, then FREE's (sums to 1)."""
+
+    goals: np.ndarray
+    names: tuple[str, ...]
+    prior: np.ndarray
+
+    def __post_init__(self):
+        if len(self.prior) != len(self.goals) + 2 or not np.isclose(self.prior.sum(), 1.0):
+            raise ValueError("an intent's prior has one entry per goal, then stationary and free, summing to 1")
+
+    @property
+    def n_goals(self) -> int:
+        return len(self.goals)
+
+    def label(self, column: int) -> str:
+        """The operator's name of a mode column: a goal's name, ``stationary`` or ``free``."""
+        return self.names[column] if column < self.n_goals else ("stationary", "free")[column - self.n_goals]
+
+
+@dataclass(frozen=True)
+class IntentParams:
+    """How the modes move and switch (onboard/settings.py ``tracking.intent_*`` declares the values)."""
+
+    switch_prob: float  # per tick: a particle draws a new mode from the prior
+    free_accel_sigma_mps2: float  # FREE: white acceleration, per axis
+    speed_max_mps: float  # FREE: speed bound (the guidance's)
+    stationary_sigma_m: float  # STATIONARY: position jitter per tick, per axis
+    surprise_window: int  # scans the innovation monitor looks back over
+    surprise_count: int  # ... of which this many unexplained make the target "surprising"
+    reseed_share: float  # a surprising target: share of particles re-drawn along its bearings
+    reseed_sigma_m: float  # ... within this of its estimate (then the area bounds it)
+
+
+def columns(modes: np.ndarray, n_goals: int) -> np.ndarray:
+    """Mode codes (n,) to columns 0..K+1 of ``Intent.prior``: goal k -> k, STATIONARY -> K, FREE -> K+1."""
+    modes = np.asarray(modes)
+    return np.where(modes >= 0, modes, n_goals - 1 - modes)
+
+
+def codes(cols: np.ndarray, n_goals: int) -> np.ndarray:
+    """Columns back to mode codes (``columns``' inverse)."""
+    cols = np.asarray(cols)
+    return np.where(cols < n_goals, cols, n_goals - 1 - cols)
+
+
+def draw(intent: Intent, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n mode codes from the intent's prior."""
+    return codes(rng.choice(len(intent.prior), size=n, p=intent.prior), intent.n_goals)
+
+
+def switch(modes: np.ndarray, intent: Intent, p_switch: float, rng: np.random.Generator) -> np.ndarray:
+    """The Markov switch of one tick: each particle keeps its mode with probability 1 - p_switch,
+    else takes a mode drawn from the prior (possibly its own)."""
+    out = np.asarray(modes).copy()
+    moved = rng.random(len(out)) < p_switch
+    out[moved] = draw(intent, int(moved.sum()), rng)
+    return out
+
+
+def probabilities(log_weights: np.ndarray, modes: np.ndarray, n_goals: int) -> np.ndarray:
+    """(K + 2,) the posterior probability of each mode column (weights summed per mode)."""
+    w = np.exp(log_weights - np.max(log_weights))
+    p = np.bincount(columns(modes, n_goals), weights=w, minlength=n_goals + 2)
+    return p / p.sum()
+
+
+def predict_stationary(particles: np.ndarray, params: IntentParams, rng: np.random.Generator) -> np.ndarray:
+    """STATIONARY particles one tick on: velocity zero, the plane position jittered."""
+    out = particles.copy()
+    out[:, 3:] = 0.0
+    out[:, :2] += params.stationary_sigma_m * rng.standard_normal((len(out), 2))
+    return out
+
+
+def predict_free(particles: np.ndarray, model: MotionModel, params: IntentParams, obstacles: Obstacles,
+                 area_min: np.ndarray, area_max: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """FREE particles one tick on: v' = v + a dt, a ~ N(0, sigma_a^2 I) in the plane, |v'| capped
+    at the speed bound; p' = p + dt (v + v') / 2 plus the model's position noise. A particle that
+    would leave the area is held at its edge with that velocity component reversed; one that would
+    enter an obstacle stays where it is, stopped (as a true target meeting a wall). ``obstacles``:
+    the ground-plane ones (``Obstacles.extruded``)."""
+    dt = model.dt_s
+    out = particles.copy()
+    n = len(out)
+    v0 = out[:, 3:5].copy()
+    v1 = v0 + params.free_accel_sigma_mps2 * dt * rng.standard_normal((n, 2))
+    speed = np.linalg.norm(v1, axis=1)
+    over = speed > params.speed_max_mps
+    v1[over] *= (params.speed_max_mps / speed[over])[:, None]
+    pos = out[:, :2] + 0.5 * dt * (v0 + v1) + model.Q_sqrt[:2] * rng.standard_normal((n, 2))
+    lo, hi = np.asarray(area_min, float)[:2], np.asarray(area_max, float)[:2]
+    outside = (pos < lo) | (pos > hi)
+    v1 = np.where(outside, -v1, v1)
+    pos = np.clip(pos, lo, hi)
+    if len(obstacles):
+        hit = obstacles.contains(np.column_stack([pos, out[:, 2]])).any(axis=1)
+        pos[hit] = out[hit, :2]
+        v1[hit] = 0.0
+    out[:, :2], out[:, 3:5] = pos, v1
+    out[:, 5] = 0.0
+    return out
+
+
+def explained(log_weights: np.ndarray, log_lik: np.ndarray, log_miss: float) -> float:
+    """log of how much better the predicted belief explains a scan than "the target was missed and
+    every bearing is clutter": log( sum_i w_i g(Z | x_i) / g(Z | missed) ), with ``log_lik`` the
+    set likelihood of each particle (``tracking.log_likelihood``, same constant) and ``log_miss``
+    its value for a missed target. About log(p_D c / ((1 - p_D) Lambda kappa)) when a bearing falls
+    in the cloud's bearing spread, about 0 when none does (a miss, or a target elsewhere)."""
+    a = log_weights + log_lik
+    m = np.max(a)
+    if not np.isfinite(m):
+        return 0.0
+    return float(m + np.log(np.sum(np.exp(a - m))) - log_miss)
+
+
+def motion_path(mean: np.ndarray, mode: int, steps: int, model: MotionModel) -> np.ndarray:
+    """(steps, 6) the path a STATIONARY or FREE mode predicts from its mean: standing, or constant
+    velocity (the planner's view of a target heading nobody knows where)."""
+    x = np.asarray(mean, float)
+    t = model.dt_s * np.arange(1, steps + 1)[:, None]
+    out = np.tile(x, (steps, 1))
+    if mode == STATIONARY:
+        out[:, 3:] = 0.0
+    else:
+        out[:, :3] = x[:3] + t * x[3:]
+    return out
