@@ -26,7 +26,7 @@ from dataclasses import MISSING, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping, Sequence
-from urllib.parse import urlsplit
+from urllib.parse import quote, urlsplit
 
 import numpy as np
 import yaml
@@ -257,6 +257,12 @@ class _Node:
                     raise self.fail(f"{exc}, got {_show(v)}") from None
                 if not u.hostname:
                     raise self.fail(f"must name a host (http://HOST:PORT/PATH), got {_show(v)}")
+                if not v.isascii():  # an HTTP request line is ASCII: refused here, not at the first read
+                    if not u.netloc.isascii():
+                        raise self.fail(f"its host must be ASCII (an IDN in its xn-- form), got {_show(v)}")
+                    i, c = next((i, c) for i, c in enumerate(v) if not c.isascii())
+                    raise self.fail(f"must be ASCII: percent-encode its path and query ({c!r}, character "
+                                    f"{i + 1}, is {quote(c)}), got {_show(v)}")
             return v
         if s.kind == "vector":
             if isinstance(self.value, tuple):

@@ -153,9 +153,6 @@ class KrakenSource:
         if epoch in self._seen:  # the same frame read again (a rewritten but unchanged frame)
             self.repeated += 1
             return
-        self._seen[epoch] = None
-        while len(self._seen) > SEEN_FRAMES:
-            self._seen.popitem(last=False)
         chans: list = []
         for line in lines:
             ch = self._channel(line.freq_hz)
@@ -179,6 +176,11 @@ class KrakenSource:
         if t < now - MAX_AGE_S:
             self.reject("stale_time", f"frame {now - t:.2f} s old", len(chans))
             return
+        # remembered once used, not before: a refused frame (a forgery stamped ahead) must not
+        # shut out the genuine frame of the same stamp
+        self._seen[epoch] = None
+        while len(self._seen) > SEEN_FRAMES:
+            self._seen.popitem(last=False)
         self.frames += 1
         self._count_gap(epoch)
         self.last_frame_t = now
@@ -342,13 +344,16 @@ class KrakenInput:
             raise ConfigError("kraken.vfos: none: which VFO frequency is which target? (docs/KRAKENSDR.md)")
         self.url = cfg.url
         self.say = say
-        self.poller = DocumentPoller(cfg.url, status_url_for(cfg.url, cfg.status_url), cfg.poll_s,
-                                     prepare={"doa": kl.parse_document})
+        try:
+            self.poller = DocumentPoller(cfg.url, status_url_for(cfg.url, cfg.status_url), cfg.poll_s,
+                                         prepare={"doa": kl.parse_document})
+        except ValueError as exc:  # a URL the scenario's check let through
+            raise ConfigError(f"kraken.url: {exc}") from None
         time_map = autopilot.utc if cfg.time_source == "autopilot" else HostTime(clock)
         self.source = KrakenSource(cfg, tuple(t.name for t in scenario.targets), clock, autopilot.poses,
                                    time_map, scans.add, lambda: params["PMON_PD"], self._report,
                                    lambda: params["PMON_CLUTTER"])
-        self._down_said = self._status_said = False
+        self._down_said = self._status_said = self._restart_said = False
         self.handled = 0  # documents the io thread has handled
 
     def start(self) -> "KrakenInput":
@@ -374,6 +379,9 @@ class KrakenInput:
         elif not down and self._down_said and self.poller.documents:
             self._down_said = False
             self._report("reachable", f"KrakenSDR {self.url} read again")
+        if self.poller.restarts and not self._restart_said:
+            self._restart_said = True  # once: poller.restarts counts the rest
+            self._report("restart", f"KrakenSDR reader failed and was restarted ({self.poller.crash})")
         if self.poller.down.get("status", False) and not self._status_said:
             self._status_said = True  # its gates then see no overdrive: said once
             self._report("status", f"KrakenSDR status.json not read ({self.poller.last_error.get('status')}): "

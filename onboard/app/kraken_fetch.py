@@ -12,15 +12,18 @@ descheduled in between leaves it empty for as long as it waits, and two reads ag
 ``DocumentPoller`` reads every ``poll_s`` (wall s), on thread ``pmon-kraken``, and queues each
 new stable document (``queue``, bounded: ``queue_full`` counts what did not fit), parsed on
 this thread (``prepare``), for the io thread (onboard/app/kraken.py). Nothing it reads can block the app: HTTP has a
-total deadline per read (``timeout_s``: a server trickling bytes is cut off), documents are
-capped at ``MAX_DOC_BYTES`` (``too_large``), a file must be a regular file (onboard/files.py: a
-FIFO or /dev/zero is refused, not read). A failing source is retried with a back-off doubling up
-to ``MAX_BACKOFF_S``, reconnecting each time; failures are counted by kind (``errors``) and an
-episode of them is visible to the app (``down``, ``last_error``).
+total deadline per read (``timeout_s``, enforced on every receive: a server trickling its status
+line, its headers or its body is cut off), one request per read on a kept-alive connection,
+documents are capped at ``MAX_DOC_BYTES`` (``too_large``), a file must be a regular file
+(onboard/files.py: a FIFO or /dev/zero is refused, not read). A failing source is retried with a
+back-off doubling up to ``MAX_BACKOFF_S``, reconnecting each time; failures are counted by kind
+(``errors``) and an episode of them is visible to the app (``down``, ``last_error``). Nothing it
+reads can end the thread either: an exception is counted (``restarts``) and the reader restarted.
 """
 from __future__ import annotations
 
 import http.client
+import math
 import socket
 import threading
 import time
@@ -45,18 +48,72 @@ class FetchError(Exception):
         self.detail = detail
 
 
+class _DeadlineSocket(socket.socket):
+    """A socket whose every receive waits at most until ``deadline`` (monotonic s): http.client's
+    own timeout is per receive, so a peer trickling its status line or sending ``100 Continue``
+    after ``100 Continue`` would hold it for as long as it likes."""
+
+    __slots__ = ("deadline", "_mono")
+
+    def recv_into(self, buffer, nbytes=0, flags=0):
+        left = self.deadline - self._mono()
+        if left <= 0:
+            raise TimeoutError("read deadline passed")
+        self.settimeout(left)
+        return super().recv_into(buffer, nbytes, flags)
+
+
+class _Connection(http.client.HTTPConnection):
+    """An HTTPConnection on a ``_DeadlineSocket``; ``begin(deadline)`` before each request."""
+
+    deadline = math.inf
+
+    def __init__(self, host: str, port: int, monotonic: Callable[[], float]):
+        super().__init__(host, port)
+        self._mono = monotonic
+
+    def begin(self, deadline: float) -> None:
+        self.deadline = deadline
+        if self.sock is not None:  # kept alive: its timeout still the previous read's remainder
+            self.sock.deadline = deadline
+            self.sock.settimeout(max(deadline - self._mono(), 1e-3))
+
+    def connect(self) -> None:
+        err: OSError | None = None
+        for af, kind, proto, _, addr in socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_STREAM):
+            sock = _DeadlineSocket(af, kind, proto)
+            sock.deadline, sock._mono = self.deadline, self._mono
+            try:
+                sock.settimeout(max(self.deadline - self._mono(), 1e-3))
+                sock.connect(addr)
+            except OSError as exc:
+                sock.close()
+                err = exc
+                continue
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.sock = sock
+            return
+        raise err if err is not None else OSError(f"{self.host}: no address")
+
+
 class HttpSource:
-    """GET one URL on a kept-alive connection, reconnecting after any failure."""
+    """GET one URL on a kept-alive connection, reconnecting after any failure. Each ``get`` is
+    over within ``timeout_s`` (connecting, the status line, the headers, the body, and the one
+    retry of a kept-alive connection the server had closed), whatever the server sends."""
 
     def __init__(self, url: str, cap: int, timeout_s: float = 1.0,
                  monotonic: Callable[[], float] = time.monotonic):
         u = urlsplit(url)
         if u.scheme != "http" or not u.hostname:
             raise ValueError(f"{url!r}: want http://HOST[:PORT]/PATH")
+        if not url.isascii():  # http.client would raise UnicodeEncodeError at the first request
+            raise ValueError(f"{url!r}: not ASCII (percent-encode its path and query)")
         self.url, self.host, self.port = url, u.hostname, u.port or 80
         self.path = (u.path or "/") + (f"?{u.query}" if u.query else "")
         self.cap, self.timeout_s, self._mono = cap, timeout_s, monotonic
-        self.conn: http.client.HTTPConnection | None = None
+        self.conn: _Connection | None = None
+        self.requests = 0  # requests sent
+        self.retries = 0  # ... of them again on a new connection, the kept-alive one having been closed
 
     def close(self) -> None:
         if self.conn is not None:
@@ -64,42 +121,48 @@ class HttpSource:
             self.conn = None
 
     def get(self) -> bytes:
+        deadline = self._mono() + self.timeout_s
         reused = self.conn is not None
         try:
-            return self._get()
+            return self._get(deadline)
         except FetchError as exc:
             self.close()
-            if reused and exc.kind == "bad_http":  # a kept-alive connection the server closed: once more
+            if reused and exc.kind == "closed":  # the server closed the kept-alive connection: once more
+                self.retries += 1
                 try:
-                    return self._get()
+                    return self._get(deadline)
                 except FetchError:
                     self.close()
                     raise
             raise
 
-    def _get(self) -> bytes:
-        deadline = self._mono() + self.timeout_s
+    def _get(self, deadline: float) -> bytes:
         try:
             if self.conn is None:
-                self.conn = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout_s)
+                self.conn = _Connection(self.host, self.port, self._mono)
+            self.conn.begin(deadline)
+            self.requests += 1
             self.conn.request("GET", self.path, headers={"Cache-Control": "no-cache"})
             resp = self.conn.getresponse()
             length = resp.getheader("Content-Length")
             if resp.status != 200:
-                raise FetchError("http_status", f"HTTP {resp.status} {resp.reason} for {self.url}")
-            if length is not None and length.isdigit() and int(length) > self.cap:
+                raise FetchError("http_status", f"HTTP {resp.status} {resp.reason[:40]!r} for {self.url}")
+            if length is not None and not (length.isascii() and length.isdigit()):
+                raise FetchError("bad_http", f"{self.url}: Content-Length {length[:20]!r} is not a number")
+            if length is not None and int(length) > self.cap:
                 raise FetchError("too_large", f"{length} bytes > {self.cap}")
             chunks, total = [], 0
             while True:
-                if self._mono() > deadline:
-                    raise FetchError("timeout", f"{self.url}: not read within {self.timeout_s:g} s")
-                b = resp.read1(min(16384, self.cap + 1 - total))  # what has come: the deadline is checked between
+                b = resp.read1(min(16384, self.cap + 1 - total))
                 if not b:
                     break
                 chunks.append(b)
                 total += len(b)
                 if total > self.cap:
                     raise FetchError("too_large", f"more than {self.cap} bytes")
+            if length is not None and not resp.chunked and total != int(length):  # the server closed mid-body
+                raise FetchError("bad_http", f"{self.url}: {total} of {length} bytes")
+            resp.close()  # read whole: the connection is free for the next request (read1 leaves it busy)
             if resp.will_close:
                 self.close()
             return b"".join(chunks)
@@ -108,9 +171,11 @@ class HttpSource:
         except ConnectionRefusedError:
             raise FetchError("connection_refused", f"{self.host}:{self.port} refused the connection") from None
         except (TimeoutError, socket.timeout):
-            raise FetchError("timeout", f"{self.url}: no answer within {self.timeout_s:g} s") from None
+            raise FetchError("timeout", f"{self.url}: not read within {self.timeout_s:g} s") from None
+        except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError) as exc:
+            raise FetchError("closed", f"{self.url}: {type(exc).__name__}") from None
         except http.client.HTTPException as exc:
-            raise FetchError("bad_http", f"{self.url}: {type(exc).__name__} {str(exc)[:60]}") from None
+            raise FetchError("bad_http", f"{self.url}: {type(exc).__name__} {str(exc)[:60]!r}") from None
         except OSError as exc:
             raise FetchError("network", f"{self.url}: {exc.strerror or exc}") from None
 
@@ -172,6 +237,8 @@ class DocumentPoller:
         self.errors: dict[str, int] = {}  # "doa connection_refused" -> count
         self.last_error: dict[str, str] = {}  # kind -> its newest failure
         self.down = {k: False for k in self.sources}  # in an episode of failures
+        self.restarts = 0  # times the reader raised and was restarted (_run)
+        self.crash: str | None = None  # the newest such error
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -195,6 +262,20 @@ class DocumentPoller:
         return out
 
     def _run(self) -> None:
+        """The reader, restarted (its connections closed, after ``MAX_BACKOFF_S``) if it raises:
+        whatever a peer sends, this thread does not end before ``stop``. Each restart is counted
+        (``restarts``) and the newest one's cause kept (``crash``) for the app to say."""
+        while not self._stop.is_set():
+            try:
+                self._schedule()
+            except Exception as exc:  # a reader that fails on input must not end
+                self.restarts += 1
+                self.crash = f"{type(exc).__name__}: {str(exc)[:80]}"
+                for s in self.sources.values():
+                    s.close()
+                self._stop.wait(MAX_BACKOFF_S)
+
+    def _schedule(self) -> None:
         """Each source on its own schedule: every ``poll_s``, or after failures a back-off
         doubling up to ``MAX_BACKOFF_S`` (a missing status.json never slows the DoA's reads)."""
         due = {kind: self._mono() for kind in self.sources}

@@ -131,8 +131,9 @@ def run(args) -> int:
               f"{c.get('ticks_late', 0)} late, datagrams {app.scans.accepted} accepted "
               f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
         if app.kraken is not None:
-            k = app.kraken.source
+            k, p = app.kraken.source, app.kraken.poller
             print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames ({k.missed} missed), {k.scans} scans, "
                   f"{sum(k.rejected.values())} rejected {dict((r, n) for r, n in k.rejected.items() if n)}, "
-                  f"gated {dict((g, n) for g, n in k.gated.items() if n)}", flush=True)
+                  f"gated {dict((g, n) for g, n in k.gated.items() if n)}, {k.repeated} repeated, "
+                  f"read errors {p.errors}, reader restarts {p.restarts}", flush=True)
     return 0

@@ -25,17 +25,13 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.kraken_fetch import DocumentPoller, FileSource, HttpSource
 from onboard.app.pose import PoseSample
-from onboard.config import load_scenario, override
+from onboard.config import load_scenario
 from onboard.core.bearings import bearing, wrap
-from sim.kraken import KrakenModel, KrakenWriter, frame_lines, status_json
-
-UNIX0 = 1_700_000_000.0
-M = 4
-SC = load_scenario("paper", {"kraken.poll_s": 0.005})
-FREQS = {j: v.freq_hz for j, v in enumerate(SC.kraken.vfos)}
-MODEL = KrakenModel(multipath=False)
-UAV = np.array([150.0, 200.0, 40.0])
-YAW = math.radians(30.0)
+from sim.kraken import KrakenWriter, status_json
+from tests.support.kraken_rig import M, UAV, YAW
+from tests.support.kraken_rig import epoch as _epoch
+from tests.support.kraken_rig import frame as _frame
+from tests.support.kraken_rig import kraken_app as _app
 
 
 def _wait(pred, timeout: float) -> bool:
@@ -45,27 +41,6 @@ def _wait(pred, timeout: float) -> bool:
             return True
         time.sleep(0.002)
     return pred()
-
-
-def _epoch(t: float, latency_ms: int = MODEL.latency_ms) -> int:
-    return int(round((UNIX0 + t) * 1000 + latency_ms / 2))
-
-
-def _frame(t: float, bearings, seed: int) -> str:
-    scans = [(np.asarray(b, float), np.arange(len(b)) == 0) for b in bearings]
-    return frame_lines(_epoch(t), scans, FREQS, YAW, MODEL, np.random.default_rng(seed))
-
-
-def _app(url: str, clock: ManualClock) -> OnboardApp:
-    """An app reading ``url``, no autopilot: the test gives it the autopilot's UTC and poses."""
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken=True),
-                     override(SC, {"kraken.url": url}), clock=clock)
-    for k in range(9):
-        app.autopilot.utc.observe(int((UNIX0 + 1.0 + k) * 1e6), int((1.0 + k) * 1e3))
-    app.poses.keep_s = 1e6
-    for k in range(0, 6000):  # 10 Hz for 600 s, hovering at UAV heading 30 degrees
-        app.poses.add(PoseSample(k / 10.0, UAV.copy(), np.zeros(3), YAW))
-    return app.start()
 
 
 # ----------------------------------------------------------------------------- transport
