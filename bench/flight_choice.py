@@ -14,9 +14,8 @@ and the ratio of time-averaged RMSEs variant / base (95 % paired bootstrap CI), 
 ms per tick; then per method its ANEES, RMSE / bound and tails (the largest per-(trial, target)
 NEES and the pairs carrying most of the squared error, as bench/consistency.py prints them); and
 writes ``pmon eval``'s files to ``--out``. ``--against CSV:METHOD`` pairs the base with a stored
-run on the same trials (a per_trial.csv of the same seed: docs/results_flight_choice/ holds the
-flight default before the side-aware filter and that filter's first implementation). Last
-line: JSON.
+run on the same trials (a per_trial.csv of the same seed, e.g.
+docs/results_flight_default/per_trial.csv). Last line: JSON.
 """
 from __future__ import annotations
 

@@ -10,9 +10,8 @@ QPs); then, at the obstacle margin and without it, every assignment whose faces 
 OBSTACLE (from 0) follow FACES (lateral faces 0 east, 1 north, 2 west, 3 south, each for at least
 one segment, in that order) at every switch timing, the other obstacles' faces those of the
 previous plan shifted: how many are feasible and the cheapest. Whether a cheaper side is
-feasible from that state, or only not found (docs/GUIDANCE.md, "Cost jumps near corners"; the
-figures there are of 96cc933, this file copied into a checkout of it: the truth depends on the
-guidance).
+feasible from that state, or only not found (docs/GUIDANCE.md, "Cost jumps near corners", names
+the commit its figures are of: the truth depends on the guidance).
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ against. Tests and benchmarks only; never flown.
 The same problem as ``onboard.core.guidance``: positions p_2..p_(T+1) as variables (p_1 is fixed
 by the current state), controls and velocities as linear maps of them, the speed polygon, the
 input box, and per segment s = 1..T-1 and obstacle k big-M binaries choosing one lateral face that
-both end points p_s and p_(s+1) are outside of (the paper's eq:P1_3/eq:P1_4, per segment).
+both end points p_s and p_(s+1) are outside of (the paper's eqs. (8d)-(8e), per segment).
 The quadratic objective is an epigraph variable (SCIP takes linear objectives only).
 """
 from __future__ import annotations

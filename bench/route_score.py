@@ -3,7 +3,7 @@
     python bench/route_score.py [--ticks 10,25,40,60,80] [--particles 2000] [--motion jump]
                                 [--seed 1] [--set KEY=VALUE ...]
 
-The planner (docs/PLANNING.md §3) scores each of its ~150 routes over H = 50 ticks with a
+The planner (docs/PLANNING.md, "The route planner") scores each of its ~150 routes over H = 50 ticks with a
 Gaussian (EKF) pseudo-update per tick; the one-step form is checked against the paper's particle
 pseudo-update in tests/core/test_information.py. This bench checks the whole score. It flies the
 closed loop of bench/planner.py (the paper scenario, lookahead planner). At each tick named, it
@@ -22,7 +22,7 @@ noise floor, that of two rollouts with each other (many routes score within a fe
 each other, so the rollout's own Monte Carlo noise reorders them); where the EKF's chosen route
 ranks among the particle scores; the particle score of the EKF's choice over the particle
 optimum minus 1 (the regret of planning with the EKF, as a share); and the median EKF / particle
-score ratio (the EKF is conservative close in, docs/PLANNING.md §3). Last line: JSON figures.
+score ratio (the EKF is conservative close in, docs/PLANNING.md). Last line: JSON figures.
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@
                                 [--set KEY=VALUE ...]
 
 ``pmon eval paper`` on the same trials (same truths, starts and DF draws) with the lookahead
-planner changed in one of two ways (docs/PLANNING.md, "The best route refined by optimisation"):
+planner changed in one of two ways (docs/LOG.md, "the best route refined by optimisation"):
 
 - ``--refine N``: after the planner has chosen its best route, the route's accelerations (one per
   ``--block`` ticks over the horizon) are improved by N iterations of SLSQP on the planner's own

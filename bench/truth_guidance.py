@@ -16,7 +16,7 @@ others. ``--show 82:3``: also the
 times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
 ``--trace``, every step of each shown pair: the plan's status, QP solves, P1 cost and winding about
 each obstacle (``guidance.winding``: + counterclockwise, - clockwise, 0 not rounded), where a
-switch of side, or a plan much costlier than the last, shows (docs/TRACKING.md, the tails).
+switch of side, or a plan much costlier than the last, shows (docs/LOG.md, the tails traced).
 """
 from __future__ import annotations
 

@@ -5,11 +5,8 @@ last bit of a QP solution: docs/RESULTS.md, "Reproducing a figure"), so a last-b
 anywhere in the arithmetic gives another truth in some trials. Two libraries choose their
 kernels by the CPU they load on: OpenBLAS (numpy's and scipy's matrix products, solves and
 factorisations) takes AVX-512 kernels where the CPU has them, and numpy dispatches some of its
-own loops to AVX-512 too. Both round differently from their AVX2 kernels. Measured
-(`pmon eval paper --trials 1 --seed 2024 --methods fixed3,greedy_l1`, AMD EPYC with AVX-512,
-the packages of constraints.txt): trial 0 gives fixed3 8.2485 m, greedy_l1 29.1447 m; with
-OPENBLAS_CORETYPE=Haswell 9.1557 and 33.3205 m; with numpy's AVX-512 dispatch off as well 9.1566
-and 33.3205 m, the figures of docs/results/ (made on an AMD EPYC without AVX-512).
+own loops to AVX-512 too. Both round differently from their AVX2 kernels, and each moves the
+figures of a trial (docs/RESULTS.md, "Reproducing a figure", has them).
 
 So the evaluation's worker processes load both libraries with the AVX2 kernels
 (``pin_kernels``) on every x86-64 CPU that has AVX2 and FMA: the same figures there whatever

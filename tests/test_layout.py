@@ -14,6 +14,7 @@ This file alone stays at the top. Fixtures every folder shares are in tests/conf
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent
@@ -143,3 +144,49 @@ def test_no_import_cycle_between_files_or_packages():
     for p, ts in packages.items():
         ts.discard(p)
     assert cycles(packages) == [], packages
+
+
+
+LINK = re.compile(r"!?\[[^\]\n]*\]\(([^)\s]+)\)")
+FENCE = re.compile(r"^```.*?^```", flags=re.M | re.S)
+
+
+def _slug(heading: str) -> str:
+    """The anchor GitHub gives a markdown heading: lower case, punctuation dropped, spaces to '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def _anchors(md: Path) -> set[str]:
+    text = FENCE.sub("", md.read_text(encoding="utf-8"))
+    return {_slug(m.group(1)) for m in re.finditer(r"^#{1,6} +(.+?) *#*$", text, flags=re.M)}
+
+
+def broken_links(md: Path) -> list[str]:
+    """The relative links of a markdown file (``[text](target)``, images too) whose file, or
+    heading anchor in a markdown file, does not exist; web and mail links are not checked."""
+    text = re.sub(r"`[^`]*`", "", FENCE.sub("", md.read_text(encoding="utf-8")))
+    bad = []
+    for m in LINK.finditer(text):
+        target = m.group(1)
+        if re.match(r"[a-z][a-z0-9+.-]*:", target):
+            continue
+        path, _, anchor = target.partition("#")
+        dest = (md.parent / path).resolve() if path else md
+        if not dest.exists():
+            bad.append(f"{md.name}: {target} (no such file)")
+        elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+            bad.append(f"{md.name}: {target} (no such heading)")
+    return bad
+
+
+def test_broken_links_finds_a_missing_file_and_a_missing_heading(tmp_path):
+    (tmp_path / "a.md").write_text("# A title: `x`\n\n[ok](#a-title-x) [gone](b.md) ![img](c.png) "
+                                   "[no heading](a.md#nowhere) [web](https://example.com/x) `[code](d.md)`\n")
+    assert broken_links(tmp_path / "a.md") == ["a.md: b.md (no such file)", "a.md: c.png (no such file)",
+                                               "a.md: a.md#nowhere (no such heading)"]
+
+
+def test_every_relative_link_of_the_readme_and_docs_resolves():
+    """README.md's and docs/'s links to files and headings lead somewhere."""
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    assert [b for md in files for b in broken_links(md)] == []

@@ -5,9 +5,8 @@
   (``onboard.core.setpoint.plan_setpoint``): it starts at the scan the tick answers, where the
   vehicle was then, and its acceleration at the last segment's end (continuous, ramping over the
   tick). ArduCopter's GUIDED carries such a target on by itself between messages and flies
-  through the planned point at speed; measured on its SITL 0.21-0.24 m median, 0.44-0.59 m p95
-  from the planned point at the next tick (bench/ardupilot.py, docs/SITL.md), against 16-27 m
-  with the position alone, which it brakes to (bench/sitl_response.py, docs/PLANNING.md).
+  through the planned point at speed, where the position alone makes it brake to each point
+  (how close it follows: bench/ardupilot.py, bench/sitl_response.py, docs/SITL.md).
   PX4's OFFBOARD takes the same fields as feed-forward.
 - The jump model (the paper's policy): the planned point alone (type_mask 3576), as before.
 

@@ -1,4 +1,4 @@
-"""The direction finder's measurement model (eq:measurement_model).
+"""The direction finder's measurement model (eq. (4) of the paper).
 
 A bearing is measured clockwise from north, in radians on (-pi, pi]:
 phi = atan2(x_t - x_s, y_t - y_s), the paper's tan^-1(dx/dy) with the quadrant kept.

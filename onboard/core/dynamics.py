@@ -1,4 +1,4 @@
-"""Target motion model: eq:target_dynamics, eq:PhiGamma and eq:state_prediction.
+"""Target motion model: eqs. (1), (2) and (6) of the paper.
 
 State x = [px, py, pz, vx, vy, vz] (m, m/s); control u = [ux, uy, uz] (N).
 """

@@ -234,8 +234,9 @@ class FaceSearch:
         """The previous plan's assignment shifted, when infeasible, with each face switch moved one to
         three steps (``neighbours``): a target pressed against a face near a corner can round it a
         step later than the shift says, and the re-pick by clearance, timing the corner too early
-        again, repeats (seen with T4 of trial 65 at O3's corner: it then held back at 3x the cost).
-        The feasible ones join the local search's starts."""
+        again, and the target holds back in front of the obstacle at a much higher cost
+        (docs/GUIDANCE.md, "Cost jumps near corners"). The feasible ones join the local search's
+        starts."""
         if self.warm is None:
             return
         faces, path = self.warm
@@ -246,7 +247,7 @@ class FaceSearch:
     def stalled(self) -> bool:
         """The warm plan is stuck: an obstacle row is active and the target is planned to crawl
         (under a quarter of v_max) at its first step. A shifted assignment can hold a target
-        pressed against a face, a local optimum (seen with T1 against O3)."""
+        pressed against a face, a local optimum."""
         b = self.best
         pressed = bool(np.any(b.sol.duals != 0.0))
         first_speed = float(np.linalg.norm(b.pts[1] - b.pts[0])) / self.model.dt_s
@@ -255,10 +256,10 @@ class FaceSearch:
     def no_progress(self, previous: Plan | None) -> bool:
         """The warm plan holds the target back: it is pressed against an obstacle (a row active)
         that it does not round (winding 0), and costs no less than ``previous`` (last tick's plan)
-        did. A local optimum that the warm start alone would keep (T4 of trial 65 of seed 2024
-        drifted along O3's north face for 15 s on such a plan at 2.2e6, accepted at each step,
-        where rounding O3 cost 0.8e6-1.0e6). Explored as without a warm start. (Any pressed plan
-        whose cost has not fallen: the flight tick's median 53-59 -> 67-71 ms, measured.)"""
+        did: a local optimum that the warm start alone would keep, at several times the cost of
+        rounding the obstacle (docs/GUIDANCE.md, "Cost jumps near corners"). Explored as without a
+        warm start. Not every pressed plan whose cost has not fallen: that costs the flight tick
+        too much (docs/LOG.md)."""
         b = self.best
         if previous is None or not b.cost >= previous.cost:  # False for a fallback's nan cost
             return False

@@ -42,7 +42,7 @@ def bearing_information(target_xy: np.ndarray, sensor_xy: np.ndarray, sigma_rad:
 def information_reduction_factor(p_detect: float, clutter_rate: float, sigma_rad: float,
                                  samples: int = 200_000, seed: int = 0) -> float:
     """q in J = q H^T H / sigma^2 for a scan with detection probability p_D and Poisson(Lambda)
-    clutter uniform on (-pi, pi] (the set likelihood eq:rfs_like).
+    clutter uniform on (-pi, pi] (the set likelihood, eq. (10)).
 
     q = sigma^2 E[(d/dh log g(Z | h))^2] over measurement sets Z, by Monte Carlo with a fixed
     seed (deterministic). Dividing g by the clutter-only term leaves

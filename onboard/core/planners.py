@@ -3,7 +3,7 @@
 A ``Planner`` is chosen once from the configuration (``make_planner``: ``MonitorSetup.planner``
 names it) and asked each tick, after the prediction, for the next UAV position:
 
-- ``greedy``: the paper's rule, eq:optimization over S_(t+1) (``planning.choose_next_position``);
+- ``greedy``: the paper's rule, eq. (12) over S_(t+1) (``planning.choose_next_position``);
 - ``lookahead``: the non-myopic route planner (``planning.choose_lookahead``, docs/PLANNING.md);
 - the evaluation's baselines, planners like the others: ``hover`` (stays at its start),
   ``orbit`` (a circle around the targets' initial centroid), ``random`` (a uniformly random

@@ -1,5 +1,5 @@
-"""Next UAV position: candidate set S_(t+1) (eq:controlVectors), pseudo-posteriors from ideal
-bearings (eq:measurement_model2) and the argmin of summed traces (eq:optimization).
+"""Next UAV position: candidate set S_(t+1) (eq. (3) of the paper), pseudo-posteriors from ideal
+bearings (eq. (11)) and the argmin of summed traces (eq. (12)).
 """
 from __future__ import annotations
 
@@ -110,7 +110,7 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center:
                          uav_obstacles: Obstacles, objective: str = "trace",
                          motion: "UavMotion | None" = None, velocity: np.ndarray | None = None,
                          dt: float = 1.0, acceleration: np.ndarray | None = None) -> PlanningResult:
-    """eq:optimization over the admissible next positions around ``center``: the paper's
+    """Eq. (12) over the admissible next positions around ``center``: the paper's
     S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick (from
     ``velocity`` and, continuous acceleration, ``acceleration``)."""
     motion = motion or JUMP
@@ -263,8 +263,8 @@ class LookaheadParams:
     Each route flies the shortest obstacle-free polyline to its waypoint at the motion's speed
     limit, then circles (left or right) through it with radius loiter_radius_m: a route always
     keeps moving, so the line of sight keeps turning. A route's score is the sum over the
-    horizon and the targets of tr P_pos (docs/PLANNING.md: the all-state trace and a discount
-    per tick were measured and not adopted).
+    horizon and the targets of tr P_pos, position only and undiscounted (docs/PLANNING.md says
+    why).
     """
 
     ranges_m: tuple[float, ...]  # m

@@ -4,7 +4,7 @@ from onboard.core.dynamics import predict_cov, predict_mean
 
 
 def test_closed_form_equals_recursion(model, rng):
-    """eq:state_prediction, literally, against the step-by-step recursion."""
+    """Eq. (6), literally, against the step-by-step recursion."""
     A, B, Q = model.A, model.B, model.Q
     mu0 = rng.normal(size=6) * 100
     S0 = np.diag(rng.uniform(1, 50, size=6))

@@ -235,7 +235,7 @@ def test_a_planners_draws_never_shift_the_filters(paper):
 
 
 def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
-    """bench/route_variants.py --refine (docs/PLANNING.md, not adopted) optimises the planner's own
+    """bench/route_variants.py --refine (docs/LOG.md, not adopted) optimises the planner's own
     route score: its forward pass must equal ``_route_traces`` on the same route. Its adjoint
     gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
     only; elsewhere it must point where central differences do (four targets 130-460 m out)."""

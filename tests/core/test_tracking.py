@@ -12,7 +12,7 @@ SENSOR = tracking.SensorModel(sigma_rad=math.radians(1.0), p_detect=0.95, clutte
 
 
 def brute_force_g(phis, x, s, model):
-    """eq:rfs_like term by term: factorials, Poisson pmf, sums and products over the set."""
+    """Eq. (10) term by term: factorials, Poisson pmf, sums and products over the set."""
     n = len(phis)
     kappa = 1.0 / (2 * math.pi)
     ell = float(bearing(x, s))

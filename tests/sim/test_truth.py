@@ -142,7 +142,7 @@ def test_recording_the_closed_loop_gains_changes_no_state(short):
 
 def test_a_wall_stop_is_counted_where_the_truth_holds_a_target(paper):
     """bench/truth_guidance.py counts the wall stops of pmon eval's truths (15 in 100 trials at
-    seed 2024, docs/TRACKING.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
+    seed 2024, docs/LOG.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
     import sys
     from pathlib import Path
 
