@@ -2,8 +2,8 @@
 (keys and values as onboard/settings.py declares them, applied by ``onboard.config.override``
 and so checked as a file is).
 
-- ``flight`` (the default of ``pmon run`` and ``pmon demo``): the best measured; each value's
-  measurement is in docs/PLANNING.md.
+- ``flight`` (the default of ``pmon run`` and ``pmon demo``): the best measured; each value's why:
+  docs/PLANNING.md, 'What flies' and docs/TRACKING.md, 'Intent' (measurements: docs/LOG.md).
 - ``paper``: the scenario as written: the paper's one-step greedy rule on the jump model (what
   ``pmon eval paper`` evaluates as greedy_l1).
 

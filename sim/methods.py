@@ -101,8 +101,8 @@ for _m in (
            clutter_rate=1.0, motion="vehicle", jump_twin="lookahead"),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
            "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1"),
-    Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md "
-           "section 9), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
+    Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md, "
+           "'What flies'), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
            "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
     Method("ceiling", "bound only: the path of a vehicle at the flight default's limits (its policy, the stock "

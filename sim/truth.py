@@ -1,4 +1,4 @@
-"""The true targets of a simulation (eq:target_dynamics), stepped one dt at a time.
+"""The true targets of a simulation (eq. (1)), stepped one dt at a time.
 
 Each target starts from x_0 ~ N(mu_0, Sigma_0) and, every step, runs its *own* guidance (Problem
 P1, the same ``plan_guidance`` the UAV's predictor uses, warm-started from its previous plan) from

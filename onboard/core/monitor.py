@@ -4,10 +4,10 @@ A tick t runs the paper's filter and planner in their order, from the beliefs he
 (the predictions for the scan at t):
 
   1. update each target's predicted belief bel(x_t) with the scans taken at t, through the
-     clutter-aware set likelihood (eq:update, eq:rfs_like; ``tracking.update``);
+     clutter-aware set likelihood (eqs. (9b), (10); ``tracking.update``);
   2. estimate: posterior mean and covariance; resample when the effective sample size is low;
   3. guidance: P1 from each posterior mean, warm-started by the target's previous plan;
-  4. predict each belief to t+1 with its guidance (eq:prediction): the particles' controls come
+  4. predict each belief to t+1 with its guidance (eq. (9a)): the particles' controls come
      from the configured particle steering (``steering``: the plan's first control, the free law
      where it is exact, reference plans when configured), noise Q;
   5. plan the next UAV position s_(t+1) from ``plan_from`` with the configured planner

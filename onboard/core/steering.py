@@ -1,7 +1,7 @@
-"""Particle steering: the control each particle of a target is predicted with (eq:prediction).
+"""Particle steering: the control each particle of a target is predicted with (eq. (9a)).
 
 One abstract class for the role (``ParticleSteering``), chosen once from the configuration
-(``monitor.particle_steering``), three strategies (docs/TRACKING.md has the measurements):
+(``monitor.particle_steering``), three strategies (docs/TRACKING.md says why; the measurements are in docs/LOG.md):
 
 - ``FreeSteering`` (the default): the plan's first control for every particle, except a particle
   whose own P1 optimum is the free one (``FreeLaw.is_optimal``), which gets that optimum's control;
@@ -52,9 +52,8 @@ STEER_MIN_QPS = 12  # ... but at least this many
 MODE_QPS = 8
 BIRTH_QPS = 12
 REFERENCE_QPS = 3
-# a law (the sensitivity: a KKT solve on the active rows, and the next controls' gains) takes
-# 0.74 ms median against 0.45 ms for a face assignment's QP; counted as 2 it left the estimates
-# as accurate (N = 100: 1.004, CI 0.950-1.060) and the tick 14 ms shorter (docs/TRACKING.md)
+# a law (a KKT solve on the active rows and the next controls' gains) costs more than one
+# assignment's QP; counted as 2 the tick stays in budget at the same accuracy (docs/LOG.md)
 LAW_COST = 2
 AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
 
@@ -159,7 +158,7 @@ class SideSteering(ParticleSteering):
 def particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: MonitorSetup,
                       rng: np.random.Generator, laws: Sequence[LocalLaw] = (),
                       metric: np.ndarray | None = None, sides: SideLaws | None = None) -> np.ndarray:
-    """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq:prediction),
+    """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq. (9a)),
     except:
 
     * ``free_steering``: a particle from which P1's optimum has no active row (checked on its
@@ -176,7 +175,7 @@ def particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup
       the trust radius or the steered share that mode's plan's control, not the mean plan's.
     * a fraction ``control_mix`` of the particles not on the free law gets a control uniform in
       the input box (u_z = 0): the target may take another way around an obstacle.
-    docs/TRACKING.md has the measurements."""
+    docs/TRACKING.md says why; the measurements are in docs/LOG.md."""
     n = len(particles)
     out = np.broadcast_to(np.asarray(plan.next_control, float), (n, 3)).copy()
     free = np.zeros(n, dtype=bool)

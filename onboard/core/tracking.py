@@ -1,4 +1,4 @@
-"""Per-target particle filter with the clutter-aware set likelihood (eq:bayes_filter, eq:rfs_like).
+"""Per-target particle filter with the clutter-aware set likelihood (eqs. (9) and (10) of the paper).
 
 Weights are kept as normalised log-weights so that no underflow turns into NaN.
 """
@@ -62,7 +62,7 @@ def initialise(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generat
 
 
 def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.random.Generator) -> ParticleSet:
-    """eq:prediction: x' = A x + B u + nu, nu ~ N(0, Q), per particle; control (3,) for all
+    """Eq. (9a): x' = A x + B u + nu, nu ~ N(0, Q), per particle; control (3,) for all
     particles or (N, 3), one per particle (N)."""
     noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
     particles = ps.particles @ model.A.T + np.asarray(control, float) @ model.B.T + noise
@@ -83,9 +83,9 @@ def logsumexp(a: np.ndarray, axis: int | None = None, keepdims: bool = False) ->
 
 def log_likelihood(positions: np.ndarray, sensor_xy: np.ndarray, bearings: np.ndarray,
                    model: SensorModel) -> np.ndarray:
-    """log g(Phi | x, s) of eq:rfs_like for particle positions (N, >=2), up to a constant.
+    """log g(Phi | x, s) of eq. (10) for particle positions (N, >=2), up to a constant.
 
-    With uniform clutter density kappa, eq:rfs_like factorises as
+    With uniform clutter density kappa, eq. (10) factorises as
         g = e^-Lambda (Lambda kappa)^(n-1) [ (1 - p_D) Lambda kappa + p_D sum_i c(phi_i) ],
     and the prefactor does not depend on the target state, so it cancels in normalisation.
     With no bearing at all the likelihood is constant: the posterior equals the prior.
@@ -121,7 +121,7 @@ def log_missed(model: SensorModel) -> float:
 
 
 def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
-    """eq:update with one or more scans [(sensor_xy, bearings), ...], their likelihoods multiplied.
+    """Eq. (9b) with one or more scans [(sensor_xy, bearings), ...], their likelihoods multiplied.
     A scan may carry a third item, its own clutter rate Lambda (None: the model's).
 
     If the update leaves no finite weight (a set impossible under the model, e.g. p_D = 1 with
