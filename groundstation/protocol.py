@@ -71,14 +71,30 @@ class TargetEstimate:
     since_detection_s: float | None  # None: never detected
     degenerate: bool
     tick_time_s: float
+    mode: str = "unknown"  # what it most likely does (contract.TGT_MODES)
+    mode_p: float = math.nan  # ... with this probability
+    goal_index: int = -1  # the goal region it heads for, as an index into the scenario's goals
 
     @staticmethod
     def from_msg(msg) -> "TargetEstimate":
         d = dict(zip(C.TGT_FIELDS, msg.data))
         since = d["since_scan_s"]
+        code, gi = d["mode"], d["goal_index"]
+        mode = C.TGT_MODES[int(code)] if math.isfinite(code) and 0 <= code < len(C.TGT_MODES) else "unknown"
         return TargetEstimate(int(msg.array_id), d["x_east_m"], d["y_north_m"], d["vx_mps"], d["vy_mps"],
                               d["sigma_x_m"], d["sigma_y_m"], d["cov_xy_m2"], None if since == -1 else since,
-                              bool(d["degenerate"]), d["tick_time_s"])
+                              bool(d["degenerate"]), d["tick_time_s"], mode, d["mode_p"],
+                              int(gi) if mode == "goal" and math.isfinite(gi) and 0 <= gi < 1024 else -1)
+
+    def mode_text(self, goal_names: tuple[str, ...] = ()) -> str:
+        """``heading for G 0.95``, ``stationary 0.93``, ``-`` (no modes)."""
+        if self.mode == "unknown" or not math.isfinite(self.mode_p):
+            return "-"
+        what = self.mode
+        if self.mode == "goal":
+            what = "heading for " + (goal_names[self.goal_index] if 0 <= self.goal_index < len(goal_names)
+                                     else f"goal {self.goal_index + 1}")
+        return f"{what} {self.mode_p:.2f}"
 
     @property
     def name(self) -> str:

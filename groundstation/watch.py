@@ -20,6 +20,7 @@ def _f(x, spec=".1f"):
 def snapshot(gl: GcsLink) -> dict:
     v = gl.v
     st = v.app_status
+    goals = tuple(getattr(gl, "goal_names", ()) or ())
     never = st is None or st.datagrams_accepted == 0
 
     def since(e):
@@ -36,7 +37,7 @@ def snapshot(gl: GcsLink) -> dict:
         "next_enu_m": list(st.next_enu) if st and st.next_enu else None,
         "targets": [{"name": e.name, "x_m": e.x, "y_m": e.y, "vx_mps": e.vx, "vy_mps": e.vy,
                      "sigma_x_m": e.sigma_x, "sigma_y_m": e.sigma_y,
-                     "since_detection_s": since(e), "tick_time_s": e.tick_time_s}
+                     "since_detection_s": since(e), "tick_time_s": e.tick_time_s, "doing": e.mode_text(goals)}
                     for _, e in sorted(v.targets.items())],
     }
 
@@ -49,12 +50,13 @@ def table(snap: dict, n: int):
                     f"{' armed' if snap['armed'] else ' disarmed'}",
               caption=f"UAV {_enu(snap['uav_enu_m'])}   next waypoint {_enu(snap['next_enu_m'])}   "
                       f"update {n}")
-    for col in ("target", "E m", "N m", "vE m/s", "vN m/s", "1σ E m", "1σ N m", "last DF"):
+    for col in ("target", "E m", "N m", "vE m/s", "vN m/s", "1σ E m", "1σ N m", "last DF", "doing"):
         t.add_column(col, justify="right")
     for tg in snap["targets"]:
         since = tg["since_detection_s"]
         t.add_row(tg["name"], _f(tg["x_m"]), _f(tg["y_m"]), _f(tg["vx_mps"]), _f(tg["vy_mps"]),
-                  _f(tg["sigma_x_m"]), _f(tg["sigma_y_m"]), "never" if since is None else f"{since:.1f} s")
+                  _f(tg["sigma_x_m"]), _f(tg["sigma_y_m"]), "never" if since is None else f"{since:.1f} s",
+                  tg.get("doing", "-"))
     return t
 
 

@@ -278,6 +278,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     uav_acc = np.zeros(2) if ramps else None  # the plan's acceleration there (continuous acceleration)
     err, nees, est = np.zeros((K, M)), np.zeros((K, M)), np.zeros((K, M, 2))
     mode_p = None if true_col is None else np.full((K, M), np.nan)
+    reseeds = None if true_col is None else np.zeros((K, M), dtype=bool)
     uav_track = None if uav is None else np.zeros((K, 3))
     degenerate, tick_time = 0, 0.0
     if limits is not None:  # flown: a copter hovering at the start, in GUIDED
@@ -301,6 +302,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         degenerate += int(res.degenerate.sum())
         if mode_p is not None and res.mode_probabilities is not None:
             mode_p[k] = [p[c] if c >= 0 else np.nan for p, c in zip(res.mode_probabilities, true_col)]
+            reseeds[k] = res.reseeded
         if path is not None and k < K - 1:
             uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
         elif uav is not None and k < K - 1 and limits is not None:
@@ -334,7 +336,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
         bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, sensors, setup.sensor.sigma_rad, q)
     flown = {} if limits is None else dict(plan_miss_m=miss, plan_speed_mps=plan_speed, speed_mps=speed)
-    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown, true_mode_prob=mode_p)
+    return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown, true_mode_prob=mode_p,
+                       reseeds=reseeds)
 
 
 def _ceiling_trace(cfg: EvalConfig, method: Method, truth: np.ndarray, gains: np.ndarray, path: np.ndarray,

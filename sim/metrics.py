@@ -84,6 +84,7 @@ class MethodTrace:
     # a filter with motion modes: per tick and target, the posterior probability of what the target
     # really does (its true goal's mode, or stationary; NaN where no mode is its truth)
     true_mode_prob: np.ndarray | None = None
+    reseeds: np.ndarray | None = None  # (K, M) bool: re-seeded along the bearings at that tick
 
 
 @dataclass(frozen=True, eq=False)
@@ -221,6 +222,8 @@ def truth_stats(traces, w0: int, dt_s: float) -> dict:
     err = np.stack([t.error_m for t in traces])  # (N, K, M)
     out = {"far_fraction": float(np.mean(err[:, w0:] > FAR_M)), "lost_at_end": int(np.sum(err[:, -1] > FAR_M)),
            "targets": int(err.shape[0] * err.shape[2])}
+    if traces[0].reseeds is not None:
+        out["reseeds"] = int(sum(int(t.reseeds.sum()) for t in traces))
     probs = [t.true_mode_prob for t in traces if t.true_mode_prob is not None]
     k = int(round(MODE_AT_S / dt_s))
     if probs and k < probs[0].shape[0]:

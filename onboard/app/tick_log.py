@@ -101,8 +101,10 @@ def record(job, res, state: int, sensor_pos, centre, sent, segment) -> dict:
     }
 
 
-def target_values(res, j: int, t: float, scan_t_used: float) -> dict[str, float]:
-    """PMON_TGT's values for target ``j`` by TGT_FIELDS name (onboard/app/contract.py)."""
+def target_values(res, j: int, t: float, scan_t_used: float,
+                  mode: tuple[int, float, int] = (0, math.nan, -1)) -> dict[str, float]:
+    """PMON_TGT's values for target ``j`` by TGT_FIELDS name (onboard/app/contract.py); ``mode``:
+    (TGT_MODES code, probability, goal index) of what it most likely does."""
     c = res.covs[j]
     m = res.means[j]
     return {
@@ -111,6 +113,7 @@ def target_values(res, j: int, t: float, scan_t_used: float) -> dict[str, float]
         "since_scan_s": t - scan_t_used if math.isfinite(scan_t_used) else -1.0,
         "cov_xy_m2": c[0, 1], "sigma_vx_mps": math.sqrt(max(c[3, 3], 0)),
         "sigma_vy_mps": math.sqrt(max(c[4, 4], 0)), "degenerate": float(res.degenerate[j]), "tick_time_s": t,
+        "mode": float(mode[0]), "mode_p": float(mode[1]), "goal_index": float(mode[2]),
     }
 
 

@@ -25,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from onboard.app.contract import State
+from onboard.app.contract import TGT_MODES, State
 from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
@@ -33,7 +33,7 @@ from onboard.app.pairing import scans_for_tick
 from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
 from onboard.app.tick_schedule import PLAN_RESERVE_S, TickJob
-from onboard.core import monitor
+from onboard.core import intent_tick, monitor
 from onboard.core.monitor import MonitorSetup, Scan
 
 # ArduCopter's GUID_TIMEOUT default (s): a target older than this it no longer carries on
@@ -41,6 +41,7 @@ GUID_TIMEOUT_S = 3.0
 
 log = logging.getLogger("pmon.app")
 FALLBACK_SAY_TICKS = 3  # a target's guidance on a fallback this many ticks in a row is said
+MODE_SAY_P = 0.9  # a target's most likely mode is said when it changes and holds this probability
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,8 @@ class TickWorker:
         n = core.n_targets
         self.scan_t_used = [-math.inf] * n  # newest scan time <= a tick, per channel (PMON_TGT)
         self._fallback = [0] * n  # consecutive ticks target j's guidance was on a fallback
+        self._announced: list[str | None] = [None] * n  # the mode last said per target (MODE_SAY_P)
+        self._modes: list[tuple[int, float, int]] = [(0, math.nan, -1)] * n  # PMON_TGT's mode fields
         # autopilot s between returns of freed heap memory to the OS (see _trim_memory)
         self.trim_memory_s = trim_memory_s
         self._malloc_trim = _malloc_trim() if trim_memory_s > 0 else None
@@ -228,6 +231,25 @@ class TickWorker:
         for j in reseeded:
             self.counters.add("reseeds")
             self.say(f"T{j + 1}: particle collapse: re-seeded from its last estimate", mavlink.MAV_SEVERITY_ERROR)
+        self._report_modes(res)
+
+    def _report_modes(self, res) -> None:
+        """What each target most likely does (PMON_TGT's mode fields), said when it changes with
+        confidence ("T2: stationary 0.93", "T1: heading for G 0.95"); a target the bearings no
+        longer explain, re-seeded along them, is counted and said."""
+        if res.mode_probabilities is None:
+            return
+        setup = self.core.setup
+        goals = [g.name for g in self.core.scenario.goals]
+        for j, (kind, goal, p) in enumerate(intent_tick.most_likely(setup, res.mode_probabilities)):
+            self._modes[j] = (TGT_MODES.index(kind), p, goals.index(goal) if goal in goals else -1)
+            said = f"heading for {goal}" if goal is not None else kind
+            if p >= MODE_SAY_P and said != self._announced[j]:
+                self._announced[j] = said
+                self.say(f"T{j + 1}: {said} {p:.2f}")
+        for j in np.flatnonzero(res.reseeded):
+            self.counters.add("lost_reseeds")
+            self.say(f"T{j + 1}: bearings unexplained: re-seeded along them", mavlink.MAV_SEVERITY_WARNING)
 
     def _send(self, job: TickJob, snap: Snapshot, setup: MonitorSetup, res, t_start: float) -> Sent:
         sent, refused = False, None
@@ -254,7 +276,8 @@ class TickWorker:
         self.log.add(rec)
         if self.autopilot.vehicle.sysid is not None:
             for j in range(self.core.n_targets):
-                self.publisher.publish_target(j, target_values(res, j, rec["t"], self.scan_t_used[j]), rec["t"])
+                self.publisher.publish_target(j, target_values(res, j, rec["t"], self.scan_t_used[j], self._modes[j]),
+                                              rec["t"])
             self.publisher.publish_stat(self.mono())
         self.log.note_time(job.t)
         return rec

@@ -6,7 +6,11 @@ A target's belief is a multiple-model particle filter: each particle carries a m
                with the goal G_o replaced by the k-th candidate),
 * ``STATIONARY`` standing still (a transmitter being hunted, a target that stopped),
 * ``FREE``     near-constant velocity with random acceleration, speed-bounded, kept in the area
-               and out of the obstacles (a target heading somewhere nobody named, or wandering),
+               and out of the obstacles (a target wandering),
+* ``AIMED``    heading for a destination of its own, drawn uniformly over the area when the
+               particle takes the mode: the guidance's unconstrained optimum toward it (its free
+               law, inputs clipped to P1's box, speed to its bound), so a target heading somewhere
+               nobody named moves as the model's targets do,
 
 and the modes switch by a Markov chain: each tick a particle keeps its mode with probability
 1 - p_switch, else draws one from the target's prior. The mode probabilities are the particle
@@ -30,6 +34,8 @@ from onboard.core.obstacles import Obstacles
 
 STATIONARY = -1
 FREE = -2
+AIMED = -3
+MOTION_MODES = ("stationary", "free", "elsewhere")  # the operator's names of STATIONARY, FREE, AIMED
 
 # The innovation monitor (docs/TRACKING.md "Honest when surprised"): a scan is unexplained when no
 # bearing falls where the belief predicts one (``explained`` < EXPLAINED_MIN: the best bearing
@@ -43,29 +49,32 @@ RESEED_SHARE = 0.3  # the share of the particles re-drawn along the bearings
 RESEED_SIGMA_M = 300.0  # the re-seed's width about the estimate: most of a 1 km area
 RESEED_PRIOR = 0.5  # the re-seed's weight in the predicted mixture
 RESEED_SPEED_MPS = 5.0  # a re-seeded free particle's velocity spread, per axis
+MIN_MODE_SHARE = 0.05  # of the particles, every mode keeps at least this share (``mix_resample``)
 STATIONARY_SIGMA_M = 0.5  # a stationary particle's position jitter per tick
 
 
 @dataclass(frozen=True, eq=False)
 class Intent:
     """What the scenario says one target may do: candidate goals (K, 3) ENU m with their names,
-    and the prior over its modes, (K + 2,): the goals', then STATIONARY's, then FREE's (sums to 1)."""
+    and the prior over its modes, (K + 3,): the goals', then STATIONARY's, FREE's and AIMED's
+    (sums to 1)."""
 
     goals: np.ndarray
     names: tuple[str, ...]
     prior: np.ndarray
 
     def __post_init__(self):
-        if len(self.prior) != len(self.goals) + 2 or not np.isclose(self.prior.sum(), 1.0):
-            raise ValueError("an intent's prior has one entry per goal, then stationary and free, summing to 1")
+        if len(self.prior) != len(self.goals) + 3 or not np.isclose(self.prior.sum(), 1.0):
+            raise ValueError("an intent's prior has one entry per goal, then stationary, free and aimed, "
+                             "summing to 1")
 
     @property
     def n_goals(self) -> int:
         return len(self.goals)
 
     def label(self, column: int) -> str:
-        """The operator's name of a mode column: a goal's name, ``stationary`` or ``free``."""
-        return self.names[column] if column < self.n_goals else ("stationary", "free")[column - self.n_goals]
+        """The operator's name of a mode column: a goal's name, or one of ``MOTION_MODES``."""
+        return self.names[column] if column < self.n_goals else MOTION_MODES[column - self.n_goals]
 
 
 @dataclass(frozen=True)
@@ -83,7 +92,8 @@ class IntentParams:
 
 
 def columns(modes: np.ndarray, n_goals: int) -> np.ndarray:
-    """Mode codes (n,) to columns 0..K+1 of ``Intent.prior``: goal k -> k, STATIONARY -> K, FREE -> K+1."""
+    """Mode codes (n,) to columns 0..K+2 of ``Intent.prior``: goal k -> k, STATIONARY -> K, FREE -> K+1,
+    AIMED -> K+2."""
     modes = np.asarray(modes)
     return np.where(modes >= 0, modes, n_goals - 1 - modes)
 
@@ -109,10 +119,73 @@ def switch(modes: np.ndarray, intent: Intent, p_switch: float, rng: np.random.Ge
 
 
 def probabilities(log_weights: np.ndarray, modes: np.ndarray, n_goals: int) -> np.ndarray:
-    """(K + 2,) the posterior probability of each mode column (weights summed per mode)."""
+    """(K + 3,) the posterior probability of each mode column (weights summed per mode)."""
     w = np.exp(log_weights - np.max(log_weights))
-    p = np.bincount(columns(modes, n_goals), weights=w, minlength=n_goals + 2)
+    p = np.bincount(columns(modes, n_goals), weights=w, minlength=n_goals + 3)
     return p / p.sum()
+
+
+@dataclass(frozen=True, eq=False)
+class Mixed:
+    """``mix_resample``'s result: each new particle's source index, mode, and log-weight."""
+
+    source: np.ndarray  # (n,) index into the posterior's particles
+    modes: np.ndarray  # (n,) mode codes
+    log_weights: np.ndarray  # (n,)
+    switched: np.ndarray  # (n,) bool: the particle took another mode than its source's
+
+
+def mix_resample(log_weights: np.ndarray, modes: np.ndarray, intent: Intent, p_switch: float, n: int,
+                 min_share: float, rng: np.random.Generator) -> Mixed:
+    """The modes' interaction and the resampling of one tick, at the mode level (the particle
+    filter form of the IMM's mixing: Blom and Bar-Shalom, IEEE TAC 33(8), 1988; Boers and
+    Driessen, IEE Proc. Radar Sonar Navig. 150(5), 2003):
+
+    1. the predicted mode probabilities p'_c = (1 - s) p_c + s prior_c (p_c: the posterior's);
+    2. each mode with p'_c > 0 gets a count of particles: at least ``min_share`` n (so a mode the
+       bearings do not favour yet is ready, densely sampled, when they do; at most half the set
+       in all), the rest in proportion to p'_c;
+    3. mode c's particles are drawn, in the share (1 - s) p_c / p'_c, from its own posterior
+       particles by weight, and in the share s prior_c / p'_c from the whole posterior (particles
+       switching into c); each weighs p'_c / count_c, so the mode probabilities stay p'.
+    """
+    K = intent.n_goals
+    C = K + 3
+    w = np.exp(log_weights - np.max(log_weights))
+    w /= w.sum()
+    cols = columns(modes, K)
+    p = np.bincount(cols, weights=w, minlength=C)
+    pred = (1.0 - p_switch) * p + p_switch * intent.prior
+    live = pred > 0.0
+    floor = min(min_share * n, 0.5 * n / max(1, live.sum()))
+    target = np.where(live, floor + (n - floor * live.sum()) * pred / pred.sum(), 0.0)
+    counts = np.floor(target).astype(int)
+    short = n - counts.sum()
+    if short > 0:  # largest remainders
+        counts[np.argsort(-(target - counts), kind="stable")[:short]] += 1
+    src, out_modes, logw, switched = [], [], [], []
+    for c in np.flatnonzero(counts):
+        m = counts[c]
+        own_w = np.where(cols == c, w, 0.0)
+        own_share = (1.0 - p_switch) * p[c] / pred[c]
+        n_own = int(round(m * own_share)) if own_w.sum() > 0 else 0
+        idx = np.empty(0, dtype=int)
+        if n_own:
+            idx = _systematic(own_w / own_w.sum(), n_own, rng)
+        if m - n_own:
+            idx = np.r_[idx, _systematic(w, m - n_own, rng)]
+        src.append(idx)
+        out_modes.append(np.full(m, codes(c, K)))
+        logw.append(np.full(m, np.log(pred[c] / m)))
+        switched.append(cols[idx] != c)
+    return Mixed(np.concatenate(src), np.concatenate(out_modes), np.concatenate(logw), np.concatenate(switched))
+
+
+def _systematic(weights: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
+    """m indices drawn systematically by ``weights`` (summing to 1)."""
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    return np.searchsorted(cumulative, (rng.random() + np.arange(m)) / m, side="right")
 
 
 def predict_stationary(particles: np.ndarray, params: IntentParams, rng: np.random.Generator) -> np.ndarray:
@@ -131,24 +204,56 @@ def predict_free(particles: np.ndarray, model: MotionModel, params: IntentParams
     enter an obstacle stays where it is, stopped (as a true target meeting a wall). ``obstacles``:
     the ground-plane ones (``Obstacles.extruded``)."""
     dt = model.dt_s
+    n = len(particles)
     out = particles.copy()
-    n = len(out)
-    v0 = out[:, 3:5].copy()
+    v0 = particles[:, 3:5]
     v1 = v0 + params.free_accel_sigma_mps2 * dt * rng.standard_normal((n, 2))
-    speed = np.linalg.norm(v1, axis=1)
-    over = speed > params.speed_max_mps
-    v1[over] *= (params.speed_max_mps / speed[over])[:, None]
-    pos = out[:, :2] + 0.5 * dt * (v0 + v1) + model.Q_sqrt[:2] * rng.standard_normal((n, 2))
+    out[:, 3:5] = v1
+    out[:, :2] += 0.5 * dt * (v0 + v1) + model.Q_sqrt[:2] * rng.standard_normal((n, 2))
+    return _bounded(particles, out, params, obstacles, area_min, area_max)
+
+
+def draw_aims(n: int, area_min: np.ndarray, area_max: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(n, 2) destinations uniform over the area's ground plane."""
     lo, hi = np.asarray(area_min, float)[:2], np.asarray(area_max, float)[:2]
+    return lo + (hi - lo) * rng.random((n, 2))
+
+
+def predict_aimed(particles: np.ndarray, aims: np.ndarray, model: MotionModel, law_gain: np.ndarray,
+                  u_max_n: float, params: IntentParams, obstacles: Obstacles, area_min: np.ndarray,
+                  area_max: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """AIMED particles one tick on: eq. (1) with the control of P1's unconstrained optimum toward
+    each particle's own destination (``law_gain``: ``FreeLaw.gain``, the optimum being linear in
+    the state relative to the goal), clipped to the input box, then the speed bound, the area and
+    the obstacles as ``predict_free``."""
+    rel = particles.copy()
+    rel[:, :2] -= aims
+    u = rel @ law_gain.T
+    u[:, :2] = np.clip(u[:, :2], -u_max_n, u_max_n)
+    u[:, 2] = 0.0
+    out = particles @ model.A.T + u @ model.B.T + rng.standard_normal(particles.shape) * model.Q_sqrt
+    return _bounded(particles, out, params, obstacles, area_min, area_max)
+
+
+def _bounded(before: np.ndarray, after: np.ndarray, params: IntentParams, obstacles: Obstacles,
+             area_min: np.ndarray, area_max: np.ndarray) -> np.ndarray:
+    """``after`` with its planar speed capped, held in the area (the velocity component reversed at
+    an edge) and, where it would enter an obstacle, stopped where it was (``before``)."""
+    out = after.copy()
+    v = out[:, 3:5]
+    speed = np.linalg.norm(v, axis=1)
+    over = speed > params.speed_max_mps
+    v[over] *= (params.speed_max_mps / speed[over])[:, None]
+    lo, hi = np.asarray(area_min, float)[:2], np.asarray(area_max, float)[:2]
+    pos = out[:, :2]
     outside = (pos < lo) | (pos > hi)
-    v1 = np.where(outside, -v1, v1)
-    pos = np.clip(pos, lo, hi)
+    v[outside] = -v[outside]
+    np.clip(pos, lo, hi, out=pos)
     if len(obstacles):
-        hit = obstacles.contains(np.column_stack([pos, out[:, 2]])).any(axis=1)
-        pos[hit] = out[hit, :2]
-        v1[hit] = 0.0
-    out[:, :2], out[:, 3:5] = pos, v1
-    out[:, 5] = 0.0
+        hit = obstacles.contains(np.column_stack([pos, before[:, 2]])).any(axis=1)
+        pos[hit] = before[hit, :2]
+        v[hit] = 0.0
+    out[:, 2], out[:, 5] = before[:, 2], 0.0
     return out
 
 

@@ -7,10 +7,12 @@
    target widens instead of staying sure;
 3. guidance: P1 once per goal mode present, from the weighted mean of that mode's particles (the
    particles of a mode share its plan: the guidance is the expensive part);
-4. prediction: the Markov switch, then each mode's particles by their own motion: a goal mode's by
+2. the posterior mixed and resampled by mode (``intent.mix_resample``): the Markov switch at the
+   mode level, and every mode kept densely sampled however little the bearings favour it yet;
+4. prediction: each mode's particles by their own motion: a goal mode's by
    the configured particle steering toward its goal (the most probable goal mode's with the full
    strategy, the others' with the free law and their plan's control), stationary ones stand, free
-   ones coast with random acceleration.
+   ones coast with random acceleration, aimed ones head for their own destinations.
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import numpy as np
 
 from onboard.core import intent as im
 from onboard.core import tracking
+from onboard.core.dynamics import PLANAR
 from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.steering import AHEAD_STEPS, TargetTick
 
@@ -43,7 +46,7 @@ class IntentUpdate:
     covs: np.ndarray
     degenerate: np.ndarray
     memory: tuple[IntentMemory, ...]
-    probabilities: tuple[np.ndarray, ...]  # per target, (K + 2,) its modes' posterior probabilities
+    probabilities: tuple[np.ndarray, ...]  # per target, (K + 3,) its modes' posterior probabilities
     reseeded: np.ndarray  # (M,) bool: re-seeded along the bearings this tick
 
 
@@ -53,36 +56,39 @@ def initial_beliefs(setup, rng: np.random.Generator) -> tuple[tracking.ParticleS
     out = []
     for m, intent in zip(setup.initial_means, setup.intents):
         ps = tracking.initialise(m, setup.initial_cov, setup.n_particles, rng)
-        out.append(with_modes(ps, intent, rng))
+        out.append(with_modes(ps, intent, setup, rng))
     return tuple(out)
 
 
-def with_modes(ps: tracking.ParticleSet, intent: im.Intent, rng: np.random.Generator) -> tracking.ParticleSet:
-    """``ps`` with a mode per particle (drawn from the prior where it has none: a belief the app
-    rebuilt or re-seeded)."""
-    if ps.modes is not None and len(ps.modes) == len(ps):
+def with_modes(ps: tracking.ParticleSet, intent: im.Intent, setup, rng: np.random.Generator) -> tracking.ParticleSet:
+    """``ps`` with a mode and a destination per particle (drawn from the prior where it has none:
+    a belief the app rebuilt or re-seeded)."""
+    if ps.modes is not None and len(ps.modes) == len(ps) and ps.aims is not None:
         return ps
     modes = im.draw(intent, len(ps), rng)
     particles = ps.particles.copy()
     particles[modes == im.STATIONARY, 3:] = 0.0
-    return tracking.ParticleSet(particles, ps.log_weights, ps.labels, modes)
+    aims = im.draw_aims(len(ps), setup.area_min, setup.area_max, rng)
+    return tracking.ParticleSet(particles, ps.log_weights, ps.labels, modes, aims)
 
 
 def _reseed_modes(rng: np.random.Generator) -> Callable[[int], np.ndarray]:
-    return lambda k: np.where(rng.random(k) < 0.5, im.STATIONARY, im.FREE)
+    return lambda k: np.array([im.STATIONARY, im.FREE, im.AIMED])[rng.integers(3, size=k)]
 
 
-def _reseeded_velocities(ps: tracking.ParticleSet, n_old: int, rng: np.random.Generator) -> tracking.ParticleSet:
+def _reseeded_velocities(ps: tracking.ParticleSet, n_old: int, setup_area, rng: np.random.Generator
+                         ) -> tracking.ParticleSet:
     """The re-drawn particles (from index ``n_old``) at rest if stationary, else with a velocity
-    N(0, RESEED_SPEED^2 I): the motion that lost the target is not theirs."""
+    N(0, RESEED_SPEED^2 I) and a new destination: the motion that lost the target is not theirs."""
     if len(ps) == n_old:
         return ps
-    p = ps.particles.copy()
+    p, aims = ps.particles.copy(), ps.aims.copy()
     new = np.arange(n_old, len(ps))
     p[new, 3:] = 0.0
-    free = new[ps.modes[new] == im.FREE]
-    p[free, 3:5] = im.RESEED_SPEED_MPS * rng.standard_normal((len(free), 2))
-    return replace(ps, particles=p)
+    moving = new[ps.modes[new] != im.STATIONARY]
+    p[moving, 3:5] = im.RESEED_SPEED_MPS * rng.standard_normal((len(moving), 2))
+    aims[new] = im.draw_aims(len(new), setup_area[0], setup_area[1], rng)
+    return replace(ps, particles=p, aims=aims)
 
 
 def update(setup, beliefs: Sequence[tracking.ParticleSet], memory: Sequence[IntentMemory], scans,
@@ -99,13 +105,13 @@ def update(setup, beliefs: Sequence[tracking.ParticleSet], memory: Sequence[Inte
         intent = setup.intents[j]
         j_scans = [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
                     None if s.clutter_rates is None else s.clutter_rates[j]) for s in scans]
-        prior = with_modes(beliefs[j], intent, rng)
+        prior = with_modes(beliefs[j], intent, setup, rng)
         n = len(prior)
         window = mem.unexplained
         if j_scans and sum(window) >= im.SURPRISE_COUNT:
             prior = tracking.recover(prior, j_scans[-1][0], j_scans[-1][1], reseed, setup.sensor.sigma_rad, rng,
                                      new_modes=_reseed_modes(rng))
-            prior = _reseeded_velocities(prior, n, rng)
+            prior = _reseeded_velocities(prior, n, (setup.area_min, setup.area_max), rng)
             reseeded[j] = len(prior) > n
             window = () if reseeded[j] else window
         elif setup.recovery is not None and j_scans:
@@ -118,18 +124,47 @@ def update(setup, beliefs: Sequence[tracking.ParticleSet], memory: Sequence[Inte
         post = tracking.trim(upd.particles, n)
         means[j], covs[j] = tracking.estimate(post)
         probs.append(im.probabilities(post.log_weights, post.modes, intent.n_goals))
-        posts.append(tracking.resample_if_needed(post, setup.resample_fraction, rng, setup.regularise_bandwidth,
-                                                 covs[j]))
+        posts.append(mix(setup, intent, post, rng))
         out_mem.append(IntentMemory(mem.plans, mem.steering, window))
     return IntentUpdate(posts, means, covs, degenerate, tuple(out_mem), tuple(probs), reseeded)
+
+
+def mix(setup, intent: im.Intent, post: tracking.ParticleSet, rng: np.random.Generator) -> tracking.ParticleSet:
+    """The posterior mixed and resampled by mode (``intent.mix_resample``): a particle switching
+    into AIMED takes a new destination and leaves its side label; each mode's copies regularised
+    with the mode's own covariance when the set has degenerated (as ``tracking.resample_if_needed``)."""
+    n = len(post)
+    degenerate = tracking.effective_sample_size(post) < setup.resample_fraction * n
+    mixed = im.mix_resample(post.log_weights, post.modes, intent, setup.intent.switch_prob, n, im.MIN_MODE_SHARE,
+                            rng)
+    particles = post.particles[mixed.source]
+    aims = post.aims[mixed.source]
+    fresh = mixed.switched & (mixed.modes == im.AIMED)
+    aims[fresh] = im.draw_aims(int(fresh.sum()), setup.area_min, setup.area_max, rng)
+    labels = None
+    if post.labels is not None:
+        labels = np.where(mixed.switched, -1, post.labels[mixed.source])
+    h = setup.regularise_bandwidth
+    if degenerate and h > 0.0:
+        for m in np.unique(mixed.modes):
+            sel = np.flatnonzero(mixed.modes == m)
+            if len(sel) < 2:
+                continue
+            d = particles[sel][:, PLANAR] - particles[sel][:, PLANAR].mean(axis=0)
+            C = d.T @ d / len(sel) + 1e-9 * np.eye(4)
+            try:
+                L = np.linalg.cholesky(C)
+            except np.linalg.LinAlgError:
+                continue
+            particles[np.ix_(sel, PLANAR)] += h * rng.standard_normal((len(sel), 4)) @ L.T
+    return tracking.ParticleSet(particles, mixed.log_weights, labels, mixed.modes, aims)
 
 
 def _mode_moments(ps: tracking.ParticleSet, sel: np.ndarray):
     """(share of the weight, weighted mean (6,), covariance (6, 6), the sub-belief) of the particles ``sel``."""
     logw = ps.log_weights[sel]
     share = float(np.exp(tracking.logsumexp(logw)))
-    sub = tracking.ParticleSet(ps.particles[sel], logw - tracking.logsumexp(logw),
-                               None if ps.labels is None else ps.labels[sel], ps.modes[sel])
+    sub = tracking.ParticleSet(ps.particles[sel], logw - tracking.logsumexp(logw), *tracking.carried(ps, sel))
     mean, cov = tracking.estimate(sub)
     return share, mean, cov, sub
 
@@ -168,17 +203,17 @@ def guidance(setup, posts: Sequence[tracking.ParticleSet], memory: Sequence[Inte
 
 
 def dominant_motion(ps: tracking.ParticleSet, intent: im.Intent) -> int:
-    """STATIONARY or FREE, whichever holds more weight."""
+    """STATIONARY, FREE or AIMED, whichever holds the most weight."""
     p = im.probabilities(ps.log_weights, ps.modes, intent.n_goals)
-    return im.STATIONARY if p[-2] >= p[-1] else im.FREE
+    return int(im.codes(intent.n_goals + int(np.argmax(p[intent.n_goals:])), intent.n_goals))
 
 
 def motion_plan(setup, mean: np.ndarray, mode: int) -> Plan:
-    """A Plan holding a stationary or free mode's path (no control, no guidance solved): what the
-    planner and the app read of a target no goal mode describes."""
+    """A Plan holding a stationary, free or aimed mode's path (no control, no guidance solved): what
+    the planner and the app read of a target no goal mode describes."""
     T = setup.guidance.horizon
     K = len(setup.obstacles)
-    status = "stationary" if mode == im.STATIONARY else "free"
+    status = {im.STATIONARY: "stationary", im.FREE: "free", im.AIMED: "aimed"}[mode]
     return Plan(status, float("nan"), 0.0, 0, np.zeros((T, 3)), im.motion_path(mean, mode, T, setup.model),
                 np.full((T - 1, K), -1))
 
@@ -205,13 +240,13 @@ def planner_plans(setup, posts: Sequence[tracking.ParticleSet], per_target, main
 
 def predict(setup, steering, posts: Sequence[tracking.ParticleSet], per_target, main: Sequence[Plan],
             memory: Sequence[IntentMemory], replanner: Callable, rng: np.random.Generator):
-    """Step 4: the Markov switch, then each mode's particles by their own motion. Returns the
+    """Step 4: each mode's particles by their own motion. Returns the
     predicted beliefs and each target's memory (its goal modes' plans and steering)."""
     beliefs, out_mem = [], []
     budgets = steering.budgets(main)
     for j, ps in enumerate(posts):
         intent = setup.intents[j]
-        modes = im.switch(ps.modes, intent, setup.intent.switch_prob, rng)
+        modes, aims = ps.modes, ps.aims  # switched and mixed already (``mix``)
         particles = ps.particles.copy()
         labels = np.full(len(ps), -1)
         found = per_target[j]
@@ -246,19 +281,28 @@ def predict(setup, steering, posts: Sequence[tracking.ParticleSet], per_target, 
         sel = modes == im.FREE
         particles[sel] = im.predict_free(ps.particles[sel], setup.model, setup.intent, setup.ground_obstacles,
                                          setup.area_min, setup.area_max, rng)
-        beliefs.append(tracking.ParticleSet(particles, ps.log_weights, labels if lead is not None else None, modes))
+        sel = modes == im.AIMED
+        particles[sel] = im.predict_aimed(ps.particles[sel], aims[sel], setup.model, setup.free_steering.gain,
+                                          setup.guidance.u_max_n, setup.intent, setup.ground_obstacles,
+                                          setup.area_min, setup.area_max, rng)
+        beliefs.append(tracking.ParticleSet(particles, ps.log_weights, labels if lead is not None else None, modes,
+                                            aims))
         out_mem.append(IntentMemory(plans, steer_mem, memory[j].unexplained))
     return tuple(beliefs), tuple(out_mem)
 
 
-def mode_summary(setup, probabilities: Sequence[np.ndarray]) -> tuple[tuple[str, float], ...]:
-    """Per target, its most probable mode's name and probability (what the operator is shown)."""
+def most_likely(setup, probabilities: Sequence[np.ndarray]) -> tuple[tuple[str, str | None, float], ...]:
+    """Per target, what it most likely does: (``goal``, the goal's name, p) or (one of
+    ``intent.MOTION_MODES``, None, p): what the operator is shown."""
     out = []
     for intent, p in zip(setup.intents, probabilities):
         c = int(np.argmax(p))
-        out.append((intent.label(c), float(p[c])))
+        if c < intent.n_goals:
+            out.append(("goal", intent.names[c], float(p[c])))
+        else:
+            out.append((intent.label(c), None, float(p[c])))
     return tuple(out)
 
 
 __all__ = ["IntentMemory", "IntentUpdate", "initial_beliefs", "update", "guidance", "predict", "planner_plans",
-           "mode_summary", "with_modes"]
+           "most_likely", "with_modes"]

@@ -129,8 +129,8 @@ UNKNOWN_STATIONARY = 0.5  # ... of a target whose goal is not known: standing or
 def target_intents(sc) -> tuple[intent_mod.Intent, ...]:
     """Per target, what the scenario says it may do (``Target.goal``, ``goals``, ``stationary``)
     as candidate goals and a mode prior: a declared stationary target 0.8 stationary; with
-    candidate goals, ``intent_stationary_prior`` and ``intent_free_prior``, the rest shared evenly
-    by the goals; with none, stationary or free at even odds."""
+    candidate goals, ``intent_stationary_prior`` and ``intent_free_prior`` (shared by FREE and
+    AIMED), the rest shared evenly by the goals; with none, stationary or moving at even odds."""
     tr = sc.tracking
     out = []
     for t in sc.targets:
@@ -143,7 +143,8 @@ def target_intents(sc) -> tuple[intent_mod.Intent, ...]:
             p_stat = STATIONARY_DECLARED if t.stationary else UNKNOWN_STATIONARY
             p_free = 1.0 - p_stat
         rest = max(0.0, 1.0 - p_stat - p_free)
-        prior = np.r_[np.full(len(names), rest / len(names)) if names else [], p_stat, p_free]
+        # moving without a named goal: wandering (FREE) or heading somewhere (AIMED), even odds
+        prior = np.r_[np.full(len(names), rest / len(names)) if names else [], p_stat, p_free / 2, p_free / 2]
         out.append(intent_mod.Intent(goals, names, prior / prior.sum()))
     return tuple(out)
 

@@ -45,6 +45,9 @@ class ParticleSet:
     # (N,) int, or None: each particle's motion mode (onboard/core/intent.py: a goal's index,
     # STATIONARY or FREE); carried like the labels
     modes: np.ndarray | None = None
+    # (N, 2) ENU m, or None: where each particle of the intent's AIMED mode is heading (its own
+    # destination); carried like the modes
+    aims: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.log_weights)
@@ -66,7 +69,7 @@ def predict(ps: ParticleSet, model: MotionModel, control: np.ndarray, rng: np.ra
     particles or (N, 3), one per particle (N)."""
     noise = rng.standard_normal(ps.particles.shape) * model.Q_sqrt
     particles = ps.particles @ model.A.T + np.asarray(control, float) @ model.B.T + noise
-    return ParticleSet(particles, ps.log_weights, ps.labels, ps.modes)
+    return replace(ps, particles=particles)
 
 
 def logsumexp(a: np.ndarray, axis: int | None = None, keepdims: bool = False) -> np.ndarray | float:
@@ -147,7 +150,7 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
         return UpdateResult(ps, True, tuple(told))
     logw = logw - total
     logw[~np.isfinite(logw)] = -np.inf
-    return UpdateResult(ParticleSet(ps.particles, logw, ps.labels, ps.modes), False, tuple(told))
+    return UpdateResult(replace(ps, log_weights=logw), False, tuple(told))
 
 
 @dataclass(frozen=True)
@@ -235,7 +238,8 @@ def recover(ps: ParticleSet, sensor_xy: np.ndarray, bearings: np.ndarray, rec: R
     labels = None if ps.labels is None else np.concatenate([ps.labels, np.full(k, -1)])
     modes = None if ps.modes is None else np.concatenate([ps.modes, ps.modes[source] if new_modes is None
                                                           else new_modes(k)])
-    return ParticleSet(np.vstack([ps.particles, new]), logw, labels, modes)
+    aims = None if ps.aims is None else np.concatenate([ps.aims, ps.aims[source]])
+    return ParticleSet(np.vstack([ps.particles, new]), logw, labels, modes, aims)
 
 
 def trim(ps: ParticleSet, n: int) -> ParticleSet:
@@ -245,8 +249,12 @@ def trim(ps: ParticleSet, n: int) -> ParticleSet:
     keep = np.sort(np.argsort(-ps.log_weights, kind="stable")[:n])
     logw = ps.log_weights[keep]
     logw = logw - logsumexp(logw)
-    return ParticleSet(ps.particles[keep], logw, None if ps.labels is None else ps.labels[keep],
-                       None if ps.modes is None else ps.modes[keep])
+    return ParticleSet(ps.particles[keep], logw, *carried(ps, keep))
+
+
+def carried(ps: ParticleSet, idx: np.ndarray) -> tuple:
+    """The per-particle arrays a particle carries besides its state (labels, modes, aims), at ``idx``."""
+    return tuple(None if a is None else a[idx] for a in (ps.labels, ps.modes, ps.aims))
 
 
 def effective_sample_size(ps: ParticleSet) -> float:
@@ -288,8 +296,7 @@ def resample_if_needed(ps: ParticleSet, threshold_fraction: float, rng: np.rando
         if L is not None and np.all(np.isfinite(L)):
             particles = particles.copy()
             particles[:, PLANAR] += bandwidth * rng.standard_normal((n, 4)) @ L.T
-    return ParticleSet(particles, np.full(n, -np.log(n)), None if ps.labels is None else ps.labels[idx],
-                       None if ps.modes is None else ps.modes[idx])
+    return ParticleSet(particles, np.full(n, -np.log(n)), *carried(ps, idx))
 
 
 def estimate(ps: ParticleSet) -> tuple[np.ndarray, np.ndarray]:

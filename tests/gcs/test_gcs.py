@@ -135,6 +135,20 @@ def test_what_the_app_publishes_is_what_the_ground_station_decodes():
     t = P.TargetEstimate.from_msg(wire.sent[1])
     assert (t.index, t.x, t.y, t.vx, t.vy, t.sigma_x, t.sigma_y, t.cov_xy) == (2, 10, 11, 13, 14, 16, 17, 19)
     assert t.since_detection_s is None and t.degenerate and t.tick_time_s == 23
+    # what the target most likely does: a code, its probability, its goal region's index
+    tgt.update(mode=1.0, mode_p=0.93, goal_index=1.0)
+    pub.publish_target(0, tgt, 12.0)
+    t = P.TargetEstimate.from_msg(wire.sent[2])
+    assert (t.mode, t.goal_index) == ("goal", 1) and abs(t.mode_p - 0.93) < 1e-6
+    assert t.mode_text(("G", "W")) == "heading for W 0.93" and t.mode_text() == "heading for goal 2 0.93"
+    tgt.update(mode=2.0, goal_index=-1.0)
+    pub.publish_target(0, tgt, 12.0)
+    assert P.TargetEstimate.from_msg(wire.sent[3]).mode_text() == "stationary 0.93"
+    for hostile in (float("nan"), 99.0, -3.0):  # a mode code no app sends: unknown, no crash
+        tgt.update(mode=hostile, goal_index=hostile)
+        pub.publish_target(0, tgt, 12.0)
+        t = P.TargetEstimate.from_msg(wire.sent[-1])
+        assert (t.mode, t.goal_index, t.mode_text()) == ("unknown", -1, "-")
 
 
 def test_status_says_the_planned_jerk_and_the_autopilots_where_it_has_one():
