@@ -54,6 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the app's flight policy (pmon run --policy; default flight)")
     p.add_argument("--gcs", metavar="PORT", type=int,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
+    from sim.truth_kinds import TRUTH_KINDS
+    p.add_argument("--truth", choices=TRUTH_KINDS, default="nominal",
+                   help="how the true targets move (default nominal: as the scenario says; stationary: the "
+                        "transmitter hunt; docs/RESULTS.md)")
     p.add_argument("--df", choices=("datagram", "kraken"), default="datagram",
                    help="the DF: datagram (default: the feed's datagrams) or kraken (a simulated KrakenSDR's "
                         "output over HTTP, which the app reads: docs/KRAKENSDR.md)")
@@ -162,7 +166,8 @@ def run(args) -> int:
     rig = Rig(RigConfig(scenario=args.scenario, policy=args.policy, seed=args.seed, feed_seed=args.seed,
                         autopilot=args.autopilot, speedup=speedup, ready_s=DEMO_READY_S if mock else None,
                         ports=2 if mock else 3, gcs_udp_out=args.gcs, auto_launch=True,
-                        feed_duration_s=duration, feed_start="altitude", df=args.df, **extra).records_in(out))
+                        feed_duration_s=duration, feed_start="altitude", df=args.df, truth_kind=args.truth,
+                        **extra).records_in(out))
     try:
         with rig:
             if not mock:

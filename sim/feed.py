@@ -139,6 +139,9 @@ def main(argv=None) -> int:
     lv.add_argument("--scenario", default="paper")
     lv.add_argument("--truth", type=OUT_FILE, help="write the truth JSONL here")
     lv.add_argument("--seed", type=SEED, default=1)
+    from sim.truth_kinds import TRUTH_KINDS
+    lv.add_argument("--kind", choices=TRUTH_KINDS, default="nominal",
+                    help="how the true targets move (default nominal: as the scenario says; docs/RESULTS.md)")
     lv.add_argument("--duration", type=number(1.0, 1e7), help="scans to send (s); default: mission.duration_s")
     lv.add_argument("--start", choices=START_MODES, default="armed",
                     help="first scan when the vehicle arms (default), when it is armed and at the mission "
@@ -169,7 +172,7 @@ def main(argv=None) -> int:
                 from onboard.app.signing import load_key
                 key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
             cfg = LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed, args.duration, args.start,
-                                 signing_key=key, altitude_m=args.altitude)
+                                 signing_key=key, altitude_m=args.altitude, kind=args.kind)
             log = lambda s: print(s, flush=True)  # noqa: E731
             writer = None
             if args.df == "kraken":

@@ -234,6 +234,7 @@ class LiveFeedConfig:
     tlog_path: str | None = None
     ahead: int = 60  # truth states computed ahead of the scans (TruthAhead)
     signing_key: bytes | None = None  # MAVLink 2 signing on the feed's autopilot link
+    kind: str = "nominal"  # how the true targets move (sim/truth_kinds.py TRUTH_KINDS)
 
     def __post_init__(self):
         if self.start not in START_MODES:
@@ -257,14 +258,18 @@ def ready_to_scan(start: str, armed: bool, pose, altitude_m: float) -> bool:
 class LiveFeed:
     def __init__(self, cfg: LiveFeedConfig, scenario, log: Callable[[str], None] = print):
         from sim.sensors import DirectionFinder
-        from sim.truth import TruthWorld
+        from sim.truth_kinds import truth_world
 
         self.cfg = cfg
         self.sc = scenario
         self.frame = Frame(scenario.origin.lat_deg, scenario.origin.lon_deg, scenario.origin.alt_m)
-        truth_seq, df_seq = np.random.SeedSequence(cfg.seed).spawn(2)
+        seq = np.random.SeedSequence(cfg.seed)
+        truth_seq, df_seq = seq.spawn(2)
+        kind_seq = seq.spawn(1)[0]  # the truth kind's own choices: the nominal truth's streams unchanged
         self.rng = np.random.default_rng(df_seq)  # DF noise, clutter, detections (this thread)
-        self.truth = TruthWorld.from_scenario(scenario, np.random.default_rng(truth_seq))
+        steps = int(round((cfg.duration_s or scenario.mission.duration_s) / scenario.dynamics.dt_s))
+        self.truth = truth_world(scenario, np.random.default_rng(truth_seq), cfg.kind, np.random.default_rng(kind_seq),
+                                 steps)
         self.df = DirectionFinder.from_config(scenario.sensor)
         self.log = log
         self.sent = 0

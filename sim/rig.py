@@ -80,6 +80,7 @@ class RigConfig:
     out_dir: str | None = None  # the programs' logs; None: a temporary directory, removed at stop
     runlog_path: str | None = None  # the app's JSONL run log (None: none)
     truth_path: str | None = None  # the feed's truth JSONL (None: none)
+    truth_kind: str = "nominal"  # how the feed's true targets move (sim/truth_kinds.py)
     tlog_path: str | None = None  # the app's tlog (None: none)
 
     def records_in(self, out: str | Path) -> "RigConfig":
@@ -238,7 +239,7 @@ class Rig:
         duration = cfg.feed_duration_s if cfg.feed_duration_s is not None else self.sc.mission.duration_s
         argv = [sys.executable, "-m", "sim.feed", "live", "--mavlink", self.url(FEED_PORT),
                 "--scenario", cfg.scenario, "--seed", str(seed), "--duration", f"{duration:g}",
-                "--start", cfg.feed_start]
+                "--start", cfg.feed_start, "--kind", cfg.truth_kind]
         if cfg.df == "kraken":
             argv += ["--df", "kraken", "--kraken-dir", str(self.out / "kraken"),
                      "--multipath", "on" if cfg.multipath else "off"]

@@ -5,8 +5,9 @@ A target's belief is a multiple-model particle filter: each particle carries a m
 * ``k >= 0``   heading for candidate goal k with the P1 guidance (the paper's model, eq. (1)-(3)
                with the goal G_o replaced by the k-th candidate),
 * ``STATIONARY`` standing still (a transmitter being hunted, a target that stopped),
-* ``FREE``     near-constant velocity with random acceleration, speed-bounded, kept in the area
-               and out of the obstacles (a target wandering),
+* ``FREE``     drifting: the model's motion with no control (friction slows it) and a random
+               acceleration, speed-bounded, kept in the area and out of the obstacles (a target
+               that stopped commanding, wanders, or has arrived),
 * ``AIMED``    heading for a destination of its own, drawn uniformly over the area when the
                particle takes the mode: the guidance's unconstrained optimum toward it (its free
                law, inputs clipped to P1's box, speed to its bound), so a target heading somewhere
@@ -198,18 +199,13 @@ def predict_stationary(particles: np.ndarray, params: IntentParams, rng: np.rand
 
 def predict_free(particles: np.ndarray, model: MotionModel, params: IntentParams, obstacles: Obstacles,
                  area_min: np.ndarray, area_max: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """FREE particles one tick on: v' = v + a dt, a ~ N(0, sigma_a^2 I) in the plane, |v'| capped
-    at the speed bound; p' = p + dt (v + v') / 2 plus the model's position noise. A particle that
-    would leave the area is held at its edge with that velocity component reversed; one that would
-    enter an obstacle stays where it is, stopped (as a true target meeting a wall). ``obstacles``:
-    the ground-plane ones (``Obstacles.extruded``)."""
-    dt = model.dt_s
+    """FREE particles one tick on: eq. (1) with no control (the paper's target when it commands
+    nothing: friction slows it) and, besides the noise Q, a white acceleration of sigma_a per axis;
+    then the speed bound, and held in the area and out of the obstacles (``_bounded``; the
+    ground-plane obstacles: ``Obstacles.extruded``)."""
     n = len(particles)
-    out = particles.copy()
-    v0 = particles[:, 3:5]
-    v1 = v0 + params.free_accel_sigma_mps2 * dt * rng.standard_normal((n, 2))
-    out[:, 3:5] = v1
-    out[:, :2] += 0.5 * dt * (v0 + v1) + model.Q_sqrt[:2] * rng.standard_normal((n, 2))
+    out = particles @ model.A.T + rng.standard_normal(particles.shape) * model.Q_sqrt
+    out[:, 3:5] += params.free_accel_sigma_mps2 * model.dt_s * rng.standard_normal((n, 2))
     return _bounded(particles, out, params, obstacles, area_min, area_max)
 
 
