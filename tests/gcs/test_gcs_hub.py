@@ -228,7 +228,7 @@ def test_hub_usage_errors_are_one_line_exit_2_before_any_link(capsys):
                       (["--lost-after", "nan"], "--lost-after must be in [1, 255] s, got nan"),
                       (["--tak", "bogus://x:1"], "--tak: 'bogus://x:1' is not udp://HOST:PORT"),
                       (["--tak", "tcp://host"], "is not udp://HOST:PORT, tcp://HOST:PORT or tls://HOST:PORT"),
-                      (["--view", "70000"], "--view must be in 0..65535"),
+                      (["--view", "70000"], "argument --view: port must be 0..65535"),
                       (["--duration", "0"], "--duration must be > 0")):
         capsys.readouterr()
         t0 = time.monotonic()
