@@ -53,14 +53,17 @@ def lookups(monkeypatch):
     return asked
 
 
-def hub(capsys, vport: int, *argv) -> tuple[int, str, float]:
+def hub(capsys, vport: int, *argv, out: list | None = None) -> tuple[int, str, float]:
     capsys.readouterr()
     threads = threading.active_count()
     t0 = time.monotonic()
     rc = main(["--connect", f"udpin:127.0.0.1:{vport}", "--timeout", "3", "hub", "--duration", "1", *argv])
     dt = time.monotonic() - t0
     assert threading.active_count() <= threads, "a thread was left running"
-    return rc, capsys.readouterr().err.strip(), dt
+    cap = capsys.readouterr()
+    if out is not None:
+        out.append(cap.out)
+    return rc, cap.err.strip(), dt
 
 
 def test_hostile_hub_options_are_one_line_exit_2_before_anything_starts(vehicle, lookups, capsys, tmp_path):
@@ -99,14 +102,18 @@ def test_hostile_hub_options_are_one_line_exit_2_before_anything_starts(vehicle,
 
 def test_wellformed_options_still_start_the_hub(vehicle, lookups, capsys):
     """The checks refuse only what is malformed: a served port 0 (any free one) and a TAK URL
-    with pytak's write-only modifier start, and the loopback names are not looked up."""
+    with pytak's write-only modifier start, and the loopback names are not looked up. Unsigned,
+    the hub says in one line that its clients command the vehicle (issue 45, item 8)."""
     vport, _ = vehicle
     tak = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     tak.bind(("127.0.0.1", 0))
+    out: list = []
     try:
         rc, err, _ = hub(capsys, vport, "--serve", "udp:127.0.0.1:0", "--out", "udp:localhost:9",
-                         "--tak", f"udp+wo://127.0.0.1:{tak.getsockname()[1]}")
+                         "--tak", f"udp+wo://127.0.0.1:{tak.getsockname()[1]}", out=out)
     finally:
         tak.close()
     assert rc == 0, err
     assert lookups == []
+    warn = [line for line in out[0].splitlines() if "UNSIGNED" in line]
+    assert len(warn) == 1 and "every client of the hub commands the vehicle" in warn[0], out[0]
