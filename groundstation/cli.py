@@ -67,10 +67,9 @@ def _output(p: argparse.ArgumentParser, suppress: bool) -> None:
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="pmon gcs", description="Ground station: operate the Passive Monitor "
-                                 "mission over MAVLink.", epilog=COMMANDS,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    from onboard.argcheck import Version
+    from onboard.argcheck import OneLineParser, Version
+    ap = OneLineParser(prog="pmon gcs", description="Ground station: operate the Passive Monitor "
+                       "mission over MAVLink.", epilog=COMMANDS, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--version", action=Version)
     _connection(ap, suppress=False)
     sub = ap.add_subparsers(dest="cmd", required=True, metavar="COMMAND")

@@ -33,6 +33,12 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
                 min(gl.timeout, 1.0))
     # every PMON_STAT on this connection is fresh: it was opened a moment ago
     app_heard = gl.wait_for(lambda: v.n_stat > 0, min(gl.timeout, STAT_WAIT_S))
+    app_beating = ("HEARTBEAT", P.APP_COMPID) in v.seen_at
+    if not app_heard and app_beating and gl.timeout > STAT_WAIT_S:
+        # the app is there (its HEARTBEAT came) and its PMON_STAT was lost on the way: an
+        # autopilot forwarding a tick's burst (4 PMON_TGT, then PMON_STAT) drops its tail under
+        # load (PX4's forwarding queue, docs/MAVLINK.md); wait the rest of --timeout for the next
+        app_heard = gl.wait_for(lambda: v.n_stat > 0, gl.timeout - STAT_WAIT_S)
     params = None
     if app_heard and with_params:
         try:
@@ -82,7 +88,10 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         f"packet loss {link['packet_loss_pct']:.1f} %"
         + (f", rssi {link['rssi']}" if link["rssi"] is not None else ""),
     ]
-    if app is None:
+    if app is None and app_beating:
+        lines.append(f"onboard app: {v.app_state} (its HEARTBEAT; no PMON_STAT within {gl.timeout:g} s: lost on "
+                     f"the way{_bad_signature_hint(gl) or ', ask again'})")
+    elif app is None:
         lines.append("onboard app: not heard (no PMON_STAT within "
                      f"{min(gl.timeout, STAT_WAIT_S):g} s{_bad_signature_hint(gl)})")
     else:
@@ -104,7 +113,8 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         lines += [f"  WARNING   {w}" for w in st.warnings]
         if params:
             lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
-    return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app})
+    return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app,
+                                       "app_heartbeat_state": v.app_state if app_beating else None})
 
 
 def _bad_signature_hint(gl: GcsLink) -> str:

@@ -24,6 +24,7 @@ import json
 import math
 import select
 import socket
+import sys
 import time
 from collections import Counter
 
@@ -40,13 +41,16 @@ PEER_TIMEOUT_S = 30.0  # a --serve client not heard for this long gets nothing m
 MIN_INTERVAL_S = 0.1  # per target: at most 10 outputs a second whatever arrives (a flood)
 UAV_PERIOD_S = 1.0  # the UAV's CoT track
 CHECK_S = 0.25  # how often lost targets and the view's quiet time are looked at
+HUB_LINK_ID = 156  # the signing link id of the hub's own messages (its ADSB_VEHICLE stream)
+UNSIGNED_WARNING = ("hub: UNSIGNED: every client of the hub commands the vehicle (arm, modes, the app's "
+                    "commands); give --signing-key to allow only clients with the key (docs/SAFETY.md)")
 
 
 class Endpoint:
     """One UDP socket of the hub's clients: ``serve`` learns its peers from what they send;
     ``out`` sends to one fixed address (and hears its answers on the same socket)."""
 
-    def __init__(self, host: str, port: int, serve: bool):
+    def __init__(self, host: str, port: int, serve: bool, signing_key: bytes | None = None):
         self.serve = serve
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
@@ -66,17 +70,27 @@ class Endpoint:
         self.parser = mavlink.MAVLink(None)
         self.parser.robust_parsing = True
         self.rx = self.tx = self.bad = 0
+        # with a key: the peers (an --out client: True) that sent a packet whose signature checks
+        # (not a replay); the hub's own messages go to them only. Clients' packets are still
+        # passed on as they came, signed or not: the vehicle decides, as on a direct link.
+        self.authorised: set = set()
+        if signing_key is not None:
+            from onboard.app.signing import configure
+            configure(self.parser, signing_key, 0, sign_outgoing=False)
+            self.parser.signing.allow_unsigned_callback = lambda mav, msg_id: True
 
-    def send(self, buf: bytes, now: float) -> None:
+    def send(self, buf: bytes, now: float, authorised_only: bool = False) -> None:
         try:
             if self.serve:
                 for addr, seen in list(self.peers.items()):
                     if now - seen > PEER_TIMEOUT_S:
                         del self.peers[addr]
+                        self.authorised.discard(addr)
                         continue
-                    self.sock.sendto(buf, addr)
-                    self.tx += 1
-            else:
+                    if not authorised_only or addr in self.authorised:
+                        self.sock.sendto(buf, addr)
+                        self.tx += 1
+            elif not authorised_only or True in self.authorised:
                 self.sock.send(buf)
                 self.tx += 1
         except OSError:  # a client that went away (ECONNREFUSED on a connected socket): not ours to fail
@@ -106,6 +120,8 @@ class Endpoint:
                 else:
                     self.rx += 1
                     out.append(m)
+                    if m.get_signed():
+                        self.authorised.add(addr if self.serve else True)
         return out
 
     def close(self) -> None:
@@ -143,8 +159,9 @@ class TargetOutputs:
     targets expire. ``emit_adsb(frames)`` and ``emit_cot(bytes)`` are the hub's senders."""
 
     def __init__(self, frame, cfg: HubConfig, emit_adsb, emit_cot, clock=time.monotonic,
-                 utcnow=lambda: dt.datetime.now(dt.timezone.utc)):
+                 utcnow=lambda: dt.datetime.now(dt.timezone.utc), signing_key: bytes | None = None):
         self.frame, self.cfg = frame, cfg
+        self.signing_key = signing_key
         self.emit_adsb, self.emit_cot = emit_adsb, emit_cot
         self.clock, self.utcnow = clock, utcnow
         self.refused: Counter = Counter()
@@ -175,7 +192,7 @@ class TargetOutputs:
             return None
         self._last[est.index] = (est, now)
         if self.cfg.adsb:
-            mav = self._mav.get(sysid) or self._mav.setdefault(sysid, A.encoder(sysid))
+            mav = self._mav.get(sysid) or self._mav.setdefault(sysid, self._encoder(sysid))
             msgs = A.messages(mav, est, self.cfg.circles)
             self.emit_adsb(A.pack(mav, msgs))
             self.adsb_sent += len(msgs)
@@ -185,6 +202,13 @@ class TargetOutputs:
                                                 self.cfg.stale_s)))
             self.cot_sent += 1
         return est
+
+    def _encoder(self, sysid: int):
+        mav = A.encoder(sysid)
+        if self.signing_key is not None:  # a signing ground station drops what is not signed
+            from onboard.app.signing import configure
+            configure(mav, self.signing_key, HUB_LINK_ID)
+        return mav
 
     def check_lost(self, sysid: int | None) -> list[int]:
         """Targets whose estimates stopped (app or link gone) or whose data aged past
@@ -211,9 +235,12 @@ class TargetOutputs:
 
 
 class Hub:
-    def __init__(self, gl: HubLink, sc, cfg: HubConfig):
+    def __init__(self, gl: HubLink, sc, cfg: HubConfig, signing_key: bytes | None = None):
+        """``signing_key``: the link's (``--signing-key``): the hub's own messages are signed with
+        it and sent only to clients that have sent a packet signed with it."""
         from onboard.app.pose import Frame
         self.gl, self.sc, self.cfg = gl, sc, cfg
+        self.signing_key = signing_key
         o = sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)
         self.endpoints: list[Endpoint] = []
@@ -225,9 +252,9 @@ class Hub:
         self._uav_at = -math.inf
         try:
             for host, port in cfg.serve:
-                self.endpoints.append(Endpoint(host, port, serve=True))
+                self.endpoints.append(Endpoint(host, port, True, signing_key))
             for host, port in cfg.out:
-                self.endpoints.append(Endpoint(host, port, serve=False))
+                self.endpoints.append(Endpoint(host, port, False, signing_key))
             if cfg.tak_url:
                 try:
                     from groundstation.tak import TakSender, config
@@ -251,7 +278,7 @@ class Hub:
             self.close()
             raise
         self.targets = TargetOutputs(self.frame, cfg, self._to_clients,
-                                     self.tak.put if self.tak is not None else None)
+                                     self.tak.put if self.tak is not None else None, signing_key=signing_key)
         gl.on_raw = self._from_vehicle
         gl.on_message(self._on_message)
 
@@ -267,10 +294,11 @@ class Hub:
         self.forwarded_down += 1
 
     def _to_clients(self, frames: list[bytes]) -> None:
+        """The hub's own messages: with a key, signed and to authorised clients only."""
         now = time.monotonic()
         for buf in frames:
             for ep in self.endpoints:
-                ep.send(buf, now)
+                ep.send(buf, now, authorised_only=self.signing_key is not None)
 
     def _from_clients(self, now: float) -> None:
         for ep in self.endpoints:
@@ -328,7 +356,8 @@ class Hub:
         t = self.targets
         return {"link": self.gl.url, "vehicle": self.gl.v.sysid,
                 "clients": {ep.name: {"peers": len(ep.peers) if ep.serve else 1, "rx": ep.rx, "tx": ep.tx,
-                                      "bad": ep.bad} for ep in self.endpoints},
+                                      "bad": ep.bad, "signed": len(ep.authorised)} for ep in self.endpoints},
+                "signed": self.signing_key is not None,
                 "forwarded_to_vehicle": self.forwarded_up, "forwarded_to_clients": self.forwarded_down,
                 "adsb_sent": t.adsb_sent, "cot_sent": t.cot_sent, "targets_lost": t.lost,
                 "estimates_refused": dict(t.refused), "estimates_rate_limited": t.rate_limited,
@@ -347,10 +376,13 @@ class Hub:
             self.view.close()
 
 
-def serve(gl: HubLink, sc, cfg: HubConfig, duration: float | None, as_json: bool, console) -> Outcome:
-    hub = Hub(gl, sc, cfg)
+def serve(gl: HubLink, sc, cfg: HubConfig, duration: float | None, as_json: bool, console,
+          signing_key: bytes | None = None) -> Outcome:
+    hub = Hub(gl, sc, cfg, signing_key)
     try:
         lines = [f"hub: vehicle {gl.v.sysid} on {gl.url}"]
+        if signing_key is None and hub.endpoints:
+            lines.append(UNSIGNED_WARNING)
         lines += [f"  MAVLink clients: {ep.name}" + (" (connect with udpout:%s:%d)" % ep.address if ep.serve else "")
                   for ep in hub.endpoints]
         if cfg.adsb and hub.endpoints:
@@ -363,6 +395,8 @@ def serve(gl: HubLink, sc, cfg: HubConfig, duration: float | None, as_json: bool
         if as_json:
             console.file.write(json.dumps({"hub": hub.summary()}) + "\n")
             console.file.flush()
+            if signing_key is None and hub.endpoints:
+                print(UNSIGNED_WARNING, file=sys.stderr, flush=True)
         else:
             console.print("\n".join(lines) + "\n  (Ctrl-C stops)", soft_wrap=True, highlight=False)
         try:
@@ -389,4 +423,4 @@ def run_cli(args, key, sc, console) -> Outcome:
     with HubLink(args.connect, args.timeout, args.sysid, signing_key=key,
                  autopilot_unsigned=getattr(args, "autopilot_unsigned", False)) as gl:
         gl.connect()
-        return serve(gl, sc, cfg, args.duration, args.json, console)
+        return serve(gl, sc, cfg, args.duration, args.json, console, signing_key=key)

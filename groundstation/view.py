@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import json
 import math
+import socket
+import sys
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
@@ -36,6 +38,9 @@ TRAIL_N = 600  # UAV positions kept (one per snapshot: 10 min at 1 Hz)
 TRACK_N = 60  # estimates kept per target (the recent track: a minute of ticks)
 TEXTS_N = 12  # STATUSTEXTs shown
 QUIET_S = 2.0  # no PMON_STAT for this long: a snapshot every QUIET_S all the same, saying how long
+IDLE_S = 10.0  # a connection whose peer sends nothing (or reads nothing) for this long is closed
+MAX_CLIENTS = 32  # connections served at once (a thread each); the next one pushes out the oldest
+EVENT_IDLE_S = 15.0  # an event stream with nothing new gets a comment this often
 
 
 def _num(x, nd=3):
@@ -192,17 +197,30 @@ class Broadcaster:
 
 
 class ViewServer:
-    """The HTTP side: 127.0.0.1 only, a thread per client, stopped by ``close()``."""
+    """The HTTP side: 127.0.0.1 only, a thread per client, stopped by ``close()``.
+
+    Hostile or broken clients cost little: a client that hangs up mid-answer is counted
+    (``hangups``), not printed; a connection idle for ``IDLE_S`` (no request byte, or its answer
+    not read) is closed; at most ``MAX_CLIENTS`` are served at once, and the next one pushes out
+    the oldest (one waiting for a request first, then the oldest event stream: a browser's page
+    reconnects within a second), so a genuine request is always answered at once and held
+    connections cost at most ``MAX_CLIENTS`` threads (``evicted`` counts those pushed out)."""
 
     def __init__(self, sc, port: int = 0, host: str = "127.0.0.1"):
         self.files = assets()
         self.scene = json.dumps(scene_json(sc)).encode()
         self.bus = Broadcaster()
         self.requests = 0
+        self.hangups = 0
+        self.evicted = 0
+        self.errors = 0
+        self._conns: OrderedDict = OrderedDict()  # socket -> streaming (an /events answer)
+        self._lock = threading.Lock()
         server = self
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
+            timeout = IDLE_S  # every read and write of the connection
 
             def log_message(self, *args):  # quiet: the terminal shows the mission, not requests
                 pass
@@ -243,31 +261,75 @@ class ViewServer:
                 self.send_header("Connection", "close")
                 self.end_headers()
                 self.close_connection = True
-                seen = 0
-                try:
-                    self.wfile.write(b"retry: 1000\n\n")
-                    while not server.bus.closed:
-                        seq, data = server.bus.wait(seen, 15.0)
-                        if server.bus.closed:
-                            break
-                        if seq == seen:  # a comment keeps proxies and the browser's timer happy
-                            self.wfile.write(b": idle\n\n")
-                        else:
-                            seen = seq
-                            self.wfile.write(b"data: " + data + b"\n\n")
-                        self.wfile.flush()
-                except (BrokenPipeError, ConnectionResetError, OSError):
-                    pass  # the page went away
+                server._streaming(self.request)
+                seen, wrote = 0, time.monotonic()
+                self.wfile.write(b"retry: 1000\n\n")
+                while not server.bus.closed and server._held(self.request):
+                    seq, data = server.bus.wait(seen, 1.0)  # short: a stream pushed out ends within 1 s
+                    if server.bus.closed:
+                        break
+                    if seq != seen:
+                        seen = seq
+                        self.wfile.write(b"data: " + data + b"\n\n")
+                    elif time.monotonic() - wrote < EVENT_IDLE_S:
+                        continue
+                    else:  # a comment keeps proxies and the browser's timer happy
+                        self.wfile.write(b": idle\n\n")
+                    self.wfile.flush()
+                    wrote = time.monotonic()
 
         class Server(ThreadingHTTPServer):
             daemon_threads = True
             allow_reuse_address = True  # a restart binds at once (TIME_WAIT); a live listener still refuses
+            request_queue_size = 128  # a burst of connections waits in the kernel, not in SYN retries
+
+            def process_request(self, request, client_address):
+                server._admit(request)
+                super().process_request(request, client_address)
+
+            def shutdown_request(self, request):  # the end of every connection's thread
+                with server._lock:
+                    server._conns.pop(request, None)
+                super().shutdown_request(request)
+
+            def handle_error(self, request, client_address):
+                exc = sys.exc_info()[1]
+                if isinstance(exc, OSError):  # a reset, a broken pipe, the idle timeout, a push-out
+                    server.hangups += 1
+                else:  # a bug of ours: one line, the thread ends, the server goes on
+                    server.errors += 1
+                    print(f"view: {type(exc).__name__}: {exc} (client {client_address[0]})", file=sys.stderr)
 
         self.httpd = Server((host, port), Handler)
         self.host, self.port = self.httpd.server_address[:2]
         self.hosts = {f"{self.host}:{self.port}", f"localhost:{self.port}"}
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
                                         name="pmon-view-http", daemon=True)
+
+    def _admit(self, request) -> None:
+        """Count the connection in; at ``MAX_CLIENTS``, push out the oldest (not streaming first)."""
+        with self._lock:
+            out = None
+            if len(self._conns) >= MAX_CLIENTS:
+                out = next((s for s, streaming in self._conns.items() if not streaming), None)
+                out = out if out is not None else next(iter(self._conns))
+                del self._conns[out]
+                self.evicted += 1
+            self._conns[request] = False
+        if out is not None:
+            try:  # its thread's read returns, its write fails: the thread ends
+                out.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    def _streaming(self, request) -> None:
+        with self._lock:
+            if request in self._conns:
+                self._conns[request] = True
+
+    def _held(self, request) -> bool:
+        with self._lock:
+            return request in self._conns
 
     @property
     def url(self) -> str:
@@ -318,5 +380,7 @@ def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, con
             pass  # the operator closes the view: not a failure
     finally:
         srv.close()
-    return Outcome(f"view: stopped after {state.seq} updates, {srv.requests} requests",
-                   {"url": srv.url, "updates": state.seq, "requests": srv.requests})
+    return Outcome(f"view: stopped after {state.seq} updates, {srv.requests} requests"
+                   + (f", {srv.hangups} connections ended by their client or the idle timeout" if srv.hangups else ""),
+                   {"url": srv.url, "updates": state.seq, "requests": srv.requests, "hangups": srv.hangups,
+                    "evicted": srv.evicted})

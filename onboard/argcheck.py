@@ -14,6 +14,7 @@ reached the mock's clock: each a traceback, or a process that never did anything
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import math
 import os
 import re
@@ -57,12 +58,32 @@ def _port(text: str, lo: int) -> int:
     return int(text)
 
 
+_LABEL = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOST_NAME = re.compile(rf"{_LABEL}(?:\.{_LABEL})*\.?", re.ASCII)
+
+
+def host_name(text: str) -> str:
+    """An IP address literal or a DNS name in RFC 1123's syntax. Anything else is refused here,
+    not handed to the resolver: a malformed option ("tcp:127.0.0.1", "999.1.1.1") must not
+    become a DNS query that leaves the machine."""
+    try:
+        ipaddress.ip_address(text)
+        return text
+    except ValueError:
+        pass
+    labels = text.rstrip(".").split(".")
+    if len(text) > 253 or not _HOST_NAME.fullmatch(text) or all(x.isdigit() for x in labels):
+        raise ValueError(f"{text!r} is not an IP address or a host name")
+    return text
+
+
 def host_port(text: str, any_port: bool = False) -> tuple[str, int]:
-    """``HOST:PORT`` (port 1..65535; 0 too with ``any_port``, for a socket to bind)."""
+    """``HOST:PORT`` (port 1..65535; 0 too with ``any_port``, for a socket to bind); HOST by
+    ``host_name``."""
     host, sep, port = text.rpartition(":")
-    if not sep or not host or any(c.isspace() for c in host):
+    if not sep or not host:
         raise ValueError(f"want HOST:PORT, got {text!r}")
-    return host, _port(port, 0 if any_port else 1)
+    return host_name(host), _port(port, 0 if any_port else 1)
 
 
 def mavlink_url(text: str) -> str:
@@ -82,6 +103,7 @@ def mavlink_url(text: str) -> str:
     if m is None or m["scheme"] not in MAVLINK_SCHEMES:
         raise ValueError(f"want {'|'.join(MAVLINK_SCHEMES)}:HOST:PORT or a serial device /dev/..., got {text!r}")
     _port(m["port"], 0 if m["scheme"] in ("udpin", "tcpin") else 1)
+    host_name(m["host"])
     return text
 
 
@@ -127,6 +149,7 @@ def integer(lo: int, hi: int):
 
 SEED = integer(0, 2**63 - 1)  # numpy refuses negative seeds
 PORT = checked(lambda text: _port(text, 1))
+PORT_BIND = checked(_port, 0)  # 0: any free port
 HOST_PORT = checked(host_port)
 HOST_PORT_BIND = checked(host_port, True)
 MAVLINK_URL = checked(mavlink_url)
@@ -176,7 +199,16 @@ def writable_dir(text: str) -> str:
     return text
 
 
+def readable_file(text: str, max_bytes: int = 1 << 20) -> str:
+    """A regular file this process can read (not a directory, FIFO or device: checked without
+    blocking, onboard/files.py), for a file a thread opens later (a certificate, a key)."""
+    from onboard.files import read_regular
+    read_regular(text, max_bytes)
+    return text
+
+
 OUT_FILE = checked(writable_path)
+IN_FILE = checked(readable_file)
 OUT_DIR = checked(writable_dir)
 
 

@@ -41,7 +41,7 @@ DEMO_READY_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from onboard.argcheck import OUT_DIR, SEED, number
+    from onboard.argcheck import OUT_DIR, PORT, SEED, number
     p.add_argument("--out", default="pmon-demo", type=OUT_DIR, help="output directory (default ./pmon-demo/)")
     p.add_argument("--speedup", default="auto",
                    help="autopilot seconds per wall second, or 'auto': from a measured core tick")
@@ -52,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from onboard.policy import DEFAULT, POLICIES
     p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
                    help="the app's flight policy (pmon run --policy; default flight)")
-    p.add_argument("--gcs", metavar="PORT", type=int,
+    p.add_argument("--gcs", metavar="PORT", type=PORT,
                    help="also stream the autopilot to udp 127.0.0.1:PORT (e.g. MAVProxy --master udpin:...)")
     from sim.truth_kinds import TRUTH_KINDS
     p.add_argument("--truth", choices=TRUTH_KINDS, default="nominal",
@@ -121,9 +121,13 @@ def _speedup(args, sc, console) -> float | None:
     return speedup
 
 
-def _refusal(args, duration: int) -> str | None:
+def _refusal(args, duration: int, sc) -> str | None:
+    """Why the demo cannot run as asked, said before any process starts; None if it can."""
     if duration < 5:
         return "--duration must be >= 5 s"
+    if args.df == "kraken" and not sc.kraken.vfos:
+        return (f"--df kraken: scenario {sc.name!r} has no kraken.vfos (which VFO frequency is which target? "
+                "docs/KRAKENSDR.md)")
     if args.autopilot != "mock":
         from sim.ardupilot import skip_reason as ardupilot_problem
         from sim.px4 import skip_reason as px4_problem
@@ -149,9 +153,9 @@ def run(args) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     sc = load_scenario(args.scenario)
     duration = int(round(args.duration if args.duration is not None else sc.mission.duration_s))
-    if (why := _refusal(args, duration)):
-        console.print(f"pmon demo: {why}")
-        return 2
+    if (why := _refusal(args, duration, sc)):
+        from onboard.argcheck import fail
+        return fail("pmon demo", why)  # one line on stderr (the console wraps at its width)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     if (speedup := _speedup(args, sc, console)) is None:

@@ -422,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
         gcs = ", ".join(sitl.url("gcs", i) for i in range(args.gcs_listeners))
         print(f"  ground station (PX4's GCS link): {gcs}  (or, sending first: {sitl.talk_url('gcs')})",
               flush=True)
+        if (events := sitl.events_metadata()) is not None:  # absolute: pmon run may start anywhere
+            print(f"  event metadata (pmon run --px4-events): {events.resolve()}", flush=True)
         while not stop and sitl.running:
             time.sleep(0.2)
         if not sitl.running and not stop:

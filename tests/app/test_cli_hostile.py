@@ -44,6 +44,7 @@ def files(tmp: Path) -> dict[str, str]:
     write("rec_bigint.jsonl", '{"t": 1' + "0" * 400 + ', "ch": 0, "bearings_rad": [0.1]}\n')
     write("rec_deep.jsonl", "[" * 100000 + "]" * 100000 + "\n")
     write("rec_types.jsonl", '{"t": 1.0, "ch": "0", "bearings_rad": 7}\n')
+    write("nokraken.yaml", PAPER[:PAPER.index("\nkraken:")] + "\n")
     os.mkfifo(tmp / "fifo")
     out["fifo"] = str(tmp / "fifo")
     return out
@@ -97,6 +98,8 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
         (pmon + ["demo", "--out", "/dev/null"], "argument --out: /dev/null: exists and is not a directory"),
         (pmon + ["demo", "--seed", "-1"], "argument --seed: must be >= 0"),
         (pmon + ["demo", "--duration", "nan"], "argument --duration: must be in [5, 100000]"),
+        (pmon + ["demo", "--df", "kraken", "--gcs", "70000"], "argument --gcs: port must be 1..65535"),
+        (pmon + ["demo", "--df", "kraken", "--scenario", f["nokraken.yaml"]], "has no kraken.vfos"),
         (pmon + ["simulate", "--seed", "-1"], "argument --seed: must be >= 0"),
         (pmon + ["simulate", "--ticks", "0"], "argument --ticks: must be in 1..100000"),
         (pmon + ["feed", "live", "--mavlink", "nonsense://x"], "argument --mavlink: want udpin|"),

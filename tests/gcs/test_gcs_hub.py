@@ -228,7 +228,7 @@ def test_hub_usage_errors_are_one_line_exit_2_before_any_link(capsys):
                       (["--lost-after", "nan"], "--lost-after must be in [1, 255] s, got nan"),
                       (["--tak", "bogus://x:1"], "--tak: 'bogus://x:1' is not udp://HOST:PORT"),
                       (["--tak", "tcp://host"], "is not udp://HOST:PORT, tcp://HOST:PORT or tls://HOST:PORT"),
-                      (["--view", "70000"], "--view must be in 0..65535"),
+                      (["--view", "70000"], "argument --view: port must be 0..65535"),
                       (["--duration", "0"], "--duration must be > 0")):
         capsys.readouterr()
         t0 = time.monotonic()
@@ -281,3 +281,53 @@ def test_the_hub_stops_on_sigint_even_started_with_sigint_ignored():
             proc.kill()
         proc.communicate()
         veh.close()
+
+
+@pytest.mark.timeout(60)
+def test_with_a_key_the_hubs_traffic_is_signed_and_goes_only_to_clients_with_the_key():
+    """A signing vehicle and hub: a ground station that signs (and drops what is not signed)
+    gets every target as traffic, signed; a client without the key, on the same port, gets none
+    (it still hears the vehicle, as on a direct link), nor does one replaying the signed client's
+    packet from its own address."""
+    import os
+    import socket
+
+    from onboard.app import signing
+
+    key = os.urandom(32)
+    rig = Rig(signing_key=key)  # rig.client: no key
+    signed = Client(rig.sport, sysid=253)
+    replayer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        signing.apply(signed.conn, key, link_id=2)  # strict: unsigned packets are dropped
+        sent = []
+        signed.conn.mav.set_send_callback(lambda m: sent.append(m.get_msgbuf()))
+        signed.hello()
+        time.sleep(0.2)
+        replayer.sendto(sent[-1], ("127.0.0.1", rig.sport))  # a copy of its signed heartbeat
+        time.sleep(0.2)
+        for t in range(300, 306):
+            rig.veh.heartbeat()
+            rig.tick(float(t))
+            time.sleep(0.2)
+        assert signed.wait(lambda: len(signed.got("ADSB_VEHICLE")) >= 8 * 5, 5), len(signed.got("ADSB_VEHICLE"))
+        rx = []
+        replayer.settimeout(0.1)
+        deadline = time.monotonic() + 1
+        while time.monotonic() < deadline:
+            try:
+                rx.append(replayer.recv(65535))
+            except OSError:
+                pass
+        assert all(m.get_signed() for m in signed.got("ADSB_VEHICLE"))
+        assert rig.client.got("HEARTBEAT") and rig.client.got("ADSB_VEHICLE") == []
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        got = [m for buf in rx for m in (parser.parse_buffer(buf) or [])]
+        assert got and not [m for m in got if m.get_type() == "ADSB_VEHICLE"]
+        eps = rig.hub.summary()["clients"]
+        assert rig.hub.summary()["signed"] and list(eps.values())[0]["signed"] == 1
+    finally:
+        replayer.close()
+        signed.close()
+        rig.close()

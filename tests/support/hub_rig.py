@@ -17,10 +17,15 @@ TARGETS = [(281.0, 925.0), (238.0, 706.0), (901.0, 925.0), (885.0, 676.0)]
 
 
 class Rig:
-    def __init__(self, **cfg):
+    def __init__(self, signing_key: bytes | None = None, **cfg):
+        """``signing_key``: the vehicle signs with it, and the hub's link and the hub use it."""
         self.vport, self.sport = free_udp_port(), free_udp_port()
         self.cfg = HubConfig(serve=(("127.0.0.1", self.sport),), **cfg)
+        self.key = signing_key
         self.veh = FakeVehicle(self.vport)
+        if signing_key is not None:
+            from onboard.app import signing
+            signing.apply(self.veh.conn, signing_key, link_id=1)
         self.stop = threading.Event()
         self.hub: Hub | None = None
         self.error: BaseException | None = None
@@ -40,9 +45,9 @@ class Rig:
 
     def _run(self):
         try:
-            with HubLink(f"udpin:127.0.0.1:{self.vport}", timeout=8) as gl:
+            with HubLink(f"udpin:127.0.0.1:{self.vport}", timeout=8, signing_key=self.key) as gl:
                 gl.connect()
-                hub = Hub(gl, SC, self.cfg)
+                hub = Hub(gl, SC, self.cfg, self.key)
                 try:
                     self.hub = hub
                     hub.run(stop=self.stop)
