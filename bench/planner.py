@@ -14,7 +14,8 @@ ends with one JSON line. The case ``flight`` is the flight default (onboard/poli
 POLICIES["flight"], with ArduCopter's stock WPNAV_SPEED / WPNAV_ACCEL as the app reads them,
 capped as the policy says), the scenario's ``--set`` on top; ``flight~free`` is it with the default
 filter (the free steering: ``plan_steering``, ``plan_sides`` off), ``flight~sides`` with the
-side-aware filter (both on), whatever the policy says.
+side-aware filter (both on), whatever the policy says; ``flight~nointent`` is the flight
+default without the motion modes (``tracking.intent`` off: the filter before intent tracking).
 
 On a shared machine: ``--clock cpu`` times the ticks by this process's CPU time (time.process_time)
 instead of the wall clock, and ``--repeat R`` flies each case's closed loop R times, the cases in
@@ -46,10 +47,11 @@ from sim.numerics import numerics_description  # noqa: E402
 from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
-         "flight~sides")
+         "flight~sides", "flight~nointent")
 # variants of the flight default: its filter as the policy has it, the default filter (free steering:
 # plan_steering and plan_sides off), the side-aware filter (both on)
-FLIGHT_FILTERS = {"flight": {}, "flight~free": {"tracking.plan_steering": False, "tracking.plan_sides": False},
+FLIGHT_FILTERS = {"flight": {}, "flight~nointent": {"tracking.intent": False},
+                  "flight~free": {"tracking.plan_steering": False, "tracking.plan_sides": False},
                   "flight~sides": {"tracking.plan_steering": True, "tracking.plan_sides": True}}
 
 

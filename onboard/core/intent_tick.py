@@ -218,24 +218,43 @@ def motion_plan(setup, mean: np.ndarray, mode: int) -> Plan:
                 np.full((T - 1, K), -1))
 
 
-def planner_plans(setup, posts: Sequence[tracking.ParticleSet], per_target, main: Sequence[Plan],
-                  means: np.ndarray) -> tuple[Plan, ...]:
-    """Per target, the path the UAV planner scores: its most probable mode's (a goal mode's plan,
-    or the standing / coasting path)."""
-    out = []
+PLAN_MODES = 2  # the lookahead scores at most this many modes of a target ...
+PLAN_MODE_P = 0.1  # ... each holding at least this probability (the most probable always)
+
+
+def _mode_path(setup, ps: tracking.ParticleSet, intent: im.Intent, column: int, found, fallback: Plan,
+               mean: np.ndarray) -> Plan:
+    """The path a mode predicts: a goal mode's plan, or the standing / coasting path from its mean."""
+    if column < intent.n_goals:
+        return found[column][0] if column in found else fallback
+    code = int(im.codes(column, intent.n_goals))
+    sel = ps.modes == code
+    return motion_plan(setup, _mode_moments(ps, sel)[1] if sel.any() else mean, code)
+
+
+def planner_inputs(setup, beliefs: Sequence[tracking.ParticleSet], posts: Sequence[tracking.ParticleSet],
+                   per_target, main: Sequence[Plan], means: np.ndarray, mixture: bool):
+    """What the UAV planner scores: per target its most probable mode's path and its predicted
+    belief (``mixture`` False); or (the lookahead) its likely modes (``PLAN_MODES``, ``PLAN_MODE_P``)
+    each as a belief of its own, its particles of that mode and that mode's path, weighted by the
+    mode's share of the target's probability, so routes are scored over what the target may do.
+    Returns (beliefs, plans, weights or None)."""
+    out_b, out_p, out_w = [], [], []
     for j, ps in enumerate(posts):
         intent = setup.intents[j]
         p = im.probabilities(ps.log_weights, ps.modes, intent.n_goals)
-        best = int(np.argmax(p))
-        if best < intent.n_goals and best in per_target[j]:
-            out.append(per_target[j][best][0])
-        elif best >= intent.n_goals:
-            sel = ps.modes == im.codes(best, intent.n_goals)
-            mean = _mode_moments(ps, sel)[1] if sel.any() else means[j]
-            out.append(motion_plan(setup, mean, int(im.codes(best, intent.n_goals))))
-        else:
-            out.append(main[j])
-    return tuple(out)
+        order = np.argsort(-p, kind="stable")
+        cols = [c for k, c in enumerate(order[:PLAN_MODES if mixture else 1]) if k == 0 or p[c] >= PLAN_MODE_P]
+        b = beliefs[j]
+        for c in cols:
+            out_p.append(_mode_path(setup, ps, intent, int(c), per_target[j], main[j], means[j]))
+            if mixture and len(cols) > 1:
+                own = b.modes == im.codes(int(c), intent.n_goals)
+                out_b.append(replace(b, log_weights=np.where(own, b.log_weights, -np.inf)))
+            else:
+                out_b.append(b)
+            out_w.append(p[c] / p[cols].sum())
+    return tuple(out_b), tuple(out_p), (np.array(out_w) if mixture else None)
 
 
 def predict(setup, steering, posts: Sequence[tracking.ParticleSet], per_target, main: Sequence[Plan],
@@ -304,5 +323,5 @@ def most_likely(setup, probabilities: Sequence[np.ndarray]) -> tuple[tuple[str, 
     return tuple(out)
 
 
-__all__ = ["IntentMemory", "IntentUpdate", "initial_beliefs", "update", "guidance", "predict", "planner_plans",
+__all__ = ["IntentMemory", "IntentUpdate", "initial_beliefs", "update", "guidance", "predict", "planner_inputs",
            "most_likely", "with_modes"]

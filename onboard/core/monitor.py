@@ -131,13 +131,14 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
             TickResult(means, covs, plans, planning, degenerate, timings))
 
 
-def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng):
+def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng,
+              weights: np.ndarray | None = None):
     """Step 5: the next UAV position from ``plan_from`` (None: no planning)."""
     if plan_from is None:
         return None
     vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
     acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
-    return uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc),
+    return uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc, weights),
                                    rng if planner_rng is None else planner_rng)
 
 
@@ -155,8 +156,11 @@ def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_
     beliefs, memory = intent_tick.predict(setup, particle_steering(setup), upd.posts, per_target, plans, upd.memory,
                                           lambda goal: replanner(setup, goal, workspace, timer), rng)  # 4
     t3 = timer()
-    paths = intent_tick.planner_plans(setup, upd.posts, per_target, plans, upd.means)
-    planning = _plan_uav(setup, beliefs, paths, plan_from, uav_velocity, uav_acceleration, rng, planner_rng)  # 5
+    planning = None
+    if plan_from is not None:  # 5: the lookahead scores the modes' mixture, the others the likeliest
+        pb, paths, weights = intent_tick.planner_inputs(setup, beliefs, upd.posts, per_target, plans, upd.means,
+                                                        mixture=setup.planner == "lookahead")
+        planning = _plan_uav(setup, pb, paths, plan_from, uav_velocity, uav_acceleration, rng, planner_rng, weights)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
     return (MonitorState(beliefs, plans, state.step + 1, (), memory),

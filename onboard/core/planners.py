@@ -41,6 +41,9 @@ class PlanningInputs:
     position: np.ndarray  # (3,) ENU m: where the UAV is (or will be at the next tick)
     velocity: np.ndarray  # (2,) ENU m/s: the UAV's planar velocity there (the vehicle motion)
     acceleration: np.ndarray | None = None  # (2,) ENU m/s^2: the plan's there (continuous acceleration); None: 0
+    # per belief, the weight of its score (None: 1 each): with motion modes the lookahead scores
+    # a target's likely modes as beliefs of their own, weighted by their probabilities
+    weights: np.ndarray | None = None
 
     @property
     def particles(self) -> np.ndarray:
@@ -112,7 +115,7 @@ class LookaheadPlanner(Planner):
         return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
                                 self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
                                 self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
-                                acceleration=inputs.acceleration)
+                                acceleration=inputs.acceleration, target_weights=inputs.weights)
 
 
 def _chosen(candidates: np.ndarray, ok: np.ndarray, index: int | None, n_targets: int) -> PlanningResult:

@@ -460,7 +460,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
                      position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
                      model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
                      uav_obstacles: Obstacles, *, params: LookaheadParams,
-                     acceleration: np.ndarray | None = None) -> PlanningResult:
+                     acceleration: np.ndarray | None = None, target_weights: np.ndarray | None = None
+                     ) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
     particles (M, N, 6) / log_weights (M, N): the predicted beliefs at t+1 (as for the greedy
@@ -475,7 +476,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
     reduction factor q). Score: sum over ticks and targets of tr P_pos (the position, whatever
-    the greedy rule's ``objective``).
+    the greedy rule's ``objective``), each target's weighted by ``target_weights`` (M,) when given
+    (a target's modes as targets of their own, weighted by their probabilities).
     The first step of the best route is the next position (receding horizon): jump, the
     admissible point of S_(t+1) nearest to it; vehicle, the route's own first step, which is in
     the reachable set by construction.
@@ -498,7 +500,8 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
     _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
     total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction)
-    scores = np.where(ok, total.sum(axis=1), np.inf)
+    summed = total.sum(axis=1) if target_weights is None else total @ np.asarray(target_weights, float)
+    scores = np.where(ok, summed, np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
     return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
 

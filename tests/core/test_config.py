@@ -49,8 +49,12 @@ def test_the_builtin_scenario_is_the_example_file_not_a_copy():
     (lambda d: d["uav"].update(start_m=[150, 2e6, 40]), "uav.start_m[1]: must be in [-100000, 100000] m, got 2000000.0"),
     (lambda d: d["goals"][0].update(center_m=[580, 330, 0]), "goals[0].center_m: inside obstacle 'O3'"),
     (lambda d: d["targets"][1].update(goal="H"), "targets[1].goal: no goal named 'H'"),
+    (lambda d: d["targets"][1].update(goals=["G", "H"]), "targets[1].goals[1]: no goal named 'H'"),
+    (lambda d: d["targets"][1].update(goals="G"), "targets[1].goals: must be a list"),
+    (lambda d: d["targets"][1].update(goals=["G", 3]), "targets[1].goals[1]: must be a non-empty string"),
+    (lambda d: d["targets"][1].update(stationary="yes"), "targets[1].stationary: must be true or false"),
     (lambda d: d["targets"][1].update(name="T" * 65), "targets[1].name: must be at most 64 characters"),
-    (lambda d: d["goals"].append(dict(d["goals"][0])), "goals[1].name: duplicate name 'G'"),
+    (lambda d: d["goals"].append(dict(d["goals"][0])), "goals[3].name: duplicate name 'G'"),
     (lambda d: d.setdefault("tracking", {}).update(particle=3),
      "tracking.particle: unknown key (expected one of: particles, "),
     (lambda d: d.setdefault("tracking", {}).update(particles=50), "tracking.particles: must be in [100, 20000]"),
@@ -366,3 +370,17 @@ def test_unchanged_parameters_leave_the_scenario_as_it_is(paper):
     assert {k: v for k, v in defaults_from_scenario(own).items() if k in ("PMON_SP_HZ", "PMON_ALT_MAX", "PMON_NR",
                                                                           "PMON_REACH")} == {
         "PMON_SP_HZ": 20.0, "PMON_ALT_MAX": 90.0, "PMON_NR": 2.0, "PMON_REACH": 10.0}
+
+
+def test_a_targets_intent_may_be_a_goal_candidates_stationary_or_nothing(raw):
+    """docs/SCENARIO.md's four forms read back as written; a target without a goal is not given the
+    first goal of the file."""
+    data = copy.deepcopy(raw)
+    data["targets"][0].pop("goal")
+    data["targets"][1].update(goal=None, goals=["G", "W"])
+    data["targets"][2].update(stationary=True)
+    sc = parse_scenario(data)
+    t0, t1, t2 = sc.targets[:3]
+    assert (t0.goal, t0.candidates, sc.goal_of(t0)) == (None, (), None)
+    assert sc.goal_point(t0) == t0.position_m
+    assert t1.candidates == ("G", "W") and t2.stationary and t2.candidates == ("G",)
