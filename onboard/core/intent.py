@@ -51,6 +51,7 @@ RESEED_SIGMA_M = 300.0  # the re-seed's width about the estimate: most of a 1 km
 RESEED_PRIOR = 0.5  # the re-seed's weight in the predicted mixture
 RESEED_SPEED_MPS = 5.0  # a re-seeded free particle's velocity spread, per axis
 MIN_MODE_SHARE = 0.05  # of the particles, every mode keeps at least this share (``mix_resample``)
+AIM_REDRAW = 0.05  # per tick, the share of AIMED particles that take a new destination
 STATIONARY_SIGMA_M = 0.5  # a stationary particle's position jitter per tick
 
 

@@ -139,7 +139,9 @@ def mix(setup, intent: im.Intent, post: tracking.ParticleSet, rng: np.random.Gen
                             rng)
     particles = post.particles[mixed.source]
     aims = post.aims[mixed.source]
-    fresh = mixed.switched & (mixed.modes == im.AIMED)
+    # a particle switching into AIMED takes a new destination, and an aimed one changes its mind at
+    # AIM_REDRAW a tick: a target that turns back is then covered by particles already heading there
+    fresh = (mixed.modes == im.AIMED) & (mixed.switched | (rng.random(len(mixed.modes)) < im.AIM_REDRAW))
     aims[fresh] = im.draw_aims(int(fresh.sum()), setup.area_min, setup.area_max, rng)
     labels = None
     if post.labels is not None:

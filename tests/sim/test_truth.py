@@ -110,7 +110,8 @@ def test_mismatch_other_goal(short):
     sc = replace(short, goals=short.goals + (g2,))
     at, n = 0, 20
     _, nominal = _run(sc, n, seed=13)
-    _, other = _run(sc, n, seed=13, mismatch=[Mismatch(target=3, kind="other_goal", at_step=at, goal=1)])
+    _, other = _run(sc, n, seed=13, mismatch=[Mismatch(target=3, kind="other_goal", at_step=at,
+                                                       goal=len(short.goals))])
     dist = lambda tr: np.linalg.norm(tr[-1, 3, :2] - np.array(g2.center_m[:2]))  # noqa: E731
     assert dist(other) < dist(nominal) - 150.0
 
@@ -126,7 +127,7 @@ def test_mismatch_validation(paper):
     with pytest.raises(ValueError, match="target"):
         TruthWorld.from_scenario(paper, rng, [Mismatch(4, "stop", 3)])
     with pytest.raises(ValueError, match="goal"):
-        TruthWorld.from_scenario(paper, rng, [Mismatch(0, "other_goal", 3, goal=1)])  # paper has one goal
+        TruthWorld.from_scenario(paper, rng, [Mismatch(0, "other_goal", 3, goal=len(paper.goals))])  # no such goal
 
 
 def test_recording_the_closed_loop_gains_changes_no_state(short):
