@@ -93,6 +93,10 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
         (run + ["--runlog", "/nonexistent/run.jsonl"], "no directory /nonexistent"),
         (pmon + ["eval", "--set", "name=" + "[" * 3000], "--set"),
         (pmon + ["eval", "--trials", "0"], "argument --trials: must be in 1..1000000"),
+        (pmon + ["eval", "--truth", "teleport"], "argument --truth: invalid choice: 'teleport'"),
+        (pmon + ["eval", "--truth", "wander", "--told"], "--told applies to --truth candidate_goal or stationary"),
+        (pmon + ["eval", "--truth", "candidate_goal", "--set", "goals=[{name: G, center_m: [550, 150, 0], "
+                 "size_m: [100, 100, 0]}]"], "--truth candidate_goal needs a scenario with at least 3 goal regions"),
         (pmon + ["eval", "--out", "/dev/null"], "argument --out: /dev/null: exists and is not a directory"),
         (pmon + ["eval", "--out", "/proc/pmon-out"], "argument --out: /proc/pmon-out: cannot make a directory in /proc"),
         (pmon + ["demo", "--out", "/dev/null"], "argument --out: /dev/null: exists and is not a directory"),
