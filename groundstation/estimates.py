@@ -44,6 +44,7 @@ class OutputEstimate:
     age_s: float  # since the last DF scan of this target's channel (the data the estimate rests on)
     tick_time_s: float  # autopilot s
     degenerate: bool
+    doing: str = "-"  # what it most likely does (``TargetEstimate.mode_text``)
 
     @property
     def speed_mps(self) -> float:
@@ -96,4 +97,4 @@ def check(msg, frame) -> tuple[OutputEstimate | None, str | None]:
     if r is None or not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and math.isfinite(alt)):
         return None, "position out of range"
     return OutputEstimate(j, f"T{j + 1}", x, y, lat, lon, alt, vx, vy, sx, sy, cxy, r, since, t,
-                          bool(d[12])), None
+                          bool(d[12]), P.TargetEstimate.from_msg(msg).mode_text()), None

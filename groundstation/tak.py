@@ -72,7 +72,8 @@ def target_event(est: OutputEstimate, sysid: int, now: dt.datetime, lost_after_s
     remarks = ET.Element("remarks")
     remarks.text = (f"pmon estimate {est.name}: 1-sigma E {est.sigma_x_m:.0f} m, N {est.sigma_y_m:.0f} m; "
                     f"last DF scan {est.age_s:.1f} s before tick t={est.tick_time_s:.1f} s"
-                    + ("; degenerate update (prior kept)" if est.degenerate else ""))
+                    + ("; degenerate update (prior kept)" if est.degenerate else "")
+                    + (f"; {est.doing}" if est.doing != "-" else ""))
     return _event(uid(sysid, est.name), TARGET_TYPE, "m-f", est.lat_deg, est.lon_deg, est.alt_m,
                   est.radius_1sigma_m, UNKNOWN, f"PMON {est.name}", now, now + dt.timedelta(seconds=left),
                   (_track(est.course_deg, est.speed_mps), remarks))

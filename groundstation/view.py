@@ -140,6 +140,7 @@ class ViewState:
                 "sigma_x": _num(e.sigma_x), "sigma_y": _num(e.sigma_y), "cov_xy": _num(e.cov_xy),
                 "since_detection_s": None if since is None else max(round(since, 2), 0.0),
                 "degenerate": e.degenerate, "tick_time_s": _num(e.tick_time_s, 3),
+                "doing": e.mode_text(tuple(g.name for g in self.sc.goals)),
                 "lonlat": lonlat(self.origin, [e.x, e.y]).round(7)[0].tolist()
                 if math.isfinite(e.x) and math.isfinite(e.y) else None,
                 "track": [[x, y] for _, x, y in self.tracks.get(j, ())],

@@ -181,7 +181,8 @@
       const stale = since === null || since > 3;
       tr.innerHTML = `<td><span class="swatch" style="background:${t.colour}"></span>${t.name}</td>` +
         `<td>${ll(t.lonlat)}</td><td>${f(t.sigma_x, 0)} / ${f(t.sigma_y, 0)}</td><td>${f(speed, 1)}</td>` +
-        `<td class="${stale ? "stale" : ""}">${since === null ? "never" : f(since, 1) + " s"}</td>`;
+        `<td class="${stale ? "stale" : ""}">${since === null ? "never" : f(since, 1) + " s"}</td>` +
+        `<td>${(t.doing || "-").replace(/[<>&]/g, "")}</td>`;
       return tr;
     });
     $("targets").tBodies[0].replaceChildren(...rows);
