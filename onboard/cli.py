@@ -34,7 +34,30 @@ def _check(args) -> int:
     print(f"{sc.source}: ok: {len(sc.targets)} targets, {len(sc.obstacles)} obstacles, "
           f"{len(sc.goals)} goal region(s), horizon T={sc.guidance.horizon}, "
           f"{sc.tracking.particles} particles/target")
+    for line in intent_lines(sc):
+        print(line)
     return 0
+
+
+def intent_lines(sc) -> list[str]:
+    """What the flight policy's filter assumes of each target (docs/TRACKING.md "Intent"), and what
+    the paper's does, in one line per target."""
+    from onboard.core.monitor_setup import target_intents
+    from onboard.policy import with_policy
+
+    flying = with_policy(sc, "flight")
+    if not flying.tracking.intent:
+        return ["the flight policy's filter here has no motion modes (tracking.intent false): each target "
+                "heads for its goal, or stays at its start without one"]
+    out = []
+    for t, it in zip(sc.targets, target_intents(flying)):
+        goals = ", ".join(f"{n} {p:.2f}" for n, p in zip(it.names, it.prior))
+        rest = f"stationary {it.prior[-3]:.2f}, free {it.prior[-2]:.2f}, elsewhere {it.prior[-1]:.2f}"
+        paper = (f"heads for {t.goal}" if t.goal is not None else "stays at its start (its goal unknown)")
+        source = ("its goal " + t.goal if t.goal else "no goal") + (f", candidates {', '.join(t.goals)}" if t.goals
+                                                                    else "") + (", stationary" if t.stationary else "")
+        out.append(f"  {t.name} ({source}): prior {goals + '; ' if goals else ''}{rest}; the paper's filter: {paper}")
+    return out
 
 
 def _verbs() -> dict:

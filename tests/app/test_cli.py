@@ -111,3 +111,24 @@ def test_a_programs_help_says_what_it_is_in_whole_sentences():
                              cwd=Path(__file__).resolve().parents[2]).stdout
         description = out.split("\n\n")[1]
         assert description.rstrip().endswith("."), (argv, description)
+
+
+def test_check_config_says_what_the_filter_assumes_of_each_target(tmp_path, capsys):
+    """A goal, candidates, a standing emitter and a target nobody knows: each line says the prior the
+    flight policy's filter starts from, and what the paper's one-goal filter does instead."""
+    import yaml
+
+    data = yaml.safe_load((Path(__file__).parents[2] / "config" / "paper.yaml").read_text())
+    data["targets"][1].update(goal=None, goals=["G", "W", "E"])
+    data["targets"][2].update(goal=None, stationary=True)
+    data["targets"][3].pop("goal")
+    f = tmp_path / "intent.yaml"
+    f.write_text(yaml.safe_dump(data))
+    rc, out, err = main_rc(capsys, "check-config", str(f))
+    assert rc == 0, err
+    lines = out.splitlines()[1:]
+    assert "T1 (its goal G): prior G 0.80; stationary 0.10" in lines[0] and "paper's filter: heads for G" in lines[0]
+    assert "T2 (no goal, candidates G, W, E): prior G 0.27, W 0.27, E 0.27; stationary 0.10" in lines[1]
+    assert "T3 (no goal, stationary): prior stationary 0.80, free 0.10, elsewhere 0.10" in lines[2]
+    assert "T4 (no goal): prior stationary 0.50, free 0.25, elsewhere 0.25" in lines[3]
+    assert "stays at its start (its goal unknown)" in lines[3]
