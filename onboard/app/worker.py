@@ -29,6 +29,7 @@ from onboard.app.contract import State
 from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
+from onboard.app.overrun import StageTimer, core_stages, describe, overrun_stage
 from onboard.app.pairing import scans_for_tick
 from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
@@ -41,6 +42,7 @@ GUID_TIMEOUT_S = 3.0
 
 log = logging.getLogger("pmon.app")
 FALLBACK_SAY_TICKS = 3  # a target's guidance on a fallback this many ticks in a row is said
+OVERRUN_SAY_S = 10.0  # autopilot s: at most one overrun said per this (each is counted and logged)
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,12 @@ class TickWorker:
         self.trim_memory_s = trim_memory_s
         self._malloc_trim = _malloc_trim() if trim_memory_s > 0 else None
         self._trimmed_t = -math.inf
+        self.last_overrun: str | None = None  # the stage the newest overrun passed its budget in
+        self._overrun_said_t = -math.inf  # autopilot s an overrun was last said
+        self._unsaid_overruns = 0
+        # called every loop iteration (between ticks, and at most 0.1 s apart while idle): the
+        # service watchdog's ping (onboard/app/app.py), which a hung tick therefore stops
+        self.beat: Callable[[], None] | None = None
 
     # ----- the thread
     def submit(self, job: TickJob) -> None:
@@ -110,6 +118,12 @@ class TickWorker:
 
     def loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
+            if self.beat is not None:
+                try:
+                    self.beat()
+                except Exception:  # never the loop's end
+                    with self.lock:
+                        self.counters.add("beat_errors")
             self._event.wait(0.1)
             self._event.clear()
             job, self._job = self._job, None
@@ -134,19 +148,27 @@ class TickWorker:
 
     # ----- one tick
     def run(self, job: TickJob) -> None:
-        t_start = self.mono()
+        t_start, ap_start = self.mono(), self.clock.now()
         snap = self._snapshot(job)
         scans = self._scans(job, snap)
         setup = self._with_guidance_time(snap.setup, job)
+        timer = StageTimer()
+        t_core = self.mono()
         self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=snap.centre,
                                          workspace=self.core.workspace, uav_velocity=snap.velocity,
-                                         uav_acceleration=snap.acceleration)
+                                         uav_acceleration=snap.acceleration, timer=timer)
+        t_core_end = self.mono()
         reseeded = self.core.reseed_collapsed(setup, res)
+        stages = core_stages(res.timings_s, timer.marks)
+        stages["update"] += t_core - t_start  # the snapshot and the pairing: the update's inputs
         with self.lock:
             self._report(res, reseeded)
             sent = self._send(job, snap, setup, res, t_start)
+            stages["send"] = sent.t_local - t_core_end
+            overrun = self._overrun(job, sent, stages, ap_start, t_start)
             self._count(job, snap, sent)
             rec = self._record(job, snap, res, sent, reseeded)
+            rec.update(stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()}, overrun=overrun)
         self.log.notify(rec, self.lock)
 
     def _snapshot(self, job: TickJob) -> Snapshot:
@@ -239,6 +261,29 @@ class TickWorker:
                 segment = _segment(setup, res, job.t, snap.centre, snap.velocity, snap.acceleration)
                 sent, refused = self.stream.adopt(nxt, segment, self.clock.now() or job.t, snap.centre, setup)
         return Sent(sent, refused, t_start, self.mono(), self.clock.now())
+
+    def _overrun(self, job: TickJob, sent: Sent, stages: dict[str, float], ap_start: float | None,
+                 t_start: float) -> str | None:
+        """(under the lock) A tick whose send step ended past its budget: the stage it passed
+        the deadline in (onboard/app/overrun.py), counted per stage and said in one line, at
+        most once per OVERRUN_SAY_S of autopilot time (with how many more since)."""
+        deadline = job.t + self.params["PMON_BUDGET"]
+        if sent.ap_t is None or sent.ap_t <= deadline or not job.scans:  # a coast tick has no scan to be late for
+            return None
+        rate = getattr(self.clock, "rate", 1.0) or 1.0
+        left_s = (deadline - (job.t if ap_start is None else ap_start)) / rate
+        stage = overrun_stage(left_s, stages)
+        self.last_overrun = stage
+        self.counters.add("overruns")
+        self.counters.add(f"overruns_{stage}")
+        self._unsaid_overruns += 1
+        if sent.ap_t >= self._overrun_said_t + OVERRUN_SAY_S:
+            more = self._unsaid_overruns - 1
+            self.say(describe(job.t, sent.ap_t - deadline, stage, stages)
+                     + (f"; {more} more since the last said" if more and math.isfinite(self._overrun_said_t) else ""),
+                     mavlink.MAV_SEVERITY_WARNING)
+            self._overrun_said_t, self._unsaid_overruns = sent.ap_t, 0
+        return stage
 
     def _count(self, job: TickJob, snap: Snapshot, sent: Sent) -> None:
         self.counters.add("ticks")
