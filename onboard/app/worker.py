@@ -167,8 +167,8 @@ class TickWorker:
             stages["send"] = sent.t_local - t_core_end
             overrun = self._overrun(job, sent, stages, ap_start, t_start)
             self._count(job, snap, sent)
-            rec = self._record(job, snap, res, sent, reseeded)
-            rec.update(stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()}, overrun=overrun)
+            rec = self._record(job, snap, res, sent, reseeded, stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()},
+                               overrun=overrun)
         self.log.notify(rec, self.lock)
 
     def _snapshot(self, job: TickJob) -> Snapshot:
@@ -291,11 +291,11 @@ class TickWorker:
         if late and snap.planning and job.scans:  # a coast tick has no scan to be late for
             self.counters.add("ticks_late")
 
-    def _record(self, job: TickJob, snap: Snapshot, res, sent: Sent, reseeded: list[int]) -> dict:
+    def _record(self, job: TickJob, snap: Snapshot, res, sent: Sent, reseeded: list[int], **more) -> dict:
         rec = record(job, res, self.machine.state, snap.sensor_pos, snap.centre, sent, self.stream.segment)
         rec.update(planned=snap.planning, plans=[p.status for p in res.plans],
                    qp_solves=[p.qp_solves for p in res.plans],
-                   guidance_timeouts=[p.status == "timeout" for p in res.plans], reseeded=reseeded)
+                   guidance_timeouts=[p.status == "timeout" for p in res.plans], reseeded=reseeded, **more)
         self.log.add(rec)
         if self.autopilot.vehicle.sysid is not None:
             for j in range(self.core.n_targets):

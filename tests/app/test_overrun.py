@@ -3,6 +3,7 @@ record (the run log), in PMON_STAT and in one STATUSTEXT line; a real app (no au
 ticked without a pose), its core's stages slowed one at a time."""
 from __future__ import annotations
 
+import json
 import socket
 import time
 
@@ -68,9 +69,11 @@ def _slowed(monkeypatch, name: str, seconds: float) -> None:
 
 
 @pytest.mark.timeout(120)
-def test_an_overrun_names_its_stage_in_the_record_pmon_stat_and_one_line(monkeypatch):
+def test_an_overrun_names_its_stage_in_the_record_pmon_stat_and_one_line(monkeypatch, tmp_path):
     clock = WallClock()
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0), load_scenario("paper"), clock=clock).start()
+    runlog = tmp_path / "run.jsonl"
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, runlog_path=str(runlog)), load_scenario("paper"),
+                     clock=clock).start()
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 
     def scan(t: float) -> dict:
@@ -107,6 +110,9 @@ def test_an_overrun_names_its_stage_in_the_record_pmon_stat_and_one_line(monkeyp
     finally:
         tx.close()
         app.stop()
+    logged = [json.loads(line) for line in runlog.read_text().splitlines()]
+    assert [r["overrun"] for r in logged if r["overrun"]] == ["guidance", "prediction", "update", "wait"]
+    assert all(set(r["stage_ms"]) == set(OVERRUN_STAGES[1:]) for r in logged)
 
 
 def test_the_ground_station_reads_the_overrun_stage_from_pmon_stat():
