@@ -145,6 +145,7 @@ class TickWorker:
 
     def on_reboot(self) -> None:
         self.scan_t_used = [-math.inf] * self.core.n_targets
+        self._overrun_said_t = -math.inf  # the autopilot's clock started over
 
     # ----- one tick
     def run(self, job: TickJob) -> None:
@@ -165,7 +166,7 @@ class TickWorker:
             self._report(res, reseeded)
             sent = self._send(job, snap, setup, res, t_start)
             stages["send"] = sent.t_local - t_core_end
-            overrun = self._overrun(job, sent, stages, ap_start, t_start)
+            overrun = self._overrun(job, sent, stages, ap_start)
             self._count(job, snap, sent)
             rec = self._record(job, snap, res, sent, reseeded, stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()},
                                overrun=overrun)
@@ -262,8 +263,7 @@ class TickWorker:
                 sent, refused = self.stream.adopt(nxt, segment, self.clock.now() or job.t, snap.centre, setup)
         return Sent(sent, refused, t_start, self.mono(), self.clock.now())
 
-    def _overrun(self, job: TickJob, sent: Sent, stages: dict[str, float], ap_start: float | None,
-                 t_start: float) -> str | None:
+    def _overrun(self, job: TickJob, sent: Sent, stages: dict[str, float], ap_start: float | None) -> str | None:
         """(under the lock) A tick whose send step ended past its budget: the stage it passed
         the deadline in (onboard/app/overrun.py), counted per stage and said in one line, at
         most once per OVERRUN_SAY_S of autopilot time (with how many more since)."""

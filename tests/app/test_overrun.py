@@ -107,11 +107,18 @@ def test_an_overrun_names_its_stage_in_the_record_pmon_stat_and_one_line(monkeyp
         assert len(said) == 1, said
         assert said[0].startswith("PMON: tick t=") and " s over budget in guidance (update " in said[0], said
         assert "guidance 1" in said[0] and said[0].endswith(" ms)"), said
+        # the autopilot reboots: its clock starts over, and the next overrun is said at once
+        clock.t0 -= 500.0
+        app.schedule.on_reboot()
+        app.worker.on_reboot()
+        _slowed(monkeypatch, "_guidance", 1.2)
+        assert scan(clock.now())["overrun"] == "guidance"
+        assert len([text for _, text in app.events if "over budget" in text]) == 2
     finally:
         tx.close()
         app.stop()
     logged = [json.loads(line) for line in runlog.read_text().splitlines()]
-    assert [r["overrun"] for r in logged if r["overrun"]] == ["guidance", "prediction", "update", "wait"]
+    assert [r["overrun"] for r in logged if r["overrun"]] == ["guidance", "prediction", "update", "wait", "guidance"]
     assert all(set(r["stage_ms"]) == set(OVERRUN_STAGES[1:]) for r in logged)
 
 
