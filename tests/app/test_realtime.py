@@ -103,21 +103,26 @@ def _gcs_policy(extra: list[str], env: dict | None = None) -> int:
         port = s.getsockname()[1]
     argv = [sys.executable, "-m", "onboard.cli", "gcs", *extra, "status", "--connect", f"udpin:127.0.0.1:{port}",
             "--timeout", "20"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, **(env or {})})
+    base = {k: v for k, v in os.environ.items() if k != "PMON_GCS_NO_IDLE"}  # tests/conftest.py sets it
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**base, **(env or {})})
     try:
-        # the link opened: the program is past its start, waiting for a heartbeat
-        deadline = 200
-        while deadline and not any(f":{port:04X}" in line for line in open(f"/proc/{proc.pid}/net/udp")):
-            deadline -= 1
+        # lowered, or its link opened (past its start, waiting for a heartbeat) at its priority;
+        # an idle program's start beside a loaded machine's work can take tens of seconds
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
             assert proc.poll() is None, proc.stderr.read()
-            time.sleep(0.1)
-        return os.sched_getscheduler(proc.pid)
+            if os.sched_getscheduler(proc.pid) == os.SCHED_IDLE:
+                return os.SCHED_IDLE
+            with open(f"/proc/{proc.pid}/net/udp") as f:
+                if any(f":{port:04X}" in line for line in f):
+                    return os.sched_getscheduler(proc.pid)
+            time.sleep(0.05)
+        raise AssertionError("pmon gcs neither lowered itself nor opened its link in 90 s")
     finally:
         stop_process(proc)
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_a_ground_station_program_runs_at_idle_priority_unless_told_not_to():
     assert _gcs_policy([]) == os.SCHED_IDLE
     assert _gcs_policy(["--no-idle"]) == os.SCHED_OTHER
