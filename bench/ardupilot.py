@@ -5,6 +5,7 @@ where the copter flew, the firmware's crashes.
 
     python bench/ardupilot.py [--autopilot ardupilot|px4|mock] [--params stock|recommended]
                               [--monitor 100] [--speedup 2] [--policy flight|paper] [--seed 1] [--out DIR]
+                              [--rt-priority N]
 
 The flight is tests/firmware/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
 launch` as the autopilot boots, --monitor s of monitoring, a pilot's takeovers each followed by
@@ -48,6 +49,8 @@ def main() -> int:
     ap.add_argument("--policy", choices=("flight", "paper"), default="flight",
                     help="the app's flight policy (pmon run --policy; default flight)")
     ap.add_argument("--out", help="keep the logs here (default: a temporary directory)")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="pmon run --rt-priority N: the app's io thread and worker at SCHED_FIFO (default 0: normal)")
     args = ap.parse_args()
     if not 0 < args.speedup <= 10 or not 10 <= args.monitor <= 3600:
         ap.error("--speedup must be in (0, 10] and --monitor in [10, 3600]")
@@ -58,7 +61,8 @@ def main() -> int:
     recommended = PX4_RECOMMENDED if args.autopilot == "px4" else RECOMMENDED_PARAMS
     cfg = MissionConfig(autopilot=args.autopilot, speedup=args.speedup, seed=args.seed,
                         params=recommended if args.params == "recommended" else {},
-                        feed_duration_s=args.monitor + 60, app_args=("--policy", args.policy))
+                        feed_duration_s=args.monitor + 60, app_args=("--policy", args.policy)
+                        + (("--rt-priority", str(args.rt_priority)) if args.rt_priority else ()))
     sticks = (lambda m, rec: m.take_sticks()) if args.autopilot == "px4" else None
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)

@@ -18,6 +18,7 @@ import threading
 from groundstation.errors import INTERRUPTED, OK, USAGE, GcsError, UsageError
 
 DEFAULT_URL = "udpin:127.0.0.1:14550"  # where ArduPilot SITL's --out and MAVProxy's outputs go
+NO_IDLE_ENV = "PMON_GCS_NO_IDLE"  # set to 1: the program keeps its normal priority (as --no-idle)
 
 COMMANDS = """commands:
   status                      vehicle mode, armed, position, battery, link; the app's state and health
@@ -64,6 +65,9 @@ def _connection(p: argparse.ArgumentParser, suppress: bool) -> None:
 def _output(p: argparse.ArgumentParser, suppress: bool) -> None:
     p.add_argument("--json", action="store_true", default=argparse.SUPPRESS if suppress else False,
                    help="machine-readable output")
+    p.add_argument("--no-idle", action="store_true", default=argparse.SUPPRESS if suppress else False,
+                   help=f"keep normal CPU priority (default: the command runs at idle priority, so on the "
+                   f"companion computer it never delays the onboard app's tick; also ${NO_IDLE_ENV}=1)")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -241,8 +245,15 @@ def _record(gl, duration, path):
                    {"file": path, "messages": gl.received, "seconds": round(dt, 2)})
 
 
-def main(argv: list[str] | None = None) -> int:
+def program(argv: list[str] | None = None) -> int:
     """ground station: status, watch, commands, parameters over MAVLink (pmon gcs --help)"""
+    return main(argv, lower=True)
+
+
+def main(argv: list[str] | None = None, lower: bool = False) -> int:
+    """ground station: status, watch, commands, parameters over MAVLink (pmon gcs --help).
+    ``lower``: as a program of its own, at idle priority (``_lower``); in-process callers (tests,
+    benches) keep theirs."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if threading.current_thread() is threading.main_thread():
         # Ctrl-C (and a script's SIGINT) stops hub, watch and record even when started from a shell
@@ -252,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         args = parser().parse_args(argv)
     except SystemExit as exc:  # argparse: usage errors are 2, --help is 0
         return int(exc.code or 0)
+    if lower:
+        _lower(args)
     args.connect = args.connect or os.environ.get("PMON_GCS_CONNECT") or DEFAULT_URL
     args.signing_key = args.signing_key or os.environ.get("PMON_GCS_SIGNING_KEY") or None
     if not args.timeout > 0:
@@ -276,13 +289,24 @@ def main(argv: list[str] | None = None) -> int:
     return OK
 
 
+def _lower(args) -> None:
+    """At idle priority (SCHED_IDLE, else nice 19; what it starts inherits it: a browser, a plot),
+    unless --no-idle or $PMON_GCS_NO_IDLE: an operator's command started on the companion
+    computer must not take CPU from the onboard app's tick (docs/DEPLOY.md). The hub is not
+    lowered: it routes the app's telemetry and the operators' commands, a router's work."""
+    if args.no_idle or args.cmd == "hub" or os.environ.get(NO_IDLE_ENV, "").strip().lower() in ("1", "true", "yes"):
+        return
+    from onboard.app.realtime import lower_priority
+    lower_priority()
+
+
 def script() -> int:
     """``pmon-gcs``: ``pmon gcs`` as a program of its own, its extra checked as ``pmon`` does."""
     from onboard.cli import refusal
     if (why := refusal("pmon-gcs", ("gcs",))):
         print(why, file=sys.stderr)
         return USAGE
-    return main()
+    return program()
 
 
 def _error(args, exc, code: int) -> int:

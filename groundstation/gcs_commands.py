@@ -70,6 +70,7 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         app = {"state": v.app_state, "tick_rate_hz": round(st.tick_rate_hz, 2),
                "last_tick_time_s": st.last_tick_time_s, "tick_ms": st.tick_ms,
                "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
+               "overruns": st.overruns, "overrun_stage": st.overrun_stage,
                "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
                "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
                "launch": st.launch_phase, "limits": st.limits,
@@ -99,7 +100,8 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         lines += [
             f"onboard app: {app['state']}, tick rate {st.tick_rate_hz:.2f} Hz, last tick "
             f"t={_fmt(st.last_tick_time_s)} s ({_fmt(st.tick_ms, '.0f')} ms), {st.ticks} ticks "
-            f"({st.ticks_skipped} skipped, {st.ticks_late} late)",
+            f"({st.ticks_skipped} skipped, {st.ticks_late} late"
+            + (f"; {st.overruns} over budget, the last in {st.overrun_stage}" if st.overrun_stage else "") + ")",
             f"  DF datagrams {st.datagrams_accepted} accepted, {st.datagrams_rejected} rejected; "
             f"setpoints refused {st.setpoints_refused}",
             *([] if st.kraken is None else [
@@ -133,7 +135,9 @@ def _enu(p) -> str:
 
 
 # ----------------------------------------------------------------------------- commands
-def _ack_outcome(what: str, ack: Ack, by: str, context: str = "") -> Outcome:
+def _ack_outcome(what: str, ack: Ack, by: str, context: str = "", why: str | None = None) -> Outcome:
+    """``why``: what this command knows of the refusal beyond the autopilot's words (said after
+    them, or instead of "no reason given")."""
     data = {"command": what, "result": ack.result, "attempts": ack.attempts,
             "elapsed_s": round(ack.elapsed_s, 3)}
     if ack.ok:
@@ -142,7 +146,7 @@ def _ack_outcome(what: str, ack: Ack, by: str, context: str = "") -> Outcome:
     if by == "onboard app" and ack.reason_code in P.REASONS:
         why = P.REASONS[ack.reason_code]
     else:
-        texts = [t.removeprefix("PMON: ") for t in ack.texts]
+        texts = [t.removeprefix("PMON: ") for t in ack.texts] + ([why] if why else [])
         why = "; ".join(texts[-2:]) if texts else "no reason given"
     later = " (try again later)" if ack.result == "TEMPORARILY_REJECTED" else ""
     raise GcsError(f"{what} refused by the {by} ({ack.result}): {why}{later}{context}", FAILED)
@@ -264,7 +268,8 @@ def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
     climbing = (mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR)
     ack = gl.command(None, mavlink.MAV_CMD_NAV_TAKEOFF, *params,
                      done=lambda: v.landed_state in climbing, name="takeoff")
-    out = _ack_outcome(f"takeoff to {alt:g} m", ack, "autopilot", _vehicle_context(gl))
+    why = None if ack.ok else _why_disarmed(gl)
+    out = _ack_outcome(f"takeoff to {alt:g} m", ack, "autopilot", _vehicle_context(gl), why)
     data = {**out.data, "alt_m": alt}
     if not wait:
         return Outcome(out.text, data)
@@ -292,6 +297,41 @@ def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
         best = height()
     data["climb_s"] = round(time.monotonic() - t0, 2)
     return Outcome(out.text + f"; at {alt:g} m after {data['climb_s']:.1f} s", data)
+
+
+AUTO_DISARM_TOL_S = 1.5  # armed this close to the auto-disarm delay before a disarm: the autopilot's own
+
+
+def _why_disarmed(gl: GcsLink) -> str | None:
+    """Why a take-off found the vehicle disarmed, from what this connection heard: the armed
+    bit's changes in its HEARTBEATs, its STATUSTEXT at the disarm, and its auto-disarm delay
+    (ArduCopter's DISARM_DELAY, PX4's COM_DISARM_PRFLT), read now. A disarm that came that long
+    after the arm is the autopilot's own; one before this command connected is said as such
+    (the arm was another command's). None while armed."""
+    v = gl.v
+    if v.armed is not False:
+        return None
+    now = time.monotonic()
+    param = v.profile.auto_disarm_param
+    delay = gl.autopilot_param(param, min(gl.timeout, 1.5)) if param else None
+    rule = (f"{v.profile.name} disarms a vehicle armed on the ground that has not taken off after "
+            f"{param} = {delay:g} s" if delay is not None and delay > 0 else None)
+    again = "arm again" + (f" and take off within {delay:g} s" if rule else "")
+    changes = list(v.armed_changes)
+    disarm = next((i for i in range(len(changes) - 1, 0, -1) if not changes[i][2]), None)
+    if disarm is None:
+        return (f"the vehicle was disarmed already when this command connected {now - gl.t0:.1f} s ago"
+                + (f" ({rule})" if rule else "") + f": {again}")
+    (t, boot, _), (armed_t, armed_boot, _) = changes[disarm], changes[disarm - 1]
+    # armed for, on the autopilot's clock where known (DISARM_DELAY runs on it), else this one's
+    armed_for = boot - armed_boot if boot is not None and armed_boot is not None else t - armed_t
+    armed_s = f"{armed_for:.1f} s after it armed" if disarm > 1 else f"armed {armed_for:.1f} s or more"
+    said = [text for at, c, _s, text in v.texts if c == v.autopilot_comp and abs(at - t) <= 1.5
+            and "disarm" in text.lower()]
+    words = f" ('{said[-1]}')" if said else ""
+    if rule and disarm > 1 and abs(armed_for - delay) <= AUTO_DISARM_TOL_S:
+        return f"the autopilot disarmed itself {now - t:.1f} s ago{words}, {armed_s}: {rule}; {again}"
+    return f"the vehicle disarmed {now - t:.1f} s ago{words}, {armed_s}" + (f" ({rule})" if rule else "") + f"; {again}"
 
 
 # ----------------------------------------------------------------------------- parameters

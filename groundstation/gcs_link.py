@@ -53,6 +53,25 @@ class Vehicle:
         self.targets: dict[int, P.TargetEstimate] = {}
         self.texts: deque = deque(maxlen=200)  # (local time, compid, severity, text)
         self.n_stat = 0
+        # the autopilot's armed bit as its HEARTBEATs changed it: [local s, autopilot s (its next
+        # time_boot_ms; None until one came), armed], the first heartbeat's state included (what
+        # a refusal is explained with: an auto-disarm, on the autopilot's clock)
+        self.armed_changes: deque = deque(maxlen=50)
+
+    def note_heartbeat(self, now: float, msg) -> bool:
+        """(before it is stored as the latest) An autopilot HEARTBEAT; True when its armed bit
+        changed (its time on the autopilot's clock is then wanted: ``note_boot``)."""
+        armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        if self.armed_changes and self.armed_changes[-1][2] == armed:
+            return False
+        self.armed_changes.append([now, None, armed])
+        return True
+
+    def note_boot(self, boot_s: float) -> None:
+        """The autopilot's time_boot_ms in a message of its: the newest armed change's time if
+        it has none (the first message after it)."""
+        if self.armed_changes and self.armed_changes[-1][1] is None:
+            self.armed_changes[-1][1] = boot_s
 
     def get(self, mtype: str, comp: int | None = None):
         return self.last.get((mtype, self.autopilot_comp if comp is None else comp))
@@ -210,6 +229,12 @@ class GcsLink:
                 return
             msg.text = texts[-1]
             v.texts.extend((now, comp, msg.severity, t) for t in texts)
+        elif comp == v.autopilot_comp:
+            boot_ms = getattr(msg, "time_boot_ms", None)  # the autopilot's clock (a SITL's runs faster)
+            if isinstance(boot_ms, int):
+                v.note_boot(boot_ms / 1000)
+            if mtype == "HEARTBEAT" and v.note_heartbeat(now, msg):
+                self.request(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME)  # its time_boot_ms: when, on its clock
         v.last[(mtype, comp)] = msg
         v.seen_at[(mtype, comp)] = now
         for fn in self._listeners:
@@ -275,6 +300,24 @@ class GcsLink:
     def _command_long(self, sysid, comp, cmd, confirmation, *params) -> None:
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         self.send(self.link.mav.command_long_encode(sysid, comp, cmd, confirmation, *p))
+
+    def autopilot_param(self, name: str, timeout: float) -> float | None:
+        """One of the autopilot's parameters (PARAM_REQUEST_READ, resent every RETRY_S), None
+        without an answer within ``timeout`` s."""
+        v, got = self.v, []
+
+        def listen(mtype, msg):
+            if mtype == "PARAM_VALUE" and msg.get_srcComponent() == v.autopilot_comp and msg.param_id == name:
+                got.append(v.profile.param_value(msg))
+        self.on_message(listen)
+        deadline = time.monotonic() + timeout
+        try:
+            while not got and time.monotonic() < deadline:
+                self.send(self.link.mav.param_request_read_encode(v.sysid, v.autopilot_comp or 1, name.encode(), -1))
+                self.wait_for(lambda: bool(got), min(RETRY_S, max(deadline - time.monotonic(), 0.0)))
+        finally:
+            self._listeners.remove(listen)
+        return got[-1] if got else None
 
     def texts_since(self, t: float, comp: int) -> list[str]:
         return [text for (at, c, _sev, text) in self.v.texts if at >= t and c == comp]

@@ -130,6 +130,8 @@ class AppStatus:
     limits: str | None = None  # the planner's speed, acceleration, jerk and the autopilot's, in words
     # a KrakenSDR input's frames used, lines and frames refused, sets gated; None: no KrakenSDR input
     kraken: tuple[int, int, int] | None = None
+    overruns: int = 0  # ticks over their budget (PMON_BUDGET)
+    overrun_stage: str | None = None  # the stage the newest overran in (C.OVERRUN_STAGES); None: none yet
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
@@ -162,7 +164,13 @@ class AppStatus:
                          _int(d["ticks_skipped"]), _int(d["ticks_late"]), _int(d["setpoints_refused"]),
                          _num(d["latency_ms"]), uav if all(math.isfinite(v) for v in uav) else None,
                          tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None,
-                         limits, _kraken(d))
+                         limits, _kraken(d), _int(d.get("overruns", 0.0)), _stage(d.get("overrun_stage", 0.0)))
+
+
+def _stage(x: float) -> str | None:
+    """PMON_STAT's overrun_stage in words (0, unknown or an older app's reserved 0: None)."""
+    code = _int(x)
+    return C.OVERRUN_STAGES[code - 1] if 1 <= code <= len(C.OVERRUN_STAGES) else None
 
 
 def _kraken(d: dict) -> tuple[int, int, int] | None:

@@ -388,6 +388,9 @@ class App:
                                        "min(10 m, uav.altitude_m)", nullable=True, param="PMON_ALT_MIN")
     fence_max_m: float | None = number(None, 2, 1000, "m", "geofence ceiling above the mission origin; null: "
                                        "max(120 m, uav.altitude_m)", nullable=True, param="PMON_ALT_MAX")
+    rt_priority: int = integer(0, 0, 98, "", "SCHED_FIFO priority of the app's io thread (MAVLink, setpoints), "
+                               "the tick worker's one below, memory locked (pmon run --rt-priority; "
+                               "docs/DEPLOY.md); 0: normal scheduling")
 
 
 @dataclass(frozen=True)

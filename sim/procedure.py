@@ -234,7 +234,9 @@ def _off_the_companion(argv: list[str]) -> list[str]:
     takes only the CPU the app and the autopilot leave (SCHED_IDLE, by chrt, as
     tests/support/viewcheck.py runs the browser; not a preexec_fn, unsafe beside threads). Its
     interpreter's start beside the app had made ticks of 275-387 ms in the ArduPilot flight's run
-    logs (of a 900 ms budget at 2x). Without chrt, or where it may not: an ordinary process."""
+    logs (of a 900 ms budget at 2x). The program lowers itself too (groundstation/cli.py
+    ``program``), but only once its interpreter has started; chrt covers the start. Without
+    chrt, or where it may not: an ordinary process."""
     chrt = _idle_chrt()
     return [chrt, "--idle", "0", *argv] if chrt else argv
 

@@ -33,6 +33,8 @@ This module wires them and runs the threads (all daemon; ``stop()`` joins them):
           when it frees, only the newest due scan is ticked and older ones are counted as
           skipped: an overrun is skipped, never queued.
   watchdog  reports, without the app lock.
+With ``rt_priority`` N the io thread runs at SCHED_FIFO N and the worker at N - 1 (realtime.py);
+under systemd the worker's loop feeds the service watchdog (sd_notify.py, ``_service_beat``).
 
 Tracking runs whenever scans arrive (every state): the filters stay in step with the targets
 while the vehicle takes off or a pilot flies; planning and setpoints only in ``monitoring``.
@@ -66,7 +68,10 @@ from onboard.app.param_server import ParamServer
 from onboard.app.params import SPECS, ParamTable
 from onboard.app.plan_limits import PlanLimits
 from onboard.app.pose import Frame
+from onboard.app.overrun import stage_code
 from onboard.app.publisher import Publisher
+from onboard.app.realtime import Outcome, name_thread, set_fifo
+from onboard.app.sd_notify import Notifier
 from onboard.app.setpoint_stream import SetpointStream
 from onboard.app.state_machine import StateMachine
 from onboard.app.tick_log import TickLog
@@ -80,6 +85,7 @@ log = logging.getLogger("pmon.app")
 
 IO_MAVLINK_MAX = 500  # MAVLink messages handled per io iteration, then the periodic jobs
 IO_DF_MAX = 200  # DF datagrams parsed per io iteration (the reader's rate limit bounds the rest)
+SERVICE_STALE_S = 2.0  # local s: an io loop silent this long gets no service watchdog ping
 
 
 @dataclass(frozen=True)
@@ -112,6 +118,8 @@ class AppConfig:
     # PX4's event metadata (its build's etc/extras/all_events.json.xz): its EVENTs said in words
     px4_events_path: str | None = None
     kraken: bool = False  # also read a KrakenSDR's DoA output at the scenario's kraken.url (kraken.py)
+    # SCHED_FIFO priority of the io thread, the worker one below (onboard/app/realtime.py); 0: normal
+    rt_priority: int = 0
 
 
 class OnboardApp:
@@ -154,6 +162,11 @@ class OnboardApp:
         self.errors = Contained(log, on_first=self._say_error)  # io-thread handler errors by kind
         self._io_beat = self.mono()
         self._sched_beat = self.mono()  # the tick schedule job last ran to its end (local s)
+        self.realtime: dict[str, Outcome] = {}  # per real-time thread: its SCHED_FIFO, or why not
+        self.notifier = Notifier.from_env()  # systemd's notify socket (a service), else None
+        self._ready_sent = False
+        self._pinged = -math.inf  # local s of the last WATCHDOG=1
+        self.worker.beat = self._service_beat
 
     def _build_parts(self, cfg: AppConfig, scenario, tick: Callable) -> None:
         vehicle = Vehicle()
@@ -240,6 +253,7 @@ class OnboardApp:
             "launch_phase": -1 if launch_phase is None else launch.PHASES.index(launch_phase.phase),
             **(self.kraken.status() if self.kraken is not None else dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan)),
             "jerk_limit_mps3": _nan(v.jerk_limit_mps3), "jerk_plan_mps3": lim.plan[2],
+            "overruns": c.get("overruns", 0), "overrun_stage": stage_code(self.worker.last_overrun),
         }
 
     # ------------------------------------------------------------------ lifecycle
@@ -252,9 +266,26 @@ class OnboardApp:
             th = threading.Thread(target=fn, name=name, daemon=True)
             th.start()
             self._threads.append(th)
+        self._scheduling()
         return self
 
+    def _scheduling(self) -> None:
+        """The threads named as ps -L shows them; with ``rt_priority`` N, the io thread (MAVLink
+        in, setpoints out, the schedule) at SCHED_FIFO N and the worker at N - 1: FIFO does not
+        time-slice equal priorities, so on a shared core the io thread's short jobs preempt a
+        long tick, never wait behind it (onboard/app/realtime.py)."""
+        n = self.cfg.rt_priority
+        rt = {"pmon-io": n, "pmon-worker": max(n - 1, 1)} if n > 0 else {}
+        if self.df.thread_id is not None:
+            name_thread(self.df.thread_id, "pmon-df")
+        for th in self._threads:
+            name_thread(th.native_id, th.name)
+            if th.name in rt:
+                self.realtime[th.name] = set_fifo(th.native_id, rt[th.name])
+
     def stop(self) -> None:
+        if self.notifier is not None:
+            self.notifier.send("STOPPING=1")
         self._stop.set()
         self.worker.wake()
         for th in self._threads:
@@ -265,6 +296,8 @@ class OnboardApp:
             self.kraken.stop()
         self.link.close()
         self.tick_log.close()
+        if self.notifier is not None:
+            self.notifier.close()
 
     def __enter__(self) -> "OnboardApp":
         return self.start()
@@ -380,6 +413,23 @@ class OnboardApp:
     def _stream_setpoint(self, now: float) -> None:
         if self.machine.may_stream():
             self.stream.stream(now)
+
+    # ------------------------------------------------------------------ the service manager
+    def _service_beat(self) -> None:
+        """(worker thread, each loop iteration) READY=1 once the io loop has run; WATCHDOG=1 every
+        half watchdog period while the io loop iterates and the tick schedule runs (the app's
+        own watchdog sees neither stuck). A hung tick stops the worker's loop, so its pings."""
+        n = self.notifier
+        if n is None:
+            return
+        local = self.mono()
+        io_ok = local - self._io_beat < SERVICE_STALE_S and not self.watchdog.alarmed & {"io", "schedule"}
+        if not self._ready_sent and io_ok:
+            self._ready_sent = n.send("READY=1")
+        every = n.ping_every_s
+        if self._ready_sent and every is not None and io_ok and local - self._pinged >= every:
+            n.send("WATCHDOG=1")
+            self._pinged = local
 
     # ------------------------------------------------------------------ watchdog thread
     def _watchdog_loop(self) -> None:

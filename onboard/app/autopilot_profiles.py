@@ -78,6 +78,9 @@ class AutopilotProfile:
     # said as the reason of a refused arm when the autopilot gives its reasons where the app
     # cannot read them (PX4: EVENTs, without the build's event metadata); None: it says them
     refusal_elsewhere: str | None = None
+    # the parameter (s) after which a vehicle armed on the ground disarms by itself without a
+    # take-off (0 or less: never); None where unknown
+    auto_disarm_param: str | None = None
     _modes: dict[int, str] = mavutil.mode_mapping_acm  # custom_mode -> name
     _advice: dict[str, str] = {}  # a mode name this firmware lacks -> what to use instead
 
@@ -199,6 +202,7 @@ class ArduPilot(AutopilotProfile):
     """ArduCopter (flown against its 4.4 SITL firmware)."""
 
     name = "ArduPilot"
+    auto_disarm_param = "DISARM_DELAY"  # ArduCopter's auto_disarm_check, 10 s by default
     limit_params = (("WPNAV_SPEED", 0.01), ("WPNAV_ACCEL", 0.01))  # cm/s, cm/s^2
     # GUIDED's position + velocity + acceleration targets (ModeGuided::posvelaccel_control_run ->
     # AC_PosControl::input_pos_vel_accel_xy -> shape_pos_vel_accel_xy) change their acceleration
@@ -250,6 +254,7 @@ class Px4(AutopilotProfile):
     ended in Hold by PX4; MPC_* limits; integers bytewise in PARAM_VALUE; no MAVLink signing."""
 
     name = "PX4"
+    auto_disarm_param = "COM_DISARM_PRFLT"  # commander's pre-flight auto-disarm, 10 s by default
     mission_mode = "OFFBOARD"
     # ~1 s of stream before the switch worked (../shared/px4/README.md); 1.2: a margin on PX4's clock
     mode_lead_s = 1.2

@@ -76,10 +76,14 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
                "latency_ms", "autopilot_mode", "armed", "uav_e_m", "uav_n_m", "uav_u_m",
                "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
                "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase",
-               "kraken_frames", "kraken_rejected", "kraken_gated", "jerk_limit_mps3", "jerk_plan_mps3")
+               "kraken_frames", "kraken_rejected", "kraken_gated", "jerk_limit_mps3", "jerk_plan_mps3",
+               "overruns", "overrun_stage")
 # a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
 # empty (confidence, power, overdrive); NaN without one
 KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")
+# a tick's stages in order (onboard/app/overrun.py); PMON_STAT "overrun_stage" is 1 + the index of
+# the stage the newest overrun passed its budget in, 0 before any
+OVERRUN_STAGES = ("wait", "update", "guidance", "prediction", "planning", "send")
 # PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)
 WARN_SPEED = 1  # the autopilot's horizontal speed limit is below what the planner's moves assume
 WARN_ACCEL = 2  # ... its acceleration limit

@@ -8,6 +8,7 @@ import sys
 import threading
 
 from onboard.app.df_input import DEFAULT_RATE_HZ, parse_sources
+from onboard.app.realtime import parse_cpus
 from onboard.argcheck import (
     HOST_PORT_BIND,
     MAVLINK_URL,
@@ -64,6 +65,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--px4-events", metavar="FILE",
                    help="PX4's event metadata (its build's etc/extras/all_events.json.xz): PX4's arming "
                    "refusals and failsafes in words; without it the app says only that PX4 refused")
+    p.add_argument("--rt-priority", type=integer(0, 98), metavar="N",
+                   help="the io thread (MAVLink, setpoints) at SCHED_FIFO N, the tick worker at N - 1, memory "
+                   "locked; where not permitted, one warning and normal scheduling; 0: normal (default: the "
+                   "scenario's app.rt_priority, 0; docs/DEPLOY.md)")
+    p.add_argument("--cpu-affinity", type=checked(parse_cpus), metavar="LIST",
+                   help="run on these CPUs only, e.g. 1 or 2-3 or 0,2 (default: all)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--quiet", action="store_true", help="print only errors")
 
@@ -87,13 +94,17 @@ def run(args) -> int:
         sc = load_scenario(args.scenario, POLICIES[args.policy])
         if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
             sc = override(sc, {"kraken.url": args.kraken})
+        if args.rt_priority is not None:
+            sc = override(sc, {"app.rt_priority": args.rt_priority})
     except ConfigError as exc:
         print(f"pmon run: {exc}", file=sys.stderr)
         return 2
     cfg = AppConfig(args.mavlink, host, port, args.baud, args.sysid, args.auto_launch,
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
                     df_sources=args.df_from, df_rate_hz=args.df_rate, px4_events_path=args.px4_events,
-                    autopilot_unsigned=args.autopilot_unsigned, kraken=args.kraken is not None)
+                    autopilot_unsigned=args.autopilot_unsigned, kraken=args.kraken is not None,
+                    rt_priority=sc.app.rt_priority)
+    process = _process_scheduling(args.cpu_affinity, sc.app.rt_priority > 0)
     try:
         app = OnboardApp(cfg, sc)
     except (KeyFileError, EventMetadataError, ConfigError) as exc:  # ConfigError: --kraken without kraken.vfos
@@ -121,6 +132,7 @@ def run(args) -> int:
     if app.kraken is not None:
         print(f"pmon run: KrakenSDR DoA from {app.kraken.url}", flush=True)
     app.start()
+    _report_scheduling(process, app.realtime)
     try:
         while not stop.wait(0.2):
             pass
@@ -128,7 +140,7 @@ def run(args) -> int:
         app.stop()
         c = app.counters
         print(f"pmon run: stopped: {c.get('ticks', 0)} ticks, {c.get('ticks_skipped', 0)} skipped, "
-              f"{c.get('ticks_late', 0)} late, datagrams {app.scans.accepted} accepted "
+              f"{c.get('ticks_late', 0)} late{_overruns(c)}, datagrams {app.scans.accepted} accepted "
               f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
         if app.kraken is not None:
             k, p = app.kraken.source, app.kraken.poller
@@ -137,3 +149,37 @@ def run(args) -> int:
                   f"gated {dict((g, n) for g, n in k.gated.items() if n)}, {k.repeated} repeated, "
                   f"read errors {p.errors}, reader restarts {p.restarts}", flush=True)
     return 0
+
+
+def _process_scheduling(cpus: tuple[int, ...] | None, lock: bool) -> list:
+    """Process-wide, before the app's threads start (they inherit both): CPU affinity, and with
+    real-time threads memory locked (onboard/app/realtime.py)."""
+    from onboard.app import realtime
+    out = []
+    if cpus:
+        out.append(realtime.set_affinity(cpus))
+    if lock:
+        out.append(realtime.lock_memory())
+    return out
+
+
+def _report_scheduling(process: list, threads: dict) -> None:
+    """One line of what took effect; one warning line of what was refused (log: the journal)."""
+    done = [o.text for o in process if o.ok] + [f"{name} {o.text}" for name, o in threads.items() if o.ok]
+    refused = [o.text for o in process if not o.ok]
+    by_reason: dict[str, list[str]] = {}
+    for name, o in threads.items():
+        if not o.ok:
+            by_reason.setdefault(o.text, []).append(name)
+    refused += [f"{', '.join(names)} at normal scheduling: {why}" for why, names in by_reason.items()]
+    if done:
+        print(f"pmon run: scheduling: {', '.join(done)}", flush=True)
+    if refused:
+        logging.getLogger("pmon.app").warning("pmon run: warning: %s", "; ".join(refused))
+
+
+def _overruns(c) -> str:
+    """' (overruns: guidance 2, planning 1)': the ticks over budget by the stage they overran in."""
+    from onboard.app.contract import OVERRUN_STAGES
+    parts = [f"{s} {c.get(f'overruns_{s}', 0)}" for s in OVERRUN_STAGES if c.get(f"overruns_{s}", 0)]
+    return f" (overruns: {', '.join(parts)})" if parts else ""

@@ -29,6 +29,7 @@ from onboard.app.contract import TGT_MODES, State
 from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
+from onboard.app.overrun import StageTimer, core_stages, describe, overrun_stage
 from onboard.app.pairing import scans_for_tick
 from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
@@ -42,6 +43,7 @@ GUID_TIMEOUT_S = 3.0
 log = logging.getLogger("pmon.app")
 FALLBACK_SAY_TICKS = 3  # a target's guidance on a fallback this many ticks in a row is said
 MODE_SAY_P = 0.9  # a target's most likely mode is said when it changes and holds this probability
+OVERRUN_SAY_S = 10.0  # autopilot s: at most one overrun said per this (each is counted and logged)
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,12 @@ class TickWorker:
         self.trim_memory_s = trim_memory_s
         self._malloc_trim = _malloc_trim() if trim_memory_s > 0 else None
         self._trimmed_t = -math.inf
+        self.last_overrun: str | None = None  # the stage the newest overrun passed its budget in
+        self._overrun_said_t = -math.inf  # autopilot s an overrun was last said
+        self._unsaid_overruns = 0
+        # called every loop iteration (between ticks, and at most 0.1 s apart while idle): the
+        # service watchdog's ping (onboard/app/app.py), which a hung tick therefore stops
+        self.beat: Callable[[], None] | None = None
 
     # ----- the thread
     def submit(self, job: TickJob) -> None:
@@ -113,6 +121,12 @@ class TickWorker:
 
     def loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
+            if self.beat is not None:
+                try:
+                    self.beat()
+                except Exception:  # never the loop's end
+                    with self.lock:
+                        self.counters.add("beat_errors")
             self._event.wait(0.1)
             self._event.clear()
             job, self._job = self._job, None
@@ -134,22 +148,31 @@ class TickWorker:
 
     def on_reboot(self) -> None:
         self.scan_t_used = [-math.inf] * self.core.n_targets
+        self._overrun_said_t = -math.inf  # the autopilot's clock started over
 
     # ----- one tick
     def run(self, job: TickJob) -> None:
-        t_start = self.mono()
+        t_start, ap_start = self.mono(), self.clock.now()
         snap = self._snapshot(job)
         scans = self._scans(job, snap)
         setup = self._with_guidance_time(snap.setup, job)
+        timer = StageTimer()
+        t_core = self.mono()
         self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=snap.centre,
                                          workspace=self.core.workspace, uav_velocity=snap.velocity,
-                                         uav_acceleration=snap.acceleration)
+                                         uav_acceleration=snap.acceleration, timer=timer)
+        t_core_end = self.mono()
         reseeded = self.core.reseed_collapsed(setup, res)
+        stages = core_stages(res.timings_s, timer.marks)
+        stages["update"] += t_core - t_start  # the snapshot and the pairing: the update's inputs
         with self.lock:
             self._report(res, reseeded)
             sent = self._send(job, snap, setup, res, t_start)
+            stages["send"] = sent.t_local - t_core_end
+            overrun = self._overrun(job, sent, stages, ap_start)
             self._count(job, snap, sent)
-            rec = self._record(job, snap, res, sent, reseeded)
+            rec = self._record(job, snap, res, sent, reseeded, stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()},
+                               overrun=overrun)
         self.log.notify(rec, self.lock)
 
     def _snapshot(self, job: TickJob) -> Snapshot:
@@ -262,17 +285,39 @@ class TickWorker:
                 sent, refused = self.stream.adopt(nxt, segment, self.clock.now() or job.t, snap.centre, setup)
         return Sent(sent, refused, t_start, self.mono(), self.clock.now())
 
+    def _overrun(self, job: TickJob, sent: Sent, stages: dict[str, float], ap_start: float | None) -> str | None:
+        """(under the lock) A tick whose send step ended past its budget: the stage it passed
+        the deadline in (onboard/app/overrun.py), counted per stage and said in one line, at
+        most once per OVERRUN_SAY_S of autopilot time (with how many more since)."""
+        deadline = job.t + self.params["PMON_BUDGET"]
+        if sent.ap_t is None or sent.ap_t <= deadline or not job.scans:  # a coast tick has no scan to be late for
+            return None
+        rate = getattr(self.clock, "rate", 1.0) or 1.0
+        left_s = (deadline - (job.t if ap_start is None else ap_start)) / rate
+        stage = overrun_stage(left_s, stages)
+        self.last_overrun = stage
+        self.counters.add("overruns")
+        self.counters.add(f"overruns_{stage}")
+        self._unsaid_overruns += 1
+        if sent.ap_t >= self._overrun_said_t + OVERRUN_SAY_S:
+            more = self._unsaid_overruns - 1
+            self.say(describe(job.t, sent.ap_t - deadline, stage, stages)
+                     + (f"; {more} more since the last said" if more and math.isfinite(self._overrun_said_t) else ""),
+                     mavlink.MAV_SEVERITY_WARNING)
+            self._overrun_said_t, self._unsaid_overruns = sent.ap_t, 0
+        return stage
+
     def _count(self, job: TickJob, snap: Snapshot, sent: Sent) -> None:
         self.counters.add("ticks")
         late = sent.ap_t is not None and sent.ap_t > job.t + self.params["PMON_BUDGET"]
         if late and snap.planning and job.scans:  # a coast tick has no scan to be late for
             self.counters.add("ticks_late")
 
-    def _record(self, job: TickJob, snap: Snapshot, res, sent: Sent, reseeded: list[int]) -> dict:
+    def _record(self, job: TickJob, snap: Snapshot, res, sent: Sent, reseeded: list[int], **more) -> dict:
         rec = record(job, res, self.machine.state, snap.sensor_pos, snap.centre, sent, self.stream.segment)
         rec.update(planned=snap.planning, plans=[p.status for p in res.plans],
                    qp_solves=[p.qp_solves for p in res.plans],
-                   guidance_timeouts=[p.status == "timeout" for p in res.plans], reseeded=reseeded)
+                   guidance_timeouts=[p.status == "timeout" for p in res.plans], reseeded=reseeded, **more)
         self.log.add(rec)
         if self.autopilot.vehicle.sysid is not None:
             for j in range(self.core.n_targets):
