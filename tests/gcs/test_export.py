@@ -57,7 +57,7 @@ def test_export_writes_valid_geojson_and_kml(tmp_path, paper):
     gj, kml = tmp_path / "run.geojson", tmp_path / "run.kml"
     raw = assert_geojson_in_area(gj, paper)
     kinds = [f["properties"]["kind"] for f in raw["features"]]
-    assert kinds.count("obstacle") == 4 and kinds.count("goal") == 1 and kinds.count("area") == 1
+    assert kinds.count("obstacle") == 4 and kinds.count("goal") == len(paper.goals) == 3 and kinds.count("area") == 1
     assert kinds.count("uav_path") == 1 and kinds.count("true_track") == 4 and kinds.count("estimate_track") == 4
     ells = [f["properties"] for f in raw["features"] if f["properties"]["kind"] == "ellipse"]
     assert sorted({(e["t_s"], e["n_sigma"]) for e in ells}) == [(30.0, 1.0), (30.0, 3.0), (42.0, 1.0), (42.0, 3.0),
