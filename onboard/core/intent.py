@@ -13,9 +13,9 @@ A target's belief is a multiple-model particle filter: each particle carries a m
                law, inputs clipped to P1's box, speed to its bound), so a target heading somewhere
                nobody named moves as the model's targets do,
 
-and the modes switch by a Markov chain: each tick a particle keeps its mode with probability
-1 - p_switch, else draws one from the target's prior. The mode probabilities are the particle
-weights summed per mode, so the bearings estimate them (a jump-Markov / multiple-model particle
+and the modes switch by a Markov chain: each tick a target keeps its mode with probability
+1 - p_switch, else takes one drawn from its prior (``mix_resample``). The mode probabilities
+are the particle weights summed per mode, so the bearings estimate them (a jump-Markov / multiple-model particle
 filter: Ristic, Arulampalam and Gordon, Beyond the Kalman Filter (2004), ch. 3 and 11;
 McGinnity and Irwin, "Multiple model bootstrap filter for maneuvering target tracking", IEEE
 TAES 36(3), 2000). Intent inference with one model per destination follows Ahmad, Godsill et al.,
@@ -83,14 +83,10 @@ class Intent:
 class IntentParams:
     """How the modes move and switch (onboard/settings.py ``tracking.intent_*`` declares the values)."""
 
-    switch_prob: float  # per tick: a particle draws a new mode from the prior
+    switch_prob: float  # per tick: a target takes a mode drawn from its prior
     free_accel_sigma_mps2: float  # FREE: white acceleration, per axis
     speed_max_mps: float  # FREE: speed bound (the guidance's)
     stationary_sigma_m: float  # STATIONARY: position jitter per tick, per axis
-    surprise_window: int  # scans the innovation monitor looks back over
-    surprise_count: int  # ... of which this many unexplained make the target "surprising"
-    reseed_share: float  # a surprising target: share of particles re-drawn along its bearings
-    reseed_sigma_m: float  # ... within this of its estimate (then the area bounds it)
 
 
 def columns(modes: np.ndarray, n_goals: int) -> np.ndarray:
@@ -109,15 +105,6 @@ def codes(cols: np.ndarray, n_goals: int) -> np.ndarray:
 def draw(intent: Intent, n: int, rng: np.random.Generator) -> np.ndarray:
     """n mode codes from the intent's prior."""
     return codes(rng.choice(len(intent.prior), size=n, p=intent.prior), intent.n_goals)
-
-
-def switch(modes: np.ndarray, intent: Intent, p_switch: float, rng: np.random.Generator) -> np.ndarray:
-    """The Markov switch of one tick: each particle keeps its mode with probability 1 - p_switch,
-    else takes a mode drawn from the prior (possibly its own)."""
-    out = np.asarray(modes).copy()
-    moved = rng.random(len(out)) < p_switch
-    out[moved] = draw(intent, int(moved.sum()), rng)
-    return out
 
 
 def probabilities(log_weights: np.ndarray, modes: np.ndarray, n_goals: int) -> np.ndarray:

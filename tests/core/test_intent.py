@@ -17,7 +17,7 @@ from onboard.core.monitor_setup import target_intents
 from onboard.core.obstacles import Obstacles
 from sim.sensors import DirectionFinder, df_scan
 
-PARAMS = im.IntentParams(0.02, 1.0, 16.0, 0.5, 6, 4, 0.3, 300.0)
+PARAMS = im.IntentParams(0.02, 1.0, 16.0, 0.5)
 
 
 def _intent(k: int = 2) -> im.Intent:
