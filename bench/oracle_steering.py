@@ -40,8 +40,9 @@ def _step_recording(self):
     return out
 
 
-def _simulate_truth(sc, n_steps, rng, mismatch=(), with_gains=False):
-    world = _truth.TruthWorld.from_scenario(sc, rng, mismatch)
+def _simulate_truth(sc, n_steps, rng, kind="nominal", kind_rng=None, with_gains=False):
+    """The nominal truth (the oracle knows only the scenario's model), its states and gains recorded."""
+    world = _truth.TruthWorld.from_scenario(sc, rng)
     world.record_gains = True
     states = [world.states]
     for _ in range(n_steps):
@@ -69,7 +70,7 @@ def _oracle_controls(plan, particles, goal, setup, rng, *args, **kwargs):
 
 # patched at import, so the evaluation's worker processes (spawned: they import this module) have it
 _truth.TruthWorld.step = _step_recording
-_ev.simulate_truth = _simulate_truth
+_ev.simulate_kind = _simulate_truth
 _ev.tick = _tick_counting
 _steering.particle_controls = _oracle_controls
 

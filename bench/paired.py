@@ -70,8 +70,9 @@ def per_trial(run: Path) -> dict[str, dict[int, float]]:
     return out
 
 
-def load(specs: list[str]) -> tuple[dict, int, int]:
-    """{label: {run, method, trials (dict), rmse, pcrb, over_bound}}, the seed, the window start."""
+def load(specs: list[str], common: bool = False) -> tuple[dict, int, int]:
+    """{label: {run, method, trials (dict), rmse, pcrb, over_bound}}, the seed, the window start;
+    ``common``: every run's trials cut to those all of them have (else they must be the same)."""
     found: dict[str, dict] = {}
     seeds, windows = set(), set()
     for spec in specs:
@@ -96,6 +97,12 @@ def load(specs: list[str]) -> tuple[dict, int, int]:
                           "over_bound": row.get("RMSE / bound", "")}
     if len(seeds) > 1 or len(windows) > 1:
         raise ValueError(f"the runs differ in seed {sorted(seeds)} or window start {sorted(windows)}")
+    if common:
+        keep = set.intersection(*(set(v["trials"]) for v in found.values()))
+        if not keep:
+            raise ValueError("the runs have no trial in common")
+        for v in found.values():
+            v["trials"] = {i: r for i, r in v["trials"].items() if i in keep}
     ids = {lab: sorted(v["trials"]) for lab, v in found.items()}
     first = next(iter(ids.values()))
     bad = [lab for lab, i in ids.items() if i != first]
@@ -110,9 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="+", metavar="DIR[:METHOD[=LABEL]]")
     ap.add_argument("--against", default=None, help="the label every other method is paired with "
                                                      "(default: the first)")
+    ap.add_argument("--common", action="store_true", help="pair on the trials every run has (a run of 50 "
+                    "with one of 30: its first 30); the RMSE column stays each run's own")
     args = ap.parse_args(argv)
     try:
-        found, seed, w0 = load(args.runs)
+        found, seed, w0 = load(args.runs, args.common)
     except (OSError, ValueError, KeyError) as exc:
         ap.error(str(exc))
     base = args.against or next(iter(found))

@@ -66,8 +66,7 @@ from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, M
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
 from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
-from sim.truth import simulate_truth
-from sim.truth_kinds import KindDraw, check_kind, draw_kind, filter_scenario
+from sim.truth_kinds import KindDraw, check_kind, draw_kind, filter_scenario, simulate_kind
 from sim.workers import one_blas_thread as _one_blas_thread, worker_pool as _worker_pool
 
 # the evaluation's interface, wherever its parts are held (sim.methods: the methods; sim.metrics: the
@@ -361,8 +360,8 @@ def run_trial(cfg: EvalConfig, trial: int) -> TrialResult:
     from sim.ceiling_search import ceiling_path
 
     t0 = time.perf_counter()
-    truth, gains = simulate_truth(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), with_gains=True,
-                                  kind=cfg.truth_kind, kind_rng=_rng(cfg.seed, trial, 3))
+    truth, gains = simulate_kind(cfg.scenario, cfg.n_ticks - 1, _rng(cfg.seed, trial, 0), cfg.truth_kind,
+                                 _rng(cfg.seed, trial, 3), with_gains=True)
     start = draw_start(cfg, _rng(cfg.seed, trial, 1))
     planned = [m for m in cfg.methods if not m.bound_only and m.follows is None]
     traces = {m.name: run_method(cfg, m, trial, truth, start, gains) for m in planned}

@@ -258,15 +258,12 @@ class TruthWorld:
 
 
 def simulate_truth(sc, n_steps: int, rng: np.random.Generator, mismatch: Sequence[Mismatch] = (),
-                   with_gains: bool = False, kind: str = "nominal", kind_rng: np.random.Generator | None = None):
+                   with_gains: bool = False, world: TruthWorld | None = None):
     """(n_steps + 1, M, 6) true states at t = 0, dt, ..., n_steps dt; the same as stepping a TruthWorld.
     with_gains: also (n_steps, M, 3, 6), each step's closed-loop gain du/dx at the true state
-    (``closed_loop_gain``), for the posterior Cramer-Rao bound. ``kind``: how the targets really
-    move (sim/truth_kinds.py ``TRUTH_KINDS``), drawn from ``kind_rng`` so the initial states and the
-    noise stream are the nominal truth's (paired trial by trial)."""
-    from sim.truth_kinds import truth_world
-
-    world = truth_world(sc, rng, kind, kind_rng, n_steps, mismatch)
+    (``closed_loop_gain``), for the posterior Cramer-Rao bound. ``world``: a world to step instead
+    of the scenario's nominal one (sim/truth_kinds.py ``simulate_kind``)."""
+    world = TruthWorld.from_scenario(sc, rng, mismatch) if world is None else world
     world.record_gains = with_gains
     out = [world.states]
     for _ in range(n_steps):

@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from onboard.core.obstacles import Obstacles
-from sim.truth import Mismatch, TruthWorld, blocked
+from sim.truth import Mismatch, TruthWorld, blocked, simulate_truth
 
 TRUTH_KINDS = ("nominal", "candidate_goal", "unknown_goal", "stationary", "stop_turn", "wander")
 MIN_CANDIDATES = 3
@@ -142,3 +142,11 @@ def filter_scenario(sc, kind: str, draw: KindDraw | None = None, told: bool = Fa
     else:
         raise ValueError(f"--told applies to --truth candidate_goal or stationary, not {kind}")
     return replace(sc, targets=targets)
+
+
+def simulate_kind(sc, n_steps: int, rng: np.random.Generator, kind: str = "nominal",
+                  kind_rng: np.random.Generator | None = None, with_gains: bool = False):
+    """``sim.truth.simulate_truth`` on the truth of ``kind`` (``truth_world``): the same states and
+    gains as the nominal truth's for ``nominal``."""
+    return simulate_truth(sc, n_steps, rng, with_gains=with_gains,
+                          world=truth_world(sc, rng, kind, kind_rng, n_steps))

@@ -9,8 +9,7 @@ import pytest
 
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from sim.truth import simulate_truth
-from sim.truth_kinds import TRUTH_KINDS, check_kind, draw_kind, filter_scenario, truth_world
+from sim.truth_kinds import TRUTH_KINDS, check_kind, draw_kind, filter_scenario, simulate_kind, truth_world
 
 STEPS = 60
 
@@ -21,7 +20,7 @@ def paper():
 
 
 def _truth(sc, kind, seed=11):
-    return simulate_truth(sc, STEPS, np.random.default_rng(seed), kind=kind, kind_rng=np.random.default_rng(seed + 1))
+    return simulate_kind(sc, STEPS, np.random.default_rng(seed), kind, np.random.default_rng(seed + 1))
 
 
 @pytest.fixture(scope="module")
