@@ -181,11 +181,18 @@
       const stale = since === null || since > 3;
       tr.innerHTML = `<td><span class="swatch" style="background:${t.colour}"></span>${t.name}</td>` +
         `<td>${ll(t.lonlat)}</td><td>${f(t.sigma_x, 0)} / ${f(t.sigma_y, 0)}</td><td>${f(speed, 1)}</td>` +
-        `<td class="${stale ? "stale" : ""}">${since === null ? "never" : f(since, 1) + " s"}</td>` +
-        `<td>${(t.doing || "-").replace(/[<>&]/g, "")}</td>`;
-      return tr;
+        `<td class="${stale ? "stale" : ""}">${since === null ? "never" : f(since, 1) + " s"}</td>`;
+      if (!t.doing || t.doing === "-") return [tr];
+      // what the target most likely does, on a row of its own: the table keeps its width
+      const doing = document.createElement("tr");
+      const td = document.createElement("td");
+      td.colSpan = 5;
+      td.className = "doing";
+      td.textContent = `${t.name}: ${t.doing}`;
+      doing.appendChild(td);
+      return [tr, doing];
     });
-    $("targets").tBodies[0].replaceChildren(...rows);
+    $("targets").tBodies[0].replaceChildren(...rows.flat());
     $("uav").textContent = snap.uav
       ? `UAV ${ll(snap.uav.lonlat)} · ${f(snap.uav.enu[2], 1)} m up · next ${snap.setpoint ? ll(snap.setpoint.lonlat) : "—"} · h ${f(snap.altitude_m, 0)} m`
       : "UAV: no position yet";
