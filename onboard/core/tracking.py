@@ -11,6 +11,7 @@ import numpy as np
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import PLANAR, MotionModel
+from onboard.core.intent import explained
 
 LOG_2PI = np.log(2.0 * np.pi)
 
@@ -131,8 +132,6 @@ def update(ps: ParticleSet, scans, model: SensorModel) -> UpdateResult:
     the target far from every bearing, or a scan holding a non-finite bearing), the prior weights
     are kept and ``degenerate`` is set.
     """
-    from onboard.core.intent import explained  # (intent imports this module)
-
     logw = ps.log_weights.copy()
     told = []
     for scan in scans:
