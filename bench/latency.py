@@ -62,7 +62,7 @@ def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = Non
         rig = Rig(RigConfig(policy="paper", seed=seed, speedup=speedup, home="origin", ready_s=DEMO_READY_S,
                             ports=2, in_process=True, auto_launch=True, app_config=cfg_extra or {},
                             feed_duration_s=int(duration), out_dir=tmp, truth_path=str(truth)),
-                  on_tick=lambda rec: account.on_tick(rec, rig.app.params["PMON_BUDGET"]), on_setpoint=received)
+                  on_tick=lambda rec: account.on_tick(rec, rig.app.params.settings.app.tick_budget_s), on_setpoint=received)
         with rig:
             ap, app = rig.ap, rig.app
             wall0, t0 = time.monotonic(), ap.sim_time

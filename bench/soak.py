@@ -57,7 +57,7 @@ def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict
         fence["received"] += 1
         p = np.array([msg.y, msg.x, -msg.z])
         app = st["app"]
-        band = (app.params["PMON_ALT_MIN"], app.params["PMON_ALT_MAX"]) if app else (0.0, 1e9)
+        band = (app.params.settings.app.fence_min_m, app.params.settings.app.fence_max_m) if app else (0.0, 1e9)
         if np.any(p < lo) or np.any(p > hi) or not band[0] <= p[2] <= band[1] \
                 or (len(inflated) and inflated.contains(p[None]).any()):
             fence["outside"] += 1

@@ -190,3 +190,28 @@ def test_every_relative_link_of_the_readme_and_docs_resolves():
     """README.md's and docs/'s links to files and headings lead somewhere."""
     files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
     assert [b for md in files for b in broken_links(md)] == []
+
+
+def pmon_reads(path: Path, names: set[str]) -> list[tuple[int, str]]:
+    """(line, name) of every subscript ``x["PMON_..."]`` of a parameter's name in a file."""
+    tree = ast.parse(path.read_text(), str(path))
+    return [(n.lineno, n.slice.value) for n in ast.walk(tree)
+            if isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant) and n.slice.value in names]
+
+
+def test_pmon_reads_finds_a_read_by_name(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text('budget = params["PMON_BUDGET"]\nok = params.settings.app.tick_budget_s\nd = {"PMON_PD": 1}\n')
+    assert pmon_reads(f, {"PMON_BUDGET", "PMON_PD"}) == [(1, "PMON_BUDGET")]
+
+
+def test_no_setting_is_read_by_its_pmon_name_outside_the_parameter_table():
+    """The product reads a parameter as its typed setting (``ParamTable.settings``), one name per
+    quantity; its PMON name is the MAVLink edge's (onboard/app/params.py) and the declaration's
+    (onboard/settings.py). Tests may read it by name: they speak the protocol."""
+    from onboard.settings import PARAMS
+
+    edge = {ROOT / "onboard" / "app" / "params.py", ROOT / "onboard" / "settings.py"}
+    found = [f"{p.relative_to(ROOT)}:{line}: {name}" for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))
+             if p not in edge for line, name in pmon_reads(p, set(PARAMS))]
+    assert not found, "read by PMON name outside the parameter table (use params.settings):\n" + "\n".join(found)

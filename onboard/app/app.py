@@ -194,7 +194,7 @@ class OnboardApp:
         self.router = Router(self.link, self.autopilot, self.machine, self.param_server,
                              self.publisher.publish_stat, cfg.gcs_sysids, self.counters, say)
         self.watchdog = Watchdog(cfg.watchdog_s, self.publisher.alarm, lambda: getattr(self.clock, "rate", 1.0),
-                                 lambda: self.params["PMON_SCAN_WAIT"])
+                                 lambda: self.params.settings.app.scan_wait_s)
 
     # ------------------------------------------------------------------ what a rig reads
     @property

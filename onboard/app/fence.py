@@ -40,7 +40,7 @@ class Fence:
     def of(cls, setup, params, at_h: bool = True) -> "Fence":
         """The fence of a core ``MonitorSetup`` and the app's parameters."""
         return cls(np.asarray(setup.area_min, float), np.asarray(setup.area_max, float),
-                   float(params["PMON_ALT_MIN"]), float(params["PMON_ALT_MAX"]), setup.uav_obstacles,
+                   params.settings.app.fence_min_m, params.settings.app.fence_max_m, setup.uav_obstacles,
                    float(setup.grid.altitude_m) if at_h else None)
 
 

@@ -351,8 +351,8 @@ class KrakenInput:
             raise ConfigError(f"kraken.url: {exc}") from None
         time_map = autopilot.utc if cfg.time_source == "autopilot" else HostTime(clock)
         self.source = KrakenSource(cfg, tuple(t.name for t in scenario.targets), clock, autopilot.poses,
-                                   time_map, scans.add, lambda: params["PMON_PD"], self._report,
-                                   lambda: params["PMON_CLUTTER"])
+                                   time_map, scans.add, lambda: params.settings.sensor.p_detect, self._report,
+                                   lambda: params.settings.sensor.clutter_rate)
         self._down_said = self._status_said = self._restart_said = False
         self.handled = 0  # documents the io thread has handled
 

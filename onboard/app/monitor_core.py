@@ -72,7 +72,7 @@ class MonitorCore:
     def grid_within_reach(self) -> CandidateGrid:
         """The candidate grid without the rings the vehicle cannot fly in one tick (PMON_REACH)."""
         g = self.setup.grid
-        n_r = min(g.n_radial, int(math.floor(self.params["PMON_REACH"] / g.step_m + 1e-9)))
+        n_r = min(g.n_radial, int(math.floor(self.params.settings.app.reach_m / g.step_m + 1e-9)))
         return CandidateGrid(g.step_m, n_r, g.n_heading, g.altitude_m)
 
     def reseed_collapsed(self, setup: MonitorSetup, res) -> list[int]:

@@ -54,6 +54,14 @@ class ParamTable:
         self._values = {s.name: float(values[s.name]) for s in SPECS}
         self._scenario = scenario
         self.version = 0  # bumped on every accepted change
+        self._settings = self.apply(scenario)
+
+    @property
+    def settings(self):
+        """The scenario with the parameters' current values: what the app reads them as, by their
+        typed settings (``params.settings.app.tick_budget_s``), never by their PMON names. Replaced
+        whole on an accepted set, so a reader on another thread sees the old or the new one."""
+        return self._settings
 
     @classmethod
     def from_scenario(cls, sc) -> "ParamTable":
@@ -92,10 +100,11 @@ class ParamTable:
             return None
         values = {**self._values, name: value}
         try:  # the scenario with every parameter: each setting's range, then the cross-field checks
-            override(self._scenario, _changes(values))
+            settings = override(self._scenario, _changes(values))
         except ConfigError as exc:
             return f"{name}={value:g} refused: {exc}"
         self._values = values
+        self._settings = settings
         self.version += 1
         return None
 

@@ -61,7 +61,7 @@ class PlanLimits:
     def _check_jumps(self, speed_name: str) -> None:
         """The paper's jump: the largest ring asked for, per tick (no acceleration assumed)."""
         sc, have = self.scenario, self.vehicle.speed_limit_mps
-        reach = min(sc.uav.n_radial * sc.uav.step_m, self.params["PMON_REACH"])
+        reach = min(sc.uav.n_radial * sc.uav.step_m, self.params.settings.app.reach_m)
         need = reach / sc.dynamics.dt_s
         self.plan = (need, math.nan, math.nan)
         short = have is not None and have < need - 1e-6  # not read yet, or enough: no warning

@@ -53,7 +53,7 @@ class TickSchedule:
         """The periodic job: hand the worker the next tick, if one is due and it is free."""
         if self.worker.busy:
             return
-        wait = self.params["PMON_SCAN_WAIT"]
+        wait = self.params.settings.app.scan_wait_s
         due = [k for k in self.scans.pending if self.scans.complete(k) or now >= k + wait]
         if due:
             self._tick_scans(now, due)
@@ -73,7 +73,7 @@ class TickSchedule:
         self._submit(TickJob(key, {}, 0))
 
     def _tick_scans(self, now: float, due: list[float]) -> None:
-        live = [k for k in due if now <= k + self.params["PMON_BUDGET"]]
+        live = [k for k in due if now <= k + self.params.settings.app.tick_budget_s]
         key = min(live) if live else max(due)
         taken = self.scans.take_until(key)
         if self._silent:

@@ -229,8 +229,8 @@ class TickWorker:
         tick's budget after a reserve for planning and sending (converted to local seconds at
         the clock's rate: at a SITL speedup of 4, 0.3 s of autopilot time is 75 ms)."""
         rate = getattr(self.clock, "rate", 1.0) or 1.0
-        left = job.t + self.params["PMON_BUDGET"] - PLAN_RESERVE_S - (self.clock.now() or job.t)
-        per_target_s = max(min(self.params["PMON_GUID_S"], left), 0.0) / rate / max(setup.n_targets, 1)
+        left = job.t + self.params.settings.app.tick_budget_s - PLAN_RESERVE_S - (self.clock.now() or job.t)
+        per_target_s = max(min(self.params.settings.app.guidance_s, left), 0.0) / rate / max(setup.n_targets, 1)
         return replace(setup, guidance=replace(setup.guidance, max_solve_time_s=per_target_s))
 
     def _report(self, res, reseeded: list[int]) -> None:
@@ -289,7 +289,7 @@ class TickWorker:
         """(under the lock) A tick whose send step ended past its budget: the stage it passed
         the deadline in (onboard/app/overrun.py), counted per stage and said in one line, at
         most once per OVERRUN_SAY_S of autopilot time (with how many more since)."""
-        deadline = job.t + self.params["PMON_BUDGET"]
+        deadline = job.t + self.params.settings.app.tick_budget_s
         if sent.ap_t is None or sent.ap_t <= deadline or not job.scans:  # a coast tick has no scan to be late for
             return None
         rate = getattr(self.clock, "rate", 1.0) or 1.0
@@ -309,7 +309,7 @@ class TickWorker:
 
     def _count(self, job: TickJob, snap: Snapshot, sent: Sent) -> None:
         self.counters.add("ticks")
-        late = sent.ap_t is not None and sent.ap_t > job.t + self.params["PMON_BUDGET"]
+        late = sent.ap_t is not None and sent.ap_t > job.t + self.params.settings.app.tick_budget_s
         if late and snap.planning and job.scans:  # a coast tick has no scan to be late for
             self.counters.add("ticks_late")
 
