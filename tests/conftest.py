@@ -17,6 +17,17 @@ from onboard.core.dynamics import MotionModel
 # tests/app/test_realtime.py checks the program's own default with this variable unset.
 os.environ.setdefault("PMON_GCS_NO_IDLE", "1")
 
+_FIRMWARE_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "firmware") + os.sep
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test of a real firmware carries the ``firmware`` marker: those marked ``ardupilot`` or
+    ``px4`` and all of tests/firmware/ (the fast tier deselects them: -m 'not firmware and not slow')."""
+    for item in items:
+        if (str(item.path).startswith(_FIRMWARE_DIR) or item.get_closest_marker("ardupilot")
+                or item.get_closest_marker("px4")):
+            item.add_marker(pytest.mark.firmware)
+
 
 @pytest.fixture(scope="session")
 def paper():
