@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None, lower: bool = False) -> int:
 
 
 def _lower(args) -> None:
-    """At idle priority (SCHED_IDLE, else nice 19; what it starts inherits it: a browser, a plot),
+    """At nice 19 (what it starts inherits it: a plot; onboard/app/realtime.py ``lower_priority``),
     unless --no-idle or $PMON_GCS_NO_IDLE: an operator's command started on the companion
     computer must not take CPU from the onboard app's tick (docs/DEPLOY.md). The hub is not
     lowered: it routes the app's telemetry and the operators' commands, a router's work."""

@@ -71,9 +71,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
-    """Median wall time of a core tick on this machine, now. The first ``warmup`` ticks are
-    excluded: their guidance still searches every target's faces from scratch, several times
-    a steady tick (the earlier ``n=4, warmup=1`` gave 50-104 ms on one 2-core VM, this 40-61)."""
+    """Median CPU time of a core tick on this machine (``time.thread_time``: the tick runs on this
+    thread), so the choice is the machine's and not what else happens to run at start: under two
+    busy processes the wall time of the same tick grew 1.4x and the choice fell to 1x, the CPU
+    time stayed (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded:
+    their guidance still searches every target's faces from scratch, several times a steady tick."""
     from onboard.core.guidance import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
@@ -85,9 +87,9 @@ def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
     times = []
     for _ in range(n):
         bearings = tuple(rng.uniform(-np.pi, np.pi, 2) for _ in range(setup.n_targets))
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         state, _ = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
-        times.append(time.perf_counter() - t0)
+        times.append(time.thread_time() - t0)
     return float(np.median(times[warmup:]))
 
 
@@ -109,7 +111,7 @@ def _speedup(args, sc, console) -> float | None:
     if args.speedup == "auto":
         tick_s = measure_tick_s(with_policy(sc, args.policy))  # the tick the app will run
         speedup = choose_speedup(tick_s)
-        console.print(f"core tick measured {tick_s * 1e3:.0f} ms -> speedup {speedup:g}x")
+        console.print(f"core tick measured {tick_s * 1e3:.0f} ms of CPU -> speedup {speedup:g}x")
         return speedup
     try:
         speedup = float(args.speedup)

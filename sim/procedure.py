@@ -25,7 +25,6 @@ ArduPilot's routing (PMON_TGT, PMON_STAT, STATUSTEXT).
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import math
 import os
@@ -231,22 +230,14 @@ class Sticks:
 
 def _off_the_companion(argv: list[str]) -> list[str]:
     """The operator's ``pmon gcs`` runs on the ground, not on the companion computer: here it
-    takes only the CPU the app and the autopilot leave (SCHED_IDLE, by chrt, as
-    tests/support/viewcheck.py runs the browser; not a preexec_fn, unsafe beside threads). Its
-    interpreter's start beside the app had made ticks of 275-387 ms in the ArduPilot flight's run
-    logs (of a 900 ms budget at 2x). The program lowers itself too (groundstation/cli.py
-    ``program``), but only once its interpreter has started; chrt covers the start. Without
-    chrt, or where it may not: an ordinary process."""
-    chrt = _idle_chrt()
-    return [chrt, "--idle", "0", *argv] if chrt else argv
-
-
-@functools.lru_cache(maxsize=1)
-def _idle_chrt() -> str | None:
-    chrt = shutil.which("chrt")
-    if chrt and subprocess.run([chrt, "--idle", "0", "true"], capture_output=True, timeout=10).returncode == 0:
-        return chrt
-    return None
+    runs at nice 19 from its interpreter's start (by ``nice``; the program lowers itself too,
+    groundstation/cli.py, but only once its interpreter has started), so it takes little of the
+    CPU the app and the autopilot want: started at normal priority beside the app, its start had
+    made ticks of 275-387 ms in the ArduPilot flight's run logs (of a 900 ms budget at 2x). Not
+    SCHED_IDLE (``chrt --idle``): beside three nice-10 processes an idle-class command did not end
+    within a test's 300 s (docs/DEPLOY.md, section 4)."""
+    nice = shutil.which("nice")
+    return [nice, "-n", "19", *argv] if nice else argv
 
 
 @dataclass
