@@ -72,10 +72,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
     """Median CPU time of a core tick on this machine (``time.thread_time``: the tick runs on this
-    thread), so the choice is the machine's and not what else happens to run at start: under two
-    busy processes the wall time of the same tick grew 1.4x and the choice fell to 1x, the CPU
-    time stayed (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded:
-    their guidance still searches every target's faces from scratch, several times a steady tick."""
+    thread), so the choice follows the machine more than what else happens to run at start: beside
+    two busy processes the wall time of the same tick grew 2.4-2.6x, its CPU time 1.2-1.5x
+    (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded: their
+    guidance still searches every target's faces from scratch, several times a steady tick."""
     from onboard.core.guidance import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
