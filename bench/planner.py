@@ -86,8 +86,9 @@ def main() -> None:
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="time ticks by the wall clock or by this process's CPU time")
     ap.add_argument("--repeat", type=int, default=1, help="fly each case this many times; each tick's least time")
-    ap.add_argument("--figure", default=str(Path(__file__).with_name("planner_tick.png")),
-                    help="where to write the figure ('' for none)")
+    ap.add_argument("--figure", default="",
+                    help="where to write the figure (default: none; bench/planner_tick.png is the one docs/LOG.md "
+                         "shows, so a run does not rewrite a tracked file unless asked)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     add_set_option(ap)
     args = ap.parse_args()
