@@ -70,9 +70,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 
-def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
-    """Median CPU time of a core tick on this machine (``time.thread_time``: the tick runs on this
-    thread), so the choice follows the machine more than what else happens to run at start: beside
+def measure_tick_s(sc, n: int = 8, warmup: int = 2, clock=time.thread_time) -> float:
+    """Median CPU time of a core tick on this machine (``clock``, ``time.thread_time``: the tick runs
+    on this thread), so the choice follows the machine more than what else happens to run at start: beside
     two busy processes the wall time of the same tick grew 2.4-2.6x, its CPU time 1.2-1.5x
     (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded: their
     guidance still searches every target's faces from scratch, several times a steady tick."""
@@ -87,9 +87,9 @@ def measure_tick_s(sc, n: int = 8, warmup: int = 2) -> float:
     times = []
     for _ in range(n):
         bearings = tuple(rng.uniform(-np.pi, np.pi, 2) for _ in range(setup.n_targets))
-        t0 = time.thread_time()
+        t0 = clock()
         state, _ = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
-        times.append(time.thread_time() - t0)
+        times.append(clock() - t0)
     return float(np.median(times[warmup:]))
 
 

@@ -118,8 +118,8 @@ def lower_priority() -> Outcome:
     """This process's threads to nice 19: a ground-station command run on the companion computer
     takes little of the tick's CPU (weight 15 against a normal thread's 1024), and threads started
     afterwards inherit it (a plot). Not SCHED_IDLE: its weight (3) is a fifth of nice 19's, and
-    beside busy processes an idle-class command all but stops (docs/DEPLOY.md, section 4). The app's own protection is its
-    real-time priority (``pmon run --rt-priority``), not the operator's starvation."""
+    beside busy processes an idle-class command all but stops (docs/DEPLOY.md, section 4). The
+    app's own protection is its real-time priority (``pmon run --rt-priority``)."""
     try:
         for tid in _tasks():
             os.setpriority(os.PRIO_PROCESS, tid, 19)  # Linux: per thread

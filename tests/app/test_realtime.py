@@ -125,6 +125,6 @@ def _gcs_nice(extra: list[str], env: dict | None = None) -> tuple[int, int]:
 
 @pytest.mark.timeout(300)
 def test_a_ground_station_program_runs_at_nice_19_unless_told_not_to():
-    assert _gcs_nice([]) == (os.SCHED_OTHER, 19)  # not SCHED_IDLE: that starves it beside any busy process
+    assert _gcs_nice([]) == (os.SCHED_OTHER, 19)  # not SCHED_IDLE: that all but stops it beside busy processes
     assert _gcs_nice(["--no-idle"]) == (os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS, 0))
     assert _gcs_nice([], {"PMON_GCS_NO_IDLE": "1"}) == (os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS, 0))
