@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from onboard.argcheck import param_item  # NAME=VALUE, finite (bench/sitl_response.py imports it from here)
+from sim.priority import fifo_argv, vehicle_priority
 from sim.processes import log_tail
 
 ENV_VAR = "PMON_ARDUPILOT_SITL"
@@ -265,8 +266,8 @@ class ArduPilotSitl:
         start = path.stat().st_size if path.exists() else 0
         log = open(path, "ab")
         try:
-            self.proc = subprocess.Popen(argv, cwd=self.workdir, stdout=log, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
+            self.proc = subprocess.Popen(fifo_argv(argv, vehicle_priority()), cwd=self.workdir, stdout=log,
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
         finally:
             log.close()
         deadline = time.monotonic() + 20.0

@@ -32,12 +32,15 @@ def log_tail(path: Path, start: int, n: int = 4) -> str:
 class Proc:
     """A child process whose stdout lines are collected on a thread."""
 
-    def __init__(self, name: str, argv: list[str], log_path: Path):
+    def __init__(self, name: str, argv: list[str], log_path: Path, priority: int = 0):
+        """``priority``: started at SCHED_FIFO ``priority`` (0: normal scheduling; sim/priority.py)."""
+        from sim.priority import fifo_argv
+
         self.name = name
         self.lines: "queue.Queue[str]" = queue.Queue()
         self.log = open(log_path, "w", buffering=1)
         env = dict(os.environ, PYTHONUNBUFFERED="1", MAVLINK20="1")
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.p = subprocess.Popen(fifo_argv(argv, priority), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         self._t = threading.Thread(target=self._pump, daemon=True)
         self._t.start()
 
@@ -105,7 +108,9 @@ class MockProcess:
             argv += ["--udpin", "127.0.0.1:0"]
         if self.signing_key_path is not None:
             argv += ["--signing-key", str(self.signing_key_path)]
-        self.proc = Proc("mock autopilot", argv, self.log_path)
+        from sim.priority import vehicle_priority
+
+        self.proc = Proc("mock autopilot", argv, self.log_path, vehicle_priority())
         m = self.proc.wait_line(r"mock autopilot up: (.*)", 20)
         self._ports = [int(x) for x in re.findall(r"tcpin:127\.0\.0\.1:(\d+)", m.group(1))]
         udpin = re.search(r"udpin:127\.0\.0\.1:(\d+)", m.group(1))

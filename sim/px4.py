@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Mapping
 
 from onboard.argcheck import param_item
+from sim.priority import fifo_argv, vehicle_priority
 from sim.processes import log_tail
 
 ENV_VAR = "PMON_PX4_SITL"
@@ -335,9 +336,9 @@ class Px4Sitl:
         env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         start = self.log_file.stat().st_size if self.log_file.exists() else 0
         with open(self.log_file, "ab") as log:
-            self.proc = subprocess.Popen(argv, cwd=self.workdir, stdout=log, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL, env=env, pass_fds=fds,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(fifo_argv(argv, vehicle_priority()), cwd=self.workdir, stdout=log,
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                         pass_fds=fds, start_new_session=True)
         self.boots += 1
         deadline = time.monotonic() + BOOT_TIMEOUT_S
         while time.monotonic() < deadline:

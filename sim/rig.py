@@ -32,6 +32,7 @@ from __future__ import annotations
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ from typing import Callable, Mapping
 
 from onboard.policy import DEFAULT as DEFAULT_POLICY
 from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim.priority import app_priority, vehicle_priority
 
 APP_PORT, FEED_PORT, GCS_PORT = 0, 1, 2  # the autopilot's MAVLink ports, by user
 # PX4 (sim/px4.py): each port number as (link, listener index) on PX4's UDP links; None: a client
@@ -184,6 +186,11 @@ class Rig:
 
     def start_autopilot(self):
         self.ap.start()
+        if self.cfg.in_process and vehicle_priority():  # the mock's simulation thread, as a process's would be
+            from onboard.app.realtime import set_fifo
+            for th in threading.enumerate():
+                if th.name == "mock-autopilot" and th.native_id is not None:
+                    set_fifo(th.native_id, vehicle_priority())
         return self.ap
 
     def start_app(self) -> None:
@@ -202,10 +209,11 @@ class Rig:
             from onboard.app.app import AppConfig, OnboardApp
             from onboard.config import override
             sc = self.sc if self.kraken_url is None else override(self.sc, {"kraken.url": self.kraken_url})
+            extra = {"rt_priority": app_priority(), **dict(cfg.app_config)}
             self.app = OnboardApp(AppConfig(url, sensor_port=0, auto_launch=cfg.auto_launch, seed=cfg.seed,
                                             runlog_path=cfg.runlog_path, tlog_path=cfg.tlog_path,
                                             signing_key_path=cfg.signing_key_path, kraken=self.kraken_url is not None,
-                                            **dict(cfg.app_config)), sc)
+                                            **extra), sc)
             if self.on_tick is not None:
                 self.app.tick_listeners.append(self.on_tick)
             self.app.start()
@@ -221,6 +229,7 @@ class Rig:
         if cfg.autopilot == "px4" and (events := self.ap.events_metadata()) is not None:
             argv += ["--px4-events", str(events)]  # the build's: its EVENTs in words
         argv += ["--kraken", self.kraken_url] if self.kraken_url is not None else []
+        argv += ["--rt-priority", str(app_priority())] if app_priority() else []  # app_args may change it
         self.app = Proc("app", argv + list(cfg.app_args), self.out / "app.log")
         self.df_port = int(self.app.wait_line(r"DF datagrams on udp 127\.0\.0\.1:(\d+)", 30).group(1))
 
@@ -247,7 +256,7 @@ class Rig:
             argv += ["--to", f"127.0.0.1:{self.df_port}"]
         for option, value in (("--truth", cfg.truth_path), ("--signing-key", cfg.signing_key_path)):
             argv += [option, str(value)] if value is not None else []
-        self.feed = Proc("feed", argv, self.out / "feed.log")
+        self.feed = Proc("feed", argv, self.out / "feed.log", vehicle_priority())
         if cfg.df == "kraken":
             self.kraken_url = self.feed.wait_line(r"KrakenSDR output at (\S+)", 30).group(1)
         return self.feed
