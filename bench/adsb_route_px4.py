@@ -157,7 +157,7 @@ def _hub_route(comp: Watch, n: int, wd: Path, home, frame, seconds: float) -> di
     import re
 
     from groundstation import adsb as A
-    from tests.support.gcs_fake_vehicle import free_udp_port, target_values
+    from sim.gcs_fake_vehicle import free_udp_port, target_values
 
     port = free_udp_port()
     paper = (ROOT / "onboard" / "data" / "paper.yaml").read_text()  # the mission at PX4's home
@@ -213,7 +213,7 @@ def _autopilot_route(comp: Watch, payload: Watch, frame, seconds: float) -> dict
     """A: the targets' ADSB_VEHICLE into PX4 on the companion link at 1 Hz."""
     from groundstation import adsb as A
     from groundstation.estimates import check
-    from tests.support.gcs_fake_vehicle import target_values
+    from sim.gcs_fake_vehicle import target_values
 
     def estimate(j, x, y):
         class T:

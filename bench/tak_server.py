@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.simplefilter("ignore")
 import pytak  # noqa: E402
 
-from tests.support.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
-from tests.support.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
+from sim.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
+from sim.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--port", type=int, required=True, help="the TAK server's TCP CoT port on 127.0.0.1")

@@ -10,11 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from tests.support.gcs_fake_vehicle import Client, target_values  # MAVLINK20 first
+from sim.gcs_fake_vehicle import Client, target_values  # MAVLINK20 first
 from groundstation import adsb as A
 from groundstation.estimates import radius_1sigma_m
 from onboard.app.mavlink_connection import mavlink
-from tests.support.hub_rig import FRAME, TARGETS, Rig
+from sim.hub_rig import FRAME, TARGETS, Rig
 
 
 @pytest.fixture
@@ -249,7 +249,7 @@ def test_the_hub_stops_on_sigint_even_started_with_sigint_ignored():
     import subprocess
     import sys
 
-    from tests.support.gcs_fake_vehicle import FakeVehicle, free_udp_port
+    from sim.gcs_fake_vehicle import FakeVehicle, free_udp_port
 
     vport, sport = free_udp_port(), free_udp_port()
     veh = FakeVehicle(vport)

@@ -1,4 +1,4 @@
-"""A vehicle on loopback for the hub's tests: an autopilot heartbeat and position, and the
+"""A vehicle on loopback for the hub's tests and benches: an autopilot heartbeat and position, and the
 onboard app's PMON_TGT / PMON_STAT, sent with pymavlink as the real ones send them (system 1;
 autopilot component 1, app component 191), plus a hostile peer's variants. Every packet the
 hub writes towards the vehicle is kept (``received``)."""
