@@ -52,8 +52,8 @@ tests/sim/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the 
 (sim.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
 trace and its distance at the next tick beside the SITL's.
 
-Its parts: bench/sitl_response_flight.py (the MAVLink client and a trace), bench/sitl_response_cases.py
-(the cases and their figures), bench/sitl_response_model.py (the model on a saved flight, its fit).
+Its parts: sim/sitl_response_flight.py (the MAVLink client and a trace), sim/sitl_response_cases.py
+(the cases and their figures), sim/sitl_response_model.py (the model on a saved flight, its fit).
 """
 from __future__ import annotations
 
@@ -76,11 +76,11 @@ from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
 from sim import px4 as px4_sitl  # noqa: E402
 from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
 
-from bench.sitl_response_cases import (  # noqa: E402
+from sim.sitl_response_cases import (  # noqa: E402
     distance_at_ticks, fly_ramp, fly_route, fly_step, fly_top, planner_route, stats, step_figures, top_speed,
 )
-from bench.sitl_response_flight import HOME, FlightError, SitlFlight, Trace  # noqa: E402
-from bench.sitl_response_model import fit_airframe, in_envelope, limits_for, load, replay  # noqa: E402
+from sim.sitl_response_flight import HOME, FlightError, SitlFlight, Trace  # noqa: E402
+from sim.sitl_response_model import fit_airframe, in_envelope, limits_for, load, replay  # noqa: E402
 
 READ_PARAMS = ("WPNAV_SPEED", "WPNAV_ACCEL", "WPNAV_SPEED_UP", "WPNAV_SPEED_DN", "PSC_JERK_XY",
                "PSC_POSXY_P", "PSC_VELXY_P", "PSC_VELXY_I", "PSC_VELXY_D", "ATC_ACCEL_R_MAX",

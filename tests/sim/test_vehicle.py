@@ -6,7 +6,7 @@ the demo's: a velocity command far above the airframe's top speed, 20 m and 100 
 steps, a 10 Hz position + velocity ramp, and planner-like routes at 90 % and 70 % of the top speed
 sent one setpoint a second four ways (position only; position + the velocity at that point;
 a ramp reaching the next point; the plan's position, velocity and acceleration). The model is
-given the same setpoints at the same firmware times (bench.sitl_response_model.replay, 400 Hz) and
+given the same setpoints at the same firmware times (sim.sitl_response_model.replay, 400 Hz) and
 must fly what the SITL flew.
 
 The demo's 90 % routes are left out of the bounds: they ask for 3 m/s^2 of turn at 9 m/s, which
@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
-from bench.sitl_response_flight import MASK_POS, MASK_PVA
-from bench.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
+from sim.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
+from sim.sitl_response_flight import MASK_POS, MASK_PVA
+from sim.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
 from sim.copter import Copter, GuidedTarget, Mode, Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
 from sim.multicopter import (
@@ -287,8 +287,8 @@ def test_live_sitl_flies_a_short_route_as_the_model():
     as the plan's state (position, velocity, acceleration) each second; the model, given the
     same setpoints at the same firmware times, flies within RMS_MAX_M of it, and the copter is
     within 1.5 m of the plan's point when each next setpoint is due."""
-    from bench.sitl_response_cases import fly_route
-    from bench.sitl_response_flight import HOME, SitlFlight
+    from sim.sitl_response_cases import fly_route
+    from sim.sitl_response_flight import HOME, SitlFlight
     from sim.ardupilot import ArduPilotSitl, find_binary, skip_reason
 
     reason = skip_reason()

@@ -1,6 +1,6 @@
 """The MAVLink client of bench/sitl_response.py: a pymavlink connection flying ArduCopter's SITL in
 GUIDED (PX4's in OFFBOARD), every message timed on the firmware clock, and the trace of a case as
-flown. The cases and their figures are in bench/sitl_response_cases.py.
+flown. The cases and their figures are in sim/sitl_response_cases.py.
 """
 from __future__ import annotations
 
