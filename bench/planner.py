@@ -39,7 +39,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from sim.closed_loop import tick_timings  # noqa: E402
 from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.policy import vehicle_motion, with_policy  # noqa: E402

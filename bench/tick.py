@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from sim.closed_loop import tick_timings  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.obstacles import Obstacles  # noqa: E402

@@ -25,7 +25,8 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import add_set_option, set_overrides, tick_timings  # noqa: E402
+from bench import add_set_option, set_overrides  # noqa: E402
+from sim.closed_loop import tick_timings  # noqa: E402
 from bench.planner import CASES, setup_for  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 
