@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import logging
 import socket
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -27,15 +25,13 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from tests.support.app_helpers import wait_for
+from tests.support.processes import run_json
 
 from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.df_input import Source, parse_sources
 from onboard.config import load_scenario
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-import df_flood  # noqa: E402
 
 M = 4
 
@@ -66,8 +62,7 @@ def _ticked(app: OnboardApp) -> list[float]:
 @pytest.mark.sitl
 @pytest.mark.timeout(300)
 def test_flight_under_overflow_then_foreign_flood_misses_no_tick_and_uses_every_scan():
-    phases = [dict(p, seconds=3.0) for p in df_flood.PHASES]
-    r = df_flood.flood(phases, speedup=3.0, log=lambda s: None)
+    r = run_json("bench.df_flood", "--seconds", "3", "--speedup", "3", timeout=290)
     assert r["phases_done"], r
     overflow, foreign = r["phases"]
     assert overflow["rate_hz"] >= 190 and foreign["rate_hz"] >= 19000, r
