@@ -1,7 +1,7 @@
 """Which route puts the targets on a ground station's map without the autopilot taking them as
 traffic: measured on ArduCopter SITL (4.4.0-dev, ../shared/ardupilot) with the real programs.
 
-    python bench/adsb_route.py [--avoidance on|off] [--monitor 60] [--inject 20] [--speedup 2]
+    python -m bench.adsb_route [--avoidance on|off] [--monitor 60] [--inject 20] [--speedup 2]
 
 One flight (sim.procedure.Mission: SITL, ``pmon run``, ``pmon feed live``, ``pmon gcs launch``):
 
@@ -26,12 +26,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sim.ardupilot import skip_reason
+from sim.procedure import Mission, MissionConfig
+from sim.hub_route import AVOIDANCE, Recorder, hub_route, mode_changes
 
-from sim.ardupilot import skip_reason  # noqa: E402
-from sim.procedure import Mission, MissionConfig  # noqa: E402
-from sim.hub_route import AVOIDANCE, Recorder, hub_route, mode_changes  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> int:
@@ -54,8 +53,6 @@ def main() -> int:
     print(json.dumps(res, indent=1))
     print(json.dumps(res))
     return 0
-
-
 
 
 def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Path) -> dict:

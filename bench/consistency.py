@@ -1,6 +1,6 @@
 """Filter consistency per method: where the average NEES comes from (bulk or tails).
 
-    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
+    python -m bench.consistency [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
                                 [--set tracking.regularise_bandwidth=0 ...] [--out DIR]
 
 Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
@@ -23,16 +23,13 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.metrics import error_split  # noqa: E402
+from bench import add_set_option, set_overrides
+from onboard.config import load_scenario
+from sim import evaluation as ev
+from sim.metrics import error_split
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
@@ -117,7 +114,7 @@ def main() -> int:
         ap.error("--trial-ids: trial numbers are >= 0")
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
                       workers=args.workers, trial_ids=ids, out=args.out,
-                      command="python bench/consistency.py " + " ".join(sys.argv[1:]))
+                      command="python -m bench.consistency " + " ".join(sys.argv[1:]))
     report(res)
     return 0
 

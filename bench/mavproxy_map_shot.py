@@ -1,6 +1,6 @@
 """A picture of MAVProxy's map with the targets as traffic, headless (Xvfb): docs/mavproxy_map.png.
 
-    python bench/mavproxy_map_shot.py --mavproxy-python PYTHON [--out docs/mavproxy_map.png]
+    python -m bench.mavproxy_map_shot --mavproxy-python PYTHON [--out docs/mavproxy_map.png]
 
 PYTHON runs MAVProxy 1.8.74 with its map module (wxPython and OpenCV: Debian's python3-wxgtk4.0
 and python3-opencv in a venv made with --system-site-packages). The vehicle is the hub tests'
@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def main() -> int:

@@ -1,6 +1,6 @@
 """The lookahead's multi-step EKF route score against a particle rollout of the same routes.
 
-    python bench/route_score.py [--ticks 10,25,40,60,80] [--particles 2000] [--motion jump]
+    python -m bench.route_score [--ticks 10,25,40,60,80] [--particles 2000] [--motion jump]
                                 [--seed 1] [--set KEY=VALUE ...]
 
 The planner (docs/PLANNING.md, "The route planner") scores each of its ~150 routes over H = 50 ticks with a
@@ -33,13 +33,9 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario, override  # noqa: E402

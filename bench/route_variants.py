@@ -1,6 +1,6 @@
 """How the route planner scores and refines its routes: two experiments (not the flight path).
 
-    python bench/route_variants.py --out DIR [--refine ITERATIONS] [--block TICKS] [--per-target trace|sqrt]
+    python -m bench.route_variants --out DIR [--refine ITERATIONS] [--block TICKS] [--per-target trace|sqrt]
                                 [--trials 100] [--seed 2024] [--methods flight@stock] [--workers 2]
                                 [--set KEY=VALUE ...]
 
@@ -29,22 +29,19 @@ import os
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 from scipy.optimize import minimize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.core import planners as _planners  # noqa: E402
-from onboard.core import planning as _planning  # noqa: E402
-from onboard.core.information import bearing_update_components, predict_planar_components  # noqa: E402
-from onboard.core.information import PLANAR, planar_model  # noqa: E402
-from onboard.core.planning import _first_step, blocking_2d  # noqa: E402
-from onboard.core.tracking import logsumexp  # noqa: E402
-from sim.ceiling import clearance, kinematics  # noqa: E402
-from sim.route_score import score  # noqa: E402
+from onboard.core import planners as _planners
+from onboard.core import planning as _planning
+from onboard.core.information import bearing_update_components, predict_planar_components
+from onboard.core.information import PLANAR, planar_model
+from onboard.core.planning import _first_step, blocking_2d
+from onboard.core.tracking import logsumexp
+from sim.ceiling import clearance, kinematics
+from sim.route_score import score
 
 # environment: the spawned workers import this module and read their settings from it
 ITER, BLOCK, LOG, PER_TARGET = "PMON_REFINE_ITERATIONS", "PMON_REFINE_BLOCK", "PMON_REFINE_LOG", "PMON_PER_TARGET"

@@ -1,6 +1,6 @@
 """How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
 
-    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
+    python -m bench.truth_guidance [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
                                    [--per-trial CSV ...] [--set KEY=VALUE ...]
 
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
@@ -27,13 +27,9 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 from collections import Counter  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from itertools import groupby  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 

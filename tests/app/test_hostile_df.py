@@ -4,7 +4,7 @@ Over real UDP sockets:
   * a flight (bench/df_flood.py's harness, short form): 200 datagrams/s carrying integers too
     large for a float from an accepted host, then 20 000 datagrams/s from a foreign address,
     3 s each: 0 tracebacks, 0 missed ticks, every good scan of the feed used, setpoints and
-    heartbeats on time; the full 10 s figures come from ``python bench/df_flood.py``;
+    heartbeats on time; the full 10 s figures come from ``python -m bench.df_flood``;
   * the source filter: the first valid peer locks the DF input (garbage cannot), or
     ``df_sources``; others are dropped unparsed and reported once each;
   * the per-source rate limit: a sender over it loses its excess, counted, said once;

@@ -347,7 +347,7 @@ def test_parameters_list_read_set(ap, gcs):
         top = max(top, math.hypot(*ap.state().vel_ned[:2]))
         time.sleep(0.01)
     # the shaped path asks for 4 m/s at most; the copter following it overshoots a little, as
-    # ArduPilot's SITL does (4.08 and 4.12 m/s in two runs of python bench/sitl_response.py
+    # ArduPilot's SITL does (4.08 and 4.12 m/s in two runs of python -m bench.sitl_response
     # --limits stock --param WPNAV_SPEED=400 --cases step60)
     assert 3.5 < top <= 4.15
 

@@ -1,6 +1,6 @@
 """sim.multicopter and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
 
-The reference is tests/data/sitl_response.json.gz: what ``python bench/sitl_response.py --save
+The reference is tests/data/sitl_response.json.gz: what ``python -m bench.sitl_response --save
 tests/data/sitl_response.json.gz`` recorded on the real SITL, at ArduCopter's stock limits and
 the demo's: a velocity command far above the airframe's top speed, 20 m and 100 m position
 steps, a 10 Hz position + velocity ramp, and planner-like routes at 90 % and 70 % of the top speed
@@ -39,7 +39,7 @@ DATA = Path(__file__).parents[1] / "data" / "sitl_response.json.gz"
 DT = 0.02  # 50 Hz, as the mock autopilot steps the model
 HOVER = VehicleState(pos=(0.0, 0.0, -10.0))
 # RMS position error allowed over a whole recorded trace (m). The model's, at the fitted
-# airframe (python bench/sitl_response.py --replay tests/data/sitl_response.json.gz): 0.14-0.61 m,
+# airframe (python -m bench.sitl_response --replay tests/data/sitl_response.json.gz): 0.14-0.61 m,
 # and 1.47-1.52 m on the routes sent as the next point with its velocity (the form the SITL flies
 # least repeatably: its p95 next-tick distance on the stock 90 % route was 29, 9 and 9 m in three
 # runs of the bench). The kinematic model this one replaced: 3.3 m on the stock top-speed trace,
@@ -316,7 +316,7 @@ def test_live_sitl_flies_a_short_route_as_the_model():
 # --------------------------------------------------------------------------- PX4 (issue 30)
 DATA_PX4 = Path(__file__).parents[1] / "data" / "sitl_response_px4.json.gz"
 # RMS position error over each recorded PX4 trace, and the next-tick distance, model against SITL
-# (python bench/sitl_response.py --replay tests/data/sitl_response_px4.json.gz)
+# (python -m bench.sitl_response --replay tests/data/sitl_response_px4.json.gz)
 RMS_MAX_PX4_M = 1.0
 
 
