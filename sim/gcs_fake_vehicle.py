@@ -9,8 +9,8 @@ import socket
 import threading
 import time
 
-from onboard.app.mavlink_connection import mavlink  # sets MAVLINK20 before pymavlink loads
-from pymavlink import mavutil
+from onboard.app.mavlink2 import mavutil
+from onboard.app.mavlink_connection import mavlink
 
 
 def free_udp_port() -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
-from sim.gcs_fake_vehicle import Client, FakeVehicle, free_udp_port, target_values  # MAVLINK20 first
+from sim.gcs_fake_vehicle import Client, FakeVehicle, free_udp_port, target_values
 from groundstation.hub import Hub, HubLink
 from groundstation.hub_options import HubConfig
 from onboard.app.pose import Frame

@@ -63,7 +63,7 @@ class HubClient:
 
     def __init__(self, port: int):
         from onboard.app.mavlink_connection import mavlink
-        from pymavlink import mavutil
+        from onboard.app.mavlink2 import mavutil
         self.mavlink = mavlink
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=240,
                                                source_component=190, dialect="ardupilotmega")

@@ -4,17 +4,12 @@ flown. The cases and their figures are in sim/sitl_response_cases.py.
 """
 from __future__ import annotations
 
-import os
+import math
+import struct
+import time
+from dataclasses import dataclass, field
 
-os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported
-
-import math  # noqa: E402
-import struct  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+from onboard.app.mavlink2 import mavlink, mavutil
 
 HOME = (35.145, 33.411, 160.0)
 ALT_M = 20.0

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from sim.gcs_fake_vehicle import Client, target_values  # MAVLINK20 first
+from sim.gcs_fake_vehicle import Client, target_values
 from groundstation import adsb as A
 from groundstation.estimates import radius_1sigma_m
 from onboard.app.mavlink_connection import mavlink

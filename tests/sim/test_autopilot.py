@@ -8,10 +8,9 @@ import time
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode
 from sim.mock_links import Endpoint
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 pytestmark = pytest.mark.sitl
 
