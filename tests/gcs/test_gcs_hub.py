@@ -1,6 +1,6 @@
 """``pmon gcs hub`` on loopback: one vehicle link shared by ground stations, the targets as
 ADSB_VEHICLE to them (never to the vehicle), hostile PMON_TGT refused and counted. The vehicle
-is a pymavlink peer sending what the app and an autopilot send (tests/support/gcs_fake_vehicle.py);
+is a pymavlink peer sending what the app and an autopilot send (sim/gcs_fake_vehicle.py);
 the clients are pymavlink connections as QGroundControl's and MAVProxy's parsers see them."""
 from __future__ import annotations
 
