@@ -2,7 +2,7 @@
 it, against the hub route that never sends it there: a short pymavlink-driven flight (the app
 does not speak PX4 yet).
 
-    python bench/adsb_route_px4.py [--instance 8] [--traff-avoid 1] [--inject 15] [--hub 15]
+    python -m bench.adsb_route_px4 [--instance 8] [--traff-avoid 1] [--inject 15] [--hub 15]
 
 PX4 runs as ``run-sih.sh INSTANCE 1 WORKDIR`` with ``PX4_PARAM_NAV_TRAFF_AVOID`` (0 off, 1 warn:
 the default, 2 return, 3 land, 4 hold). This process is a companion on the Offboard/API link
@@ -33,12 +33,10 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-os.environ["MAVLINK20"] = "1"
-from pymavlink import mavutil  # noqa: E402
+from onboard.app.mavlink2 import mavutil
+from onboard.app.mavlink_connection import mavlink
 
-from onboard.app.mavlink_connection import mavlink  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RUN_SIH = ROOT.parent.parent / "shared" / "px4" / "run-sih.sh" if not (ROOT.parent / "shared").exists() \
     else ROOT.parent / "shared" / "px4" / "run-sih.sh"
@@ -157,7 +155,7 @@ def _hub_route(comp: Watch, n: int, wd: Path, home, frame, seconds: float) -> di
     import re
 
     from groundstation import adsb as A
-    from tests.support.gcs_fake_vehicle import free_udp_port, target_values
+    from sim.gcs_fake_vehicle import free_udp_port, target_values
 
     port = free_udp_port()
     paper = (ROOT / "onboard" / "data" / "paper.yaml").read_text()  # the mission at PX4's home
@@ -213,7 +211,7 @@ def _autopilot_route(comp: Watch, payload: Watch, frame, seconds: float) -> dict
     """A: the targets' ADSB_VEHICLE into PX4 on the companion link at 1 Hz."""
     from groundstation import adsb as A
     from groundstation.estimates import check
-    from tests.support.gcs_fake_vehicle import target_values
+    from sim.gcs_fake_vehicle import target_values
 
     def estimate(j, x, y):
         class T:

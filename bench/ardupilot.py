@@ -3,7 +3,7 @@ with the real programs, and its figures: every scan ticked, every setpoint held 
 the takeover reactions, the copter from the planned point at the next tick, the estimates' error,
 where the copter flew, the firmware's crashes.
 
-    python bench/ardupilot.py [--autopilot ardupilot|px4|mock] [--params stock|recommended]
+    python -m bench.ardupilot [--autopilot ardupilot|px4|mock] [--params stock|recommended]
                               [--monitor 100] [--speedup 2] [--policy flight|paper] [--seed 1] [--out DIR]
                               [--rt-priority N]
 
@@ -25,13 +25,12 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sim.ardupilot import skip_reason
+from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, figures, fly_launch_procedure
+from sim.px4 import RECOMMENDED_PARAMS as PX4_RECOMMENDED
+from sim.px4 import skip_reason as px4_skip_reason
 
-from sim.ardupilot import skip_reason  # noqa: E402
-from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, figures, fly_launch_procedure  # noqa: E402
-from sim.px4 import RECOMMENDED_PARAMS as PX4_RECOMMENDED  # noqa: E402
-from sim.px4 import skip_reason as px4_skip_reason  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 # a pilot's takeovers, each followed by resume
 TAKEOVERS = {"px4": (("mode", "HOLD"), ("mode", "POSCTL")), "ardupilot": (("mode", "LOITER"), ("hold",)),

@@ -2,12 +2,12 @@
 vehicle at given limits would fly knowing the true target trajectories, chosen to minimise the
 evaluation's PCRB, beside the flight default's PCRB and RMSE on the same trial.
 
-    python bench/ceiling.py run    --trials 100 [--speed 9 --accel 2.5] [--starts quick|all]
-    python bench/ceiling.py check  --trials 10  [--speed 9 --accel 2.5]    # near-optimality
-    python bench/ceiling.py hop    --trials 20  [--rounds 3]                # basin hopping from it
-    python bench/ceiling.py aggregate --trials 100                         # the N-trial bound itself
-    python bench/ceiling.py greedy --trials 10                             # the myopic far path
-    python bench/ceiling.py report [--figures DIR]
+    python -m bench.ceiling run    --trials 100 [--speed 9 --accel 2.5] [--starts quick|all]
+    python -m bench.ceiling check  --trials 10  [--speed 9 --accel 2.5]    # near-optimality
+    python -m bench.ceiling hop    --trials 20  [--rounds 3]                # basin hopping from it
+    python -m bench.ceiling aggregate --trials 100                         # the N-trial bound itself
+    python -m bench.ceiling greedy --trials 10                             # the myopic far path
+    python -m bench.ceiling report [--figures DIR]
 
 Common options: --seed 2024, --cache DIR (the trials, bench/ceiling_cache.py fills it: the
 evaluation's truth, gains, start and flight@stock run, as ``pmon eval paper --seed 2024 --methods
@@ -26,14 +26,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from sim.numerics import PINNED  # noqa: E402  (no numpy import)
+from sim.numerics import PINNED  # no numpy import
 
 for _k, _v in PINNED.items():  # the evaluation's kernels (sim/numerics.py), set before numpy loads
     os.environ.setdefault(_k, _v)

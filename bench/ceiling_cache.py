@@ -1,7 +1,7 @@
 """The evaluation's trials, cached for bench/ceiling.py: truth, closed-loop gains, UAV start and
 the flight default's flown path, PCRB and error, one ``.npz`` per trial.
 
-    python bench/ceiling_cache.py --trials 100 [--seed 2024] [--cache /tmp/ceiling_cache]
+    python -m bench.ceiling_cache --trials 100 [--seed 2024] [--cache /tmp/ceiling_cache]
                                   [--methods flight@stock] [--workers 1]
 
 Each trial is ``sim.evaluation.run_trial`` (``pmon eval paper --seed 2024 --methods ...``, trial
@@ -14,18 +14,15 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.numerics import pin_kernels  # noqa: E402
+from onboard.config import load_scenario
+from onboard.core.monitor import MonitorSetup
+from sim import evaluation as ev
+from sim.numerics import pin_kernels
 
 DEFAULT_CACHE = "/tmp/ceiling/cache"
 FLIGHT = "flight_at_stock"

@@ -1,4 +1,4 @@
-"""``python bench/ceiling.py report``: the tables and figures of the clairvoyant ceiling from what
+"""``python -m bench.ceiling report``: the tables and figures of the clairvoyant ceiling from what
 the other stages left in --out (bench/ceiling.py's docstring).
 
 Figures (``--figures DIR``): ceiling_paths.png (the ceiling's, the flight default's and the

@@ -1,6 +1,6 @@
 """Filter consistency per method: where the average NEES comes from (bulk or tails).
 
-    python bench/consistency.py [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
+    python -m bench.consistency [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
                                 [--set tracking.regularise_bandwidth=0 ...] [--out DIR]
 
 Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
@@ -23,15 +23,13 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
+from bench import add_set_option, set_overrides
+from onboard.config import load_scenario
+from sim import evaluation as ev
+from sim.metrics import error_split
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
@@ -78,41 +76,6 @@ def figures(cfg, results) -> dict:
     return out
 
 
-NEAR_M = 60.0  # a target this close to an obstacle box (m, plan view) counts as rounding it
-
-
-def error_split(cfg, results, m: str) -> dict:
-    """Where a UAV method's window error lies: its RMS along and across each target's line of
-    sight from the UAV (m; along: the range error a bearing cannot see), for the ticks a target
-    is within ``NEAR_M`` of an obstacle (rounding it: the side the filter may not know) and the
-    rest, with each part's share of the squared error and its mean range (m)."""
-    boxes = [(np.asarray(b.center_m[:2], float), np.asarray(b.size_m[:2], float) / 2) for b in cfg.scenario.obstacles]
-    w = slice(cfg.window_start, None)
-    parts = {"near": [], "free": []}
-    for r in results:
-        t = r.truth[w, :, :2]  # (K, M, 2)
-        e = r.traces[m].estimate_xy[w] - t
-        los = t - r.traces[m].uav[w, None, :2]
-        rng_m = np.linalg.norm(los, axis=2)
-        u = los / np.maximum(rng_m, 1e-9)[..., None]
-        along = np.sum(e * u, axis=2)
-        across = e[..., 1] * u[..., 0] - e[..., 0] * u[..., 1]
-        d = np.min([np.linalg.norm(np.maximum(np.abs(t - c) - h, 0.0), axis=2) for c, h in boxes], axis=0) \
-            if boxes else np.full(rng_m.shape, np.inf)
-        for key, sel in (("near", d < NEAR_M), ("free", d >= NEAR_M)):
-            parts[key].append(np.stack([along[sel], across[sel], rng_m[sel]]))
-    total = sum(float(np.sum(np.hstack(v)[:2] ** 2)) for v in parts.values())
-    out = {}
-    for key, v in parts.items():
-        a = np.hstack(v)
-        if a.shape[1]:
-            out[key] = {"share": round(float(np.sum(a[:2] ** 2)) / total, 2), "cells": int(a.shape[1]),
-                        "along_m": round(float(np.sqrt(np.mean(a[0] ** 2))), 1),
-                        "across_m": round(float(np.sqrt(np.mean(a[1] ** 2))), 1),
-                        "range_m": round(float(np.mean(a[2])))}
-    return out
-
-
 def report(res: dict, label: str = "") -> None:
     """Print consistency()'s figures a method a line (and RMSE / bound a line), then the JSON."""
     for name, r in res.items():
@@ -151,7 +114,7 @@ def main() -> int:
         ap.error("--trial-ids: trial numbers are >= 0")
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
                       workers=args.workers, trial_ids=ids, out=args.out,
-                      command="python bench/consistency.py " + " ".join(sys.argv[1:]))
+                      command="python -m bench.consistency " + " ".join(sys.argv[1:]))
     report(res)
     return 0
 

@@ -3,7 +3,7 @@ beside N busy processes at normal priority: the tick's CPU time (what the demo m
 wall time (what it measured before), each a median of ``--repeat`` measurements, and the
 speed-up each would choose.
 
-    python bench/demo_speedup.py [--busy 2] [--repeat 5]
+    python -m bench.demo_speedup [--busy 2] [--repeat 5]
 
 Last line: JSON figures.
 """

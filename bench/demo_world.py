@@ -1,6 +1,6 @@
 """`pmon demo --seed N`'s world flown offline: where a demo's error comes from.
 
-    python bench/demo_world.py [--seeds 1,2,3,4,5] [--repeats 10] [--launch 17] [--workers 2]
+    python -m bench.demo_world [--seeds 1,2,3,4,5] [--repeats 10] [--launch 17] [--workers 2]
                                [--variants eval,demo_limits,launch,demo] [--runs DIR_PATTERN]
                                [--starts 0] [--replay-draws 10] [--replay-guidance-s S] [--set KEY=VALUE ...]
 
@@ -44,9 +44,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from sim.workers import one_blas_thread  # noqa: E402
+from sim.workers import one_blas_thread
 
 # before numpy loads BLAS: the side-aware filter amplifies last-bit differences (sim/evaluation.py
 # run_trials), so only one thread gives the same figures in this process as in the workers
@@ -185,7 +183,7 @@ def check(sc, n_scans: int) -> bool:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/demo_world.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.demo_world", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1,2,3,4,5")
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--launch", type=int, default=DEMO_LAUNCH_SCANS, help="scans of the demo's launch")

@@ -1,6 +1,6 @@
 """The onboard app's DF input under hostile floods, flown against the mock autopilot (issue 23).
 
-    python bench/df_flood.py [--speedup 1] [--seconds 10]
+    python -m bench.df_flood [--speedup 1] [--seconds 10]
 
 One mission like bench/latency.py (mock autopilot + app in this process, ``pmon feed live`` as
 the DF, a process of its own), the app accepting DF datagrams from host 127.0.0.1 (any port:
@@ -31,8 +31,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
 OVERFLOW = [
     b'{"v":1,"t":1' + b"0" * 400 + b',"ch":0,"bearings_rad":[]}',
@@ -136,7 +134,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     """Fly, and once the app monitors (``warm_ticks`` planned ticks in), run each phase
     (``{"name", "kind", "rate_hz", "seconds", "src"}``) one after the other from a sender
     process; returns the figures (see the module doc)."""
-    import latency
+    from bench import latency
     from onboard.app.contract import State
     from onboard.app.df_input import Source
 

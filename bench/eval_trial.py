@@ -1,6 +1,6 @@
 """Cost of one evaluation trial, per method, and of one DAQP call in either form of the QP.
 
-    python bench/eval_trial.py [--trial 0] [--methods greedy_l1,greedy_l8,fixed3,hover,orbit,random]
+    python -m bench.eval_trial [--trial 0] [--methods greedy_l1,greedy_l8,fixed3,hover,orbit,random]
                                [--set tracking.plan_steering=true ...]
 
 One trial as `pmon eval` runs it (seed 2024), in this process on one core: the truth (with the
@@ -16,22 +16,19 @@ import json
 import os
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import daqp  # noqa: E402
-import numpy as np  # noqa: E402
+import daqp
+import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.truth import simulate_truth  # noqa: E402
+from bench import add_set_option, set_overrides
+from onboard.config import load_scenario
+from onboard.core.guidance import GuidanceParams, GuidanceWorkspace
+from onboard.core.monitor import MonitorSetup
+from sim import evaluation as ev
+from sim.truth import simulate_truth
 
 
 def trial_times(trial: int, methods: list[str], overrides: dict | None = None) -> dict:

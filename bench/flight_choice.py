@@ -1,6 +1,6 @@
 """Variants of the flight default on the same trials: which setting measures best.
 
-    python bench/flight_choice.py [--trials 100] [--seed 2024] [--workers 2] [--autopilot stock]
+    python -m bench.flight_choice [--trials 100] [--seed 2024] [--workers 2] [--autopilot stock]
                                   [--variant NAME KEY=VALUE ...] ... [--with greedy_l1,lookahead,fixed3]
                                   [--out DIR] [--against CSV:METHOD ...] [--set KEY=VALUE ...]
 
@@ -25,16 +25,13 @@ import json
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from bench.consistency import figures  # noqa: E402
-from onboard.config import ConfigError, load_scenario, parse_overrides  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
+from bench import add_set_option, set_label, set_overrides
+from bench.consistency import figures
+from onboard.config import ConfigError, load_scenario, parse_overrides
+from sim import evaluation as ev
 
 BASE = "flight"
 
@@ -76,7 +73,7 @@ def paired_against(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[tuple, tupl
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/flight_choice.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.flight_choice", description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--workers", type=int, default=None)
@@ -147,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
               f"RMS of per-trial RMSE over its {ratio[0]:.3f} ({ratio[1]:.3f}, {ratio[2]:.3f})")
         out[f"{base.name} against {spec}"] = {"minus_m": [round(x, 4) for x in d], "over": [round(x, 4) for x in ratio]}
     if args.out:
-        command = "python bench/flight_choice.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        command = "python -m bench.flight_choice " + " ".join(sys.argv[1:] if argv is None else argv)
         ev.write_outputs(summary, trials, args.out, command, figures=False)
     print(json.dumps(out))
     return 0

@@ -1,7 +1,7 @@
 """Where the copter's distance from the plan comes from, tick by tick, in a flight's run log
-(``python bench/ardupilot.py --out DIR`` keeps it; docs/SITL.md, "Following the plan").
+(``python -m bench.ardupilot --out DIR`` keeps it; docs/SITL.md, "Following the plan").
 
-    python bench/follow_ticks.py DIR [--ticks] [--step 3.0]
+    python -m bench.follow_ticks DIR [--ticks] [--step 3.0]
 
 For each monitoring tick that ``sim.procedure.follow_errors_m`` scores: the distance from the
 planned point to the vehicle at the next scan, split along and across the planned velocity; the
@@ -22,10 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from onboard.core.setpoint import plan_setpoint
 
-from onboard.core.setpoint import plan_setpoint  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _state(seg: dict, at: float):

@@ -6,7 +6,7 @@ link, find the vehicle, send, wait for the acknowledgement (or the data), close.
 start-up and imports are not in it; a cold ``pmon-gcs status`` process is measured separately.
 Target: median <= 1 s per command. Ends with one JSON line.
 
-    python bench/gcs_latency.py [--repeat 5]
+    python -m bench.gcs_latency [--repeat 5]
 """
 from __future__ import annotations
 
@@ -21,11 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from sim.stack import SitlStack
 
-from sim.stack import SitlStack  # noqa: E402  (sets MAVLINK20 before pymavlink)
-
-from groundstation.cli import main  # noqa: E402
+from groundstation.cli import main
 
 TARGET_S = 1.0
 RNG = random.Random(6)

@@ -1,7 +1,7 @@
 """One target's plan at one step of a trial's truth, checked against every face-switch timing.
 
-    python bench/guidance_switches.py TRIAL TARGET T OBSTACLE FACES [--trials 100] [--seed 2024]
-    e.g.  python bench/guidance_switches.py 65 4 24 2 1,0,3
+    python -m bench.guidance_switches TRIAL TARGET T OBSTACLE FACES [--trials 100] [--seed 2024]
+    e.g.  python -m bench.guidance_switches 65 4 24 2 1,0,3
 
 Flies trial TRIAL's truth (as ``pmon eval paper --trials N --seed S`` does) to the plan target
 TARGET (from 1) makes at t = T s, and prints: that plan; the best plan on the previous plan's side
@@ -22,14 +22,10 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import itertools  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace, plan_guidance, winding  # noqa: E402

@@ -1,8 +1,8 @@
 """Our P1 solver against the exact MIQP (SCIP) of the same problem, on random instances.
 
-    python bench/guidance_vs_miqp.py [--instances 100] [--horizon 10] [--seed 11]
+    python -m bench.guidance_vs_miqp [--instances 100] [--horizon 10] [--seed 11]
 
-Each instance: 1-3 rotated cuboids, a start and a goal 120-180 m ahead behind them (bench/miqp_reference.py
+Each instance: 1-3 rotated cuboids, a start and a goal 120-180 m ahead behind them (sim/miqp_reference.py
 ``random_instance``), the paper's weights and limits, horizon T. Ours runs cold (no previous plan,
 as on a target's first tick). The exact solve gets 60 s. Prints a line per instance and, last,
 one JSON line: ``instances`` (compared: the exact solver found a solution), ``within_1pct_fraction``,
@@ -13,18 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.miqp_reference import random_instance, solve_p1_exact  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.dynamics import MotionModel  # noqa: E402
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, plan_guidance  # noqa: E402
+from sim.miqp_reference import random_instance, solve_p1_exact
+from onboard.config import load_scenario
+from onboard.core.dynamics import MotionModel
+from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, plan_guidance
 
 
 def main() -> None:

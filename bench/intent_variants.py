@@ -1,6 +1,6 @@
 """The intent filter's constants and settings varied on a few trials (exploration, not the flight path).
 
-    python bench/intent_variants.py KIND TRIALS [NAME=VALUE,...] [--set KEY=VALUE ...]
+    python -m bench.intent_variants KIND TRIALS [NAME=VALUE,...] [--set KEY=VALUE ...]
 
 Runs ``pmon eval``'s trials (seed 2024, method flight@stock, truth ``KIND`` of sim/truth_kinds.py,
 ``KIND+told`` for a told filter) in this process, one after the other, with module constants of
@@ -15,14 +15,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_overrides  # noqa: E402
+from bench import add_set_option, set_overrides
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,10 +1,10 @@
 """KrakenSDR as the DF (issue 32): is the spectrum's set of peaks worth it, and does the KrakenSDR
 path lose anything against the datagram feed?
 
-    python bench/kraken.py core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_adaptive,native]
+    python -m bench.kraken core [--trials 20] [--seed 2024] [--workers 1] [--arms main,peaks,peaks_adaptive,native]
                                 [--duration 100] [--df-clutter LAMBDA] [--set KEY=VALUE ...]
                                 (an arm peaks:F or peaks_adaptive:F: with peak_floor_db F)
-    python bench/kraken.py stack [--seeds 1,2,3] [--duration 100] [--speedup 3] [--multipath off]
+    python -m bench.kraken stack [--seeds 1,2,3] [--duration 100] [--speedup 3] [--multipath off]
 
 ``core``: the paper's scenario and method (the greedy one-step rule, jump moves, as ``pmon eval``'s
 greedy_l1), 100 s per trial, each trial's truth and UAV start shared by every arm. Per tick the
@@ -49,9 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.config import load_scenario  # noqa: E402
+from onboard.config import load_scenario
 
 ARMS = ("main", "peaks", "peaks_adaptive", "native")
 UNIX0 = 1_700_000_000.0
@@ -283,7 +281,7 @@ def stack(args) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/kraken.py", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.kraken", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="mode", required=True)
     c = sub.add_parser("core", help="paired trials of the measurement set, no sockets")
     c.add_argument("--trials", type=int, default=20)

@@ -1,6 +1,6 @@
 """Setpoint latency and missed ticks of the onboard app, flown against the mock autopilot.
 
-    python bench/latency.py [--duration 600] [--speedup 5]
+    python -m bench.latency [--duration 600] [--speedup 5]
 
 Mock autopilot and app run in this process (threads, real loopback sockets); the DF feed is a
 process of its own (``pmon feed live``, as on the vehicle: its truth world must not hold this
@@ -32,14 +32,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from sim.demo import DEMO_READY_S
+from sim.rig import Rig, RigConfig
+from sim.tick_account import TickAccount, scan_times
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from sim.autopilot import MockAutopilot  # noqa: E402,F401  (sets MAVLINK20 first)
-from sim.demo import DEMO_READY_S  # noqa: E402
-from sim.rig import Rig, RigConfig  # noqa: E402
-from sim.tick_account import TickAccount, scan_times  # noqa: E402
 
 
 def fly(duration: float, speedup: float, seed: int, cfg_extra: dict | None = None, on_app=None,

@@ -3,8 +3,8 @@ app and the mock in this process, the DF feed a process) or the documented proce
 firmware's SITL (``--procedure ardupilot|px4``: bench/ardupilot.py, every program a process)
 beside N busy processes at normal priority, with or without the app's real-time threads.
 
-    python bench/load.py [--busy 2] [--duration 100] [--speedup 1] [--rt-priority 0]
-    python bench/load.py --procedure ardupilot [--busy 2] [--duration 100] [--speedup 2] [--rt-priority 0]
+    python -m bench.load [--busy 2] [--duration 100] [--speedup 1] [--rt-priority 0]
+    python -m bench.load --procedure ardupilot [--busy 2] [--duration 100] [--speedup 2] [--rt-priority 0]
 
 ``--rt-priority N``: the app's io thread at SCHED_FIFO N and its worker at N - 1 (as ``pmon run
 --rt-priority``), and the simulated vehicle (the mock's thread, the feed process: on a vehicle
@@ -24,14 +24,12 @@ import sys
 import threading
 from pathlib import Path
 
+from bench import latency
+
+from onboard.app.contract import OVERRUN_STAGES
+from onboard.app.realtime import set_fifo
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-import latency  # noqa: E402  (sets MAVLINK20 first)
-
-from onboard.app.contract import OVERRUN_STAGES  # noqa: E402
-from onboard.app.realtime import set_fifo  # noqa: E402
 
 BUSY = "while True: pass"
 
@@ -96,11 +94,11 @@ def procedure(args) -> int:
     busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(args.busy)]
     boosted: set[int] = set()
     with tempfile.TemporaryDirectory() as out:
-        argv = [sys.executable, str(ROOT / "bench" / "ardupilot.py"), "--autopilot", args.procedure,
+        argv = [sys.executable, "-m", "bench.ardupilot", "--autopilot", args.procedure,
                 "--monitor", f"{args.duration:g}", "--speedup", f"{args.speedup:g}", "--seed", str(args.seed),
                 "--out", out, "--rt-priority", str(args.rt_priority)]
         try:
-            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True)
+            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, cwd=ROOT)
             while proc.poll() is None:
                 if args.rt_priority > 0:
                     for pid, a in _descendants().items():

@@ -1,6 +1,6 @@
 """A picture of MAVProxy's map with the targets as traffic, headless (Xvfb): docs/mavproxy_map.png.
 
-    python bench/mavproxy_map_shot.py --mavproxy-python PYTHON [--out docs/mavproxy_map.png]
+    python -m bench.mavproxy_map_shot --mavproxy-python PYTHON [--out docs/mavproxy_map.png]
 
 PYTHON runs MAVProxy 1.8.74 with its map module (wxPython and OpenCV: Debian's python3-wxgtk4.0
 and python3-opencv in a venv made with --system-site-packages). The vehicle is the hub tests'
@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def main() -> int:
@@ -31,7 +30,7 @@ def main() -> int:
     if shutil.which("Xvfb") is None:
         print("no Xvfb (Debian: apt-get install xvfb)")
         return 2
-    from tests.support.hub_rig import FRAME, Rig
+    from sim.hub_rig import FRAME, Rig
 
     xvfb = subprocess.Popen(["Xvfb", args.display, "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

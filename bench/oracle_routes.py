@@ -1,6 +1,6 @@
 """What the route planner would fly if it knew where the targets will be: an oracle experiment.
 
-    python bench/oracle_routes.py --out DIR [--trials 100] [--seed 2024] [--methods flight@stock]
+    python -m bench.oracle_routes --out DIR [--trials 100] [--seed 2024] [--methods flight@stock]
                                   [--workers 2] [--to-the-end] [--set KEY=VALUE ...]
 
 ``pmon eval paper`` on the same trials (same truths, starts and DF draws), with one change in the
@@ -18,15 +18,12 @@ from __future__ import annotations
 import os
 import sys
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.core import planners as _planners  # noqa: E402
-from sim import evaluation as _ev  # noqa: E402
+from onboard.core import planners as _planners
+from sim import evaluation as _ev
 
 _NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run
 TO_THE_END = "PMON_ORACLE_TO_THE_END"  # environment: inherited by the spawned workers

@@ -1,6 +1,6 @@
 """What the filter would reach if it knew how the true target steers: an oracle experiment.
 
-    python bench/oracle_steering.py [--methods lookahead,greedy_l1,orbit] [--trials 16]
+    python -m bench.oracle_steering [--methods lookahead,greedy_l1,orbit] [--trials 16]
 
 Runs ``bench/consistency.py``'s figures on the same trials as ``pmon eval``, with one change in
 the filter's prediction: every particle of target j at tick k is moved with the TRUE target's
@@ -14,15 +14,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.core import steering as _steering  # noqa: E402
-from sim import evaluation as _ev  # noqa: E402
-from sim import truth as _truth  # noqa: E402
+from onboard.core import steering as _steering
+from sim import evaluation as _ev
+from sim import truth as _truth
 
 _NOW = {"tick": 0, "target": 0}  # which prediction the filter is making (ticks run in order)
 _TRUE: dict[str, np.ndarray] = {}  # the current trial's true states, controls and gains

@@ -1,6 +1,6 @@
 """Methods of several stored ``pmon eval`` runs, paired trial by trial.
 
-    python bench/paired.py DIR[:METHOD[=LABEL]] ... [--against LABEL]
+    python -m bench.paired DIR[:METHOD[=LABEL]] ... [--against LABEL]
 
 Each argument names a run's output directory (its per_trial.csv, rmse.csv and results.md) and,
 optionally, one of its methods and the label it gets here (default: every method of the run,
@@ -20,14 +20,11 @@ import argparse
 import csv
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.flight_choice import paired_against  # noqa: E402
+from bench.flight_choice import paired_against
 
 
 def run_header(run: Path) -> tuple[int, int, str]:
@@ -113,7 +110,7 @@ def load(specs: list[str], common: bool = False) -> tuple[dict, int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/paired.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.paired", description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", metavar="DIR[:METHOD[=LABEL]]")
     ap.add_argument("--against", default=None, help="the label every other method is paired with "
                                                      "(default: the first)")

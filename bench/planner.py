@@ -1,6 +1,6 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
-    python bench/planner.py [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure bench/planner_tick.png]
+    python -m bench.planner [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure bench/planner_tick.png]
                             [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight,...]
                             [--clock wall|cpu] [--repeat 1] [--set tracking.plan_steering=true ...]
 
@@ -31,15 +31,12 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
+from sim.closed_loop import tick_timings  # noqa: E402
 from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.policy import vehicle_motion, with_policy  # noqa: E402

@@ -2,7 +2,7 @@
 relay to the host's loopback costs (its CPU, PX4's), and a TIMESYNC round trip through the relay
 against a client inside PX4's namespace (a fresh PX4 for each: PX4 keeps the first peer of a link).
 
-    python bench/px4_link.py [--speeds 1,3,5,8] [--seconds 20] [--pings 200]
+    python -m bench.px4_link [--speeds 1,3,5,8] [--seconds 20] [--pings 200]
 
 Prints a line per figure and one JSON line at the end. Needs PMON_PX4_SITL (or ../shared/px4)
 and a network namespace (root, or unprivileged user namespaces).
@@ -11,22 +11,17 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("MAVLINK20", "1")
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pymavlink import mavutil  # noqa: E402
-
-from sim.px4 import Px4Sitl, find_sitl, links_of, skip_reason  # noqa: E402
+from onboard.app.mavlink2 import mavutil
+from sim.px4 import Px4Sitl, find_sitl, links_of, skip_reason
 
 
 def _cpu_s(pid: int) -> float:

@@ -1,6 +1,6 @@
 """The lookahead's multi-step EKF route score against a particle rollout of the same routes.
 
-    python bench/route_score.py [--ticks 10,25,40,60,80] [--particles 2000] [--motion jump]
+    python -m bench.route_score [--ticks 10,25,40,60,80] [--particles 2000] [--motion jump]
                                 [--seed 1] [--set KEY=VALUE ...]
 
 The planner (docs/PLANNING.md, "The route planner") scores each of its ~150 routes over H = 50 ticks with a
@@ -33,81 +33,14 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
-from scipy.special import logsumexp  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, closed_loop, set_label, set_overrides  # noqa: E402
+from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario, override  # noqa: E402
-from onboard.core.bearings import bearing, wrap  # noqa: E402
-from onboard.core.dynamics import PLANAR  # noqa: E402
-from onboard.core.information import information_reduction_factor, planar_model  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.core.tracking import systematic_indices  # noqa: E402
-
-
-def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans: np.ndarray,
-                          routes: np.ndarray, A: np.ndarray, Q: np.ndarray, sigma_rad: float,
-                          reduction: float, rng: np.random.Generator) -> np.ndarray:
-    """Sum over the horizon of the weighted position variance of each target's particle cloud,
-    per route and target: (C, M).
-
-    particles (M, N, 4) planar, log_weights (M, N): the predicted beliefs at t+1; plans (M, H, 4):
-    mu_(t+1..t+H); routes (C, H, 2): the sensor's positions at t+1..t+H.
-    """
-    M, N, _ = particles.shape
-    C, H, _ = routes.shape
-    x = np.broadcast_to(particles, (C, M, N, 4)).copy()
-    logw = np.broadcast_to(log_weights - logsumexp(log_weights, axis=1, keepdims=True), (C, M, N)).copy()
-    L = np.linalg.cholesky(Q + 1e-12 * np.eye(4))
-    total = np.zeros((C, M))
-    for k in range(H):
-        if k:  # linear about the plan, the same noise for every route (common random numbers)
-            w = rng.standard_normal((M, N, 4)) @ L.T
-            x = plans[None, :, k, None] + (x - plans[None, :, k - 1, None]) @ A.T + w[None]
-        s = routes[:, None, k]  # (C, 1, 2)
-        z = bearing(plans[None, :, k, :2], s)  # (C, M) ideal bearings to the planned positions
-        pred = bearing(x[..., :2], s[:, :, None])  # (C, M, N)
-        logw += -0.5 * reduction * (wrap(z[..., None] - pred) / sigma_rad) ** 2
-        logw -= logsumexp(logw, axis=2, keepdims=True)
-        wt = np.exp(logw)
-        m1 = np.einsum("cmn,cmnd->cmd", wt, x[..., :2])
-        m2 = np.einsum("cmn,cmnd->cmd", wt, x[..., :2] ** 2)
-        total += np.sum(m2 - m1 ** 2, axis=2)
-        ess = 1.0 / np.sum(wt ** 2, axis=2)  # (C, M)
-        xf, lf, wf = x.reshape(C * M, N, 4), logw.reshape(C * M, N), wt.reshape(C * M, N)  # views
-        for r in np.flatnonzero(ess.ravel() < 0.5 * N):
-            xf[r] = xf[r][systematic_indices(wf[r], rng)]
-            lf[r] = -np.log(N)
-    return total
-
-
-def snapshots(setup: MonitorSetup, ticks: set[int], seed: int, start_xy=(150.0, 200.0)):
-    """bench.closed_loop from the UAV at start_xy (m, ENU); yields, at each tick in ticks,
-    (tick, particles (M, N, 4), log_w, plans (M, H, 4), planning, uav) of that tick's plan."""
-    for k, state, res, uav in closed_loop(setup, max(ticks) + 1, seed, start_xy):
-        p = res.planning
-        if k in ticks and p is not None and p.paths is not None:
-            yield (k, np.stack([b.particles[:, PLANAR] for b in state.beliefs]),
-                   np.stack([b.log_weights for b in state.beliefs]),
-                   np.stack([pl.means[:setup.lookahead_steps][:, PLANAR] for pl in res.plans]), p, uav)
-
-
-def compare_routes(setup: MonitorSetup, particles: np.ndarray, log_w: np.ndarray, plans: np.ndarray,
-                   planning, rollouts: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The EKF scores of the admissible routes of ``planning`` (C,) and their particle scores
-    summed over targets from ``rollouts`` independent rollouts (rollouts, C), on a snapshot."""
-    A, _, Q = planar_model(setup.model)
-    q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
-    ok = np.flatnonzero(planning.admissible)
-    runs = [particle_route_scores(particles, log_w, plans, planning.paths[ok, :, :2], A, Q, setup.sensor.sigma_rad,
-                                  q, rng).sum(axis=1) for _ in range(rollouts)]
-    return planning.scores[ok], np.array(runs)
+from sim.route_score import compare_routes, snapshots  # noqa: E402
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """How the route planner scores and refines its routes: two experiments (not the flight path).
 
-    python bench/route_variants.py --out DIR [--refine ITERATIONS] [--block TICKS] [--per-target trace|sqrt]
+    python -m bench.route_variants --out DIR [--refine ITERATIONS] [--block TICKS] [--per-target trace|sqrt]
                                 [--trials 100] [--seed 2024] [--methods flight@stock] [--workers 2]
                                 [--set KEY=VALUE ...]
 
@@ -29,76 +29,23 @@ import os
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 from scipy.optimize import minimize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from onboard.core import planners as _planners  # noqa: E402
-from onboard.core import planning as _planning  # noqa: E402
-from onboard.core.information import bearing_update_components, predict_planar_components  # noqa: E402
-from onboard.core.information import PLANAR, planar_model  # noqa: E402
-from onboard.core.planning import _first_step, blocking_2d  # noqa: E402
-from onboard.core.tracking import logsumexp  # noqa: E402
-from sim.ceiling import clearance, kinematics  # noqa: E402
+from onboard.core import planners as _planners
+from onboard.core import planning as _planning
+from onboard.core.information import bearing_update_components, predict_planar_components
+from onboard.core.information import PLANAR, planar_model
+from onboard.core.planning import _first_step, blocking_2d
+from onboard.core.tracking import logsumexp
+from sim.ceiling import clearance, kinematics
+from sim.route_score import score
 
 # environment: the spawned workers import this module and read their settings from it
 ITER, BLOCK, LOG, PER_TARGET = "PMON_REFINE_ITERATIONS", "PMON_REFINE_BLOCK", "PMON_REFINE_LOG", "PMON_PER_TARGET"
 _plan = _planners.LookaheadPlanner.plan
-
-
-def score(P0, A, Q, targets, pos, c_meas, grad=False):
-    """The planner's route score (``planning._route_traces`` for one route) and, grad, its gradient
-    in the positions (H, 2) with the regulariser tr P_pos of the bearing's r^2 held fixed.
-    P0 (M, 4, 4), targets (H, M, 2), pos (H, 2), c_meas = sigma^2 / q."""
-    H, M = targets.shape[:2]
-    P = P0.copy()
-    At = A.T
-    if grad:
-        Pp_all, u_all, s_all, g_all, r2_all = (np.empty((H, M, 4, 4)), np.empty((H, M, 4)), np.empty((H, M)),
-                                              np.empty((H, M, 2)), np.empty((H, M)))
-    total = 0.0
-    for i in range(H):
-        if i:
-            P = A @ P @ At + Q
-        d = targets[i] - pos[i]
-        r2 = d[:, 0] ** 2 + d[:, 1] ** 2 + P[:, 0, 0] + P[:, 1, 1]
-        g = np.stack([d[:, 1], -d[:, 0]], axis=1) / r2[:, None]
-        u = P[:, :, 0] * g[:, :1] + P[:, :, 1] * g[:, 1:]
-        s = u[:, 0] * g[:, 0] + u[:, 1] * g[:, 1] + c_meas
-        if grad:
-            Pp_all[i], u_all[i], s_all[i], g_all[i], r2_all[i] = P, u, s, g, r2
-        P = P - u[:, :, None] * u[:, None, :] / s[:, None, None]
-        total += float(np.sum(P[:, 0, 0] + P[:, 1, 1]))
-    if not grad:
-        return total
-    grad_g = np.empty((H, M, 2))
-    G = np.zeros((M, 4, 4))
-    for k in range(H - 1, -1, -1):
-        G[:, 0, 0] += 1.0
-        G[:, 1, 1] += 1.0
-        uk, sk = u_all[k][..., None], s_all[k][:, None, None]
-        Gu = G @ uk
-        du = -(Gu + np.swapaxes(G, -1, -2) @ uk) / sk
-        ds = (np.swapaxes(uk, -1, -2) @ Gu) / sk ** 2
-        dh = (Pp_all[k] @ du + 2 * ds * uk)[..., 0]
-        grad_g[k] = dh[:, :2]
-        if k:
-            GPp = G.copy()
-            gk = g_all[k][:, None, :]
-            GPp[..., :2] += du * gk
-            GPp[..., :2, :2] += ds * np.swapaxes(gk, -1, -2) * gk
-            G = At @ GPp @ A
-    d = targets - pos[:, None, :]
-    r2 = r2_all
-    dx, dy = d[..., 0], d[..., 1]
-    u1, u2 = grad_g[..., 0], grad_g[..., 1]
-    ddx = u1 * (-2 * dx * dy / r2 ** 2) + u2 * (-1 / r2 + 2 * dx * dx / r2 ** 2)
-    ddy = u1 * (1 / r2 - 2 * dy * dy / r2 ** 2) + u2 * (2 * dx * dy / r2 ** 2)
-    return total, -np.stack([ddx, ddy], axis=-1).sum(axis=1)
 
 
 def _route_accelerations(p0, v0, pos, dt, amax):

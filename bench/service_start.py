@@ -2,7 +2,7 @@
 the app started as systemd would start it (``$NOTIFY_SOCKET``, ``$WATCHDOG_USEC``), its notify
 datagrams received here with their time since the exec (no autopilot: ``udpin`` on a free port).
 
-    python bench/service_start.py [--runs 3] [--watchdog-s 10]
+    python -m bench.service_start [--runs 3] [--watchdog-s 10]
 """
 from __future__ import annotations
 

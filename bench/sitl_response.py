@@ -1,11 +1,11 @@
 """How the real ArduCopter SITL follows GUIDED setpoints (PX4's SITL, OFFBOARD ones), and how
 sim/multicopter.py does on the same ones.
 
-    python bench/sitl_response.py [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
+    python -m bench.sitl_response [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
                                   [--speedup 4] [--param NAME=VALUE ...] [--save FILE.json.gz]
-    python bench/sitl_response.py --autopilot px4 [--speedup 2] [--save FILE.json.gz]
-    python bench/sitl_response.py --replay tests/data/sitl_response.json.gz   # the model, no SITL
-    python bench/sitl_response.py --fit tests/data/sitl_response.json.gz      # its airframe terms
+    python -m bench.sitl_response --autopilot px4 [--speedup 2] [--save FILE.json.gz]
+    python -m bench.sitl_response --replay tests/data/sitl_response.json.gz   # the model, no SITL
+    python -m bench.sitl_response --fit tests/data/sitl_response.json.gz      # its airframe terms
 
 Boots ArduPilot's own SITL firmware (sim/ardupilot.py; set PMON_ARDUPILOT_SITL) once per set of
 limits, takes off in GUIDED to 20 m and flies each case from a settled hover where the last one
@@ -52,35 +52,30 @@ tests/sim/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the 
 (sim.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
 trace and its distance at the next tick beside the SITL's.
 
-Its parts: bench/sitl_response_flight.py (the MAVLink client and a trace), bench/sitl_response_cases.py
-(the cases and their figures), bench/sitl_response_model.py (the model on a saved flight, its fit).
+Its parts: sim/sitl_response_flight.py (the MAVLink client and a trace), sim/sitl_response_cases.py
+(the cases and their figures), sim/sitl_response_model.py (the model on a saved flight, its fit).
 """
 from __future__ import annotations
 
-import os
 
-os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported
+import argparse
+import gzip
+import json
+import sys
+import tempfile
+from pathlib import Path
 
-import argparse  # noqa: E402
-import gzip  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-from pathlib import Path  # noqa: E402
+import numpy as np
 
-import numpy as np  # noqa: E402
+from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim import px4 as px4_sitl
+from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from sim.multicopter import DEMO_VEHICLE_PARAMS  # noqa: E402
-from sim import px4 as px4_sitl  # noqa: E402
-from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason  # noqa: E402
-
-from bench.sitl_response_cases import (  # noqa: E402
+from sim.sitl_response_cases import (
     distance_at_ticks, fly_ramp, fly_route, fly_step, fly_top, planner_route, stats, step_figures, top_speed,
 )
-from bench.sitl_response_flight import HOME, FlightError, SitlFlight, Trace  # noqa: E402
-from bench.sitl_response_model import fit_airframe, in_envelope, limits_for, load, replay  # noqa: E402
+from sim.sitl_response_flight import HOME, FlightError, SitlFlight, Trace
+from sim.sitl_response_model import fit_airframe, in_envelope, limits_for, load, replay
 
 READ_PARAMS = ("WPNAV_SPEED", "WPNAV_ACCEL", "WPNAV_SPEED_UP", "WPNAV_SPEED_DN", "PSC_JERK_XY",
                "PSC_POSXY_P", "PSC_VELXY_P", "PSC_VELXY_I", "PSC_VELXY_D", "ATC_ACCEL_R_MAX",
@@ -167,7 +162,7 @@ def offline(path: str, fit: bool) -> int:
     try:
         data = load(path)
     except (OSError, ValueError) as exc:
-        print(f"python bench/sitl_response.py: {path}: {exc}", file=sys.stderr)
+        print(f"python -m bench.sitl_response: {path}: {exc}", file=sys.stderr)
         return 2
     if fit:
         print(json.dumps(fit_airframe(data)))
@@ -193,7 +188,7 @@ def offline(path: str, fit: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/sitl_response.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.sitl_response", description=__doc__.split("\n\n")[0])
     ap.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
                     help="ArduCopter SITL (default) or PX4 SITL (SIH quad, OFFBOARD)")
     ap.add_argument("--limits", default=None, help="comma-separated: stock, demo (default stock,demo; PX4: stock)")
@@ -229,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     binary = px4_sitl.find_sitl() if px4 else find_binary()
     why = px4_sitl.skip_reason() if px4 else skip_reason()
     if why is not None:
-        print(f"python bench/sitl_response.py: {why}", file=sys.stderr)
+        print(f"python -m bench.sitl_response: {why}", file=sys.stderr)
         return 2
     out, saved = {}, {}
     for lab in labels:
@@ -237,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
             params, figures, traces = fly_limits(lab, binary, args.speedup, cases, args.latency_s,
                                                  args.route_speed, extra, autopilot=args.autopilot)
         except (SitlError, px4_sitl.SitlError, FlightError) as exc:
-            print(f"python bench/sitl_response.py: {lab}: {exc}", file=sys.stderr)
+            print(f"python -m bench.sitl_response: {lab}: {exc}", file=sys.stderr)
             return 1
         key = "px4" if px4 else lab  # PX4's stock parameters: their own label
         out[key] = {"params": params, "cases": figures}

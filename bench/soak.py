@@ -1,6 +1,6 @@
 """Soak: a long accelerated mission against the mock autopilot; memory, misses, errors, fence.
 
-    python bench/soak.py [--duration 7200] [--speedup 5]
+    python -m bench.soak [--duration 7200] [--speedup 5]
 
 Flies like bench/latency.py (mock autopilot + app in this process, the DF feed as a process)
 and prints: RSS growth of this process (app + mock autopilot; measured from the end of the first
@@ -22,16 +22,12 @@ import json
 import os
 import sys
 import tracemalloc
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import latency  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.obstacles import Obstacles  # noqa: E402
+from bench import latency
+from onboard.config import load_scenario
+from onboard.core.obstacles import Obstacles
 
 
 def rss_mb() -> float:

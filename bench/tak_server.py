@@ -2,7 +2,7 @@
 same server receives. Measured with FreeTAKServer 2.2.1 (pip install freetakserver; its TCP CoT
 port on 127.0.0.1, docs/OPERATING.md "TAK" says how it was started).
 
-    python bench/tak_server.py --port 18087
+    python -m bench.tak_server --port 18087
 
 A TCP client announces itself to the server (a takPong-style hello, pytak.hello_event), then
 ``pmon gcs hub --tak tcp://127.0.0.1:PORT`` (tests/gcs/test_gcs_hub.py's loopback vehicle: four
@@ -13,18 +13,15 @@ import argparse
 import json
 import math
 import socket
-import sys
 import time
 import warnings
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.simplefilter("ignore")
 import pytak  # noqa: E402
 
-from tests.support.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
-from tests.support.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
+from sim.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
+from sim.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--port", type=int, required=True, help="the TAK server's TCP CoT port on 127.0.0.1")

@@ -1,6 +1,6 @@
 """One tick of the paper scenario, split into tracking / guidance / planning; and a large case.
 
-    python bench/tick.py [--ticks 30] [--large-ticks 8] [--set tracking.plan_steering=true ...]
+    python -m bench.tick [--ticks 30] [--large-ticks 8] [--set tracking.plan_steering=true ...]
 
 Prints a table and, last, one JSON line of figures (milliseconds, medians over ticks after the
 first, which includes OSQP setup and the exploratory face search).
@@ -9,19 +9,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.core.obstacles import Obstacles  # noqa: E402
+from bench import add_set_option, set_label, set_overrides
+from sim.closed_loop import tick_timings
+from onboard.config import load_scenario
+from onboard.core.monitor import MonitorSetup
+from onboard.core.obstacles import Obstacles
 
 
 def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:

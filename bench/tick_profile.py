@@ -1,6 +1,6 @@
 """Where a flight case's tick time goes: cProfile over bench/planner.py's closed loops.
 
-    python bench/tick_profile.py [--case flight] [--seeds 1,2,3] [--ticks 60] [--top 25] [--set KEY=VALUE ...]
+    python -m bench.tick_profile [--case flight] [--seeds 1,2,3] [--ticks 60] [--top 25] [--set KEY=VALUE ...]
 
 The same loops as `bench/planner.py --cases CASE` (one BLAS thread, the paper scenario under the
 flight policy at ArduCopter's stock limits), profiled whole; prints the functions of onboard/ by
@@ -15,19 +15,17 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import cProfile  # noqa: E402
-import json  # noqa: E402
-import pstats  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import cProfile
+import json
+import pstats
+import time
+from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench import add_set_option, set_overrides, tick_timings  # noqa: E402
-from bench.planner import CASES, setup_for  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
+from bench import add_set_option, set_overrides
+from sim.closed_loop import tick_timings
+from bench.planner import CASES, setup_for
+from onboard.config import load_scenario
 
 WATCH = {"plan_guidance": "guidance.py", "explore": "guidance_search.py", "side_modes": "steering.py",
          "tick": "monitor.py"}

@@ -1,6 +1,6 @@
 """How often the simulated targets' own guidance (P1) finds no plan, over pmon eval's trials.
 
-    python bench/truth_guidance.py [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
+    python -m bench.truth_guidance [--trials 100] [--seed 2024] [--show TRIAL:TARGET ...] [--trace]
                                    [--per-trial CSV ...] [--set KEY=VALUE ...]
 
 The truth of trial i is the one ``pmon eval paper --trials N --seed S`` flies (same seeds). Each
@@ -27,13 +27,9 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 from collections import Counter  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from itertools import groupby  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
@@ -41,36 +37,8 @@ from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.truth import TruthWorld  # noqa: E402
+from sim.truth_plans import JUMP, JUMP_FLOOR, trial_statuses  # noqa: E402
 from onboard.core.guidance import winding  # noqa: E402
-
-
-JUMP = 1.3  # a plan costing more than this times the step before's is a jump (docs/GUIDANCE.md)
-JUMP_FLOOR = 2e5  # ... and more than this: near the goal a few metres of noise change the cost by more
-
-
-def trial_statuses(overrides: dict, n_trials: int, seed: int, trial: int
-                   ) -> tuple[list[list[str]], list[bool], list[tuple[int, int]]]:
-    """Per target, the status of its plan at each step of trial ``trial`` (``margin0``: a plan
-    without the margin); per target, whether its plan's P1 cost ever jumped (above ``JUMP``
-    times the step before's and above ``JUMP_FLOOR``); and the wall stops, (scan k, target from
-    1): the truth held the target where it was with zero velocity at scan k (sim/truth.py: every
-    noise draw and the noise-free step entered an obstacle)."""
-    cfg = ev.make_config(load_scenario("paper", overrides), n_trials, seed)
-    world = TruthWorld.from_scenario(cfg.scenario, ev._rng(cfg.seed, trial, 0))
-    out = [[] for _ in range(len(cfg.scenario.targets))]
-    last = [float("nan")] * len(out)
-    jumped = [False] * len(out)
-    stops = []
-    for k in range(1, cfg.n_ticks):
-        held = world.stuck_steps.copy()
-        world.step()
-        stops += [(k, j + 1) for j in np.flatnonzero(world.stuck_steps > held)]
-        for j, plan in enumerate(world.plans):
-            margin = getattr(plan, "margin_m", None)  # absent before the field was added
-            out[j].append("margin0" if margin == 0.0 else plan.status)
-            jumped[j] |= bool(plan.cost > max(JUMP * last[j], JUMP_FLOOR))  # False with a nan (a fallback)
-            last[j] = plan.cost
-    return out, jumped, stops
 
 
 def _depth(obstacles, xy: np.ndarray) -> float:

@@ -42,8 +42,7 @@ class LogError(Exception):
 
 
 def load_tlog(path: str | Path) -> Flight:
-    from onboard.app.mavlink_connection import mavlink  # noqa: F401  (MAVLink 2 before mavutil)
-    from pymavlink import mavutil
+    from onboard.app.mavlink2 import mavutil
 
     conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
     uav, uav_t, tracks, nxt = [], [], {}, None

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from onboard.app import contract as C  # sets MAVLINK20 before pymavlink loads
+from onboard.app import contract as C
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4
 from onboard.app.launch import PHASES
 from onboard.app.mavlink_connection import mavlink

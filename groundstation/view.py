@@ -119,7 +119,7 @@ class ViewState:
         d = self.stat_raw
         if d is None:
             return {"mode": None, "armed": None, "from": None}
-        from pymavlink import mavutil
+        from onboard.app.mavlink2 import mavutil
         mode = mavutil.mode_mapping_acm.get(int(d[12])) if math.isfinite(d[12]) and d[12] >= 0 else None
         return {"mode": mode or (None if d[12] < 0 else f"mode {int(d[12])}"), "armed": bool(d[13]),
                 "from": "app"}  # the app's copy of the autopilot's heartbeat (a link to the companion)

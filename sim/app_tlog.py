@@ -29,7 +29,7 @@ def takeover_reactions(tlog: Path, modes: list[tuple], in_app_mode: Callable[[in
                        ) -> list[float]:
     """See ``Mission.takeover_reactions``; ``modes``: (autopilot s, custom_mode, armed) changes;
     ``in_app_mode``: whether a custom_mode is the app's (``app_mode``)."""
-    from pymavlink import mavutil
+    from onboard.app.mavlink2 import mavutil
 
     episodes = []  # (left GUIDED, back in GUIDED or inf), autopilot s
     for i, (t0, mode, _) in enumerate(modes):
@@ -73,7 +73,7 @@ def app_view(tlog: Path) -> dict:
     - ``app_said``: the app's own STATUSTEXTs without "PMON: " and any " (...)" detail, repeats
       collapsed.
     """
-    from pymavlink import mavutil
+    from onboard.app.mavlink2 import mavutil
 
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     asked = {mavlink.MAVLINK_MSG_ID_HEARTBEAT}

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import select
 import signal
 import sys
@@ -50,20 +49,16 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Iterable, Mapping, Optional, Sequence
 
-# pymavlink picks its wire protocol from this variable at import time.
-os.environ["MAVLINK20"] = "1"
-from pymavlink import mavutil  # noqa: E402,F401  (imported after MAVLINK20 is set)
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from sim.mock_commands import Commands  # noqa: E402
-from sim.mock_stores import Stores  # noqa: E402
-from sim.mock_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry  # noqa: E402
-from sim.copter import BootTimeline, Copter, Params  # noqa: E402
-from sim.copter import Mode  # noqa: E402,F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
-from sim.mock_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _check_loopback  # noqa: E402
-from sim.multicopter import Vec3  # noqa: E402
+from onboard.app.mavlink2 import mavlink
+from sim.mock_commands import Commands
+from sim.mock_stores import Stores
+from sim.mock_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry
+from sim.copter import BootTimeline, Copter, Params
+from sim.copter import Mode  # noqa: F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
+from sim.mock_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _check_loopback
+from sim.multicopter import Vec3
 
 log = logging.getLogger("sim.autopilot")
 

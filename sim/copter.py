@@ -3,20 +3,16 @@ around the kinematic model (sim/multicopter.py). No I/O: sim/autopilot.py speaks
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, replace
 from enum import IntEnum
 from typing import Mapping, Optional, Sequence
 
-# pymavlink picks its wire protocol from this variable at import time.
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+import numpy as np
+import pymap3d
 
-import numpy as np  # noqa: E402
-import pymap3d  # noqa: E402
-
-from sim import multicopter  # noqa: E402
-from sim.multicopter import Setpoint, Vec3, VehicleState, limits_from_params  # noqa: E402
+from onboard.app.mavlink2 import mavlink
+from sim import multicopter
+from sim.multicopter import Setpoint, Vec3, VehicleState, limits_from_params
 
 FIRMWARE = "ArduCopter V4.5.7 (pmon mock)"
 FW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # major.minor.patch, type OFFICIAL

@@ -232,3 +232,38 @@ def truth_stats(traces, w0: int, dt_s: float) -> dict:
             out["true_mode_p90_at_40s"] = float(np.mean(at[np.isfinite(at)] >= 0.9))
             out["true_mode_mean_at_40s"] = float(np.nanmean(at))
     return out
+
+
+NEAR_M = 60.0  # a target this close to an obstacle box (m, plan view) counts as rounding it
+
+
+def error_split(cfg, results, m: str) -> dict:
+    """Where a UAV method's window error lies: its RMS along and across each target's line of
+    sight from the UAV (m; along: the range error a bearing cannot see), for the ticks a target
+    is within ``NEAR_M`` of an obstacle (rounding it: the side the filter may not know) and the
+    rest, with each part's share of the squared error and its mean range (m)."""
+    boxes = [(np.asarray(b.center_m[:2], float), np.asarray(b.size_m[:2], float) / 2) for b in cfg.scenario.obstacles]
+    w = slice(cfg.window_start, None)
+    parts = {"near": [], "free": []}
+    for r in results:
+        t = r.truth[w, :, :2]  # (K, M, 2)
+        e = r.traces[m].estimate_xy[w] - t
+        los = t - r.traces[m].uav[w, None, :2]
+        rng_m = np.linalg.norm(los, axis=2)
+        u = los / np.maximum(rng_m, 1e-9)[..., None]
+        along = np.sum(e * u, axis=2)
+        across = e[..., 1] * u[..., 0] - e[..., 0] * u[..., 1]
+        d = np.min([np.linalg.norm(np.maximum(np.abs(t - c) - h, 0.0), axis=2) for c, h in boxes], axis=0) \
+            if boxes else np.full(rng_m.shape, np.inf)
+        for key, sel in (("near", d < NEAR_M), ("free", d >= NEAR_M)):
+            parts[key].append(np.stack([along[sel], across[sel], rng_m[sel]]))
+    total = sum(float(np.sum(np.hstack(v)[:2] ** 2)) for v in parts.values())
+    out = {}
+    for key, v in parts.items():
+        a = np.hstack(v)
+        if a.shape[1]:
+            out[key] = {"share": round(float(np.sum(a[:2] ** 2)) / total, 2), "cells": int(a.shape[1]),
+                        "along_m": round(float(np.sqrt(np.mean(a[0] ** 2))), 1),
+                        "across_m": round(float(np.sqrt(np.mean(a[1] ** 2))), 1),
+                        "range_m": round(float(np.mean(a[2])))}
+    return out

@@ -3,20 +3,16 @@ position targets (SET_POSITION_TARGET_*, with its type_mask rules). A mixin of `
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, replace
 from typing import Optional
 
-# pymavlink picks its wire protocol from this variable at import time.
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from onboard.app.mavlink2 import mavlink
+from sim import multicopter
+from sim.multicopter import Vec3
 
-from sim import multicopter  # noqa: E402
-from sim.multicopter import Vec3  # noqa: E402
-
-from sim.copter import MAGIC_FORCE_ARM, MAGIC_FORCE_DISARM, GuidedTarget, Mode  # noqa: E402
-from sim.mock_links import _Link  # noqa: E402
+from sim.copter import MAGIC_FORCE_ARM, MAGIC_FORCE_DISARM, GuidedTarget, Mode
+from sim.mock_links import _Link
 
 # type_mask bits (POSITION_TARGET_TYPEMASK_*)
 _POS_IGNORE = 0b111

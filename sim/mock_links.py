@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import ipaddress
 import math
-import os
 import socket
 from dataclasses import dataclass
 from typing import Mapping, Optional
 
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+from onboard.app.mavlink2 import mavlink
 
 
 # --------------------------------------------------------------------------- links

@@ -4,19 +4,15 @@ builds from the copter's state, as ArduCopter fills them, and the requests that 
 from __future__ import annotations
 
 import math
-import os
 from typing import Mapping
 
-# pymavlink picks its wire protocol from this variable at import time.
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from onboard.app.mavlink2 import mavlink
+from sim import multicopter
 
-from sim import multicopter  # noqa: E402
-
-from sim.copter import FIRMWARE, FW_VERSION, Mode  # noqa: E402
-from sim.mock_links import _Link  # noqa: E402
-from sim.mock_commands import _ACC_IGNORE, _VEL_IGNORE, _YAW_IGNORE, _YAW_RATE_IGNORE  # noqa: E402
+from sim.copter import FIRMWARE, FW_VERSION, Mode
+from sim.mock_links import _Link
+from sim.mock_commands import _ACC_IGNORE, _VEL_IGNORE, _YAW_IGNORE, _YAW_RATE_IGNORE
 
 
 # --------------------------------------------------------------------------- telemetry

@@ -3,13 +3,8 @@ an SRn_ rate set applies at once), an empty mission, fence and rally, and MAVLin
 vehicle without files. A mixin of ``MockAutopilot``."""
 from __future__ import annotations
 
-import os
-
-# pymavlink picks its wire protocol from this variable at import time.
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
-
-from sim.mock_links import _Link  # noqa: E402
+from onboard.app.mavlink2 import mavlink
+from sim.mock_links import _Link
 
 # MAVLink FTP opcodes and error codes used by the FTP refusal
 _FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS = 1, 2

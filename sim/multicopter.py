@@ -95,7 +95,7 @@ PX4_DEFAULTS = {"MPC_XY_VEL_MAX": 12.0, "MPC_ACC_HOR": 3.0, "MPC_Z_VEL_MAX_UP": 
                 "MPC_ACC_UP_MAX": 4.0, "MPC_JERK_MAX": 8.0, "MPC_TILTMAX_AIR": 45.0, "MPC_XY_P": 0.95,
                 "MPC_XY_VEL_P_ACC": 1.8, "MPC_XY_VEL_I_ACC": 0.4, "MPC_XY_VEL_D_ACC": 0.2}
 # the airframe terms fitted to PX4's SIH quad (SIH_MASS 1 kg, SIH_KDV 1 N/(m/s): 1.0 /s of drag by its
-# physics): python bench/sitl_response.py --fit tests/data/sitl_response_px4.json.gz
+# physics): python -m bench.sitl_response --fit tests/data/sitl_response_px4.json.gz
 PX4_SIH_AIRFRAME = {"lean_tc": 0.131, "drag": 0.0, "drag_lin": 1.012}
 
 

@@ -20,7 +20,7 @@ import sys
 import threading
 from dataclasses import replace
 
-from sim.autopilot import BootTimeline  # sets MAVLINK20 before pymavlink is imported
+from sim.autopilot import BootTimeline
 
 from onboard.policy import DEFAULT as DEFAULT_POLICY
 from onboard.policy import POLICIES

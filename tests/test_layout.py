@@ -146,6 +146,31 @@ def test_no_import_cycle_between_files_or_packages():
     assert cycles(packages) == [], packages
 
 
+def test_tests_and_bench_do_not_import_each_other():
+    """Both import the product (onboard/, groundstation/, sim/: the rig a bench and a test share),
+    never each other: a test runs a bench as a program (``python -m bench.NAME``), and bench/ runs
+    without sys.path edits."""
+    benches = {p.stem for p in (ROOT / "bench").glob("*.py")} | {"bench"}
+    bad = [f"{p.relative_to(ROOT)}:{line} imports {n}" for p in TESTS.rglob("*.py")
+           for line, n in imported_names(p) if n.split(".")[0] in benches]
+    for p in (ROOT / "bench").glob("*.py"):
+        bad += [f"{p.relative_to(ROOT)}:{line} imports {n}" for line, n in imported_names(p)
+                if n.split(".")[0] == "tests"]
+        bad += [f"{p.relative_to(ROOT)}:{n.lineno} edits sys.path" for n in ast.walk(ast.parse(p.read_text()))
+                if isinstance(n, ast.Attribute) and n.attr == "path" and ast.unparse(n.value) == "sys"]
+    assert not bad, "\n".join(bad)
+
+
+def test_only_onboard_app_mavlink2_imports_mavutil():
+    """pymavlink speaks MAVLink 1 unless MAVLINK20 is set before mavutil loads its dialect;
+    onboard/app/mavlink2.py sets it, and every other module takes mavutil from there."""
+    one = ROOT / "onboard" / "app" / "mavlink2.py"
+    bad = [f"{p.relative_to(ROOT)}:{line}" for pkg in (*PACKAGES, "tests", "examples")
+           for p in sorted((ROOT / pkg).rglob("*.py")) if p != one
+           for line, n in imported_names(p) if n == "pymavlink.mavutil"]
+    assert not bad, "import mavutil from onboard.app.mavlink2:\n" + "\n".join(bad)
+
+
 
 LINK = re.compile(r"!?\[[^\]\n]*\]\(([^)\s]+)\)")
 FENCE = re.compile(r"^```.*?^```", flags=re.M | re.S)

@@ -46,8 +46,7 @@ import math
 import struct
 from collections.abc import Mapping
 
-from pymavlink import mavutil
-
+from onboard.app.mavlink2 import mavutil
 from onboard.app.mavlink_connection import mavlink
 
 

@@ -18,15 +18,11 @@ from __future__ import annotations
 
 import contextlib
 import io
-import os
 import struct
 import threading
 import time
 
-# pymavlink picks MAVLink 1 or 2 from this variable when a dialect is loaded.
-os.environ["MAVLINK20"] = "1"
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+from onboard.app.mavlink2 import mavlink, mavutil
 
 COMP_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
 RECONNECT_S = 1.0  # wall seconds between attempts to reopen a dropped stream link
@@ -102,7 +98,7 @@ class Link:
                 source_component=self._source[1], dialect="ardupilotmega", autoreconnect=False,
                 retries=0)
         if getattr(conn, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
-            raise RuntimeError("pymavlink loaded MAVLink 1; set MAVLINK20=1 before importing it")
+            raise RuntimeError("pymavlink loaded MAVLink 1; import mavutil from onboard.app.mavlink2")
         conn.mav.robust_parsing = True
 
         def gone(*_):

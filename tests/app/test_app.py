@@ -8,8 +8,8 @@ import socket
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
+from sim.autopilot import BootTimeline, MockAutopilot, Mode
 
 from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp

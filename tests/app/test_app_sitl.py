@@ -23,8 +23,8 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import Mode  # sets MAVLINK20 before mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
+from sim.autopilot import Mode
 
 from tests.support.mavlink_gcs import Gcs
 

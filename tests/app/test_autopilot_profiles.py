@@ -7,9 +7,7 @@ import time
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
 
 from tests.support.app_helpers import wait_for
 

@@ -23,8 +23,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
+from sim.autopilot import BootTimeline, MockAutopilot
 
 from tests.support.mavlink_gcs import Gcs
 from tests.support.app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, wait_for

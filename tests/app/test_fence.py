@@ -9,8 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
 
 from onboard.app.fence import Fence, outgoing_violation, violation
 from onboard.app.params import ParamTable

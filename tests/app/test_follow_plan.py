@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
+from sim.autopilot import BootTimeline, MockAutopilot
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 

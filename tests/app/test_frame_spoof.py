@@ -22,9 +22,8 @@ import time
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import BootTimeline, MockAutopilot
 
 from tests.support.app_helpers import ScriptedDf, wait_autopilot_s, wait_for
 

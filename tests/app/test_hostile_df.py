@@ -4,7 +4,7 @@ Over real UDP sockets:
   * a flight (bench/df_flood.py's harness, short form): 200 datagrams/s carrying integers too
     large for a float from an accepted host, then 20 000 datagrams/s from a foreign address,
     3 s each: 0 tracebacks, 0 missed ticks, every good scan of the feed used, setpoints and
-    heartbeats on time; the full 10 s figures come from ``python bench/df_flood.py``;
+    heartbeats on time; the full 10 s figures come from ``python -m bench.df_flood``;
   * the source filter: the first valid peer locks the DF input (garbage cannot), or
     ``df_sources``; others are dropped unparsed and reported once each;
   * the per-source rate limit: a sender over it loses its excess, counted, said once;
@@ -16,26 +16,20 @@ from __future__ import annotations
 
 import logging
 import socket
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
 
 from tests.support.app_helpers import wait_for
+from tests.support.processes import run_json
 
 from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.df_input import Source, parse_sources
 from onboard.config import load_scenario
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-import df_flood  # noqa: E402
 
 M = 4
 
@@ -66,8 +60,7 @@ def _ticked(app: OnboardApp) -> list[float]:
 @pytest.mark.sitl
 @pytest.mark.timeout(300)
 def test_flight_under_overflow_then_foreign_flood_misses_no_tick_and_uses_every_scan():
-    phases = [dict(p, seconds=3.0) for p in df_flood.PHASES]
-    r = df_flood.flood(phases, speedup=3.0, log=lambda s: None)
+    r = run_json("bench.df_flood", "--seconds", "3", "--speedup", "3", timeout=290)
     assert r["phases_done"], r
     overflow, foreign = r["phases"]
     assert overflow["rate_hz"] >= 190 and foreign["rate_hz"] >= 19000, r

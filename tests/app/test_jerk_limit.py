@@ -10,8 +10,7 @@ from dataclasses import replace
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
 
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, arducopter_jerk_xy
 from onboard.app.autopilot_side import AutopilotSide

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
+from sim.autopilot import BootTimeline, MockAutopilot, Mode
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 from tests.support.mavlink_gcs import Gcs

@@ -9,7 +9,6 @@ import time
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
 
 from tests.support.app_helpers import wait_for
 

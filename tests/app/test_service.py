@@ -18,7 +18,6 @@ from pathlib import Path
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink)
 
 from tests.support.app_helpers import FaultyTick, wait_for
 

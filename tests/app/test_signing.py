@@ -13,9 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import BootTimeline, MockAutopilot
 
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp

@@ -24,9 +24,8 @@ import time
 
 import pytest
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import MockAutopilot
 
 from tests.support.app_helpers import wait_for
 

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot  # sets MAVLINK20 before mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink
+from sim.autopilot import BootTimeline, MockAutopilot
 
 from groundstation.gcs_link import GcsLink
 from onboard.app.app import AppConfig, OnboardApp

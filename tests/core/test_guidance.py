@@ -3,7 +3,7 @@ import pytest
 
 from onboard.core.guidance import GuidanceParams, Plan, plan_guidance, winding
 from onboard.core.obstacles import Obstacles
-from bench.miqp_reference import random_instance
+from sim.miqp_reference import random_instance
 
 from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
 
@@ -71,7 +71,7 @@ def test_cost_matches_exact_miqp_on_small_instances():
     """The same problem as an exact MIQP (SCIP): never infeasible where it found a solution, never
     cheaper (same constraints), within 1 % on most instances (bench/guidance_vs_miqp.py measures
     the fraction on 100)."""
-    from bench.miqp_reference import solve_p1_exact
+    from sim.miqp_reference import solve_p1_exact
     rng = np.random.default_rng(3)
     params = GuidanceParams.from_config(Guidance(horizon=10, obstacle_margin_m=5.0))
     ratios = []

@@ -150,7 +150,7 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     each other); the EKF's route 0.2 % and 4.6 % above the particles' best."""
     from scipy import stats
 
-    from bench.route_score import compare_routes, snapshots
+    from sim.route_score import compare_routes, snapshots
     from onboard.config import load_scenario
     from onboard.core.monitor import MonitorSetup
 
@@ -239,7 +239,7 @@ def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
     route score: its forward pass must equal ``_route_traces`` on the same route. Its adjoint
     gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
     only; elsewhere it must point where central differences do (four targets 130-460 m out)."""
-    from bench.route_variants import score
+    from sim.route_score import score
     from onboard.core.information import PLANAR, planar_model
     from onboard.core.planning import _route_traces
 

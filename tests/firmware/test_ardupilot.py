@@ -256,7 +256,7 @@ def test_link_loss_stops_commanding_reconnects_and_waits_for_resume(flight_b):
     _ok(flight_b["resume"], "app monitoring")
     assert m.proxy.connections >= 2  # the app's own TCP reconnect, through the relay
     # between the link coming back and the operator's resume, no setpoint was sent
-    from pymavlink import mavutil
+    from onboard.app.mavlink2 import mavutil
     conn = mavutil.mavlink_connection(str(m.out / "app.tlog"), dialect="ardupilotmega")
     sent = []
     while (msg := conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")) is not None:

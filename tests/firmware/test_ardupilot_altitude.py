@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pytest
 
+from onboard.app.mavlink2 import mavlink
 from sim.ardupilot import skip_reason
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from tests.support.stock_flight import AT_H_M, REACH_S
 

@@ -25,11 +25,9 @@ import time
 
 import pytest
 
+from onboard.app.mavlink2 import mavutil
 from sim.px4 import Px4Sitl, find_sitl, links_of, skip_reason
 from sim.procedure import Mission, MissionConfig, fly_launch_procedure
-
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
 
 pytestmark = [pytest.mark.px4, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -267,7 +265,7 @@ def launched(tmp_path_factory):
 def test_launch_from_boot_flies_without_a_retry(launched):
     """One ``launch`` from PX4's boot: armed in Hold, the take-off AMSL, PX4's own switch back
     to Hold, then setpoints streaming before OFFBOARD was asked for."""
-    from pymavlink import mavutil as mu
+    from onboard.app.mavlink2 import mavutil as mu
 
     m = launched["m"]
     _ok(launched["launch"], "accepted by the onboard app")

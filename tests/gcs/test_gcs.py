@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
+from sim.stack import SitlStack
 
 from groundstation import protocol as P
 from groundstation.cli import main

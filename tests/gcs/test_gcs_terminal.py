@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
+from onboard.app.mavlink2 import mavlink
+from sim.stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S, Gcs
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from groundstation.cli import main
 

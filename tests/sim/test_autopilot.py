@@ -8,10 +8,9 @@ import time
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode
 from sim.mock_links import Endpoint
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 pytestmark = pytest.mark.sitl
 
@@ -347,7 +346,7 @@ def test_parameters_list_read_set(ap, gcs):
         top = max(top, math.hypot(*ap.state().vel_ned[:2]))
         time.sleep(0.01)
     # the shaped path asks for 4 m/s at most; the copter following it overshoots a little, as
-    # ArduPilot's SITL does (4.08 and 4.12 m/s in two runs of python bench/sitl_response.py
+    # ArduPilot's SITL does (4.08 and 4.12 m/s in two runs of python -m bench.sitl_response
     # --limits stock --param WPNAV_SPEED=400 --cases step60)
     assert 3.5 < top <= 4.15
 

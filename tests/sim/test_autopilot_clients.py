@@ -18,9 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot, Mode  # sets MAVLINK20 before mavutil
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
+from sim.autopilot import BootTimeline, MockAutopilot, Mode
 
 from tests.support.processes import LineReader, stop_process
 

@@ -136,10 +136,8 @@ def test_a_launch_the_app_aborts_ends_the_demo_with_its_reason(tmp_path):
 def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
     """pmon demo --gcs PORT: the mock streams to a ground station listening on that port (its
     first endpoint is then that UDP one: the demo must still find its two TCP ports)."""
-    import os
     import socket
-    os.environ["MAVLINK20"] = "1"
-    from pymavlink import mavutil
+    from onboard.app.mavlink2 import mavutil
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

@@ -1,11 +1,12 @@
-"""bench/consistency.py's error_split: the window error along and across each target's line of
-sight, near an obstacle and free, on hand-made trials where the answer is known."""
+"""sim.metrics.error_split (bench/consistency.py reports it): the window error along and across
+each target's line of sight, near an obstacle and free, on hand-made trials where the answer is
+known."""
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from bench.consistency import NEAR_M, error_split
+from sim.metrics import NEAR_M, error_split
 
 
 def _trial(truth, est, uav):

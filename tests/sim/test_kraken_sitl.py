@@ -15,7 +15,7 @@ import pytest
 
 from onboard.core.bearings import wrap
 
-from sim.stack import SitlStack  # sets MAVLINK20 before pymavlink is imported
+from sim.stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S
 

@@ -142,14 +142,10 @@ def test_recording_the_closed_loop_gains_changes_no_state(short):
 
 
 def test_a_wall_stop_is_counted_where_the_truth_holds_a_target(paper):
-    """bench/truth_guidance.py counts the wall stops of pmon eval's truths (15 in 100 trials at
-    seed 2024, docs/LOG.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
-    import sys
-    from pathlib import Path
-
+    """sim.truth_plans finds the wall stops of pmon eval's truths (bench/truth_guidance.py: 15 in
+    100 trials at seed 2024, docs/LOG.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
     from sim import evaluation as ev
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-    from truth_guidance import trial_statuses
+    from sim.truth_plans import trial_statuses
 
     cfg = ev.make_config(paper, 100, 2024, ["hover"])
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(2024, 86, 0))

@@ -1,12 +1,12 @@
 """sim.multicopter and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
 
-The reference is tests/data/sitl_response.json.gz: what ``python bench/sitl_response.py --save
+The reference is tests/data/sitl_response.json.gz: what ``python -m bench.sitl_response --save
 tests/data/sitl_response.json.gz`` recorded on the real SITL, at ArduCopter's stock limits and
 the demo's: a velocity command far above the airframe's top speed, 20 m and 100 m position
 steps, a 10 Hz position + velocity ramp, and planner-like routes at 90 % and 70 % of the top speed
 sent one setpoint a second four ways (position only; position + the velocity at that point;
 a ramp reaching the next point; the plan's position, velocity and acceleration). The model is
-given the same setpoints at the same firmware times (bench.sitl_response_model.replay, 400 Hz) and
+given the same setpoints at the same firmware times (sim.sitl_response_model.replay, 400 Hz) and
 must fly what the SITL flew.
 
 The demo's 90 % routes are left out of the bounds: they ask for 3 m/s^2 of turn at 9 m/s, which
@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
-from bench.sitl_response_flight import MASK_POS, MASK_PVA
-from bench.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
+from sim.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
+from sim.sitl_response_flight import MASK_POS, MASK_PVA
+from sim.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
 from sim.copter import Copter, GuidedTarget, Mode, Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
 from sim.multicopter import (
@@ -39,7 +39,7 @@ DATA = Path(__file__).parents[1] / "data" / "sitl_response.json.gz"
 DT = 0.02  # 50 Hz, as the mock autopilot steps the model
 HOVER = VehicleState(pos=(0.0, 0.0, -10.0))
 # RMS position error allowed over a whole recorded trace (m). The model's, at the fitted
-# airframe (python bench/sitl_response.py --replay tests/data/sitl_response.json.gz): 0.14-0.61 m,
+# airframe (python -m bench.sitl_response --replay tests/data/sitl_response.json.gz): 0.14-0.61 m,
 # and 1.47-1.52 m on the routes sent as the next point with its velocity (the form the SITL flies
 # least repeatably: its p95 next-tick distance on the stock 90 % route was 29, 9 and 9 m in three
 # runs of the bench). The kinematic model this one replaced: 3.3 m on the stock top-speed trace,
@@ -287,8 +287,8 @@ def test_live_sitl_flies_a_short_route_as_the_model():
     as the plan's state (position, velocity, acceleration) each second; the model, given the
     same setpoints at the same firmware times, flies within RMS_MAX_M of it, and the copter is
     within 1.5 m of the plan's point when each next setpoint is due."""
-    from bench.sitl_response_cases import fly_route
-    from bench.sitl_response_flight import HOME, SitlFlight
+    from sim.sitl_response_cases import fly_route
+    from sim.sitl_response_flight import HOME, SitlFlight
     from sim.ardupilot import ArduPilotSitl, find_binary, skip_reason
 
     reason = skip_reason()
@@ -316,7 +316,7 @@ def test_live_sitl_flies_a_short_route_as_the_model():
 # --------------------------------------------------------------------------- PX4 (issue 30)
 DATA_PX4 = Path(__file__).parents[1] / "data" / "sitl_response_px4.json.gz"
 # RMS position error over each recorded PX4 trace, and the next-tick distance, model against SITL
-# (python bench/sitl_response.py --replay tests/data/sitl_response_px4.json.gz)
+# (python -m bench.sitl_response --replay tests/data/sitl_response_px4.json.gz)
 RMS_MAX_PX4_M = 1.0
 
 

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from sim.autopilot import MockAutopilot  # sets MAVLINK20 before pymavlink is imported
+from sim.autopilot import MockAutopilot
 
 from onboard.app import datagram as dg
 from onboard.core import monitor

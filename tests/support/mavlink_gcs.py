@@ -4,9 +4,7 @@ from __future__ import annotations
 import threading
 import time
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink is imported)
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
+from onboard.app.mavlink2 import mavlink, mavutil
 
 # autopilot s until a mock SITL stack can arm, in tests not about the boot (ArduCopter's ~43 s
 # is flown in tests/sim/test_autopilot.py, test_conformance.py and against the firmware itself)

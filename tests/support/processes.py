@@ -1,11 +1,16 @@
 """Programs the tests run as processes: their stdout read on a thread, and a clean stop."""
 from __future__ import annotations
 
+import json
 import queue
 import re
 import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class LineReader:
@@ -49,3 +54,12 @@ def stop_process(proc: subprocess.Popen) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=5)
+
+
+def run_json(module: str, *args: str, timeout: float) -> dict:
+    """``python -m MODULE ARGS`` from the repository's root, as a user runs a bench; its last
+    stdout line parsed as JSON (the benches' figures)."""
+    done = subprocess.run([sys.executable, "-m", module, *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])

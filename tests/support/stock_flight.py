@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bench.adsb_route import AVOIDANCE, Recorder, hub_route
+from onboard.app.mavlink2 import mavlink
+from sim.hub_route import AVOIDANCE, Recorder, hub_route
 from sim.app_tlog import GUIDED
 from sim.procedure import Mission, MissionConfig
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from tests.support.mavlink_gcs import Gcs
 

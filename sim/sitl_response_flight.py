@@ -1,20 +1,15 @@
 """The MAVLink client of bench/sitl_response.py: a pymavlink connection flying ArduCopter's SITL in
 GUIDED (PX4's in OFFBOARD), every message timed on the firmware clock, and the trace of a case as
-flown. The cases and their figures are in bench/sitl_response_cases.py.
+flown. The cases and their figures are in sim/sitl_response_cases.py.
 """
 from __future__ import annotations
 
-import os
+import math
+import struct
+import time
+from dataclasses import dataclass, field
 
-os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported
-
-import math  # noqa: E402
-import struct  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+from onboard.app.mavlink2 import mavlink, mavutil
 
 HOME = (35.145, 33.411, 160.0)
 ALT_M = 20.0

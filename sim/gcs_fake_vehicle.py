@@ -1,4 +1,4 @@
-"""A vehicle on loopback for the hub's tests: an autopilot heartbeat and position, and the
+"""A vehicle on loopback for the hub's tests and benches: an autopilot heartbeat and position, and the
 onboard app's PMON_TGT / PMON_STAT, sent with pymavlink as the real ones send them (system 1;
 autopilot component 1, app component 191), plus a hostile peer's variants. Every packet the
 hub writes towards the vehicle is kept (``received``)."""
@@ -9,8 +9,8 @@ import socket
 import threading
 import time
 
-from onboard.app.mavlink_connection import mavlink  # sets MAVLINK20 before pymavlink loads
-from pymavlink import mavutil
+from onboard.app.mavlink2 import mavutil
+from onboard.app.mavlink_connection import mavlink
 
 
 def free_udp_port() -> int:

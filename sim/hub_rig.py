@@ -1,11 +1,11 @@
 """``pmon gcs hub`` on loopback for the hub's tests and benches: a fake vehicle
-(tests/support/gcs_fake_vehicle.py) behind a Hub on a thread, and one client on its serve port."""
+(sim/gcs_fake_vehicle.py) behind a Hub on a thread, and one client on its serve port."""
 from __future__ import annotations
 
 import threading
 import time
 
-from tests.support.gcs_fake_vehicle import Client, FakeVehicle, free_udp_port, target_values  # MAVLINK20 first
+from sim.gcs_fake_vehicle import Client, FakeVehicle, free_udp_port, target_values
 from groundstation.hub import Hub, HubLink
 from groundstation.hub_options import HubConfig
 from onboard.app.pose import Frame

@@ -1,11 +1,11 @@
-"""Cursor-on-Target as the TAK tests and bench/tak_server.py read it."""
+"""Cursor-on-Target as a TAK client reads it (the TAK tests and bench/tak_server.py)."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
 
-SIGMA = (40.0, 25.0, 300.0)  # sigma_x, sigma_y, cov_xy of tests.support.gcs_fake_vehicle.target_values
+SIGMA = (40.0, 25.0, 300.0)  # sigma_x, sigma_y, cov_xy of sim.gcs_fake_vehicle.target_values
 
 
 def one_sigma_radius_m(sx, sy, cxy) -> float:

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from bench.sitl_response_flight import MASK_POS, MASK_POSVEL, MASK_PVA, MASK_VEL, SitlFlight, Trace
+from sim.sitl_response_flight import MASK_POS, MASK_POSVEL, MASK_PVA, MASK_VEL, SitlFlight, Trace
 from onboard.core.setpoint import plan_setpoint
 
 TICK_S = 1.0
