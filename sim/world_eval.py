@@ -112,8 +112,9 @@ def rms_ratio(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[float, float, fl
 
 def family_rows(results: Sequence[WorldResult], methods: Sequence[str], seed: int) -> list[dict]:
     """Per family (in the order run), then pooled over every world: worlds, mean targets, each
-    method's RMSE and PCRB (RMS over the worlds), and the first method over each other filtered
-    one (ratio, CI low, CI high) with the worlds where it was the lower."""
+    method's RMSE and PCRB (RMS over the worlds), the first method over each other filtered
+    one (ratio, CI low, CI high) with the worlds where it was the lower, and the first's PCRB
+    over each bound-only method's (the clairvoyant ceiling: ratio, CI low, CI high)."""
     groups: dict = {}
     for r in results:
         groups.setdefault(r.family, []).append(r)
@@ -130,6 +131,8 @@ def family_rows(results: Sequence[WorldResult], methods: Sequence[str], seed: in
             for m in methods[1:]:
                 if not np.isnan(rm[m]).any():
                     row["ratios"][m] = (*rms_ratio(rm[first], rm[m], seed), int(np.sum(rm[first] < rm[m])))
+        row["bound_ratios"] = {m: rms_ratio(pc[first], pc[m], seed) for m in methods[1:]
+                               if np.isnan(rm[m]).all() and not np.isnan(pc[m]).any() and not np.isnan(pc[first]).any()}
         rows.append(row)
     return rows
 
@@ -141,8 +144,10 @@ def _f(x: float, spec: str = ".1f") -> str:
 def table_markdown(rows: Sequence[dict], methods: Sequence[str]) -> list[str]:
     first = methods[0]
     others = [m for m in methods[1:] if m in rows[0]["ratios"]]
+    bound = list(rows[0]["bound_ratios"])
     head = (["family", "worlds", "targets"] + [f"{m} RMSE [m]" for m in methods]
-            + [f"{first} / {m} (95 % CI; worlds lower)" for m in others])
+            + [f"{first} / {m} (95 % CI; worlds lower)" for m in others]
+            + [f"{first} PCRB / {m} PCRB (95 % CI)" for m in bound])
     L = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r["family"], str(r["worlds"]), f"{r['targets']:.1f}"]
@@ -151,6 +156,9 @@ def table_markdown(rows: Sequence[dict], methods: Sequence[str]) -> list[str]:
         for m in others:
             v, lo, hi, k = r["ratios"][m]
             cells.append(f"{v:.2f} ({_f(lo, '.2f')}, {_f(hi, '.2f')}); {k}/{r['worlds']}")
+        for m in bound:
+            v, lo, hi = r["bound_ratios"][m]
+            cells.append(f"{v:.3f} ({_f(lo, '.3f')}, {_f(hi, '.3f')})")
         L.append("| " + " | ".join(cells) + " |")
     return L
 
@@ -185,7 +193,9 @@ def write_outputs(jobs, results, rows, out_dir, command: str, wall_s: float) -> 
         return round(x, 4) if np.isfinite(x) else None  # JSON has no NaN
     return {"worlds": {r["family"]: {"worlds": r["worlds"], "rmse_m": {k: num(v) for k, v in r["rmse_m"].items()},
                                      "ratios": {f"{methods[0]} / {k}": [num(x) for x in v[:3]] + [v[3]]
-                                                for k, v in r["ratios"].items()}} for r in rows},
+                                                for k, v in r["ratios"].items()},
+                                     "pcrb_ratios": {f"{methods[0]} / {k}": [num(x) for x in v]
+                                                     for k, v in r["bound_ratios"].items()}} for r in rows},
             "seed": cfg.seed, "truth": cfg.truth_kind}
 
 

@@ -173,6 +173,25 @@ def test_the_ratio_is_of_the_worlds_rms_rmses_and_its_ci_brackets_it():
     assert math.isnan(we.rms_ratio(a[:1], b[:1], 1)[1])
 
 
+def test_the_family_rows_pool_every_world_and_set_the_first_method_against_each_other():
+    nan = float("nan")
+
+    def world(fam, i, a, b, pa, pc):
+        return we.WorldResult(fam, i, 3, 1, {"a": a, "b": b, "c": nan}, {"a": pa, "b": pa, "c": pc})
+    rs = [world("town", 0, 10.0, 20.0, 8.0, 4.0), world("town", 1, 30.0, 20.0, 9.0, 6.0),
+          world("open", 0, 5.0, 10.0, 4.0, 4.0)]
+    rows = we.family_rows(rs, ["a", "b", "c"], 1)
+    assert [r["family"] for r in rows] == ["town", "open", we.POOLED]
+    town, _, pooled = rows
+    assert town["rmse_m"]["a"] == pytest.approx(math.sqrt((100 + 900) / 2))
+    assert town["ratios"]["b"][0] == pytest.approx(math.sqrt(1000 / 800)) and town["ratios"]["b"][3] == 1
+    assert "c" not in town["ratios"] and pooled["worlds"] == 3 and pooled["ratios"]["b"][3] == 2
+    assert pooled["bound_ratios"]["c"][0] == pytest.approx(math.sqrt((64 + 81 + 16) / (16 + 36 + 16)))
+    table = we.table_markdown(rows, ["a", "b", "c"])
+    assert table[0].endswith("| a / b (95 % CI; worlds lower) | a PCRB / c PCRB (95 % CI) |")
+    assert table[2].startswith("| town | 2 | 3.0 | 22.4 | 20.0 | (PCRB 5.1) | 1.12 (")
+
+
 def test_pmon_eval_worlds_writes_a_table_per_family_and_pooled(tmp_path, capsys):
     from sim.verbs import evaluate
 
