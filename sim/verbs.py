@@ -1,4 +1,4 @@
-"""The simulator's ``pmon`` verbs: ``pmon demo``, ``simulate``, ``eval`` and ``feed``.
+"""The simulator's ``pmon`` verbs: ``pmon demo``, ``simulate``, ``eval``, ``worlds`` and ``feed``.
 
 Each is a ``main(argv) -> exit code`` declared in pyproject.toml's entry-point group
 ``pmon.verbs`` (onboard/cli.py finds them there: the flight program never names the simulator),
@@ -51,7 +51,7 @@ def evaluate(argv: list[str] | None = None) -> int:
     """Monte Carlo evaluation: methods vs baselines, CSV, table, figures, JSON line"""
     argv = list(sys.argv[1:] if argv is None else argv)
     p = _parser("eval", evaluate)
-    p.add_argument("scenario", nargs="?", default="paper")
+    p.add_argument("scenario", nargs="?", default=None, help="YAML file or built-in name (default: paper)")
     p.add_argument("--trials", type=integer(1, 1_000_000), default=100, help="Monte Carlo trials (default 100)")
     p.add_argument("--seed", type=SEED, default=2024, help="master seed (default 2024)")
     p.add_argument("--methods", default="greedy_l1,greedy_l8,fixed3,hover,orbit,random",
@@ -76,15 +76,46 @@ def evaluate(argv: list[str] | None = None) -> int:
                    "told what each target really does (the reference an untold filter is measured against)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--worlds", default=None, metavar="FAMILY:N[,FAMILY:N...]",
+                   help="instead of SCENARIO: N generated worlds of each family (town, open, crowd, corridor, "
+                        "mixed; sim/worlds.py), one trial each, the methods paired per world; a table per "
+                        "family and pooled (docs/SCENARIO.md 'Generated worlds')")
     args = p.parse_args(argv)
     args._parser, args._argv = p, ["eval", *argv]
+    if args.worlds is not None:
+        from sim.world_eval import run_cli
+        return _config_errors(run_cli, args)
     return _config_errors(_eval, args)
+
+
+def worlds(argv: list[str] | None = None) -> int:
+    """generated missions: N scenario files of a world family (town, open, crowd, corridor, mixed)"""
+    from sim.worlds import FAMILIES
+
+    p = _parser("worlds", worlds)
+    p.add_argument("family", choices=FAMILIES, help="the family (sim/worlds.py; docs/SCENARIO.md)")
+    p.add_argument("--n", type=integer(1, 100_000), default=10, help="worlds to write (default 10)")
+    p.add_argument("--seed", type=SEED, default=2024, help="the family's seed (default 2024, as pmon eval's)")
+    p.add_argument("--out", default="worlds", type=OUT_DIR, help="output directory (default worlds)")
+    return _config_errors(_worlds, p.parse_args(argv))
 
 
 def feed(argv: list[str] | None = None) -> int:
     """simulated DF feed: live truth world, or replay a file (pmon feed --help)"""
     from sim.feed import main
     return main(argv)
+
+
+def _worlds(args) -> int:
+    from onboard.config import load_scenario
+    from sim.worlds import write_worlds
+
+    for path in write_worlds(args.family, args.n, args.seed, args.out):
+        sc = load_scenario(path)  # read back as a user's file is: the validator's word on it
+        low = sum(o.size_m[2] < sc.uav.altitude_m for o in sc.obstacles)
+        print(f"{path}: {len(sc.targets)} targets, {len(sc.obstacles)} obstacles ({low} lower than the UAV's "
+              f"altitude), {len(sc.goals)} goal regions")
+    return 0
 
 
 def _simulate(args) -> int:
@@ -145,7 +176,7 @@ def _eval(args) -> int:
     # Ctrl-C stops the evaluation (and its workers) even when started from a shell that ignores
     # SIGINT: a background job without job control inherits SIG_IGN (as pmon demo does)
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    sc = load_scenario(args.scenario, parse_overrides(args.set))
+    sc = load_scenario(args.scenario or "paper", parse_overrides(args.set))
     if args.scheduler is not None and not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+|[\w.\-\[\]:]+:\d+",
                                                        args.scheduler):
         args._parser.error(f"--scheduler: {args.scheduler!r} is not an address like tcp://127.0.0.1:8786")
