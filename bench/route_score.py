@@ -49,6 +49,7 @@ from onboard.core.dynamics import PLANAR  # noqa: E402
 from onboard.core.information import information_reduction_factor, planar_model  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.tracking import systematic_indices  # noqa: E402
+from onboard.policy import with_policy  # noqa: E402
 
 
 def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans: np.ndarray,
@@ -129,7 +130,8 @@ def main() -> None:
     if args.particles < 100 or args.rollouts < 1:
         ap.error("--particles: at least 100; --rollouts: at least 1")
     sc = load_scenario("paper", set_overrides(ap, args))
-    setup = MonitorSetup.from_scenario(override(sc, {"planning.planner": "lookahead", "planning.motion": args.motion}))
+    setup = MonitorSetup.from_scenario(override(with_policy(sc, "paper"),  # the paper's filter
+                                                {"planning.planner": "lookahead", "planning.motion": args.motion}))
     rng = np.random.default_rng(args.seed + 1000)
     print(f"paper scenario{set_label(args)}, lookahead/{args.motion}, H = {setup.lookahead_steps}, "
           f"{args.rollouts} rollouts of {args.particles} particles per target, seed {args.seed}")

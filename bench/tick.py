@@ -22,6 +22,7 @@ from bench import add_set_option, set_label, set_overrides, tick_timings  # noqa
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from onboard.core.obstacles import Obstacles  # noqa: E402
+from onboard.policy import with_policy  # noqa: E402
 
 
 def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:
@@ -53,7 +54,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     add_set_option(ap)
     args = ap.parse_args()
-    sc = load_scenario("paper", set_overrides(ap, args))
+    sc = with_policy(load_scenario("paper", set_overrides(ap, args)), "paper")  # the paper's method
     base = MonitorSetup.from_scenario(sc)
     paper = tick_timings(base, args.ticks, args.seed)
     large = tick_timings(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)
