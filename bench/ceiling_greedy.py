@@ -22,6 +22,7 @@ from onboard.core.planners import PLANNERS, Area, Planner, PlanningInputs
 from onboard.core.planning import PlanningResult
 from onboard.core.tracking import logsumexp
 from sim import evaluation as ev
+from sim.methods import PAPER
 
 NAME = "myopic9"
 
@@ -70,7 +71,8 @@ def _myopic(setup) -> Planner:
 def register() -> None:
     PLANNERS[NAME] = _myopic
     ev.register_method(ev.Method(NAME, "single UAV, one-step greedy among 33 points within 9 m, covariance-norm "
-                                 "reward (bench/ceiling_greedy.py), Lambda = 1", planner=NAME, clutter_rate=1.0))
+                                 "reward (bench/ceiling_greedy.py), Lambda = 1", planner=NAME, clutter_rate=1.0,
+                                 scenario_overrides=PAPER))
 
 
 def run_greedy(seed: int, trial: int, d: dict) -> ev.MethodTrace:

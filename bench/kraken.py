@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 ARMS = ("main", "peaks", "peaks_adaptive", "native")
 UNIX0 = 1_700_000_000.0
@@ -132,7 +133,7 @@ def run_trial(args_tuple) -> dict:
     from sim.metrics import seeded_rng
     from sim.truth import simulate_truth
 
-    sc = load_scenario(sc_path, overrides)
+    sc = with_policy(load_scenario(sc_path, overrides), "paper")  # the paper's method and filter
     cfg = ev.make_config(sc, 1, seed, ("greedy_l1",), duration_s=n_ticks * sc.dynamics.dt_s)
     truth = simulate_truth(sc, cfg.n_ticks - 1, seeded_rng(seed, trial, 0))
     start = ev.draw_start(cfg, seeded_rng(seed, trial, 1))

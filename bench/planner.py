@@ -45,8 +45,8 @@ from sim.multicopter import VehicleLimits  # noqa: E402
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
          "flight~sides", "flight~nointent")
-# variants of the flight default: its filter as the policy has it, the default filter (free steering:
-# plan_steering and plan_sides off), the side-aware filter (both on)
+# variants of the flight default: its filter as declared, the paper's free steering (plan_steering
+# and plan_sides off), the side-aware filter (both on)
 FLIGHT_FILTERS = {"flight": {}, "flight~nointent": {"tracking.intent": False},
                   "flight~free": {"tracking.plan_steering": False, "tracking.plan_sides": False},
                   "flight~sides": {"tracking.plan_steering": True, "tracking.plan_sides": True}}
@@ -60,8 +60,9 @@ def setup_for(sc, case: str) -> MonitorSetup:
         return MonitorSetup.from_scenario(override(fl, {"planning.speed_max_mps": m.speed_max_mps,
                                                         "planning.accel_max_mps2": m.accel_max_mps2,
                                                         "planning.jerk_max_mps3": m.jerk_max_mps3}))
-    planner, motion = case.split("/")
-    return MonitorSetup.from_scenario(override(sc, {"planning.planner": planner, "planning.motion": motion}))
+    planner, motion = case.split("/")  # the paper's method with this planner and motion
+    return MonitorSetup.from_scenario(override(with_policy(sc, "paper"),
+                                               {"planning.planner": planner, "planning.motion": motion}))
 
 
 def timings(sc, cases: list[str], ticks: int, seeds: list[int], repeat: int, timer) -> dict:

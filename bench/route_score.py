@@ -41,6 +41,7 @@ from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario, override  # noqa: E402
 from onboard.core.monitor import MonitorSetup  # noqa: E402
 from sim.route_score import compare_routes, snapshots  # noqa: E402
+from onboard.policy import with_policy  # noqa: E402
 
 
 def main() -> None:
@@ -62,7 +63,8 @@ def main() -> None:
     if args.particles < 100 or args.rollouts < 1:
         ap.error("--particles: at least 100; --rollouts: at least 1")
     sc = load_scenario("paper", set_overrides(ap, args))
-    setup = MonitorSetup.from_scenario(override(sc, {"planning.planner": "lookahead", "planning.motion": args.motion}))
+    setup = MonitorSetup.from_scenario(override(with_policy(sc, "paper"),  # the paper's filter
+                                                {"planning.planner": "lookahead", "planning.motion": args.motion}))
     rng = np.random.default_rng(args.seed + 1000)
     print(f"paper scenario{set_label(args)}, lookahead/{args.motion}, H = {setup.lookahead_steps}, "
           f"{args.rollouts} rollouts of {args.particles} particles per target, seed {args.seed}")

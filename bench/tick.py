@@ -19,6 +19,7 @@ from sim.closed_loop import tick_timings
 from onboard.config import load_scenario
 from onboard.core.monitor import MonitorSetup
 from onboard.core.obstacles import Obstacles
+from onboard.policy import with_policy
 
 
 def large_setup(base: MonitorSetup, rng: np.random.Generator) -> MonitorSetup:
@@ -50,7 +51,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     add_set_option(ap)
     args = ap.parse_args()
-    sc = load_scenario("paper", set_overrides(ap, args))
+    sc = with_policy(load_scenario("paper", set_overrides(ap, args)), "paper")  # the paper's method
     base = MonitorSetup.from_scenario(sc)
     paper = tick_timings(base, args.ticks, args.seed)
     large = tick_timings(large_setup(base, np.random.default_rng(args.seed)), args.large_ticks, args.seed)

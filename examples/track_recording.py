@@ -2,8 +2,8 @@
 
 Shows the tracking half of a tick without a vehicle: each scan of a truth JSONL (what
 ``pmon feed live`` and ``pmon demo`` record, docs/DATAGRAM.md; read and checked by
-``sim.feed.read_recording``) updates every target's belief from where the UAV was; the
-estimates are compared with the recorded truth. ``examples/data/paper_seed7_20s.jsonl`` is 20
+``sim.feed.read_recording``) updates every target's belief from where the UAV was, with the
+paper's filter (``--policy paper``); the estimates are compared with the recorded truth. ``examples/data/paper_seed7_20s.jsonl`` is 20
 scans of ``pmon demo --duration 20 --seed 7`` (the UAV climbing from its start, then
 monitoring). The same file can be sent to a running app: ``pmon feed replay FILE --to HOST:PORT``.
 
@@ -19,6 +19,7 @@ import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.policy import with_policy
 from sim.feed import read_recording
 
 HERE = Path(__file__).parent
@@ -37,7 +38,7 @@ def main() -> None:
     for t, ch, bearings in read_recording(args.file):
         scans[t][ch] = np.asarray(bearings)
 
-    setup = MonitorSetup.from_scenario(load_scenario(header.get("scenario", "paper")))
+    setup = MonitorSetup.from_scenario(with_policy(load_scenario(header.get("scenario", "paper")), "paper"))
     rng = np.random.default_rng(args.seed)
     state = initial_state(setup, rng)
     for t in sorted(scans):

@@ -43,9 +43,9 @@ def intent_lines(sc) -> list[str]:
     """What the flight policy's filter assumes of each target (docs/TRACKING.md "Intent"), and what
     the paper's does, in one line per target."""
     from onboard.core.monitor_setup import target_intents
-    from onboard.policy import with_policy
+    from onboard.policy import DEFAULT, with_policy
 
-    flying = with_policy(sc, "flight")
+    flying = with_policy(sc, DEFAULT)
     if not flying.tracking.intent:
         return ["the flight policy's filter here has no motion modes (tracking.intent false): each target "
                 "heads for its goal, or stays at its start without one"]

@@ -2,10 +2,13 @@
 (keys and values as onboard/settings.py declares them, applied by ``onboard.config.override``
 and so checked as a file is).
 
-- ``flight`` (the default of ``pmon run`` and ``pmon demo``): the best measured; each value's why:
-  docs/PLANNING.md, 'What flies' and docs/TRACKING.md, 'Intent' (measurements: docs/LOG.md).
-- ``paper``: the scenario as written: the paper's one-step greedy rule on the jump model (what
-  ``pmon eval paper`` evaluates as greedy_l1).
+- ``flight`` (the default of ``pmon run`` and ``pmon demo``): no changes. The declared defaults
+  are what flies, the best measured: the lookahead planner on the vehicle motion, the side-aware
+  filter with recovery and motion modes; each value's why: docs/PLANNING.md, 'What flies' and
+  docs/TRACKING.md, 'Intent' (measurements: docs/LOG.md).
+- ``paper``: the overlay that reproduces the paper's method bit for bit: the one-step greedy rule
+  on the jump model with the paper's filter (what ``pmon eval paper`` evaluates as greedy_l1; the
+  evaluation's paper methods start from it, sim/methods.py).
 
 The vehicle's speed, acceleration and jerk limits are the autopilot's own, read by the app at
 connection (WPNAV_SPEED / WPNAV_ACCEL / PSC_JERK_XY on ArduPilot; PX4's OFFBOARD shapes no jerk),
@@ -20,11 +23,11 @@ from typing import Any
 from onboard.core.planning import UavMotion
 
 POLICIES: dict[str, dict[str, Any]] = {
-    "flight": {"planning.planner": "lookahead", "planning.motion": "vehicle",
-               "planning.speed_max_mps": 9.0, "planning.accel_max_mps2": 2.5, "planning.jerk_max_mps3": 5.0,
-               "tracking.plan_steering": True, "tracking.plan_sides": True, "tracking.recovery_prior": 0.01,
-               "tracking.intent": True},
-    "paper": {},
+    "flight": {},
+    "paper": {"planning.planner": "greedy", "planning.motion": "jump",
+              "planning.speed_max_mps": 10.0, "planning.jerk_max_mps3": 0.0,
+              "tracking.plan_steering": False, "tracking.plan_sides": False, "tracking.recovery_prior": 0.0,
+              "tracking.intent": False},
 }
 DEFAULT = "flight"
 

@@ -1,10 +1,11 @@
 """Every setting of a scenario, declared once: key, default, unit, range and one line of doc.
 
 The declaration is the dataclasses below: each field of a section carries its ``Setting`` in its
-metadata (Stone Soup's "each property declared once with its default and doc"). Everything else
-derives from it: the YAML reader and ``--set`` (onboard/config.py), the flight policies
-(onboard/policy.py), the PMON_* parameters and their checks (onboard/app/params.py) and the
-table in docs/SETTINGS.md (``python -m onboard.settings --write`` regenerates it; a test fails
+metadata (Stone Soup's "each property declared once with its default and doc"). The declared
+defaults are what flies (``pmon run``, ``pmon demo``); ``--policy paper`` (onboard/policy.py) is
+the overlay that restores the paper's method. Everything else derives from it: the YAML reader
+and ``--set`` (onboard/config.py), the policies' overlays (checked as a file is), the PMON_*
+parameters and their checks (onboard/app/params.py) and the table in docs/SETTINGS.md (``python -m onboard.settings --write`` regenerates it; a test fails
 when it drifts). The core's parameter classes have no defaults of their own: they take every
 value from these objects (their ``from_config``).
 
@@ -289,8 +290,8 @@ class Tracking:
                                 "rest with the plan's", hi_open=True)
     regularise_bandwidth: float = number(0.2, 0, 1, "", "h of the regularised resampling, jitter N(0, h^2 C); "
                                          "0: plain resampling")
-    plan_steering: bool = flag(False, "particles steer by the affine law of the nearest reference plan "
-                               "while the plan is constrained (the flight policy's; false: the free steering "
+    plan_steering: bool = flag(True, "particles steer by the affine law of the nearest reference plan "
+                               "while the plan is constrained (false, the paper's: the free steering "
                                "alone, and the plan_* settings below unused)")
     plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True)
     plan_spread_sigma: float = number(1.5, 0, 5, "sigma", "the references' spread along the cloud's major axis",
@@ -300,19 +301,21 @@ class Tracking:
     plan_trust_sigma: float = number(2.0, 0, 10, "sigma", "only particles this close (Mahalanobis) to a "
                                      "reference are steered", lo_open=True)
     plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan")
-    plan_sides: bool = flag(False, "with plan_steering: a side of each obstacle per particle, reference "
-                            "plans per side present (the side-aware filter, the flight policy's)")
+    plan_sides: bool = flag(True, "with plan_steering: a side of each obstacle per particle, reference "
+                            "plans per side present (the side-aware filter; false, the paper's: one)")
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
                                           "1/(1+exp(d/this)) of the particles", lo_open=True)
-    recovery_prior: float = number(0.0, 0, 0.5, "", "probability per tick that a target left the motion "
-                                   "model's prediction (tracking.Recovery: found again along the bearings); 0: off")
+    recovery_prior: float = number(0.01, 0, 0.5, "", "probability per tick that a target left the motion "
+                                   "model's prediction (tracking.Recovery: found again along the bearings); 0 "
+                                   "(the paper's): off")
     recovery_share: float = number(0.02, 0, 1, "", "with recovery_prior: share of the particles drawn along "
                                    "the bearings each tick")
     recovery_sigma_m: float = number(50.0, 1, 5000, "m", "with recovery_prior: a target that left the "
                                      "prediction is N(its mean, its covariance + this^2 I) in the plane")
-    intent: bool = flag(False, "a motion mode per particle: heading for each candidate goal, stationary, or "
+    intent: bool = flag(True, "a motion mode per particle: heading for each candidate goal, stationary, or "
                         "free; their probabilities estimated from the bearings, and a target whose bearings "
-                        "no mode explains re-seeded along them (the flight policy's; docs/TRACKING.md 'Intent')")
+                        "no mode explains re-seeded along them (docs/TRACKING.md 'Intent'; false, the "
+                        "paper's: each target heads for its goal)")
     intent_stationary_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal "
                                             "stands still")
     intent_free_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal moves "
@@ -343,18 +346,20 @@ class Planning:
 
     objective: str = choice("trace", ("trace", "position_trace"), "what the greedy rule minimises: tr(Sigma) "
                             "of all six states, or of the position only", paper=True)
-    planner: str = choice("greedy", ("greedy", "lookahead", "hover", "orbit", "random"),
-                          "the paper's one-step rule, or routes scored over lookahead_steps; hover, "
-                          "orbit, random: the evaluation's baselines (onboard/core/planners.py)", paper=True)
+    planner: str = choice("lookahead", ("greedy", "lookahead", "hover", "orbit", "random"),
+                          "routes scored over lookahead_steps, or greedy, the paper's one-step rule; hover, "
+                          "orbit, random: the evaluation's baselines (onboard/core/planners.py)")
     lookahead_steps: int = integer(50, 1, 200, "ticks", "ticks the lookahead planner scores "
                                    "(<= guidance.horizon)")
-    motion: str = choice("jump", ("jump", "vehicle"), "jump: any grid point each tick; vehicle: "
-                         "within speed and acceleration limits", paper=True)
-    speed_max_mps: float = number(10.0, 0, 30, "m/s", "vehicle motion: speed limit (ArduCopter's "
-                                  "WPNAV_SPEED default)", lo_open=True)
+    motion: str = choice("vehicle", ("jump", "vehicle"), "vehicle: within speed and acceleration limits; "
+                         "jump, the paper's: any grid point each tick")
+    speed_max_mps: float = number(9.0, 0, 30, "m/s", "vehicle motion: speed limit, what the airframe flies "
+                                  "(the app plans with the smaller of this and the autopilot's WPNAV_SPEED, "
+                                  "read at connection; the paper policy's 10: ArduCopter's WPNAV_SPEED "
+                                  "default)", lo_open=True)
     accel_max_mps2: float = number(2.5, 0, 20, "m/s^2", "vehicle motion: acceleration limit (ArduCopter's "
                                    "WPNAV_ACCEL default)", lo_open=True)
-    jerk_max_mps3: float = number(0.0, 0, 100, "m/s^3", "vehicle motion: 0, the acceleration steps at "
+    jerk_max_mps3: float = number(5.0, 0, 100, "m/s^3", "vehicle motion: 0, the acceleration steps at "
                                   "each tick; > 0, it is continuous, changing linearly over each tick by "
                                   "at most this times the tick (what ArduCopter's jerk-limited GUIDED "
                                   "follows). The app plans with the smaller of this and the autopilot's "

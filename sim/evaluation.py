@@ -56,9 +56,8 @@ from onboard.core.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.planners import ORBIT_RADIUS_M, orbit_centre
 from onboard.policy import vehicle_motion
-from onboard.settings import SETTINGS
 from sim.guided import enu, fly_plan, ned
-from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
+from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, method_scenario, register_method
 from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, MethodTrace, Summary, TrialResult,
                          bound_summary, is_flight, motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval,
@@ -167,7 +166,10 @@ def method_named(name: str, sc=None) -> Method:
         return m
     if label not in AUTOPILOTS:
         raise ValueError(f"method {name!r}: unknown autopilot parameters {label!r} (one of {', '.join(AUTOPILOTS)})")
-    motion = m.motion or (None if sc is None else sc.planning.motion)
+    try:  # its motion under its policy (a paper method's: the paper's jump)
+        motion = m.motion or (None if sc is None else method_scenario(sc, m).planning.motion)
+    except ConfigError as exc:
+        raise ValueError(f"method {base}: {exc}") from None
     if m.sensing != "uav" or motion == "jump":
         raise ValueError(f"method {name!r}: {base} flies no vehicle (only vehicle-motion methods take @{label})")
     return replace(m, name=name, autopilot=label, description=f"{m.description}; autopilot: {label}")
@@ -192,23 +194,6 @@ def draw_start(cfg: EvalConfig, rng: np.random.Generator) -> np.ndarray:
         if not len(setup.uav_obstacles) or not setup.uav_obstacles.contains(p).any():
             return p
     raise RuntimeError("could not draw a UAV start outside the obstacles in 1000 tries")
-
-
-def method_scenario(sc, method: Method):
-    """The scenario a method runs: the run's (with its ``--set``) under the method's policy
-    (``scenario_overrides``, beneath the run's own settings), then the settings that make the
-    method what it is (over them)."""
-    sc = override(sc, dict(method.scenario_overrides), beneath=True)
-    own = dict(method.settings)
-    if method.sensing == "fixed":  # the baseline's sensors: no clutter, every target seen; the filter must know it
-        own.update({"sensor.p_detect": 1.0, "sensor.clutter_rate": 0.0})
-    elif method.clutter_rate is not None:
-        own["sensor.clutter_rate"] = method.clutter_rate
-    if method.planner is not None and method.planner in SETTINGS["planning.planner"].choices:
-        own["planning.planner"] = method.planner  # (a bench's own planner is set on the setup: _setup_for)
-    if method.motion is not None:
-        own["planning.motion"] = method.motion
-    return override(sc, own)
 
 
 def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None, VehicleLimits | None]:

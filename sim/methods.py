@@ -7,14 +7,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from onboard.config import override
 from onboard.core.planners import PLANNERS
 from onboard.policy import POLICIES
+from onboard.settings import SETTINGS
 from sim.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS
 
 # the ArduCopter parameters a vehicle method's copter flies with (sim.multicopter.limits_from_params):
 # ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.multicopter.DEMO_VEHICLE_PARAMS;
 # px4: PX4 v1.16's stock MPC_* parameters, its controller and SIH airframe)
 AUTOPILOTS: dict[str, dict[str, float]] = {"stock": {}, "demo": dict(DEMO_VEHICLE_PARAMS), "px4": dict(PX4_DEFAULTS)}
+
+# the declared defaults fly (the flight methods); the paper's methods and the baselines start from
+# the paper's (``--policy paper``) and change only what makes each what it is
+FLIGHT = tuple(POLICIES["flight"].items())
+PAPER = tuple(POLICIES["paper"].items())
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,34 +100,55 @@ def register_method(method: Method) -> Method:
 
 for _m in (
     Method("greedy_l1", "single UAV, the paper's one-step greedy rule, Lambda = 1", planner="greedy",
-           clutter_rate=1.0),
+           clutter_rate=1.0, scenario_overrides=PAPER),
     Method("lookahead", "single UAV, the non-myopic planner (docs/PLANNING.md), jump moves, Lambda = 1",
-           planner="lookahead", clutter_rate=1.0, motion="jump"),
+           planner="lookahead", clutter_rate=1.0, motion="jump", scenario_overrides=PAPER),
     Method("lookahead_vehicle", "single UAV, the non-myopic planner with vehicle limits (planning.speed_max_mps, "
            "accel_max_mps2: ArduCopter's 10 m/s, 2.5 m/s^2 in the paper scenario), Lambda = 1", planner="lookahead",
-           clutter_rate=1.0, motion="vehicle", jump_twin="lookahead"),
+           clutter_rate=1.0, motion="vehicle", jump_twin="lookahead", scenario_overrides=PAPER),
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
-           "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1"),
-    Method("flight", "single UAV, the flight default (onboard/policy.py POLICIES['flight']: docs/PLANNING.md, "
+           "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1",
+           scenario_overrides=PAPER),
+    Method("flight", "single UAV, the flight default (the declared defaults, onboard/settings.py: docs/PLANNING.md, "
            "'What flies'), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
            "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
-           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+           scenario_overrides=FLIGHT, autopilot_limits=True),
     Method("ceiling", "bound only: the path of a vehicle at the flight default's limits (its policy, the stock "
            "autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies) that minimises the PCRB "
            "knowing the true target trajectories (sim/ceiling.py, docs/PLANNING.md 'The clairvoyant ceiling'); "
            "no filter run, Lambda = 1", sensing="ceiling", clutter_rate=1.0, motion="vehicle",
-           scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
+           scenario_overrides=FLIGHT, autopilot_limits=True),
     Method("ceiling_flown", "single UAV flying the ceiling's path (clairvoyant, not a planner: the path of "
            "'ceiling'), the flight default's filter on its bearings, Lambda = 1", clutter_rate=1.0, motion="vehicle",
-           follows="ceiling", scenario_overrides=tuple(POLICIES["flight"].items()), autopilot_limits=True),
-    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0),
-    Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed"),
+           follows="ceiling", scenario_overrides=FLIGHT, autopilot_limits=True),
+    Method("greedy_l8", "single UAV, greedy rule, Lambda = 8 (DF and filter)", planner="greedy", clutter_rate=8.0,
+           scenario_overrides=PAPER),
+    Method("fixed3", "three fixed DFs (150,200), (800,200), (500,900) m; no clutter, p_D = 1", sensing="fixed",
+           scenario_overrides=PAPER),
     # the baselines move on the paper's grid S_(t+1) (the jump model): never flown
-    Method("hover", "single UAV hovering at its start, Lambda = 1", planner="hover", motion="jump", clutter_rate=1.0),
+    Method("hover", "single UAV hovering at its start, Lambda = 1", planner="hover", motion="jump", clutter_rate=1.0,
+           scenario_overrides=PAPER),
     Method("orbit", "single UAV on a circle around the targets' initial centroid, Lambda = 1", planner="orbit",
-           motion="jump", clutter_rate=1.0),
+           motion="jump", clutter_rate=1.0, scenario_overrides=PAPER),
     Method("random", "single UAV, uniformly random admissible move, Lambda = 1", planner="random", motion="jump",
-           clutter_rate=1.0),
+           clutter_rate=1.0, scenario_overrides=PAPER),
 ):
     register_method(_m)
 DEFAULT_METHODS = ("greedy_l1", "greedy_l8", "fixed3", "hover", "orbit", "random")  # the paper's set
+
+
+def method_scenario(sc, method: Method):
+    """The scenario a method runs: the run's (with its ``--set``) under the method's policy
+    (``scenario_overrides``, beneath the run's own settings), then the settings that make the
+    method what it is (over them)."""
+    sc = override(sc, dict(method.scenario_overrides), beneath=True)
+    own = dict(method.settings)
+    if method.sensing == "fixed":  # the baseline's sensors: no clutter, every target seen; the filter must know it
+        own.update({"sensor.p_detect": 1.0, "sensor.clutter_rate": 0.0})
+    elif method.clutter_rate is not None:
+        own["sensor.clutter_rate"] = method.clutter_rate
+    if method.planner is not None and method.planner in SETTINGS["planning.planner"].choices:
+        own["planning.planner"] = method.planner  # (a bench's own planner is set on the setup: _setup_for)
+    if method.motion is not None:
+        own["planning.motion"] = method.motion
+    return override(sc, own)

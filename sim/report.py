@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from sim.methods import method_scenario
 from sim.metrics import BOOTSTRAP_RESAMPLES, FIXED, REFERENCE
 from sim.numerics import numerics_description
 
@@ -152,11 +153,13 @@ def _vehicle_ratios(summary: Summary) -> list[str]:
     cfg = summary.config
     dt = cfg.dt_s
     L: list[str] = []
-    pl, u = cfg.scenario.planning, cfg.scenario.uav
+    u = cfg.scenario.uav
     jump_m = u.n_radial * u.step_m
-    equal_step = pl.speed_max_mps * dt / u.n_radial  # the grid step that makes the jump as fast
+    methods = {m.name: m for m in cfg.methods}
     for n, s in summary.methods.items():
         if s.vs_jump is not None:
+            pl = method_scenario(cfg.scenario, methods[n]).planning  # the limits under its policy
+            equal_step = pl.speed_max_mps * dt / u.n_radial  # the grid step that makes the jump as fast
             twin, (v, a, b) = s.vs_jump
             tb = summary.methods[twin].bound_mean_m
             L += [f"**Vehicle limits:** {n} / {twin} (the same planner, jump model): RMSE ratio {v:.2f}, "

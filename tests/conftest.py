@@ -10,6 +10,7 @@ from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before py
 
 from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
+from onboard.policy import with_policy
 
 # the pmon gcs programs the tests start keep normal priority (as before the program lowered itself):
 # at idle priority beside a loaded machine's work their start can take longer than a test waits.
@@ -44,7 +45,9 @@ def pytest_itemcollected(item):  # as each test is collected: before -m and pyte
 
 @pytest.fixture(scope="session")
 def paper():
-    return load_scenario("paper")
+    """The paper's scenario under the paper's method (``--policy paper``: the greedy rule on the
+    jump model, the paper's filter); a test of what flies loads the scenario as declared."""
+    return with_policy(load_scenario("paper"), "paper")
 
 
 @pytest.fixture(scope="session")

@@ -41,9 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="paper", help="YAML file or built-in name (default paper)")
     from onboard.policy import DEFAULT, POLICIES
     p.add_argument("--policy", choices=tuple(POLICIES), default=DEFAULT,
-                   help="how to decide where to fly: flight (default: the best measured, lookahead on "
-                   "the vehicle's motion, at the autopilot's speed limits) or paper (the paper's "
-                   "one-step rule on its jump model); onboard/policy.py")
+                   help="how to decide where to fly: flight (default: the declared defaults, the best "
+                   "measured, lookahead on the vehicle's motion, at the autopilot's speed limits) or "
+                   "paper (the overlay that restores the paper's one-step rule on its jump model and "
+                   "its filter); onboard/policy.py")
     p.add_argument("--sysid", type=integer(1, 255), help="vehicle system id (default: the first autopilot heard)")
     p.add_argument("--auto-launch", action="store_true",
                    help="by itself: arm, take off to h, the mission mode (ArduCopter GUIDED, PX4 OFFBOARD), "

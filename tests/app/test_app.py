@@ -16,6 +16,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import Reason, State
 from onboard.app.params import SPECS
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from tests.support.mavlink_gcs import Gcs
 from tests.support.app_helpers import wait_for
 
@@ -25,7 +26,7 @@ USER_1 = mavlink.MAV_CMD_USER_1
 
 @pytest.fixture(scope="module")
 def rig():
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0,
                        endpoints=["tcpin:127.0.0.1:0"] * 2, boot=BootTimeline.scaled(2.0)).start()
@@ -187,7 +188,7 @@ def test_vehicle_motion_plans_at_the_autopilots_limits_capped_by_the_airframes()
     without planning with it."""
     from dataclasses import replace
 
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     sc = replace(sc, planning=replace(sc.planning, motion="vehicle", speed_max_mps=8.0, accel_max_mps2=5.0,
                                       jerk_max_mps3=5.0))
     o = sc.origin

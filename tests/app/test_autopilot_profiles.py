@@ -15,6 +15,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, profile_for
 from onboard.app.clock import ManualClock
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 PX4_HOLD = (4 << 16) | (3 << 24)  # AUTO / LOITER
 PX4_OFFBOARD = 6 << 16
@@ -102,7 +103,7 @@ def test_px4_sends_integer_parameters_bytewise_and_com_obl_rc_act_is_checked():
 @pytest.mark.timeout(30)
 def test_the_app_flies_by_the_profile_its_autopilot_announced():
     """A PX4 heartbeat: the app reads PX4's limit parameters and counts OFFBOARD as its mode."""
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0), load_scenario("paper"),
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0), with_policy(load_scenario("paper"), "paper"),
                      clock=ManualClock(10.0)).start()
     url = f"udpout:127.0.0.1:{app.link.conn.port.getsockname()[1]}"
     px4 = mavutil.mavlink_connection(url, source_system=1, source_component=1, dialect="ardupilotmega")

@@ -32,6 +32,7 @@ from tests.support.app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, 
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from onboard.core.tracking import ParticleSet
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 
@@ -42,7 +43,7 @@ SPEEDUP = 3.0
 
 @pytest.fixture(scope="module")
 def flight():
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     out: dict = {"rx": []}
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=5,

@@ -31,6 +31,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import State
 from onboard.app.pose import Frame
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from onboard.core.obstacles import Obstacles
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 
@@ -39,7 +40,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
 @pytest.fixture(scope="module")
 def flight():
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     lo, hi = np.array(sc.area.min_m), np.array(sc.area.max_m)
     inflated = Obstacles.from_boxes(sc.obstacles).inflate(sc.uav.obstacle_margin_m)

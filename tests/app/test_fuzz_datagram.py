@@ -23,6 +23,7 @@ from onboard.app import datagram as dg
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 M = 4
 NOW = 100.0
@@ -181,7 +182,7 @@ def test_100k_mutated_datagrams_between_good_ones_lose_nothing():
 # ----------------------------------------------------------------------------- over a socket
 @pytest.mark.timeout(120)
 def test_running_app_uses_every_good_scan_through_a_flood_of_bad_ones():
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     clock = ManualClock(50.0)
     # nothing listens there: the app runs without an autopilot (no pose: scans are dropped
     # before the core; what is checked here is the input path and the tick loop)

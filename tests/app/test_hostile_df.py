@@ -30,6 +30,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.df_input import Source, parse_sources
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 M = 4
 
@@ -43,7 +44,7 @@ def _sender(host: str = "127.0.0.1") -> socket.socket:
 def _app(clock, monotonic=time.monotonic, **cfg) -> OnboardApp:
     # no autopilot (nothing listens on its MAVLink port): scans are ticked without a pose, which
     # is what the input path and the schedule need
-    return OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, **cfg), load_scenario("paper"),
+    return OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, **cfg), with_policy(load_scenario("paper"), "paper"),
                       clock=clock, monotonic=monotonic).start()
 
 

@@ -26,6 +26,7 @@ from onboard.app.clock import ManualClock
 from onboard.app.kraken_fetch import DocumentPoller, FileSource, HttpSource
 from onboard.app.pose import PoseSample
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from onboard.core.bearings import bearing, wrap
 from sim.kraken import KrakenWriter, status_json
 from tests.support.kraken_rig import M, UAV, YAW
@@ -433,7 +434,8 @@ def test_a_recording_replayed_as_krakensdr_reaches_the_app(tmp_path):
             return 100.0 + time.time() - self.w0
 
     w = KrakenWriter(tmp_path / "share", serve=("127.0.0.1", 0))
-    sc = load_scenario("paper", {"kraken.poll_s": 0.005, "kraken.time_source": "host", "kraken.url": w.url})
+    sc = with_policy(load_scenario("paper", {"kraken.poll_s": 0.005, "kraken.time_source": "host", "kraken.url": w.url}),
+                     "paper")
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, kraken=True), sc, clock=WallClock())
     app.poses.keep_s = 1e6
     for k in range(1500):

@@ -17,6 +17,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.contract import OVERRUN_STAGES, STAT_FIELDS
 from onboard.app.overrun import StageTimer, core_stages, overrun_stage, stage_code
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from onboard.core import monitor
 
 M = 4  # the paper scenario's targets
@@ -71,7 +72,7 @@ def _slowed(monkeypatch, name: str, seconds: float) -> None:
 def test_an_overrun_names_its_stage_in_the_record_pmon_stat_and_one_line(monkeypatch, tmp_path):
     clock = WallClock()
     runlog = tmp_path / "run.jsonl"
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, runlog_path=str(runlog)), load_scenario("paper"),
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, runlog_path=str(runlog)), with_policy(load_scenario("paper"), "paper"),
                      clock=clock).start()
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 

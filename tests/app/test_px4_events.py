@@ -17,6 +17,7 @@ from tests.support.app_helpers import wait_for
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.px4_events import EventMetadata, EventMetadataError, decode_event
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 from sim.px4 import find_sitl
 
 FRAMES = json.loads((Path(__file__).resolve().parents[1] / "data" / "px4_events.json").read_text())["events"]
@@ -122,7 +123,7 @@ def test_the_launch_says_why_px4_refuses_to_arm(with_meta):
         pytest.skip("no PX4 event metadata here")
     cfg = AppConfig("udpin:127.0.0.1:0", sensor_port=0, auto_launch=True,
                     px4_events_path=str(META) if with_meta else None)
-    app = OnboardApp(cfg, load_scenario("paper")).start()
+    app = OnboardApp(cfg, with_policy(load_scenario("paper"), "paper")).start()
     px4, beat = _px4_peer(app)
     want = ("launch: arming refused: PX4 check: Navigation error: No valid global position estimate" if with_meta
             else "launch: arming refused: refused by PX4 (see its console / events)")

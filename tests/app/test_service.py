@@ -26,6 +26,7 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.sd_notify import Notifier
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 ROOT = Path(__file__).resolve().parents[2]
 UNIT = ROOT / "config" / "systemd" / "pmon.service"
@@ -130,7 +131,7 @@ def test_watchdog_pings_stop_while_a_tick_hangs_and_resume_after(monkeypatch):
         release.wait(30)
         return real(*a, **k)
     clock = ManualClock(50.0)
-    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0), load_scenario("paper"), clock=clock,
+    app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0), with_policy(load_scenario("paper"), "paper"), clock=clock,
                      tick=tick).start()
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:

@@ -19,6 +19,7 @@ from sim.autopilot import BootTimeline, MockAutopilot
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 
@@ -127,7 +128,7 @@ class Client:
 def signed_world(tmp_path):
     key_path = tmp_path / "pmon.key"
     key = signing.make_key_file(key_path)
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=2.0, signing_key=key,
                        endpoints=["tcpin:127.0.0.1:0"] * 4, boot=BootTimeline.scaled(2.0)).start()
@@ -174,7 +175,7 @@ def test_app_with_the_wrong_key_hears_nothing_and_sends_nothing_accepted(tmp_pat
     k1, k2 = tmp_path / "a.key", tmp_path / "b.key"
     signing.make_key_file(k1)
     key2 = signing.make_key_file(k2)
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     ap = MockAutopilot(speedup=2.0, signing_key=key2, endpoints=["tcpin:127.0.0.1:0"],
                        boot=BootTimeline.scaled(2.0)).start()
     app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
@@ -204,7 +205,7 @@ def _frame(msgid: int, payload: bytes, sysid: int = 1, compid: int = 1, seq: int
 def test_commands_only_from_configured_gcs_and_bad_mavlink_never_hurts():
     """The app listens on udpin; this test is its autopilot and, on the same port, every kind of
     bad or foreign traffic. The app keeps answering the allowed ground station throughout."""
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, gcs_sysids=(255, 250)), sc).start()
     port = app.link.conn.port.getsockname()[1]
     ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1,

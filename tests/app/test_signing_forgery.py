@@ -33,6 +33,7 @@ from groundstation.gcs_link import GcsLink
 from onboard.app import signing
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 FAR_FUTURE = (1 << 48) - 1
 
@@ -151,7 +152,7 @@ def key_file(tmp_path):
 @pytest.mark.timeout(120)
 def test_app_keeps_its_autopilot_after_forged_autopilot_packets(key_file):
     path, key = key_file
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, signing_key_path=str(path),
                                link_timeout_s=1.0), sc).start()

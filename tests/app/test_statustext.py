@@ -13,6 +13,7 @@ from groundstation.gcs_link import GcsLink
 from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.statustext import CHUNK, Reassembler, chunks, send_statustext
 from onboard.config import load_scenario
+from onboard.policy import with_policy
 
 LONG = "PMON: arming refused: PreArm: Need Position Estimate (EKF not ready, GPS 0 sats)"
 
@@ -65,7 +66,7 @@ def test_reassembler_joins_in_any_order_and_does_not_lose_a_text_with_a_lost_chu
 def test_the_apps_long_text_reaches_pmon_gcs_whole():
     """The app's own say() over a real MAVLink link (mock autopilot's routing, as ArduPilot
     routes) to pmon gcs's link: the old code cut it at 50 characters."""
-    sc = load_scenario("paper")
+    sc = with_policy(load_scenario("paper"), "paper")
     o = sc.origin
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=10.0,
                        endpoints=["tcpin:127.0.0.1:0"] * 2, boot=BootTimeline.scaled(2.0)).start()

@@ -197,20 +197,24 @@ def test_a_number_with_an_exponent_and_no_dot_is_a_number():
 
 def test_a_policy_goes_beneath_the_users_own_settings():
     """A flight policy (onboard.policy) applies its settings beneath the scenario's own changes
-    (pmon eval --set wins over the policy's); the result is checked like a load."""
+    (pmon eval --set wins over the policy's); the result is checked like a load. The declared
+    defaults are what flies: the flight policy changes nothing, the paper's restores its method."""
     from dataclasses import replace
 
     from onboard.policy import POLICIES, with_policy
     user = load_scenario("paper", {"tracking.control_mix": 0.05})
-    sc = override(user, {"tracking.control_mix": 0.2, "planning.planner": "lookahead"}, beneath=True)
-    assert sc.tracking.control_mix == 0.05 and sc.planning.planner == "lookahead"
-    assert user.planning.planner == "greedy"  # the scenario it came from is untouched
-    assert override(sc, {"planning.motion": "vehicle"}).planning.planner == "lookahead"
-    assert with_policy(user, "flight") == override(user, POLICIES["flight"], beneath=True)
+    sc = override(user, {"tracking.control_mix": 0.2, "planning.planner": "greedy"}, beneath=True)
+    assert sc.tracking.control_mix == 0.05 and sc.planning.planner == "greedy"
+    assert user.planning.planner == "lookahead"  # the scenario it came from is untouched
+    assert override(sc, {"planning.motion": "jump"}).planning.planner == "greedy"
+    assert with_policy(user, "paper") == override(user, POLICIES["paper"], beneath=True)
+    assert with_policy(user, "flight") == user and with_policy(user, "paper").tracking.control_mix == 0.05
+    paper = with_policy(user, "paper")
+    assert (paper.planning.planner, paper.planning.motion, paper.tracking.intent) == ("greedy", "jump", False)
     with pytest.raises(ConfigError, match="planning.lookahead_steps: must be <= guidance.horizon"):
-        override(user, {"planning.planner": "lookahead", "planning.lookahead_steps": 60})
+        override(paper, {"planning.planner": "lookahead", "planning.lookahead_steps": 60})
     # a scenario built with dataclasses.replace is changed as it is (nothing re-read from its file)
-    edited = replace(user, guidance=replace(user.guidance, horizon=20))
+    edited = replace(paper, guidance=replace(paper.guidance, horizon=20))
     with pytest.raises(ConfigError, match=r"must be <= guidance.horizon \(20\)"):
         override(edited, {"planning.planner": "lookahead"})
     assert override(edited, {"sensor.clutter_rate": 2.0}).guidance.horizon == 20
@@ -250,10 +254,13 @@ def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(
     integer-ness) and docs/SETTINGS.md's table are those of onboard/settings.py: a setting added,
     renamed, or re-ranged in one place and not the others fails here."""
     from onboard.app.params import BY_NAME, SPECS
+    from onboard.policy import with_policy
     declared = set(settings.SETTINGS)
     assert set(_leaf_keys(scenario_tree(paper))) == declared  # every setting, written back
     # the reader accepts these keys: each number, set to a bound (or, where that breaks a check
-    # across settings, between them), is read into the object ...
+    # across settings, between them), is read into the object (on the paper's greedy rule, which
+    # bounds no lookahead) ...
+    greedy = with_policy(paper, "paper")
     for key, s in settings.SETTINGS.items():
         if "[]" in key or s.kind not in ("number", "integer"):
             continue
@@ -261,7 +268,7 @@ def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(
         for v in (s.hi - eps * s.hi_open, s.lo + eps * s.lo_open, (s.lo + s.hi) / 2):
             v = int(v) if s.kind == "integer" else v
             try:
-                changed = override(paper, {"planning.lookahead_steps": 1, key: v})
+                changed = override(greedy, {"planning.lookahead_steps": 1, key: v})
             except ConfigError as exc:
                 assert not str(exc).startswith(key), exc  # refused across settings, never in range
                 continue
@@ -334,7 +341,7 @@ def test_a_parameter_set_in_flight_is_checked_as_a_file_is():
     (the cross-field check, which dataclasses.replace skipped) and accepted with the paper's
     greedy rule; a refused set changes nothing; apply is the scenario with the values."""
     from onboard.app.params import ParamTable
-    from onboard.policy import POLICIES
+    from onboard.policy import POLICIES, with_policy
     flight = load_scenario("paper", POLICIES["flight"])
     table = ParamTable.from_scenario(flight)
     refused = table.set("PMON_HORIZON", 30)
@@ -342,7 +349,7 @@ def test_a_parameter_set_in_flight_is_checked_as_a_file_is():
                        "with the lookahead planner, got 50: it follows the guidance plans")
     assert table["PMON_HORIZON"] == 50 and table.version == 0
     assert table.set("PMON_HORIZON", 60) is None and table.apply(flight).guidance.horizon == 60
-    paper = ParamTable.from_scenario(load_scenario("paper"))
+    paper = ParamTable.from_scenario(with_policy(load_scenario("paper"), "paper"))
     assert paper.set("PMON_HORIZON", 30) is None and paper.version == 1
     assert table.set("PMON_PD", 1.5) == "PMON_PD=1.5 out of range [0.01, 1]"
     assert table.set("PMON_SIGMA_DEG", 0.01745) == "PMON_SIGMA_DEG=0.01745 out of range [0.05, 30]"

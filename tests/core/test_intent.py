@@ -15,6 +15,7 @@ from onboard.core.dynamics import MotionModel
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.monitor_setup import target_intents
 from onboard.core.obstacles import Obstacles
+from onboard.policy import with_policy
 from sim.sensors import DirectionFinder, df_scan
 
 PARAMS = im.IntentParams(0.02, 1.0, 16.0, 0.5)
@@ -127,7 +128,7 @@ def _fly(sc, truth_at, ticks: int, seed: int = 7, radius: float = 250.0):
 
 
 def _scenario(intent: bool, particles: int = 800):
-    paper = load_scenario("paper")
+    paper = with_policy(load_scenario("paper"), "paper")  # the paper's filter, with or without the modes
     sc = replace(paper, targets=paper.targets[:1], kraken=replace(paper.kraken, vfos=paper.kraken.vfos[:1]))
     return override(sc, {"tracking.intent": intent, "tracking.particles": particles})
 

@@ -153,9 +153,10 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     from sim.route_score import compare_routes, snapshots
     from onboard.config import load_scenario
     from onboard.core.monitor import MonitorSetup
+    from onboard.policy import with_policy
 
-    setup = MonitorSetup.from_scenario(load_scenario("paper", {"planning.planner": "lookahead",
-                                                               "planning.motion": motion}))
+    setup = MonitorSetup.from_scenario(override(with_policy(load_scenario("paper"), "paper"),  # the paper's filter
+                                                {"planning.planner": "lookahead", "planning.motion": motion}))
     [(_, particles, log_w, plans, planning, _)] = list(snapshots(setup, {1}, 7, start_xy))
     assert planning.admissible.sum() > 100
     rng = np.random.default_rng(0)
@@ -195,13 +196,18 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
         return particle_steering(MonitorSetup.from_scenario(dc_replace(paper, tracking=dc_replace(paper.tracking, **tr))))
     assert isinstance(steering(plan_steering=True), ReferenceSteering)
     assert isinstance(steering(plan_steering=True, plan_sides=True), SideSteering)
-    # the flight policy flies the side-aware filter; one user setting gives back the free steering
-    # (plan_sides, as every plan_* setting, is unused without plan_steering); --policy paper keeps it
+    # what flies (the declared defaults, the flight policy) is the side-aware filter; one user setting
+    # gives back the free steering (plan_sides, as every plan_* setting, is unused without
+    # plan_steering); --policy paper is the free steering, beneath a user's own settings
+    from onboard.config import load_scenario
     from onboard.policy import with_policy
-    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(paper, "flight"))), SideSteering)
-    user = override(paper, {"tracking.plan_steering": False})
+    declared = load_scenario("paper")
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(declared, "flight"))), SideSteering)
+    user = override(declared, {"tracking.plan_steering": False})
     assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(user, "flight"))), FreeSteering)
-    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(paper, "paper"))), FreeSteering)
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(declared, "paper"))), FreeSteering)
+    sides = override(declared, {"tracking.plan_steering": True, "tracking.plan_sides": True})
+    assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(sides, "paper"))), SideSteering)
 
 
 def test_a_planners_draws_never_shift_the_filters(paper):

@@ -164,7 +164,8 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
     bound by them; every method gets a PCRB, and no estimator beats it by much (a few trials:
     sampling error)."""
     names = ["greedy_l1", "lookahead", "lookahead_vehicle", "greedy_vehicle"]
-    slow = replace(quick, planning=replace(quick.planning, speed_max_mps=8.0, accel_max_mps2=2.0))
+    # the user's own limits (as --set gives them: over the paper methods' policy, whose 10 m/s it replaces)
+    slow = override(quick, {"planning.speed_max_mps": 8.0, "planning.accel_max_mps2": 2.0})
     cfg = ev.make_config(slow, 1, 11, names, duration_s=12, particles=300)
     tr = ev.run_trial(cfg, 0)
     for name in names:
@@ -470,8 +471,10 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     (("--set", "planning.speed_max_mps"), "expected KEY=VALUE"),
     (("--set", "planning.speed_max_mps=-1"), "planning.speed_max_mps: must be in (0, 30] m/s, got -1.0"),
     (("--particles", "50"), "argument --particles: must be in 100..20000"),
-    (("--methods", "lookahead", "--set", "guidance.horizon=20"),
+    (("--methods", "lookahead", "--set", "planning.planner=greedy", "--set", "guidance.horizon=20"),
      "method lookahead: planning.lookahead_steps: must be <= guidance.horizon (20)"),
+    (("--set", "guidance.horizon=20"),  # the declared lookahead follows the guidance plans
+     "planning.lookahead_steps: must be <= guidance.horizon (20) with the lookahead planner"),
 ])
 def test_pmon_eval_bad_arguments(tmp_path, args, message, capsys):
     """Through pmon's main(argv) in this process (no Python start-up per case; the real program

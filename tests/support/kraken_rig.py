@@ -15,11 +15,12 @@ from onboard.app.app import AppConfig, OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.pose import PoseSample
 from onboard.config import load_scenario, override
+from onboard.policy import with_policy
 from sim.kraken import KrakenModel, frame_lines
 
 UNIX0 = 1_700_000_000.0
 M = 4
-SC = load_scenario("paper", {"kraken.poll_s": 0.005})
+SC = with_policy(load_scenario("paper", {"kraken.poll_s": 0.005}), "paper")  # the app on the paper's method
 FREQS = {j: v.freq_hz for j, v in enumerate(SC.kraken.vfos)}
 MODEL = KrakenModel(multipath=False)
 UAV = np.array([150.0, 200.0, 40.0])
