@@ -57,3 +57,23 @@ def fifo_permitted(priority: int) -> bool:
         return subprocess.run([chrt, "-f", str(priority), "true"], capture_output=True, timeout=10).returncode == 0
     except (OSError, subprocess.TimeoutExpired):
         return False
+
+
+def vehicle_threads(*threads) -> None:
+    """Started threads of this process that stand in for the vehicle's other computers (the
+    in-process mock autopilot's simulation, a scripted DF) at SCHED_FIFO ``vehicle_priority()``,
+    as their processes would be; nothing at 0. A refusal leaves a thread at normal scheduling."""
+    priority = vehicle_priority()
+    if not priority:
+        return
+    for th in threads:
+        if th is not None and th.native_id is not None:
+            try:
+                os.sched_setscheduler(th.native_id, os.SCHED_FIFO, os.sched_param(priority))
+            except OSError:
+                pass
+
+
+def app_config_priority() -> dict:
+    """The AppConfig field an in-process app takes to run as ``pmon run --rt-priority`` would."""
+    return {"rt_priority": app_priority()}

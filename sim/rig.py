@@ -32,7 +32,6 @@ from __future__ import annotations
 import shutil
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +40,7 @@ from typing import Callable, Mapping
 
 from onboard.policy import DEFAULT as DEFAULT_POLICY
 from sim.multicopter import DEMO_VEHICLE_PARAMS
-from sim.priority import app_priority, vehicle_priority
+from sim.priority import app_priority, vehicle_priority, vehicle_threads
 
 APP_PORT, FEED_PORT, GCS_PORT = 0, 1, 2  # the autopilot's MAVLink ports, by user
 # PX4 (sim/px4.py): each port number as (link, listener index) on PX4's UDP links; None: a client
@@ -186,11 +185,8 @@ class Rig:
 
     def start_autopilot(self):
         self.ap.start()
-        if self.cfg.in_process and vehicle_priority():  # the mock's simulation thread, as a process's would be
-            from onboard.app.realtime import set_fifo
-            for th in threading.enumerate():
-                if th.name == "mock-autopilot" and th.native_id is not None:
-                    set_fifo(th.native_id, vehicle_priority())
+        if self.cfg.in_process:  # the mock's simulation thread, as its process would be
+            vehicle_threads(self.ap._thread)
         return self.ap
 
     def start_app(self) -> None:

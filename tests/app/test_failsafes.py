@@ -25,6 +25,7 @@ import pytest
 
 from onboard.app.mavlink2 import mavlink
 from sim.autopilot import BootTimeline, MockAutopilot
+from sim.priority import app_config_priority, vehicle_threads
 
 from tests.support.mavlink_gcs import Gcs
 from tests.support.app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, wait_for
@@ -56,12 +57,14 @@ def flight():
         orig(link, msg)
     ap._on_set_position_target_local_ned = spy
     ap.start()
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
     app = df = gcs = None
     tick = FaultyTick()  # the core tick the worker calls: faults are injected through it
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=1, link_timeout_s=1.0), sc, tick=tick).start()
+                                   auto_launch=True, seed=1, **app_config_priority(), link_timeout_s=1.0), sc, tick=tick).start()
         df = ScriptedDf(ap, app.sensor_port, np.array([t.mean for t in sc.targets])).start()
+        vehicle_threads(df._t)
         gcs = Gcs(ap.port("tcpin", 1))
         assert wait_for(lambda: app.state == State.MONITORING
                      and sum(1 for t in app.ticks if t["planned"]) >= 5, 90), list(app.events)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from sim.autopilot import BootTimeline, MockAutopilot
+from sim.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 
@@ -33,11 +34,13 @@ def ticks():
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=3,
                        endpoints=["tcpin:127.0.0.1:0"], max_lag_s=0.1, boot=BootTimeline.scaled(3.0))
     ap.start()
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
     app = df = None
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=1), sc).start()
+                                   auto_launch=True, seed=1, **app_config_priority()), sc).start()
         df = ScriptedDf(ap, app.sensor_port, np.array([t.mean for t in sc.targets])).start()
+        vehicle_threads(df._t)
         assert wait_for(lambda: app.state == State.MONITORING
                         and sum(1 for t in app.ticks if t["planned"]) >= MONITORING_TICKS, 200), list(app.events)
         yield [t for t in app.ticks]

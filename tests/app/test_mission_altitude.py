@@ -10,6 +10,7 @@ import pytest
 
 from onboard.app.mavlink2 import mavlink
 from sim.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 from tests.support.mavlink_gcs import Gcs
@@ -48,11 +49,13 @@ def flight():
         orig(link, msg)
     ap._on_set_position_target_local_ned = spy
     ap.start()
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
     app = df = gcs = None
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,
-                                   auto_launch=True, seed=1), sc).start()
+                                   auto_launch=True, seed=1, **app_config_priority()), sc).start()
         df = ScriptedDf(ap, app.sensor_port, np.array([t.mean for t in sc.targets])).start()
+        vehicle_threads(df._t)
         gcs = Gcs(ap.port("tcpin", 1))
         assert wait_for(lambda: app.state == State.MONITORING
                         and sum(1 for t in app.ticks if t["planned"]) >= 3, 120), list(app.events)
