@@ -2,8 +2,11 @@
 KrakenSDR path) with two busy processes at normal priority on the same cores, scheduled as
 docs/DEPLOY.md tells an integrator (tests/conftest.py: the app at --rt-priority 40, the simulated
 vehicle at FIFO 41; sim/priority.py). Every scan is ticked (none skipped) and at most 1 % of the
-monitoring ticks hold their setpoint late. Marker ``load``; without SCHED_FIFO (an unprivileged
-machine) they skip, since at normal scheduling nothing protects the loop from its neighbours."""
+monitoring ticks hold their setpoint late. Marker ``load``, which the default run deselects: run them alone (``python -m pytest -m load -n 0
+-s``), since beside a second worker's flights, real-time too, the busy processes are not the
+only neighbours (in a 2-worker run: 3-4 skipped ticks on each firmware, 4 late on the KrakenSDR
+path). Without SCHED_FIFO (an unprivileged machine) they skip, since at normal scheduling nothing
+protects the loop from its neighbours."""
 from __future__ import annotations
 
 import json
@@ -48,6 +51,7 @@ def _fly(out: Path, autopilot: str, df: str = "datagram") -> tuple[dict, dict]:
 
 
 def _holds(rep: dict, counts: dict) -> None:
+    print(f"monitoring ticks {rep['monitoring_ticks']}, app {counts}")  # pytest -s shows the figures
     assert rep["monitoring_ticks"] >= 95 and rep["scored_ticks"] >= 95, rep
     assert counts["skipped"] == 0 and rep["skipped"] == 0, (counts, rep["skipped"])
     assert counts["late"] <= 0.01 * rep["monitoring_ticks"], counts
