@@ -1,9 +1,10 @@
 """The onboard app under background load: a short mock-autopilot flight (bench/latency.py's, the
 app and the mock in this process, the DF feed a process) or the documented procedure on a
 firmware's SITL (``--procedure ardupilot|px4``: bench/ardupilot.py, every program a process)
-beside N busy processes at normal priority, with or without the app's real-time threads.
+beside N busy processes at normal priority (and, with ``--disk`` and ``--udp-mbps``, a disk writer
+and a video-like UDP stream), with or without the app's real-time threads.
 
-    python -m bench.load [--busy 2] [--duration 100] [--speedup 1] [--rt-priority 0]
+    python -m bench.load [--busy 2] [--disk] [--udp-mbps R] [--duration 100] [--speedup 1] [--rt-priority 0]
     python -m bench.load --procedure ardupilot [--busy 2] [--duration 100] [--speedup 2] [--rt-priority 0]
 
 ``--rt-priority N``: the app's io thread at SCHED_FIFO N and its worker at N - 1 (as ``pmon run
@@ -32,6 +33,30 @@ from onboard.app.realtime import set_fifo
 ROOT = Path(__file__).resolve().parents[1]
 
 BUSY = "while True: pass"
+# a logger or a recorder: 4 MiB written and fsynced, over and over, to a file of its own
+DISK = ("import os, sys, tempfile\n"
+        "fd, path = tempfile.mkstemp(prefix='pmon-load-'); os.unlink(path); block = os.urandom(4 << 20)\n"
+        "while True:\n    os.lseek(fd, 0, 0); os.write(fd, block); os.fsync(fd)\n")
+# a video-like stream: RATE Mbit/s of 1316-byte datagrams (7 MPEG-TS packets) to a loopback sink
+UDP = ("import socket, sys, time\n"
+       "rate = float(sys.argv[1]) * 1e6 / 8 / 1316\n"
+       "sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); sink.bind(('127.0.0.1', 0))\n"
+       "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); payload = bytes(1316); t = time.monotonic()\n"
+       "while True:\n"
+       "    s.sendto(payload, sink.getsockname()); sink.recv(2048); t += 1 / rate\n"
+       "    d = t - time.monotonic()\n"
+       "    if d > 0: time.sleep(d)\n")
+
+
+def _background(args) -> list[subprocess.Popen]:
+    """The load beside the flight: ``--busy`` CPU-bound processes, ``--disk`` a writer, ``--udp-mbps``
+    a stream; all at normal priority."""
+    procs = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(args.busy)]
+    if args.disk:
+        procs.append(subprocess.Popen([sys.executable, "-c", DISK]))
+    if args.udp_mbps > 0:
+        procs.append(subprocess.Popen([sys.executable, "-c", UDP, str(args.udp_mbps)]))
+    return procs
 
 
 def _vehicle_side_fifo(app, rig_feed_pid: int | None, priority: int) -> list[str]:
@@ -91,7 +116,7 @@ def procedure(args) -> int:
     import time
     if args.speedup == 1.0:
         args.speedup = 2.0  # the procedure's own default, the firmware tests' speed
-    busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(args.busy)]
+    busy = _background(args)
     boosted: set[int] = set()
     with tempfile.TemporaryDirectory() as out:
         argv = [sys.executable, "-m", "bench.ardupilot", "--autopilot", args.procedure,
@@ -126,7 +151,8 @@ def procedure(args) -> int:
             overruns[r["overrun"]] = overruns.get(r["overrun"], 0) + 1
     stages = {s: _quantiles([r["stage_ms"][s] for r in recs if r.get("stage_ms") and r["channels"]])
               for s in OVERRUN_STAGES[1:]}
-    out_ = {"procedure": args.procedure, "busy": args.busy, "rt_priority": args.rt_priority, "speedup": args.speedup,
+    out_ = {"procedure": args.procedure, "busy": args.busy, "disk": args.disk, "udp_mbps": args.udp_mbps,
+            "rt_priority": args.rt_priority, "speedup": args.speedup,
             "cpus": os.cpu_count(), "vehicle_side_boosted": len(boosted),
             **{k: f.get(k) for k in ("monitoring_ticks", "ticks", "scans", "ticks_skipped", "ticks_late",
                                      "setpoint_delay_s_median", "autopilot_crashes", "wall_s")},
@@ -144,6 +170,9 @@ def procedure(args) -> int:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--busy", type=int, default=2, help="busy processes at normal priority beside the flight")
+    ap.add_argument("--disk", action="store_true", help="and a process writing and fsyncing 4 MiB over and over")
+    ap.add_argument("--udp-mbps", type=float, default=0.0, metavar="R",
+                    help="and a process streaming R Mbit/s of UDP datagrams over loopback (video-like)")
     ap.add_argument("--duration", type=float, default=100.0, help="mission seconds of DF scans (default 100)")
     ap.add_argument("--speedup", type=float, default=1.0)
     ap.add_argument("--rt-priority", type=int, default=0, help="0: normal scheduling (default)")
@@ -154,7 +183,7 @@ def main() -> int:
     args = ap.parse_args()
     if args.procedure != "mock":
         return procedure(args)
-    busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(args.busy)]
+    busy = _background(args)
     state: dict = {"fifo_problems": None, "records": []}
 
     def on_app(app):
@@ -177,7 +206,7 @@ def main() -> int:
     c = app.counters
     stages = {s: _quantiles([r["stage_ms"][s] for r in recs if r.get("stage_ms") and r["channels"]])
               for s in OVERRUN_STAGES[1:]}
-    out = {"busy": args.busy, "rt_priority": args.rt_priority, "cpus": os.cpu_count(),
+    out = {"busy": args.busy, "disk": args.disk, "udp_mbps": args.udp_mbps, "rt_priority": args.rt_priority, "cpus": os.cpu_count(),
            "app_threads": {k: o.text for k, o in app.realtime.items()},
            "vehicle_side_fifo_problems": state["fifo_problems"],
            "monitoring_ticks": f["monitoring_ticks"], "ticks_missed": f["ticks_missed"],

@@ -19,8 +19,8 @@ from onboard.policy import with_policy
 os.environ.setdefault("PMON_GCS_NO_IDLE", "1")
 
 # every flight the suite flies is scheduled as docs/DEPLOY.md tells an integrator (sim/priority.py):
-# the app at --rt-priority 40, the simulated vehicle's processes at FIFO 41, so a second pytest
-# worker or anything else on the machine takes no CPU from a flight. Where SCHED_FIFO is refused
+# the app at --rt-priority 40, the simulated vehicle's processes at FIFO 41, so nothing else on
+# the machine at normal priority takes CPU from a flight. Where SCHED_FIFO is refused
 # the flights run at normal scheduling (PMON_SIM_RT_PRIORITY=0 chooses that too).
 if "PMON_SIM_RT_PRIORITY" not in os.environ:
     from sim.priority import fifo_permitted
@@ -29,18 +29,12 @@ if "PMON_SIM_RT_PRIORITY" not in os.environ:
 _FIRMWARE_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "firmware") + os.sep
 
 
-def pytest_itemcollected(item):  # as each test is collected: before -m and pytest-xdist read the marks
+def pytest_itemcollected(item):  # as each test is collected: before -m reads the marks
     """Every test of a real firmware carries the ``firmware`` marker: those marked ``ardupilot`` or
-    ``px4`` and all of tests/firmware/ (the fast tier deselects them: -m 'not firmware and not slow').
-
-    Workers (pytest-xdist, --dist loadgroup): a module's tests run on one worker (its module
-    fixtures, a flight, once), and every firmware test on the same worker in turn, so at most one
-    firmware flight runs at a time beside the other worker's tests."""
+    ``px4`` and all of tests/firmware/ (the fast tier deselects them: -m 'not firmware and not slow')."""
     if (str(item.path).startswith(_FIRMWARE_DIR) or item.get_closest_marker("ardupilot")
             or item.get_closest_marker("px4")):
         item.add_marker(pytest.mark.firmware)
-    group = "firmware" if item.get_closest_marker("firmware") else item.nodeid.split("::", 1)[0]
-    item.add_marker(pytest.mark.xdist_group(group))
 
 
 @pytest.fixture(scope="session")

@@ -2,10 +2,11 @@
 KrakenSDR path) with two busy processes at normal priority on the same cores, scheduled as
 docs/DEPLOY.md tells an integrator (tests/conftest.py: the app at --rt-priority 40, the simulated
 vehicle at FIFO 41; sim/priority.py). Every scan is ticked (none skipped) and at most 1 % of the
-monitoring ticks hold their setpoint late. Marker ``load``, which the default run deselects: run them alone (``python -m pytest -m load -n 0
--s``), since beside a second worker's flights, real-time too, the busy processes are not the
-only neighbours (in a 2-worker run: 3-4 skipped ticks on each firmware, 4 late on the KrakenSDR
-path). Without SCHED_FIFO (an unprivileged machine) they skip, since at normal scheduling nothing
+monitoring ticks hold their setpoint late. Marker ``load``, which the default run deselects (four minutes of flights): ``python -m pytest
+-m load -s`` (``-s`` prints each flight's counts). They need the machine to themselves: beside
+another flight, real-time too, the busy processes are not the only neighbours (in a run on two
+pytest-xdist workers: 3-4 skipped ticks on each firmware, 4 late on the KrakenSDR path). Without
+SCHED_FIFO (an unprivileged machine) they skip, since at normal scheduling nothing
 protects the loop from its neighbours."""
 from __future__ import annotations
 
