@@ -1,7 +1,7 @@
 """The 1 Hz loop beside a busy machine (issue 46): ``pmon demo`` on each real firmware (and on the
 KrakenSDR path) with two busy processes at normal priority on the same cores, scheduled as
-docs/DEPLOY.md tells an integrator (tests/conftest.py: the app at --rt-priority 40, the simulated
-vehicle at FIFO 41; sim/priority.py). Every scan is ticked (none skipped) and at most 1 % of the
+docs/DEPLOY.md tells an integrator (PMON_SIM_RT_PRIORITY=40, sim/priority.py: the app at
+--rt-priority 40, the simulated vehicle at FIFO 41). Every scan is ticked (none skipped) and at most 1 % of the
 monitoring ticks hold their setpoint late. Marker ``load``, which the default run deselects (four minutes of flights): ``python -m pytest
 -m load -s`` (``-s`` prints each flight's counts). They need the machine to themselves: beside
 another flight, real-time too, the busy processes are not the only neighbours (in a run on two
@@ -11,6 +11,7 @@ protects the loop from its neighbours."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -18,14 +19,15 @@ from pathlib import Path
 
 import pytest
 
-from sim.priority import app_priority, fifo_permitted
+from sim.priority import ENV, fifo_permitted
 
 REPO = Path(__file__).resolve().parents[2]
 BUSY = 2
+RT_PRIORITY = 40  # docs/DEPLOY.md's: the app at 40/39, the simulated vehicle at 41 (sim/priority.py)
 SPEEDUP = 2  # the procedure benches' (bench/load.py): half a second of wall time per tick
 pytestmark = [pytest.mark.load, pytest.mark.sitl,
-              pytest.mark.skipif(not (app_priority() and fifo_permitted(app_priority() + 1)),
-                                 reason="SCHED_FIFO not permitted (PMON_SIM_RT_PRIORITY 0): no protection to test")]
+              pytest.mark.skipif(not fifo_permitted(RT_PRIORITY + 1),
+                                 reason="SCHED_FIFO not permitted: no protection to test")]
 
 
 def _busy(n: int) -> list[subprocess.Popen]:
@@ -38,7 +40,8 @@ def _fly(out: Path, autopilot: str, df: str = "datagram") -> tuple[dict, dict]:
     try:
         p = subprocess.run([sys.executable, "-m", "onboard.cli", "demo", "--autopilot", autopilot, "--df", df,
                             "--speedup", str(SPEEDUP), "--out", str(out)],
-                           cwd=REPO, capture_output=True, text=True, timeout=500)
+                           cwd=REPO, capture_output=True, text=True, timeout=500,
+                           env=dict(os.environ, **{ENV: str(RT_PRIORITY)}))
     finally:
         for b in busy:
             b.kill()
