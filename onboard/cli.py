@@ -1,7 +1,8 @@
 """``pmon``: the Passive Monitor command line.
 
     pmon run ...                 the onboard app: the companion computer's program
-    pmon check-config [FILE]     validate a scenario (default: the built-in paper scenario)
+    pmon check-config [FILE]     validate a scenario (default: the built-in paper scenario), with
+                                 --set KEY=VALUE changes; names each experimental setting changed
     pmon VERB ...                a verb another package declares in the entry-point group
                                  ``pmon.verbs`` (pyproject.toml): the simulator's demo, simulate,
                                  eval and feed (sim/verbs.py), the ground station's gcs
@@ -24,19 +25,28 @@ OWN = ("run", "check-config")
 
 
 def _check(args) -> int:
-    from onboard.config import ConfigError, load_scenario
+    from onboard.config import ConfigError, load_scenario, parse_overrides
 
     try:
-        sc = load_scenario(args.scenario)
+        sc = load_scenario(args.scenario, parse_overrides(args.set))
     except ConfigError as exc:
         print(f"pmon: {exc}", file=sys.stderr)
         return 2
     print(f"{sc.source}: ok: {len(sc.targets)} targets, {len(sc.obstacles)} obstacles, "
           f"{len(sc.goals)} goal region(s), horizon T={sc.guidance.horizon}, "
           f"{sc.tracking.particles} particles/target")
-    for line in intent_lines(sc):
+    for line in intent_lines(sc) + experimental_lines(sc):
         print(line)
     return 0
+
+
+def experimental_lines(sc) -> list[str]:
+    """One line per experimental setting the file or ``--set`` holds at other than its default:
+    a research knob, not an error (docs/SETTINGS.md "Experimental settings")."""
+    from onboard.settings import experimental_changes
+
+    return [f"{key}: experimental, {value} here (default {default}): a research knob, unsupported in flight"
+            for key, value, default in experimental_changes(sc)]
 
 
 def intent_lines(sc) -> list[str]:
@@ -138,6 +148,8 @@ def parser(verbs: dict) -> OneLineParser:
     r.set_defaults(func=run_mod.run)
     c = sub.add_parser("check-config", help="validate a scenario file", description="Validate a scenario file.")
     c.add_argument("scenario", nargs="?", default="paper", help="YAML file or built-in name (default: paper)")
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change a scenario value before the checks (VALUE read as YAML; repeatable), as pmon eval's")
     c.set_defaults(func=_check)
     for name, ep in sorted(verbs.items()):
         doc = (ep.load().__doc__ or "").strip().split("\n")[0]

@@ -5,9 +5,11 @@ metadata (Stone Soup's "each property declared once with its default and doc"). 
 defaults are what flies (``pmon run``, ``pmon demo``); ``--policy paper`` (onboard/policy.py) is
 the overlay that restores the paper's method. Everything else derives from it: the YAML reader
 and ``--set`` (onboard/config.py), the policies' overlays (checked as a file is), the PMON_*
-parameters and their checks (onboard/app/params.py) and the table in docs/SETTINGS.md (``python -m onboard.settings --write`` regenerates it; a test fails
-when it drifts). The core's parameter classes have no defaults of their own: they take every
-value from these objects (their ``from_config``).
+parameters and their checks (onboard/app/params.py) and the tables in docs/SETTINGS.md (``python -m
+onboard.settings --write`` regenerates them; a test fails when they drift). A setting declared
+``experimental=True`` is a research knob: listed apart, no PMON_* parameter (``Setting``). The
+core's parameter classes have no defaults of their own: they take every value from these objects
+(their ``from_config``).
 
 The objects hold each setting as the file states it, in the file's unit (so a scenario written
 back and read again is the same object, bit for bit); what the code needs in SI units and
@@ -39,7 +41,10 @@ class Setting:
     ``vector`` (``size`` numbers, or 1 to ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
     vector (``lo_open``/``hi_open``: the bound itself excluded). ``nullable``: ``null`` is a
     value (its meaning in ``doc``). ``param``: the PMON_* parameter that sets it in flight.
-    ``paper``: the value is the paper's (Sec. V-A), not ours.
+    ``paper``: the value is the paper's (Sec. V-A), not ours. ``experimental``: a research knob
+    an operator or integrator never needs (a filter's or planner's internals): its default is the
+    configuration that flies, it has no PMON_* parameter, docs/SETTINGS.md lists it apart and
+    ``pmon check-config`` names it when a file or ``--set`` changes it.
     """
 
     kind: str
@@ -55,6 +60,7 @@ class Setting:
     nullable: bool = False
     param: str | None = None
     paper: bool = False
+    experimental: bool = False
 
     def range_text(self) -> str:
         """The range as a reader writes it: ``[0.05, 30] deg``, ``(0, 5]``, ``one of a | b``."""
@@ -101,40 +107,41 @@ def _setting(default: Any, kind: str, doc: str, **kw) -> Any:
 
 
 def number(default, lo, hi, unit, doc, *, lo_open=False, hi_open=False, nullable=False, param=None,
-           paper=False) -> Any:
+           paper=False, experimental=False) -> Any:
     return _setting(default, "number", doc, unit=unit, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open,
-                    nullable=nullable, param=param, paper=paper)
+                    nullable=nullable, param=param, paper=paper, experimental=experimental)
 
 
-def integer(default, lo, hi, unit, doc, *, param=None, paper=False, even=False) -> Any:
+def integer(default, lo, hi, unit, doc, *, param=None, paper=False, even=False, experimental=False) -> Any:
     return _setting(default, "even" if even else "integer", doc, unit=unit, lo=lo, hi=hi, param=param,
-                    paper=paper)
+                    paper=paper, experimental=experimental)
 
 
-def flag(default, doc) -> Any:
-    return _setting(default, "flag", doc)
+def flag(default, doc, *, experimental=False) -> Any:
+    return _setting(default, "flag", doc, experimental=experimental)
 
 
-def choice(default, choices, doc, *, paper=False) -> Any:
-    return _setting(default, "choice", doc, choices=tuple(choices), paper=paper)
+def choice(default, choices, doc, *, paper=False, experimental=False) -> Any:
+    return _setting(default, "choice", doc, choices=tuple(choices), paper=paper, experimental=experimental)
 
 
-def text(default, doc, *, nullable=False) -> Any:
-    return _setting(default, "text", doc, nullable=nullable)
+def text(default, doc, *, nullable=False, experimental=False) -> Any:
+    return _setting(default, "text", doc, nullable=nullable, experimental=experimental)
 
 
-def names(default, max_items, doc) -> Any:
-    return _setting(default, "names", doc, max_items=max_items)
+def names(default, max_items, doc, *, experimental=False) -> Any:
+    return _setting(default, "names", doc, max_items=max_items, experimental=experimental)
 
 
-def location(default, doc, *, words=(), nullable=False) -> Any:
+def location(default, doc, *, words=(), nullable=False, experimental=False) -> Any:
     """Where to read from; ``words``: plain words it may also be (``auto``)."""
-    return _setting(default, "location", doc, choices=tuple(words), nullable=nullable)
+    return _setting(default, "location", doc, choices=tuple(words), nullable=nullable, experimental=experimental)
 
 
-def vector(default, size, lo, hi, unit, doc, *, max_items=None, lo_open=False, paper=False) -> Any:
+def vector(default, size, lo, hi, unit, doc, *, max_items=None, lo_open=False, paper=False,
+           experimental=False) -> Any:
     return _setting(default, "vector", doc, unit=unit, lo=lo, hi=hi, size=size, max_items=max_items,
-                    lo_open=lo_open, paper=paper)
+                    lo_open=lo_open, paper=paper, experimental=experimental)
 
 
 def section(cls, doc: str, required: bool = False) -> Any:
@@ -178,11 +185,12 @@ class Area:
 class Dynamics:
     dt_s: float = number(1.0, 0.1, 10, "s", "time step of the targets' model and of the monitor's tick",
                          paper=True)
-    friction: float = number(0.2, 0, 1, "", "epsilon: velocity lost to friction per step", paper=True)
-    mass_kg: float = number(1300.0, 1, 1e5, "kg", "a target's mass", paper=True)
+    friction: float = number(0.2, 0, 1, "", "epsilon: velocity lost to friction per step", paper=True,
+                             experimental=True)
+    mass_kg: float = number(1300.0, 1, 1e5, "kg", "a target's mass", paper=True, experimental=True)
     process_noise_diag: tuple[float, ...] = vector((30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10), 6, 0, 1e6,
                                                    "m^2, (m/s)^2", "diagonal of Q (x, y, z, vx, vy, vz)",
-                                                   paper=True)
+                                                   paper=True, experimental=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -234,20 +242,23 @@ class Guidance:
     horizon: int = integer(50, 2, 200, "steps", "T: steps each target's guidance plans ahead",
                            param="PMON_HORIZON", paper=True)
     u_max_n: float = number(6000.0, 0, 1e6, "N", "|u_x|, |u_y| bound of a target's control input",
-                            lo_open=True, paper=True)
+                            lo_open=True, paper=True, experimental=True)
     speed_max_mps: float = number(16.0, 0, 100, "m/s", "a target's ground speed bound (inscribed polygon)",
-                                  lo_open=True, paper=True)
-    speed_polygon_sides: int = integer(16, 4, 64, "", "sides of the polygon that keeps the speed bound")
+                                  lo_open=True, paper=True, experimental=True)
+    speed_polygon_sides: int = integer(16, 4, 64, "", "sides of the polygon that keeps the speed bound",
+                                       experimental=True)
     terminal_weight: float = number(1.0, 0, 1e6, "1/m^2", "weight of ||mu_pos(t+T) - G_o||^2",
-                                    paper=True)
+                                    paper=True, experimental=True)
     stage_weight: float = number(1.0, 0, 1e6, "1/m^2", "weight of ||mu_pos(t+tau) - G_o||^2 for tau < T "
-                                 "(ours; not both 0)")
-    smooth_weight: float = number(1000.0, 0, 1e6, "1/kN^2", "weight of ||u_tau - u_(tau-1)||^2")
-    obstacle_margin_m: float = number(5.0, 0, 1000, "m", "obstacles are inflated by this for the targets' plans")
-    max_qp_solves: int = integer(80, 1, 1000, "", "QP solves per target and tick; then the best plan found")
+                                 "(ours; not both 0)", experimental=True)
+    smooth_weight: float = number(1000.0, 0, 1e6, "1/kN^2", "weight of ||u_tau - u_(tau-1)||^2", experimental=True)
+    obstacle_margin_m: float = number(5.0, 0, 1000, "m", "obstacles are inflated by this for the targets' plans",
+                                      experimental=True)
+    max_qp_solves: int = integer(80, 1, 1000, "", "QP solves per target and tick; then the best plan found",
+                                 experimental=True)
     max_solve_time_s: float | None = number(None, 0, 10, "s", "solve time per target and tick; null: no limit "
                                             "(results independent of the machine's speed)",
-                                            lo_open=True, nullable=True)
+                                            lo_open=True, nullable=True, experimental=True)
 
 
 @dataclass(frozen=True)
@@ -285,45 +296,49 @@ class Tracking:
 
     particles: int = integer(2000, 100, 20000, "", "particles per target", param="PMON_PARTICLES")
     resample_ess_fraction: float = number(0.5, 0, 1, "", "resample when the effective sample size falls "
-                                          "below this fraction")
+                                          "below this fraction", experimental=True)
     control_mix: float = number(0.1, 0, 1, "", "share of particles predicted with a random control, the "
-                                "rest with the plan's", hi_open=True)
+                                "rest with the plan's", hi_open=True, experimental=True)
     regularise_bandwidth: float = number(0.2, 0, 1, "", "h of the regularised resampling, jitter N(0, h^2 C); "
-                                         "0: plain resampling")
+                                         "0: plain resampling", experimental=True)
     plan_steering: bool = flag(True, "particles steer by the affine law of the nearest reference plan "
                                "while the plan is constrained (false, the paper's: the free steering "
-                               "alone, and the plan_* settings below unused)")
-    plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True)
+                               "alone, and the plan_* settings below unused)", experimental=True)
+    plan_references: int = integer(2, 0, 8, "", "reference plans besides the mean's (pairs either side)", even=True,
+                                   experimental=True)
     plan_spread_sigma: float = number(1.5, 0, 5, "sigma", "the references' spread along the cloud's major axis",
-                                      lo_open=True)
+                                      lo_open=True, experimental=True)
     plan_steered_share: float = number(0.7, 0, 1, "", "share of the particles a reference plan steers "
-                                       "(the rest keep its control)")
+                                       "(the rest keep its control)", experimental=True)
     plan_trust_sigma: float = number(2.0, 0, 10, "sigma", "only particles this close (Mahalanobis) to a "
-                                     "reference are steered", lo_open=True)
-    plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan")
+                                     "reference are steered", lo_open=True, experimental=True)
+    plan_max_qp_solves: int = integer(80, 1, 1000, "", "QP budget of each reference plan", experimental=True)
     plan_sides: bool = flag(True, "with plan_steering: a side of each obstacle per particle, reference "
-                            "plans per side present (the side-aware filter; false, the paper's: one)")
+                            "plans per side present (the side-aware filter; false, the paper's: one)",
+                            experimental=True)
     plan_side_temperature: float = number(0.05, 0, 10, "", "a side costing P1 d more (relative) gets "
-                                          "1/(1+exp(d/this)) of the particles", lo_open=True)
+                                          "1/(1+exp(d/this)) of the particles", lo_open=True, experimental=True)
     recovery_prior: float = number(0.01, 0, 0.5, "", "probability per tick that a target left the motion "
                                    "model's prediction (tracking.Recovery: found again along the bearings); 0 "
-                                   "(the paper's): off")
+                                   "(the paper's): off", experimental=True)
     recovery_share: float = number(0.02, 0, 1, "", "with recovery_prior: share of the particles drawn along "
-                                   "the bearings each tick")
+                                   "the bearings each tick", experimental=True)
     recovery_sigma_m: float = number(50.0, 1, 5000, "m", "with recovery_prior: a target that left the "
-                                     "prediction is N(its mean, its covariance + this^2 I) in the plane")
+                                     "prediction is N(its mean, its covariance + this^2 I) in the plane",
+                                     experimental=True)
     intent: bool = flag(True, "a motion mode per particle: heading for each candidate goal, stationary, or "
                         "free; their probabilities estimated from the bearings, and a target whose bearings "
                         "no mode explains re-seeded along them (docs/TRACKING.md 'Intent'; false, the "
-                        "paper's: each target heads for its goal)")
+                        "paper's: each target heads for its goal)", experimental=True)
     intent_stationary_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal "
-                                            "stands still")
+                                            "stands still", experimental=True)
     intent_free_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal moves "
-                                      "freely instead (heads somewhere not named, wanders)")
+                                      "freely instead (heads somewhere not named, wanders)", experimental=True)
     intent_switch_prob: float = number(0.02, 0, 0.5, "1/tick", "with intent: probability per tick that a "
-                                       "particle's mode is redrawn from the prior (stops, turns, goes)")
+                                       "particle's mode is redrawn from the prior (stops, turns, goes)",
+                                       experimental=True)
     intent_free_accel_mps2: float = number(1.0, 0, 20, "m/s^2", "with intent: a free target's random "
-                                           "acceleration, per axis", lo_open=True)
+                                           "acceleration, per axis", lo_open=True, experimental=True)
 
 
 @dataclass(frozen=True)
@@ -332,12 +347,14 @@ class Lookahead:
 
     ranges_m: tuple[float, ...] = vector((30.0, 80.0, 160.0, 320.0), None, 0, 5000, "m",
                                          "waypoints on a polar grid around the UAV at these ranges",
-                                         max_items=16, lo_open=True)
-    n_headings: int = integer(16, 1, 360, "", "... and this many headings (plus the targets' predicted positions)")
+                                         max_items=16, lo_open=True, experimental=True)
+    n_headings: int = integer(16, 1, 360, "", "... and this many headings (plus the targets' predicted positions)",
+                              experimental=True)
     loiter_radius_m: float = number(40.0, 0, 1000, "m", "after its waypoint a route circles through it with "
-                                    "this radius", lo_open=True)
-    corner_clearance_m: float = number(3.0, 0, 100, "m", "routes round the UAV's inflated obstacles this much wider")
-    spacing_m: float = number(2.0, 0.1, 50, "m", "arc-length resolution of the sampled routes")
+                                    "this radius", lo_open=True, experimental=True)
+    corner_clearance_m: float = number(3.0, 0, 100, "m", "routes round the UAV's inflated obstacles this much wider",
+                                       experimental=True)
+    spacing_m: float = number(2.0, 0.1, 50, "m", "arc-length resolution of the sampled routes", experimental=True)
 
 
 @dataclass(frozen=True)
@@ -345,14 +362,14 @@ class Planning:
     """Where the UAV flies next (docs/PLANNING.md)."""
 
     objective: str = choice("trace", ("trace", "position_trace"), "what the greedy rule minimises: tr(Sigma) "
-                            "of all six states, or of the position only", paper=True)
+                            "of all six states, or of the position only", paper=True, experimental=True)
     planner: str = choice("lookahead", ("greedy", "lookahead", "hover", "orbit", "random"),
                           "routes scored over lookahead_steps, or greedy, the paper's one-step rule; hover, "
                           "orbit, random: the evaluation's baselines (onboard/core/planners.py)")
     lookahead_steps: int = integer(50, 1, 200, "ticks", "ticks the lookahead planner scores "
-                                   "(<= guidance.horizon)")
+                                   "(<= guidance.horizon)", experimental=True)
     motion: str = choice("vehicle", ("jump", "vehicle"), "vehicle: within speed and acceleration limits; "
-                         "jump, the paper's: any grid point each tick")
+                         "jump, the paper's: any grid point each tick", experimental=True)
     speed_max_mps: float = number(9.0, 0, 30, "m/s", "vehicle motion: speed limit, what the airframe flies "
                                   "(the app plans with the smaller of this and the autopilot's WPNAV_SPEED, "
                                   "read at connection; the paper policy's 10: ArduCopter's WPNAV_SPEED "
@@ -418,32 +435,36 @@ class Kraken:
     status_url: str | None = location("auto", "its status.json (ADC overdrive, DAQ sync) for the overdrive gate; "
                                  "auto: beside url; null: none", words=("auto",), nullable=True)
     freq_tol_hz: float = number(2000.0, 0, 1e6, "Hz", "a line within this of a VFO's frequency is that VFO's",
-                                lo_open=True)
+                                lo_open=True, experimental=True)
     mount_offset_deg: float = number(0.0, -360, 360, "deg", "KrakenSDR's 0 (antenna 0), clockwise from the "
                                      "vehicle's nose")
     convention: str = choice("auto", ("auto", "unit_circle", "compass"), "the main DoA's angle convention; auto: "
-                             "read off each line's spectrum")
+                             "read off each line's spectrum", experimental=True)
     measurements: str = choice("peaks", ("peaks", "main"), "the measurement set: the spectrum's peaks, or the "
-                               "main DoA alone")
+                               "main DoA alone", experimental=True)
     peak_floor_db: float = number(6.0, 0, 100, "dB", "peaks within this of the spectrum's highest",
-                                  lo_open=True)
-    peak_prominence_db: float = number(3.0, 0, 100, "dB", "... standing this far above their valleys")
-    max_peaks: int = integer(8, 1, 64, "", "at most this many peaks per line (the highest)")
-    min_confidence: float = number(0.0, 0, 1000, "", "gate: a line below this confidence is an empty set")
+                                  lo_open=True, experimental=True)
+    peak_prominence_db: float = number(3.0, 0, 100, "dB", "... standing this far above their valleys",
+                                       experimental=True)
+    max_peaks: int = integer(8, 1, 64, "", "at most this many peaks per line (the highest)", experimental=True)
+    min_confidence: float = number(0.0, 0, 1000, "", "gate: a line below this confidence is an empty set",
+                                   experimental=True)
     min_power_db: float = number(-100.0, -300, 100, "dB", "gate: a line below this power is an empty set "
-                                 "(KrakenSDR floors it at -100)")
+                                 "(KrakenSDR floors it at -100)", experimental=True)
     reject_overdrive: bool = flag(True, "gate: frames its status.json flags (ADC overdrive, DAQ not in sync) "
-                                  "are empty sets")
+                                  "are empty sets", experimental=True)
     clutter: str = choice("fixed", ("fixed", "adaptive"), "the clutter rate of a KrakenSDR scan: fixed "
-                          "(sensor.clutter_rate) or adaptive (what its peaks show)")
+                          "(sensor.clutter_rate) or adaptive (what its peaks show)", experimental=True)
     clutter_min: float | None = number(None, 0, 1000, "1/scan", "adaptive clutter: its floor; null: the "
-                                       "filter's own rate (sensor.clutter_rate, PMON_CLUTTER)", nullable=True)
-    clutter_max: float = number(10.0, 0, 1000, "1/scan", "adaptive clutter: its ceiling (>= clutter_min)")
+                                       "filter's own rate (sensor.clutter_rate, PMON_CLUTTER)", nullable=True,
+                                       experimental=True)
+    clutter_max: float = number(10.0, 0, 1000, "1/scan", "adaptive clutter: its ceiling (>= clutter_min)",
+                                experimental=True)
     clutter_window: int = integer(20, 1, 10_000, "scans", "adaptive clutter: averaged over this many scans "
-                                  "per target")
+                                  "per target", experimental=True)
     time_source: str = choice("autopilot", ("autopilot", "host"), "its Unix stamps to autopilot time through "
                               "the autopilot's UTC (SYSTEM_TIME) or this computer's clock")
-    poll_s: float = number(0.05, 0.005, 10, "s", "wall time between reads of url")
+    poll_s: float = number(0.05, 0.005, 10, "s", "wall time between reads of url", experimental=True)
 
     @property
     def mount_offset_rad(self) -> float:
@@ -458,7 +479,7 @@ class Scenario:
     dynamics: Dynamics = section(Dynamics, "the targets' motion model (eq. target_dynamics)")
     initial_cov_diag: tuple[float, ...] = vector((200.0, 200.0, 1e-10, 20.0, 20.0, 1e-10), 6, 0, 1e6,
                                                  "m^2, (m/s)^2", "diagonal of Sigma_0, every target's "
-                                                 "initial covariance", paper=True)
+                                                 "initial covariance", paper=True, experimental=True)
     targets: tuple[Target, ...] = records(Target, 1, 64, "the targets (their initial means)")
     goals: tuple[Box, ...] = records(Box, 1, 64, "goal regions on the ground; guidance steers to a centroid")
     obstacles: tuple[Box, ...] = records(Box, 0, 256, "cuboids the targets go around", required=False)
@@ -533,9 +554,11 @@ def value_of(sc: Scenario, key: str) -> Any:
 
 
 def default_text(f) -> str:
-    if f.default is MISSING:
-        return "required"
-    v = f.default
+    return "required" if f.default is MISSING else value_text(f.default)
+
+
+def value_text(v: Any) -> str:
+    """A setting's value as the table writes it: null, true, [1, 2], 0.05."""
     if v is None:
         return "null"
     if isinstance(v, bool):
@@ -547,27 +570,51 @@ def default_text(f) -> str:
     return str(v)
 
 
-def markdown_table() -> str:
-    """docs/SETTINGS.md's table: one row per setting, from the declaration."""
-    rows = ["| key | default | range | in flight | meaning |", "|---|---|---|---|---|"]
+def experimental_changes(sc: Scenario) -> list[tuple[str, str, str]]:
+    """(key, value, default) of each experimental setting ``sc`` holds at other than its declared
+    default (a field of a list's items: the items' values that differ), in declaration order."""
+    out = []
     for key, f, s in walk():
+        if not s.experimental:
+            continue
+        head, sep, name = key.rpartition("[].")
+        values = [getattr(item, name) for item in value_of(sc, head)] if sep else [value_of(sc, key)]
+        changed = [v for v in values if v != f.default]
+        if changed:
+            out.append((key, ", ".join(value_text(v) for v in changed), default_text(f)))
+    return out
+
+
+def markdown_table(experimental: bool = False) -> str:
+    """A table of docs/SETTINGS.md, from the declaration: one row per setting that is (or is not)
+    experimental; the experimental ones have no PMON_* parameter, so no column for it."""
+    rows = (["| key | default | range | meaning |", "|---|---|---|---|"] if experimental else
+            ["| key | default | range | in flight | meaning |", "|---|---|---|---|---|"])
+    for key, f, s in walk():
+        if s.experimental != experimental:
+            continue
         default = default_text(f) + (" (paper)" if s.paper else "")
         null = "null or " if s.nullable else ""
-        rows.append(f"| `{key}` | {default} | {null}{s.range_text()} | {s.param or ''} | "
-                    f"{s.doc.replace('|', chr(92) + '|')} |")
+        flight = "" if experimental else f" {s.param or ''} |"
+        rows.append(f"| `{key}` | {default} | {null}{s.range_text()} |{flight} {s.doc.replace('|', chr(92) + '|')} |")
     return "\n".join(rows)
 
 
 BEGIN, END = "<!-- settings table: begin (python -m onboard.settings --write) -->", "<!-- settings table: end -->"
+EXPERIMENTAL_BEGIN = "<!-- experimental settings table: begin (python -m onboard.settings --write) -->"
+EXPERIMENTAL_END = "<!-- experimental settings table: end -->"
 
 
 def docs_with_table(doc: str) -> str:
-    """``doc`` with the text between BEGIN and END replaced by ``markdown_table()``."""
-    head, sep, rest = doc.partition(BEGIN)
-    _, sep2, tail = rest.partition(END)
-    if not sep or not sep2:
-        raise ValueError(f"no {BEGIN!r} ... {END!r} block")
-    return f"{head}{BEGIN}\n{markdown_table()}\n{END}{tail}"
+    """``doc`` with the text between BEGIN and END replaced by ``markdown_table()``, and between
+    EXPERIMENTAL_BEGIN and EXPERIMENTAL_END by ``markdown_table(experimental=True)``."""
+    for begin, end, experimental in ((BEGIN, END, False), (EXPERIMENTAL_BEGIN, EXPERIMENTAL_END, True)):
+        head, sep, rest = doc.partition(begin)
+        _, sep2, tail = rest.partition(end)
+        if not sep or not sep2:
+            raise ValueError(f"no {begin!r} ... {end!r} block")
+        doc = f"{head}{begin}\n{markdown_table(experimental)}\n{end}{tail}"
+    return doc
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -575,11 +622,11 @@ def main(argv: list[str] | None = None) -> int:
     from pathlib import Path
 
     ap = argparse.ArgumentParser(prog="python -m onboard.settings",
-                                 description="print the settings table, or write it into docs/SETTINGS.md")
+                                 description="print the settings tables, or write them into docs/SETTINGS.md")
     ap.add_argument("--write", metavar="FILE", nargs="?", const="docs/SETTINGS.md")
     args = ap.parse_args(argv)
     if args.write is None:
-        print(markdown_table())
+        print(f"{markdown_table()}\n\n{markdown_table(experimental=True)}")
         return 0
     path = Path(args.write)
     path.write_text(docs_with_table(path.read_text(encoding="utf-8")), encoding="utf-8")

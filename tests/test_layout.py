@@ -217,26 +217,33 @@ def test_every_relative_link_of_the_readme_and_docs_resolves():
     assert [b for md in files for b in broken_links(md)] == []
 
 
-def pmon_reads(path: Path, names: set[str]) -> list[tuple[int, str]]:
-    """(line, name) of every subscript ``x["PMON_..."]`` of a parameter's name in a file."""
+def pmon_reads(path: Path, names: set[str], *, any_string: bool = False) -> list[tuple[int, str]]:
+    """(line, name) of every subscript ``x["PMON_..."]`` of a parameter's name in a file;
+    ``any_string``: of every string that is one (``params.get("PMON_PD")`` too)."""
     tree = ast.parse(path.read_text(), str(path))
+    if any_string:
+        return sorted((n.lineno, n.value) for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in names)
     return [(n.lineno, n.slice.value) for n in ast.walk(tree)
             if isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant) and n.slice.value in names]
 
 
 def test_pmon_reads_finds_a_read_by_name(tmp_path):
     f = tmp_path / "m.py"
-    f.write_text('budget = params["PMON_BUDGET"]\nok = params.settings.app.tick_budget_s\nd = {"PMON_PD": 1}\n')
+    f.write_text('budget = params["PMON_BUDGET"]\nok = params.settings.app.tick_budget_s\nd = {"PMON_PD": 1}\n'
+                 'note = "PMON_PD is p_D"\n')
     assert pmon_reads(f, {"PMON_BUDGET", "PMON_PD"}) == [(1, "PMON_BUDGET")]
+    assert pmon_reads(f, {"PMON_BUDGET", "PMON_PD"}, any_string=True) == [(1, "PMON_BUDGET"), (3, "PMON_PD")]
 
 
 def test_no_setting_is_read_by_its_pmon_name_outside_the_parameter_table():
     """The product reads a parameter as its typed setting (``ParamTable.settings``), one name per
     quantity; its PMON name is the MAVLink edge's (onboard/app/params.py) and the declaration's
-    (onboard/settings.py). Tests may read it by name: they speak the protocol."""
+    (onboard/settings.py): in onboard/, sim/ and groundstation/ no other string is one. Tests may
+    read it by name, and the benches name one to the ground station's command line: they speak
+    the protocol (a bench still never reads one by subscript)."""
     from onboard.settings import PARAMS
 
     edge = {ROOT / "onboard" / "app" / "params.py", ROOT / "onboard" / "settings.py"}
     found = [f"{p.relative_to(ROOT)}:{line}: {name}" for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))
-             if p not in edge for line, name in pmon_reads(p, set(PARAMS))]
+             if p not in edge for line, name in pmon_reads(p, set(PARAMS), any_string=pkg != "bench")]
     assert not found, "read by PMON name outside the parameter table (use params.settings):\n" + "\n".join(found)

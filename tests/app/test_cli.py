@@ -113,6 +113,24 @@ def test_a_programs_help_says_what_it_is_in_whole_sentences():
         assert description.rstrip().endswith("."), (argv, description)
 
 
+def test_check_config_names_each_experimental_setting_the_file_or_set_changes(tmp_path, capsys):
+    """A research knob changed is named, one line each, after the rest; not an error. The paper's
+    file states some at their defaults (the paper's values): nothing named."""
+    rc, out, err = main_rc(capsys, "check-config")
+    assert rc == 0 and "experimental" not in out, out
+    f = tmp_path / "knob.yaml"
+    f.write_text((Path(__file__).parents[2] / "config" / "paper.yaml").read_text()
+                 + "tracking:\n  regularise_bandwidth: 0.3\n")
+    rc, out, err = main_rc(capsys, "check-config", str(f), "--set", "planning.lookahead.n_headings=8",
+                           "--set", "sensor.p_detect=0.9")
+    assert rc == 0, err
+    assert out.splitlines()[-2:] == [
+        "tracking.regularise_bandwidth: experimental, 0.3 here (default 0.2): a research knob, unsupported in flight",
+        "planning.lookahead.n_headings: experimental, 8 here (default 16): a research knob, unsupported in flight"]
+    rc, _, err = main_rc(capsys, "check-config", "--set", "tracking.regularise_bandwidth=2")
+    assert rc == 2 and "tracking.regularise_bandwidth: must be in [0, 1], got 2" in err
+
+
 def test_check_config_says_what_the_filter_assumes_of_each_target(tmp_path, capsys):
     """A goal, candidates, a standing emitter and a target nobody knows: each line says the prior the
     flight policy's filter starts from, and what the paper's one-goal filter does instead."""

@@ -292,6 +292,33 @@ def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(
         assert f"| `{key}` |" in doc
 
 
+def test_at_most_40_settings_are_not_experimental_and_no_experimental_one_flies_as_a_parameter():
+    """What an operator or integrator sets stays short; the research knobs are experimental, apart
+    in docs/SETTINGS.md and never a PMON_* parameter. A list of records (targets, goals,
+    obstacles, kraken.vfos) is one setting: each item is one thing the mission states."""
+    outside = {key.split("[]")[0] for key, s in settings.SETTINGS.items() if not s.experimental}
+    assert len(outside) <= 40, sorted(outside)
+    assert [key for key, s in settings.SETTINGS.items() if s.experimental and s.param] == []
+    assert all(not settings.SETTINGS[key].experimental for key in settings.PARAMS.values())
+    doc = (ROOT / "docs" / "SETTINGS.md").read_text(encoding="utf-8")
+    apart = doc.partition(settings.EXPERIMENTAL_BEGIN)[2]
+    for key, s in settings.SETTINGS.items():
+        assert (f"| `{key}` |" in apart) == s.experimental, key
+
+
+def test_experimental_changes_name_what_differs_from_the_default():
+    """The paper's file states experimental settings at their defaults (the paper's values): none
+    named; a change is, with its value and default (the paper's policy changes some)."""
+    from onboard.policy import with_policy
+    file = load_scenario("paper")
+    assert settings.experimental_changes(file) == []
+    assert ("planning.motion", "jump", "vehicle") in settings.experimental_changes(with_policy(file, "paper"))
+    sc = override(file, {"tracking.regularise_bandwidth": 0.3, "sensor.p_detect": 0.9,
+                          "planning.lookahead.ranges_m": [30.0, 80.0]})
+    assert settings.experimental_changes(sc) == [("tracking.regularise_bandwidth", "0.3", "0.2"),
+                                                 ("planning.lookahead.ranges_m", "[30, 80]", "[30, 80, 160, 320]")]
+
+
 def test_every_default_is_within_its_range():
     """A tree stating only what is required reads as the declared defaults: each passes its own
     check (the reader checks a stated value, not a default)."""
