@@ -66,6 +66,9 @@ def test_the_rigs_app_and_vehicle_run_at_the_documented_priorities(monkeypatch, 
         assert app.get("pmon-io") == (os.SCHED_FIFO, 40) and app.get("pmon-worker") == (os.SCHED_FIFO, 39), app
         for proc in (rig.ap.proc.p, rig.feed.p):  # the mock autopilot's process, the DF feed's
             classes = _classes(proc.pid)
+            while "chrt" in classes and time.monotonic() < deadline:  # not yet exec'd past chrt
+                time.sleep(0.05)
+                classes = _classes(proc.pid)
             assert classes and all(c == (os.SCHED_FIFO, 41) for c in classes.values()), (proc.args, classes)
     monkeypatch.setenv(ENV, "0")
     with Rig(RigConfig(feed_start="now", out_dir=str(tmp_path / "normal"))) as rig:
