@@ -197,6 +197,104 @@ class Broadcaster:
             self.cond.notify_all()
 
 
+class _Handler(BaseHTTPRequestHandler):
+    """One connection's requests; ``self.server.view`` is the ViewServer it serves."""
+
+    protocol_version = "HTTP/1.1"
+
+    @property
+    def timeout(self) -> float:  # every read and write of the connection (read when it opens)
+        return IDLE_S
+
+    def log_message(self, *args):  # quiet: the terminal shows the mission, not requests
+        pass
+
+    def _send(self, code: int, body: bytes, ctype: str) -> None:
+        self.send_response(code)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def do_HEAD(self):
+        self.do_GET()
+
+    def do_GET(self):
+        server = self.server.view
+        server.requests += 1
+        path = self.path.split("?", 1)[0]
+        if self.headers.get("Host", "") not in server.hosts:  # a rebound DNS name is not us
+            self._send(403, b"forbidden host\n", "text/plain; charset=utf-8")
+        elif path in server.files:
+            self._send(200, *server.files[path])
+        elif path == "/scene.json":
+            self._send(200, server.scene, "application/json")
+        elif path == "/state.json":
+            self._send(200, server.bus.data, "application/json")
+        elif path == "/events" and self.command == "GET":
+            self._events()
+        else:
+            self._send(404, b"not found\n", "text/plain; charset=utf-8")
+
+    def _events(self):
+        server = self.server.view
+        self.send_response(200)
+        self.send_header("Content-Type", "text/event-stream")
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.close_connection = True
+        server._streaming(self.request)
+        seen, wrote = 0, time.monotonic()
+        self.wfile.write(b"retry: 1000\n\n")
+        while not server.bus.closed and server._held(self.request):
+            seq, data = server.bus.wait(seen, 1.0)  # short: a stream pushed out ends within 1 s
+            if server.bus.closed:
+                break
+            if seq != seen:
+                seen = seq
+                self.wfile.write(b"data: " + data + b"\n\n")
+            elif time.monotonic() - wrote < EVENT_IDLE_S:
+                continue
+            else:  # a comment keeps proxies and the browser's timer happy
+                self.wfile.write(b": idle\n\n")
+            self.wfile.flush()
+            wrote = time.monotonic()
+
+
+class _HttpServer(ThreadingHTTPServer):
+    """The listener: a thread per connection, each counted in and out by its ViewServer."""
+
+    daemon_threads = True
+    allow_reuse_address = True  # a restart binds at once (TIME_WAIT); a live listener still refuses
+    request_queue_size = 128  # a burst of connections waits in the kernel, not in SYN retries
+
+    def __init__(self, address, view: "ViewServer"):
+        self.view = view
+        super().__init__(address, _Handler)
+
+    def process_request(self, request, client_address):
+        self.view._admit(request)
+        super().process_request(request, client_address)
+
+    def shutdown_request(self, request):  # the end of every connection's thread
+        with self.view._lock:
+            self.view._conns.pop(request, None)
+        super().shutdown_request(request)
+
+    def handle_error(self, request, client_address):
+        server = self.view
+        exc = sys.exc_info()[1]
+        if isinstance(exc, OSError):  # a reset, a broken pipe, the idle timeout, a push-out
+            server.hangups += 1
+        else:  # a bug of ours: one line, the thread ends, the server goes on
+            server.errors += 1
+            print(f"view: {type(exc).__name__}: {exc} (client {client_address[0]})", file=sys.stderr)
+
+
 class ViewServer:
     """The HTTP side: 127.0.0.1 only, a thread per client, stopped by ``close()``.
 
@@ -217,91 +315,7 @@ class ViewServer:
         self.errors = 0
         self._conns: OrderedDict = OrderedDict()  # socket -> streaming (an /events answer)
         self._lock = threading.Lock()
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            protocol_version = "HTTP/1.1"
-            timeout = IDLE_S  # every read and write of the connection
-
-            def log_message(self, *args):  # quiet: the terminal shows the mission, not requests
-                pass
-
-            def _send(self, code: int, body: bytes, ctype: str) -> None:
-                self.send_response(code)
-                self.send_header("Content-Type", ctype)
-                self.send_header("Content-Length", str(len(body)))
-                self.send_header("Cache-Control", "no-store")
-                self.send_header("X-Content-Type-Options", "nosniff")
-                self.end_headers()
-                if self.command != "HEAD":
-                    self.wfile.write(body)
-
-            def do_HEAD(self):
-                self.do_GET()
-
-            def do_GET(self):
-                server.requests += 1
-                path = self.path.split("?", 1)[0]
-                if self.headers.get("Host", "") not in server.hosts:  # a rebound DNS name is not us
-                    self._send(403, b"forbidden host\n", "text/plain; charset=utf-8")
-                elif path in server.files:
-                    self._send(200, *server.files[path])
-                elif path == "/scene.json":
-                    self._send(200, server.scene, "application/json")
-                elif path == "/state.json":
-                    self._send(200, server.bus.data, "application/json")
-                elif path == "/events" and self.command == "GET":
-                    self._events()
-                else:
-                    self._send(404, b"not found\n", "text/plain; charset=utf-8")
-
-            def _events(self):
-                self.send_response(200)
-                self.send_header("Content-Type", "text/event-stream")
-                self.send_header("Cache-Control", "no-store")
-                self.send_header("Connection", "close")
-                self.end_headers()
-                self.close_connection = True
-                server._streaming(self.request)
-                seen, wrote = 0, time.monotonic()
-                self.wfile.write(b"retry: 1000\n\n")
-                while not server.bus.closed and server._held(self.request):
-                    seq, data = server.bus.wait(seen, 1.0)  # short: a stream pushed out ends within 1 s
-                    if server.bus.closed:
-                        break
-                    if seq != seen:
-                        seen = seq
-                        self.wfile.write(b"data: " + data + b"\n\n")
-                    elif time.monotonic() - wrote < EVENT_IDLE_S:
-                        continue
-                    else:  # a comment keeps proxies and the browser's timer happy
-                        self.wfile.write(b": idle\n\n")
-                    self.wfile.flush()
-                    wrote = time.monotonic()
-
-        class Server(ThreadingHTTPServer):
-            daemon_threads = True
-            allow_reuse_address = True  # a restart binds at once (TIME_WAIT); a live listener still refuses
-            request_queue_size = 128  # a burst of connections waits in the kernel, not in SYN retries
-
-            def process_request(self, request, client_address):
-                server._admit(request)
-                super().process_request(request, client_address)
-
-            def shutdown_request(self, request):  # the end of every connection's thread
-                with server._lock:
-                    server._conns.pop(request, None)
-                super().shutdown_request(request)
-
-            def handle_error(self, request, client_address):
-                exc = sys.exc_info()[1]
-                if isinstance(exc, OSError):  # a reset, a broken pipe, the idle timeout, a push-out
-                    server.hangups += 1
-                else:  # a bug of ours: one line, the thread ends, the server goes on
-                    server.errors += 1
-                    print(f"view: {type(exc).__name__}: {exc} (client {client_address[0]})", file=sys.stderr)
-
-        self.httpd = Server((host, port), Handler)
+        self.httpd = _HttpServer((host, port), self)
         self.host, self.port = self.httpd.server_address[:2]
         self.hosts = {f"{self.host}:{self.port}", f"localhost:{self.port}"}
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},

@@ -21,11 +21,12 @@ clients (pymavlink, MAVProxy, MAVSDK) can tell:
 - its own clock: time_boot_ms runs at `speedup` x wall time and the kinematic model
   (sim.multicopter, local NED with origin = home) is stepped at a fixed rate on that clock.
 
-The parts: sim/copter.py (modes, parameters, boot, the flight state machine), sim/mock_links.py
-(endpoints and links), sim/mock_commands.py (commands and position targets),
+The parts: sim/copter.py (modes, boot, the flight state machine), sim/copter_params.py
+(the parameters), sim/mock_links.py (endpoints and links), sim/mock_routing.py (reading links,
+routing, dispatch, fault injection), sim/mock_commands.py (commands and position targets),
 sim/mock_messages.py (streams, their requests and the messages built), sim/mock_stores.py
-(parameters, missions, FTP); this module the protocol around them (links, routing, dispatch,
-fault injection) and the program.
+(parameter protocol, missions, FTP); this module the mock's lifecycle, clock and loop around
+them, and the program.
 
 Geodetic <-> local conversions use pymap3d; the local frame is NED (MAVLink's), and
 `AutopilotState.pos_enu` gives the ENU mission frame of the core.
@@ -53,9 +54,11 @@ import numpy as np
 
 from onboard.app.mavlink2 import mavlink
 from sim.mock_commands import Commands
+from sim.mock_routing import Routing
 from sim.mock_stores import Stores
 from sim.mock_messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry
-from sim.copter import BootTimeline, Copter, Params
+from sim.copter import BootTimeline, Copter
+from sim.copter_params import Params
 from sim.copter import Mode  # noqa: F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
 from sim.mock_links import Endpoint, _Link, _TcpLink, _TcpListener, _UdpLink, _check_loopback
 from sim.multicopter import Vec3
@@ -85,7 +88,7 @@ class AutopilotState:
 
 # --------------------------------------------------------------------------- the mock
 
-class MockAutopilot(Telemetry, Commands, Stores):
+class MockAutopilot(Routing, Telemetry, Commands, Stores):
     """A mock ArduCopter on MAVLink 2, run by a background thread.
 
     Args:
@@ -161,24 +164,7 @@ class MockAutopilot(Telemetry, Commands, Stores):
         self._wall0 = 0.0
         self._encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._replies: list = []  # messages to send after the COMMAND_ACK being built
-        self._msg_builders: dict[str, Callable[[_Link], Optional[object]]] = {
-            "HEARTBEAT": self._heartbeat,
-            "SYS_STATUS": self._sys_status,
-            "GPS_RAW_INT": self._gps_raw_int,
-            "EXTENDED_SYS_STATE": self._extended_sys_state,
-            "GLOBAL_POSITION_INT": self._global_position_int,
-            "LOCAL_POSITION_NED": self._local_position_ned,
-            "ATTITUDE": self._attitude,
-            "VFR_HUD": self._vfr_hud,
-            "SYSTEM_TIME": self._system_time,
-            "BATTERY_STATUS": self._battery_status,
-            "EKF_STATUS_REPORT": self._ekf_status_report,
-            "HOME_POSITION": self._home_position,
-            "GPS_GLOBAL_ORIGIN": self._gps_global_origin,
-            "AUTOPILOT_VERSION": self._autopilot_version,
-            "POSITION_TARGET_LOCAL_NED": self._position_target_local_ned,
-            "POSITION_TARGET_GLOBAL_INT": self._position_target_global_int,
-        }
+        self._msg_builders = self._message_builders()
 
     # ----- lifecycle
     def start(self) -> "MockAutopilot":
@@ -403,108 +389,7 @@ class MockAutopilot(Telemetry, Commands, Stores):
             lk.close()
         self._stop.set()
 
-    # ----- fault injection (tests)
-    def _links_of(self, compid: int) -> list[_Link]:
-        return [link for s, c, link in self._routes if c == compid]
-
-    def cut_link(self, compid: int, seconds: float) -> int:
-        """The link(s) a component is reached on go dead both ways for ``seconds`` of
-        autopilot time (a radio out of range): nothing is read or written, the TCP connection
-        stays up. Returns the number of links cut."""
-        with self._lock:
-            links = self._links_of(compid)
-            for link in links:
-                link.muted_until = self.copter.t + seconds
-                link.muted = True
-            return len(links)
-
-    def drop_link(self, compid: int) -> int:
-        """Close the link(s) of a component (a TCP client must reconnect)."""
-        with self._lock:
-            links = self._links_of(compid)
-            for link in links:
-                link.close()
-            return len(links)
-
-    def _read_link(self, link: _Link) -> None:
-        data = link.receive()
-        if not data or link.muted:
-            return
-        rejected = link.parser.signing.reject_count
-        try:
-            msgs = link.parser.parse_buffer(data) or []
-        except Exception:  # pymavlink raises on some malformed frames even when robust
-            self._count("bad_data")
-            return
-        finally:
-            if link.parser.signing.reject_count != rejected:
-                self._count("signing_rejected", link.parser.signing.reject_count - rejected)
-        for msg in msgs:
-            try:
-                self._on_message(link, msg)
-            except Exception:
-                self._count("handler_errors")
-                log.exception("error handling %s", getattr(msg, "get_type", lambda: "?")())
-
-    # ----- routing (ArduPilot's MAVLink_routing::check_and_forward)
-    def _on_message(self, link: _Link, msg) -> None:
-        mtype = msg.get_type()
-        if mtype == "BAD_DATA":
-            self._count("bad_data")
-            return
-        if isinstance(msg, mavlink.MAVLink_unknown) or mtype.startswith("UNKNOWN"):
-            self._count("unknown_msgid")  # CRC cannot be checked: ArduPilot drops these
-            return
-        self._count("rx")
-        link.active = True
-        sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
-        if (sysid, compid) == (self.sysid, self.compid):
-            self._count("loopback")  # our own packets echoed back: ignore
-            return
-        if sysid != 0:
-            self._routes.add((sysid, compid, link))
-        if mtype in ("RADIO", "RADIO_STATUS"):
-            self._handle(link, msg)
-            return
-        raw = msg.get_msgbuf()
-        if mtype == "HEARTBEAT":
-            for other in self._links:
-                if (other is not link and other.active
-                        and (sysid, compid, other) not in self._routes):
-                    other.write(raw)
-                    self._count("forwarded")
-            self._handle(link, msg)
-            return
-        tsys = getattr(msg, "target_system", -1)
-        tcomp = getattr(msg, "target_component", -1)
-        bcast_sys = tsys in (0, -1)
-        bcast_comp = tcomp in (0, -1)
-        match_sys = bcast_sys or tsys == self.sysid
-        local = match_sys and (bcast_comp or tcomp == self.compid)
-        if local and not bcast_sys and not bcast_comp:
-            self._handle(link, msg)
-            return
-        sent_to: set[int] = set()
-        for rsys, rcomp, other in list(self._routes):
-            if other is link or id(other) in sent_to:
-                continue
-            if bcast_sys or (rsys == tsys and (bcast_comp or rcomp == tcomp or not match_sys)):
-                other.write(raw)
-                sent_to.add(id(other))
-                self._count("forwarded")
-        if not sent_to and match_sys:
-            local = True
-        if local:
-            self._handle(link, msg)
-
     # ----- local handling
-    def _handle(self, link: _Link, msg) -> None:
-        handler = getattr(self, "_on_" + msg.get_type().lower(), None)
-        if handler is None:
-            self._count("ignored")
-            return
-        handler(link, msg)
-
     def _ack(self, link: _Link, msg, command: int, result: int) -> None:
         link.send(self._enc().command_ack_encode(
             command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))

@@ -22,157 +22,42 @@ and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: 
 greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
 itself with ``register_method``.
 
-Metrics (``summarise``), all on the horizontal position (x, y) in metres:
-
-* eps_t (the paper's RMSE at step t): sqrt of the mean over trials of |x^_t - x_t|^2, per target;
-  "averaged over targets" is the mean over the M targets of the per-target eps_t;
-* ``rmse_mean_m``: the time average of the target-averaged eps_t over the convergence window
-  t in [window_start, K) (default: from 10 s on; the second half if the mission is shorter);
-* per-trial RMSE r_n = sqrt(mean over window steps and targets of |error|^2): the paired
-  differences r_n(method) - r_n(greedy_l1) over the same trials, with a 95 % t-interval;
-* ``uav_vs_fixed_ratio`` = rmse_mean_m(greedy_l1) / rmse_mean_m(fixed3), 95 % CI by a paired
-  percentile bootstrap over trials (trials resampled with replacement, both methods together);
-* NEES on the 2-D position: e^T P^-1 e with P the filter's (x, y) covariance; a consistent
-  filter has E = 2. The average over N trials, per step and target (ANEES), has the 95 % band
-  [chi2_(0.025)(2N), chi2_(0.975)(2N)] / N. ``nees_mean`` is ANEES averaged over targets and the
-  window; ``nees_in_band`` is the fraction of (step, target) cells whose ANEES is in the band.
-  (The full 6-D state is not used: z and v_z have variances of 1e-10 by construction and their
-  NEES would measure round-off.)
+The configuration (``make_config``) is in sim/eval_config.py, the metrics (``summarise``) in
+sim/eval_summary.py; this module runs the trials and is the evaluation's interface (``__all__``).
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 import zlib
-from dataclasses import dataclass, replace
-from typing import Any, Sequence
+from dataclasses import replace
+from typing import Sequence
 
 import numpy as np
 
-from onboard.config import ConfigError, override
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
-from onboard.core.planners import ORBIT_RADIUS_M, orbit_centre
-from onboard.policy import vehicle_motion
+from sim.eval_config import DEFAULT_WINDOW_S, EvalConfig, _setup_for, make_config, method_named
+from sim.eval_summary import summarise
 from sim.guided import enu, fly_plan, ned
-from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, method_scenario, register_method
-from sim.multicopter import VehicleLimits, VehicleState, limits_from_params
+from sim.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, register_method
+from sim.multicopter import VehicleLimits, VehicleState
 from sim.metrics import (BOOTSTRAP_RESAMPLES, FIXED, REFERENCE, MethodSummary, MethodTrace, Summary, TrialResult,
-                         bound_summary, is_flight, motion_stats, nees_band, paired_bound_ratio, paired_ratio, pcrb_position, seeded_rng, t_interval,
-                         truth_stats)
+                         is_flight, nees_band, pcrb_position, seeded_rng, t_interval)
 from sim.numerics import pin_kernels
 from sim.report import headline, machine_description, results_markdown, write_csv, write_outputs, write_per_trial_csv
-from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
-from sim.truth_kinds import KindDraw, check_kind, draw_kind, filter_scenario, simulate_kind
+from sim.sensors import FIXED_SENSORS_M, df_scan, fixed_scans
+from sim.truth_kinds import KindDraw, draw_kind, filter_scenario, simulate_kind
 from sim.workers import one_blas_thread as _one_blas_thread, worker_pool as _worker_pool
 
-# the evaluation's interface, wherever its parts are held (sim.methods: the methods; sim.metrics: the
-# statistics; sim.report: the outputs)
+# the evaluation's interface, wherever its parts are held (sim.methods: the methods; sim.eval_config: the
+# configuration; sim.eval_summary: the summary; sim.metrics: the statistics; sim.report: the outputs)
 __all__ = ["AUTOPILOTS", "DEFAULT_METHODS", "DEFAULT_WINDOW_S", "METHODS", "Method", "register_method", "EvalConfig",
            "make_config", "method_named", "MethodTrace", "TrialResult", "draw_start", "run_method", "run_trial",
            "run_trials", "summarise", "REFERENCE", "FIXED", "BOOTSTRAP_RESAMPLES", "MethodSummary", "Summary",
            "nees_band", "t_interval", "pcrb_position", "is_flight", "headline", "write_csv", "write_per_trial_csv",
            "machine_description", "results_markdown", "write_outputs"]
-
-DEFAULT_WINDOW_S = 10.0  # convergence window: metrics are time-averaged from this time on
-
-
-# --------------------------------------------------------------------------- configuration
-
-
-@dataclass(frozen=True, eq=False)
-class EvalConfig:
-    scenario: Any  # onboard.config.Scenario
-    n_trials: int
-    seed: int
-    methods: tuple[Method, ...]
-    n_ticks: int
-    window_start: int  # first tick of the convergence window
-    truth_kind: str = "nominal"  # how the true targets move (sim/truth_kinds.py)
-    told: bool = False  # the filter is told each trial what its targets really do (truth_kinds.filter_scenario)
-
-    @property
-    def method_names(self) -> tuple[str, ...]:
-        return tuple(m.name for m in self.methods)
-
-    @property
-    def orbit_radius_m(self) -> float:
-        """The orbit baseline's radius (``onboard.core.planners.OrbitPlanner``), m."""
-        return ORBIT_RADIUS_M
-
-    @property
-    def orbit_center(self) -> np.ndarray:
-        """The orbit baseline's centre, the targets' initial centroid (ENU m, planar)."""
-        return orbit_centre(MonitorSetup.from_scenario(self.scenario))
-
-    @property
-    def dt_s(self) -> float:
-        return self.scenario.dynamics.dt_s
-
-
-def make_config(sc, n_trials: int, seed: int, methods: Sequence[str] = DEFAULT_METHODS,
-                duration_s: float | None = None, particles: int | None = None,
-                window_s: float = DEFAULT_WINDOW_S, truth: str = "nominal", told: bool = False) -> EvalConfig:
-    """Validated configuration. Raises ValueError with a one-line reason."""
-    check_kind(sc, truth)
-    if told and truth not in ("candidate_goal", "stationary"):
-        raise ValueError(f"--told applies to --truth candidate_goal or stationary, not {truth}")
-    sc = filter_scenario(sc, truth)
-    if n_trials < 1:
-        raise ValueError(f"--trials must be >= 1, got {n_trials}")
-    if seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {seed}")
-    names = list(methods)
-    if not names:
-        raise ValueError("--methods is empty")
-    unknown = [m for m in names if m.partition("@")[0] not in METHODS]
-    if unknown:
-        raise ValueError(f"unknown method {unknown[0]!r} (known: {', '.join(METHODS)}; a vehicle method "
-                         f"takes @{'|@'.join(AUTOPILOTS)})")
-    if len(set(names)) != len(names):
-        raise ValueError("--methods names a method twice")
-    chosen = tuple(method_named(m, sc) for m in names)
-    for option, key, value in (("--duration", "mission.duration_s", duration_s),
-                               ("--particles", "tracking.particles", particles)):
-        if value is not None:  # a setting of every method's scenario, checked as a file is
-            try:
-                sc = override(sc, {key: value})
-            except ConfigError as exc:
-                raise ValueError(f"{option} {value}: {exc}") from None
-    for m in chosen:
-        try:
-            method_scenario(sc, m)
-        except ConfigError as exc:
-            raise ValueError(f"method {m.name}: {exc}") from None
-    dt = sc.dynamics.dt_s
-    duration = sc.mission.duration_s
-    if not duration >= 2 * dt:
-        raise ValueError(f"--duration must be at least 2 time steps ({2 * dt:g} s), got {duration_s}")
-    n_ticks = int(round(duration / dt))
-    # the window starts at window_s, or halfway when the mission is too short for that
-    window_start = min(int(round(window_s / dt)), n_ticks // 2)
-    return EvalConfig(sc, int(n_trials), int(seed), chosen, n_ticks, window_start, truth, told)
-
-
-def method_named(name: str, sc=None) -> Method:
-    """A registered method by name; ``NAME@LABEL`` is that method flown with the autopilot
-    parameters ``AUTOPILOTS[LABEL]`` (a method of its own name, seeds and all). ValueError for
-    a label on a method that flies no vehicle (under the scenario ``sc``, when given)."""
-    base, at, label = name.partition("@")
-    m = METHODS[base]
-    if not at:
-        return m
-    if label not in AUTOPILOTS:
-        raise ValueError(f"method {name!r}: unknown autopilot parameters {label!r} (one of {', '.join(AUTOPILOTS)})")
-    try:  # its motion under its policy (a paper method's: the paper's jump)
-        motion = m.motion or (None if sc is None else method_scenario(sc, m).planning.motion)
-    except ConfigError as exc:
-        raise ValueError(f"method {base}: {exc}") from None
-    if m.sensing != "uav" or motion == "jump":
-        raise ValueError(f"method {name!r}: {base} flies no vehicle (only vehicle-motion methods take @{label})")
-    return replace(m, name=name, autopilot=label, description=f"{m.description}; autopilot: {label}")
 
 
 # --------------------------------------------------------------------------- one trial
@@ -194,26 +79,6 @@ def draw_start(cfg: EvalConfig, rng: np.random.Generator) -> np.ndarray:
         if not len(setup.uav_obstacles) or not setup.uav_obstacles.contains(p).any():
             return p
     raise RuntimeError("could not draw a UAV start outside the obstacles in 1000 tries")
-
-
-def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, DirectionFinder | None, VehicleLimits | None]:
-    """The method's monitor, its DF (None: fixed sensors) and, for a flown method, the vehicle's
-    limits from its autopilot's parameters."""
-    sc = method_scenario(cfg.scenario, method)
-    flown = method.sensing != "fixed" and sc.planning.motion == "vehicle"  # the ceiling: its vehicle's limits
-    limits = limits_from_params(AUTOPILOTS[method.autopilot or "stock"]) if flown else None
-    if limits is not None and method.autopilot_limits:
-        # PX4's OFFBOARD shapes no jerk (onboard/app/autopilot_profiles.py Px4): the scenario's stays
-        jerk = limits.jerk_xy_max() if limits.shaping else math.inf
-        m = vehicle_motion(sc.planning, limits.speed_xy, limits.accel_xy, jerk)
-        sc = override(sc, {"planning.speed_max_mps": m.speed_max_mps, "planning.accel_max_mps2": m.accel_max_mps2,
-                           "planning.jerk_max_mps3": m.jerk_max_mps3})
-    df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
-    setup = MonitorSetup.from_scenario(sc)
-    if method.planner is not None and method.planner != setup.planner:
-        # a planner a bench registered in PLANNERS (not one the flight app may be configured with)
-        setup = replace(setup, planner=method.planner)
-    return setup, df, limits
 
 
 def _true_columns(setup: MonitorSetup, cfg: EvalConfig, draw: KindDraw | None) -> np.ndarray | None:
@@ -290,38 +155,56 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
         if path is not None and k < K - 1:
             uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
         elif uav is not None and k < K - 1 and limits is not None:
-            p = res.planning
-            ok = p is not None and p.index is not None
-            v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
-            planned = p.position[:2] if ok else uav[:2]
-            vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=k == 0,
-                               a_k=uav_acc)
-            if ramps:  # where the plan's acceleration ended: the next plan's starts there
-                uav_acc = np.zeros(2) if v_next is None else 2.0 * (v_next - uav_vel) / setup.model.dt_s - uav_acc
-            uav, uav_vel = enu(vehicle.pos), enu(vehicle.vel)[:2]
-            miss[k] = float(np.linalg.norm(uav[:2] - planned))
-            plan_speed[k] = 0.0 if v_next is None else float(np.linalg.norm(v_next))
+            vehicle, uav, uav_vel, uav_acc, miss[k], plan_speed[k] = _fly_tick(setup, limits, res, vehicle, uav,
+                                                                             uav_vel, uav_acc, k == 0, ramps)
             speed[k + 1] = float(np.linalg.norm(uav_vel))
         elif uav is not None and k < K - 1:
-            nxt = res.next_position
-            p = res.planning
-            if p is not None and p.index is not None and p.velocities is not None:
-                uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
-            else:
-                uav_vel = np.zeros(2)  # no admissible move (or a baseline's): the vehicle stops where it is
-            uav = uav if nxt is None else np.asarray(nxt, float).copy()
-    bound = None
-    if gains is not None:
-        if uav_track is None:
-            sensors = np.broadcast_to(np.asarray(FIXED_SENSORS_M, float)[None, :, :2], (K, len(FIXED_SENSORS_M), 2))
-            q = 1.0  # the fixed DFs: p_D = 1, no clutter
-        else:
-            sensors = uav_track[:, None, :2]
-            q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
-        bound = pcrb_position(setup.model, setup.initial_cov, truth, gains, sensors, setup.sensor.sigma_rad, q)
+            uav, uav_vel = _jump_tick(res, uav)
+    bound = None if gains is None else _path_bound(setup, truth, gains, uav_track)
     flown = {} if limits is None else dict(plan_miss_m=miss, plan_speed_mps=plan_speed, speed_mps=speed)
     return MethodTrace(err, nees, est, uav_track, degenerate, tick_time / K, bound, **flown, true_mode_prob=mode_p,
                        reseeds=reseeds)
+
+
+def _fly_tick(setup: MonitorSetup, limits: VehicleLimits, res, vehicle: VehicleState, uav: np.ndarray,
+              uav_vel: np.ndarray, uav_acc: np.ndarray | None, first: bool, ramps: bool):
+    """A flown method's move after a tick (``res``): the copter flies the plan's next velocity.
+    Returns the vehicle, its ENU position and planar velocity, the next plan's starting
+    acceleration, its distance from the planned point (m) and the plan's speed (m/s)."""
+    p = res.planning
+    ok = p is not None and p.index is not None
+    v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
+    planned = p.position[:2] if ok else uav[:2]
+    vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=first, a_k=uav_acc)
+    if ramps:  # where the plan's acceleration ended: the next plan's starts there
+        uav_acc = np.zeros(2) if v_next is None else 2.0 * (v_next - uav_vel) / setup.model.dt_s - uav_acc
+    uav, uav_vel = enu(vehicle.pos), enu(vehicle.vel)[:2]
+    return (vehicle, uav, uav_vel, uav_acc, float(np.linalg.norm(uav[:2] - planned)),
+            0.0 if v_next is None else float(np.linalg.norm(v_next)))
+
+
+def _jump_tick(res, uav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A method's move after a tick when it flies no vehicle: to the tick's next position, at the
+    plan's velocity there. Returns the position and the planar velocity."""
+    nxt = res.next_position
+    p = res.planning
+    if p is not None and p.index is not None and p.velocities is not None:
+        uav_vel = np.asarray(p.velocities[p.index], float)[:2].copy()
+    else:
+        uav_vel = np.zeros(2)  # no admissible move (or a baseline's): the vehicle stops where it is
+    return (uav if nxt is None else np.asarray(nxt, float).copy()), uav_vel
+
+
+def _path_bound(setup: MonitorSetup, truth: np.ndarray, gains: np.ndarray, uav_track: np.ndarray | None) -> np.ndarray:
+    """The PCRB along the sensors' positions: the fixed DFs' (``uav_track`` None) or the UAV's."""
+    K = truth.shape[0]
+    if uav_track is None:
+        sensors = np.broadcast_to(np.asarray(FIXED_SENSORS_M, float)[None, :, :2], (K, len(FIXED_SENSORS_M), 2))
+        q = 1.0  # the fixed DFs: p_D = 1, no clutter
+    else:
+        sensors = uav_track[:, None, :2]
+        q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
+    return pcrb_position(setup.model, setup.initial_cov, truth, gains, sensors, setup.sensor.sigma_rad, q)
 
 
 def _ceiling_trace(cfg: EvalConfig, method: Method, truth: np.ndarray, gains: np.ndarray, path: np.ndarray,
@@ -422,104 +305,3 @@ def run_trials(cfg: EvalConfig, workers: int | None = None, scheduler: str | Non
                 console.print(f"eval: stopped after {len(results)} of {n} trials; workers terminated")
                 raise
     return sorted(results, key=lambda r: r.trial)
-
-
-# --------------------------------------------------------------------------- the summary
-
-
-def _flown_stats(cfg: EvalConfig, method: Method, traces: Sequence[MethodTrace]) -> dict:
-    """How a flown method's vehicle followed its plans: the flown position's distance from the
-    planned one at the next tick (median, p95, max over all ticks and trials), the plan's and
-    the vehicle's speeds (mean over ticks, max), and the limits it planned and flew with."""
-    if traces[0].plan_miss_m is None:
-        return {}
-    miss = np.concatenate([t.plan_miss_m for t in traces])
-    plan_v = np.concatenate([t.plan_speed_mps for t in traces])
-    v = np.concatenate([t.speed_mps for t in traces])
-    setup, _, limits = _setup_for(cfg, method)
-    return dict(autopilot=method.autopilot or "stock", wpnav_speed_mps=limits.speed_xy,
-                wpnav_accel_mps2=limits.accel_xy, plan_speed_max_mps=setup.motion.speed_max_mps,
-                plan_accel_max_mps2=setup.motion.accel_max_mps2,
-                miss_median_m=float(np.median(miss)), miss_p95_m=float(np.percentile(miss, 95)),
-                miss_max_m=float(miss.max()), planned_speed_mean_mps=float(plan_v.mean()),
-                planned_speed_peak_mps=float(plan_v.max()), speed_mean_mps=float(v.mean()),
-                speed_peak_mps=float(v.max()))
-
-
-def summarise(cfg: EvalConfig, trials: Sequence[TrialResult], wall_s: float = float("nan")) -> Summary:
-    N, w0 = len(trials), cfg.window_start
-    band = nees_band(N)
-    out: dict[str, MethodSummary] = {}
-    errs = {m.name: np.stack([t.traces[m.name].error_m for t in trials]) for m in cfg.methods}  # (N, K, M)
-    ref_r = None
-    if REFERENCE in errs:
-        ref_err = errs[REFERENCE]
-        ref_r = np.sqrt(np.mean(ref_err[:, w0:] ** 2, axis=(1, 2)))
-    full_step = cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m
-    for m in cfg.methods:
-        err = errs[m.name]
-        nees = np.stack([t.traces[m.name].nees for t in trials])
-        eps = np.sqrt(np.mean(err ** 2, axis=0))
-        anees = nees.mean(axis=0)
-        per_trial = np.sqrt(np.mean(err[:, w0:] ** 2, axis=(1, 2)))
-        filtered = ref_r is not None and not m.bound_only
-        diff = t_interval(per_trial - ref_r) if filtered else None
-        ratio_ref = paired_ratio(ref_err, err, w0, cfg.seed) if filtered else None
-        motion: dict = {}
-        if m.sensing != "fixed":
-            st = [motion_stats(t.traces[m.name], t.truth) for t in trials]
-            steps = np.concatenate([s["step_m"] for s in st])
-            motion = dict(
-                mean_step_m=float(steps.mean()),
-                full_step_fraction=float(np.mean(steps > full_step - 1e-3)),
-                stay_fraction=float(np.mean(steps < 1e-3)),
-                mean_away_m=float(np.mean(np.concatenate([s["away_m"] for s in st]))),
-                mean_across_m=float(np.mean(np.concatenate([s["across_m"] for s in st]))),
-                mean_range_m=float(np.mean([s["range_m"][w0:].mean() for s in st])),
-            )
-        out[m.name] = MethodSummary(
-            m.name, m.description, eps, eps.mean(axis=1), float(eps.mean(axis=1)[w0:].mean()),
-            eps[w0:].mean(axis=0), per_trial, anees, float(anees[w0:].mean()),
-            float(np.mean((anees[w0:] >= band[0]) & (anees[w0:] <= band[1]))), diff, ratio_ref, motion,
-            1e3 * float(np.mean([t.traces[m.name].tick_s for t in trials])),
-            int(sum(t.traces[m.name].degenerate for t in trials)),
-            *bound_summary([t.traces[m.name].bound_m2 for t in trials], w0),
-            vs_jump=None if m.jump_twin not in errs else (m.jump_twin, paired_ratio(err, errs[m.jump_twin], w0,
-                                                                                       cfg.seed)),
-            flown=_flown_stats(cfg, m, [t.traces[m.name] for t in trials]),
-            truth={} if m.bound_only else truth_stats([t.traces[m.name] for t in trials], w0, cfg.dt_s))
-    ratio = ratio_ci = None
-    if REFERENCE in out and FIXED in out:
-        # the headline is the table's fixed3 row, so the two print one CI
-        ratio, lo, hi = out[FIXED].ratio_vs_ref
-        ratio_ci = (lo, hi) if N > 1 else None
-    speed = np.linalg.norm(np.stack([t.truth[:, :, 3:5] for t in trials]), axis=-1).mean(axis=(0, 2))  # (K,)
-    per10 = int(round(10.0 / cfg.dt_s))
-    speed_10s = tuple(float(speed[k:k + per10].mean()) for k in range(0, len(speed), per10))
-    filtered = [m.name for m in cfg.methods if not m.bound_only]
-    pairs = {(a, b): (paired_ratio(errs[a], errs[b], w0, cfg.seed),
-                      t_interval(out[a].per_trial_rmse - out[b].per_trial_rmse))
-             for a in filtered if is_flight(a) for b in filtered if b != a}
-    return Summary(cfg, out, band, ratio, ratio_ci, wall_s, N, speed_10s, pairs, _over_ceiling(cfg, trials))
-
-
-def _over_ceiling(cfg: EvalConfig, trials: Sequence[TrialResult]) -> dict:
-    """Each UAV method's PCRB over the (first) bound-only method's, paired over the trials
-    (``Summary.ceiling``)."""
-    ceil = next((m for m in cfg.methods if m.bound_only), None)
-    if ceil is None:
-        return {}
-    w0 = cfg.window_start
-    ref = np.stack([t.traces[ceil.name].bound_m2 for t in trials])
-    ratios, limits = {}, {}
-    for m in cfg.methods:
-        if m.sensing == "fixed":
-            continue
-        mo = _setup_for(cfg, m)[0].motion
-        limits[m.name] = (f"{mo.speed_max_mps:g} m/s, {mo.accel_max_mps2:g} m/s²" if mo.kind == "vehicle" else
-                          f"jumps of {cfg.scenario.uav.n_radial * cfg.scenario.uav.step_m:g} m")
-        if m.sensing == "uav":
-            b = np.stack([t.traces[m.name].bound_m2 for t in trials])
-            per_trial = np.sqrt(b[:, w0:].mean(axis=(1, 2)) / ref[:, w0:].mean(axis=(1, 2)))
-            ratios[m.name] = (paired_bound_ratio(b, ref, w0, cfg.seed), per_trial)
-    return {"name": ceil.name, "limits": limits, "ratios": ratios}

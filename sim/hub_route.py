@@ -19,7 +19,7 @@ AVOIDANCE = {"ADSB_TYPE": 1, "AVD_ENABLE": 1, "AVD_W_DIST_XY": 1000, "AVD_F_DIST
 
 
 class Recorder:
-    """What the observer's link hears besides what sim.procedure.Observer keeps."""
+    """What the observer's link hears besides what sim.mission_clients.Observer keeps."""
 
     def __init__(self, observer):
         self.lock = threading.Lock()

@@ -4,7 +4,7 @@ builds from the copter's state, as ArduCopter fills them, and the requests that 
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Callable, Mapping, Optional
 
 
 from onboard.app.mavlink2 import mavlink
@@ -63,6 +63,27 @@ class Telemetry:
     """Methods of ``MockAutopilot`` (its state is set up in ``MockAutopilot.__init__``)."""
 
     # ----- outgoing messages
+    def _message_builders(self) -> dict[str, Callable[[_Link], Optional[object]]]:
+        """Every message the mock can send as a stream or on request, by name: its builder."""
+        return {
+            "HEARTBEAT": self._heartbeat,
+            "SYS_STATUS": self._sys_status,
+            "GPS_RAW_INT": self._gps_raw_int,
+            "EXTENDED_SYS_STATE": self._extended_sys_state,
+            "GLOBAL_POSITION_INT": self._global_position_int,
+            "LOCAL_POSITION_NED": self._local_position_ned,
+            "ATTITUDE": self._attitude,
+            "VFR_HUD": self._vfr_hud,
+            "SYSTEM_TIME": self._system_time,
+            "BATTERY_STATUS": self._battery_status,
+            "EKF_STATUS_REPORT": self._ekf_status_report,
+            "HOME_POSITION": self._home_position,
+            "GPS_GLOBAL_ORIGIN": self._gps_global_origin,
+            "AUTOPILOT_VERSION": self._autopilot_version,
+            "POSITION_TARGET_LOCAL_NED": self._position_target_local_ned,
+            "POSITION_TARGET_GLOBAL_INT": self._position_target_global_int,
+        }
+
     def _send_streams(self) -> None:
         now = self.copter.t
         for link in self._links:

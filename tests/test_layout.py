@@ -161,6 +161,35 @@ def test_tests_and_bench_do_not_import_each_other():
     assert not bad, "\n".join(bad)
 
 
+MAX_MODULE_LINES = 500  # past this a module usually holds two roles: split it by role (issue 43)
+# modules allowed past MAX_MODULE_LINES, each with why; an entry back under the limit is removed
+LONG_MODULES = {
+    "onboard/settings.py": "every setting of a scenario declared once, in one table; its split is its own change",
+    "onboard/core/planning.py": "the planners' candidates, motion and lookahead routes; its split is its own change",
+}
+
+
+def long_modules(limit: int = MAX_MODULE_LINES) -> list[tuple[str, int]]:
+    """(path, lines) of every module of the packages and bench/ longer than ``limit`` lines."""
+    out = []
+    for pkg in PACKAGES:
+        for p in sorted((ROOT / pkg).rglob("*.py")):
+            n = len(p.read_text(encoding="utf-8").splitlines())
+            if n > limit:
+                out.append((p.relative_to(ROOT).as_posix(), n))
+    return out
+
+
+def test_no_module_is_longer_than_the_limit_but_the_allowed():
+    """A module of onboard/, groundstation/, sim/ or bench/ holds one role in at most
+    MAX_MODULE_LINES lines; LONG_MODULES names the few that may be longer, and why."""
+    found = dict(long_modules())
+    over = [f"{path}: {n} lines" for path, n in found.items() if path not in LONG_MODULES]
+    assert not over, f"over {MAX_MODULE_LINES} lines (split by role, or allow in LONG_MODULES with why):\n" + "\n".join(over)
+    stale = sorted(set(LONG_MODULES) - set(found))
+    assert not stale, f"no longer over {MAX_MODULE_LINES} lines: remove from LONG_MODULES: {stale}"
+
+
 def test_only_onboard_app_mavlink2_imports_mavutil():
     """pymavlink speaks MAVLink 1 unless MAVLINK20 is set before mavutil loads its dialect;
     onboard/app/mavlink2.py sets it, and every other module takes mavutil from there."""

@@ -22,7 +22,9 @@ import pytest
 from sim.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
 from sim.sitl_response_flight import MASK_POS, MASK_PVA
 from sim.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
-from sim.copter import Copter, GuidedTarget, Mode, Params
+from sim.copter import Copter, GuidedTarget, Mode
+from sim.control_math import sqrt_controller
+from sim.copter_params import Params
 from sim.guided import GuidedSetpoint, fly, fly_timeline
 from sim.multicopter import (
     Setpoint,
@@ -30,7 +32,6 @@ from sim.multicopter import (
     VehicleState,
     attitude,
     fall,
-    sqrt_controller,
     step,
     stopping_point,
 )
