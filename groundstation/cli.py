@@ -83,6 +83,20 @@ def parser() -> argparse.ArgumentParser:
         (_connection if link else _output)(p, suppress=True)  # files need no link
         return p
     add("status", "vehicle and onboard-app status")
+    _live_commands(add)
+    from groundstation.hub_options import add_arguments as hub_arguments  # the hub's options live with it
+    hub_arguments(add("hub", "share the vehicle link; targets to QGC/MP/MAVProxy (ADSB) and TAK (CoT)"))
+    _flight_commands(add)
+    _params_commands(add("params", "the onboard app's parameters"))
+    r = add("record", "record a tlog")
+    r.add_argument("file", metavar="FILE")
+    r.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
+    _file_commands(add)
+    return ap
+
+
+def _live_commands(add) -> None:
+    """watch and view: the mission live, in the terminal or a browser."""
     w = add("watch", "live table of every target")
     w.add_argument("--count", type=int, help="stop after N updates")
     w.add_argument("--duration", type=float, help="stop after S seconds")
@@ -94,8 +108,10 @@ def parser() -> argparse.ArgumentParser:
     vw.add_argument("--duration", type=float, help="stop after S seconds (default: until Ctrl-C)")
     vw.add_argument("--scenario", default="paper", help="the mission's scenario: area, obstacles, goals, "
                     "origin (name or YAML file; default paper)")
-    from groundstation.hub_options import add_arguments as hub_arguments  # the hub's options live with it
-    hub_arguments(add("hub", "share the vehicle link; targets to QGC/MP/MAVProxy (ADSB) and TAK (CoT)"))
+
+
+def _flight_commands(add) -> None:
+    """What flies the vehicle or the app: arm, takeoff, the app's actions, modes."""
     a = add("arm", "GUIDED (PX4: Hold), then arm the motors")
     a.add_argument("--wait", action="store_true",
                    help="first wait (within --timeout) for the autopilot's pre-arm checks to pass")
@@ -111,7 +127,9 @@ def parser() -> argparse.ArgumentParser:
     m.add_argument("name", metavar="NAME")
     add("rtl", "return to launch")
     add("land", "land where it is")
-    pp = add("params", "the onboard app's parameters")
+
+
+def _params_commands(pp: argparse.ArgumentParser) -> None:
     psub = pp.add_subparsers(dest="pcmd", required=True, metavar="list|get|set")
     _connection(psub.add_parser("list", help="every PMON_* parameter with its value, range and doc"), True)
     g = psub.add_parser("get", help="one parameter's value")
@@ -121,9 +139,10 @@ def parser() -> argparse.ArgumentParser:
     _connection(s, True)
     s.add_argument("name", metavar="NAME")
     s.add_argument("value", metavar="VALUE", help="a finite number")
-    r = add("record", "record a tlog")
-    r.add_argument("file", metavar="FILE")
-    r.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
+
+
+def _file_commands(add) -> None:
+    """plot and export: from a log file, no link."""
     pl = add("plot", "plot a flight from a tlog or the app's JSONL run log", link=False)
     pl.add_argument("log", metavar="LOG")
     pl.add_argument("--out", help="PNG to write (default: LOG with .png)")
@@ -139,18 +158,35 @@ def parser() -> argparse.ArgumentParser:
     ex.add_argument("--truth", help="the feed's truth JSONL (default: truth.jsonl next to LOG, if any)")
     ex.add_argument("--scenario", default="paper", help="the mission's scenario: origin, area, obstacles, goals "
                     "(default paper)")
-    return ap
 
 
 def run(args, console) -> tuple[str, dict]:
-    from groundstation import gcs_commands as C
-    from groundstation import protocol as P
     from groundstation.gcs_link import GcsLink
 
     sc = _scenario(args.scenario) if getattr(args, "scenario", None) else None
     if args.cmd in ("plot", "export"):
         from groundstation.offline import from_log
         return from_log(args, sc)
+    _check_arguments(args)
+    tlog = args.file if args.cmd == "record" else None
+    key = _signing_key(args)
+    if args.cmd == "hub":
+        from groundstation.hub import run_cli
+        o = run_cli(args, key, sc, console)
+        return o.text, o.data
+    if args.autopilot_unsigned and key is None:
+        raise UsageError("--autopilot-unsigned needs --signing-key (without a key nothing is signed)")
+    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key,
+                 autopilot_unsigned=args.autopilot_unsigned) as gl:
+        gl.connect()
+        o = _command(gl, args, sc, console)
+    return o.text, o.data
+
+
+def _check_arguments(args) -> None:
+    """The values argparse cannot check, refused before any link opens (``args.value`` of
+    ``params set`` becomes a float)."""
+    from groundstation import protocol as P
     if args.cmd == "view" and not 0 <= args.port <= 65535:
         raise UsageError(f"view: --port must be in 0..65535, got {args.port}")
     if args.cmd == "view" and args.duration is not None and not args.duration > 0:
@@ -170,56 +206,52 @@ def run(args, console) -> tuple[str, dict]:
     if args.cmd == "watch" and ((args.count is not None and args.count < 1)
                                 or (args.duration is not None and args.duration <= 0)):
         raise UsageError("watch: --count must be >= 1 and --duration > 0")
-    tlog = args.file if args.cmd == "record" else None
-    key = None
-    if args.signing_key:
-        from onboard.app.signing import KeyFileError, load_key  # the one key loader (app, mock, GCS)
-        try:
-            key = load_key(args.signing_key)
-        except KeyFileError as exc:
-            raise UsageError(f"--signing-key {exc}")
-    if args.cmd == "hub":
-        from groundstation.hub import run_cli
-        o = run_cli(args, key, sc, console)
-        return o.text, o.data
-    if args.autopilot_unsigned and key is None:
-        raise UsageError("--autopilot-unsigned needs --signing-key (without a key nothing is signed)")
-    with GcsLink(args.connect, args.timeout, args.sysid, tlog_path=tlog, signing_key=key,
-                 autopilot_unsigned=args.autopilot_unsigned) as gl:
-        gl.connect()
-        cmd = args.cmd
-        if cmd == "status":
-            o = C.status(gl)
-        elif cmd == "watch":
-            from groundstation.watch import watch
-            o = watch(gl, args.count, args.duration, args.png, args.json, console, scenario=sc)
-        elif cmd == "view":
-            from groundstation.view import serve
-            o = serve(gl, sc, args.port, args.duration, args.json, console, open_browser=args.open)
-        elif cmd == "arm":
-            o = C.arm(gl, args.wait)
-        elif cmd == "takeoff":
-            o = C.takeoff(gl, args.alt, args.wait)
-        elif cmd in P.ACTIONS:
-            o = C.app_action(gl, cmd)
-        elif cmd == "hold":
-            o = C.set_mode(gl, "hold", gl.v.profile.hold_mode)
-        elif cmd == "mode":
-            o = C.set_mode(gl, f"mode {args.name.upper()}", args.name)
-        elif cmd == "rtl":
-            from onboard.app.mavlink_connection import mavlink
-            o = C.set_mode(gl, "rtl", "RTL", mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
-        elif cmd == "land":
-            from onboard.app.mavlink_connection import mavlink
-            o = C.set_mode(gl, "land", "LAND", mavlink.MAV_CMD_NAV_LAND)
-        elif cmd == "params":
-            o = {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),
-                 "set": lambda: C.params_set(gl, args.name, args.value)}[args.pcmd]()
-        elif cmd == "record":
-            o = _record(gl, args.duration, args.file)
-        else:  # pragma: no cover (argparse has checked)
-            raise UsageError(f"unknown command {cmd}")
-    return o.text, o.data
+
+
+def _signing_key(args) -> bytes | None:
+    if not args.signing_key:
+        return None
+    from onboard.app.signing import KeyFileError, load_key  # the one key loader (app, mock, GCS)
+    try:
+        return load_key(args.signing_key)
+    except KeyFileError as exc:
+        raise UsageError(f"--signing-key {exc}")
+
+
+def _command(gl, args, sc, console):
+    """Run ``args.cmd`` over the connected link ``gl``: its ``Outcome``."""
+    from groundstation import gcs_commands as C
+    from groundstation import protocol as P
+    cmd = args.cmd
+    if cmd == "status":
+        return C.status(gl)
+    if cmd == "watch":
+        from groundstation.watch import watch
+        return watch(gl, args.count, args.duration, args.png, args.json, console, scenario=sc)
+    if cmd == "view":
+        from groundstation.view import open_in_browser, serve
+        return serve(gl, sc, args.port, args.duration, args.json, console,
+                     on_ready=open_in_browser if args.open else None)
+    if cmd == "arm":
+        return C.arm(gl, args.wait)
+    if cmd == "takeoff":
+        return C.takeoff(gl, args.alt, args.wait)
+    if cmd in P.ACTIONS:
+        return C.app_action(gl, cmd)
+    if cmd == "hold":
+        return C.set_mode(gl, "hold", gl.v.profile.hold_mode)
+    if cmd == "mode":
+        return C.set_mode(gl, f"mode {args.name.upper()}", args.name)
+    if cmd in ("rtl", "land"):
+        from onboard.app.mavlink_connection import mavlink
+        nav = mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH if cmd == "rtl" else mavlink.MAV_CMD_NAV_LAND
+        return C.set_mode(gl, cmd, cmd.upper(), nav)
+    if cmd == "params":
+        return {"list": lambda: C.params_list(gl), "get": lambda: C.params_get(gl, args.name),
+                "set": lambda: C.params_set(gl, args.name, args.value)}[args.pcmd]()
+    if cmd == "record":
+        return _record(gl, args.duration, args.file)
+    raise UsageError(f"unknown command {cmd}")  # pragma: no cover (argparse has checked)
 
 
 def _scenario(name):

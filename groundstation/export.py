@@ -151,20 +151,21 @@ def _kml_colour(hex_rgb: str, alpha: float) -> str:
     return f"{int(round(alpha * 255)):02x}{b}{g}{r}"
 
 
+def _sub(parent: ET.Element, tag: str, text=None) -> ET.Element:
+    el = ET.SubElement(parent, f"{{{KML_NS}}}{tag}")
+    if text is not None:
+        el.text = str(text)
+    return el
+
+
 def to_kml(flight: Flight, sc, at: tuple[float, ...] | None = None, every_s: float = 10.0,
            title: str = "pmon flight") -> str:
     o = sc.origin
     origin = (o.lat_deg, o.lon_deg, o.alt_m)
     ET.register_namespace("", KML_NS)
-
-    def sub(parent, tag, text=None):
-        el = ET.SubElement(parent, f"{{{KML_NS}}}{tag}")
-        if text is not None:
-            el.text = str(text)
-        return el
     root = ET.Element(f"{{{KML_NS}}}kml")
-    doc = sub(root, "Document")
-    sub(doc, "name", title)
+    doc = _sub(root, "Document")
+    _sub(doc, "name", title)
     folders: dict[str, ET.Element] = {}
     styles: set[str] = set()
     for s in shapes(flight, sc, at, every_s):
@@ -172,49 +173,59 @@ def to_kml(flight: Flight, sc, at: tuple[float, ...] | None = None, every_s: flo
         sid = f"{kind}-{s.colour[1:]}"
         if sid not in styles:
             styles.add(sid)
-            st = ET.Element(f"{{{KML_NS}}}Style", id=sid)
-            if s.geometry == "Point":
-                sub(sub(st, "IconStyle"), "color", _kml_colour(s.colour, 1.0))
-            else:
-                ls = sub(st, "LineStyle")
-                sub(ls, "color", _kml_colour(s.colour, 1.0))
-                sub(ls, "width", 1 if kind == "ellipse" else 2)
-                if s.geometry == "Polygon":
-                    ps = sub(st, "PolyStyle")
-                    sub(ps, "color", _kml_colour(s.colour, {"obstacle": 0.8, "goal": 0.25}.get(kind, 0.0)))
-                    sub(ps, "fill", 1 if kind in ("obstacle", "goal") else 0)
-            doc.insert(1 + len(styles) - 1, st)  # styles before the folders (the schema's order)
+            doc.insert(1 + len(styles) - 1, _kml_style(s, kind, sid))  # styles before the folders (the schema's order)
         group = {"area": "scene", "goal": "scene", "obstacle": "scene", "uav_path": "UAV", "uav": "UAV"}.get(
             kind, s.props.get("target", kind))
         if group not in folders:
-            folders[group] = sub(doc, "Folder")
-            sub(folders[group], "name", group)
-        pm = sub(folders[group], "Placemark")
-        sub(pm, "name", s.props.get("name", kind))
-        desc = ", ".join(f"{k}={v}" for k, v in s.props.items() if k != "name")
-        sub(pm, "description", desc)
-        sub(pm, "styleUrl", f"#{sid}")
-        ll = np.round(lonlat(origin, s.xy), DECIMALS)
-        if s.geometry == "Polygon":
-            ll = np.vstack([ll, ll[:1]])
-        if s.height_m is not None:  # obstacles: a block of their height in 3D viewers
-            text = " ".join(f"{lon:.7f},{lat:.7f},{s.height_m:g}" for lon, lat in ll)
-        else:
-            text = " ".join(f"{lon:.7f},{lat:.7f}" for lon, lat in ll)
-        if s.geometry == "Point":
-            sub(sub(pm, "Point"), "coordinates", text)
-        elif s.geometry == "LineString":
-            ls_ = sub(pm, "LineString")
-            sub(ls_, "tessellate", 1)
-            sub(ls_, "coordinates", text)
-        else:
-            poly = sub(pm, "Polygon")
-            if s.height_m is not None:
-                sub(poly, "extrude", 1)
-                sub(poly, "altitudeMode", "relativeToGround")
-            sub(sub(sub(poly, "outerBoundaryIs"), "LinearRing"), "coordinates", text)
+            folders[group] = _sub(doc, "Folder")
+            _sub(folders[group], "name", group)
+        _kml_placemark(folders[group], s, kind, sid, origin)
     ET.indent(root)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _kml_style(s: Shape, kind: str, sid: str) -> ET.Element:
+    """The Style ``sid`` of the shapes of ``kind`` in ``s``'s colour."""
+    st = ET.Element(f"{{{KML_NS}}}Style", id=sid)
+    if s.geometry == "Point":
+        _sub(_sub(st, "IconStyle"), "color", _kml_colour(s.colour, 1.0))
+    else:
+        ls = _sub(st, "LineStyle")
+        _sub(ls, "color", _kml_colour(s.colour, 1.0))
+        _sub(ls, "width", 1 if kind == "ellipse" else 2)
+        if s.geometry == "Polygon":
+            ps = _sub(st, "PolyStyle")
+            _sub(ps, "color", _kml_colour(s.colour, {"obstacle": 0.8, "goal": 0.25}.get(kind, 0.0)))
+            _sub(ps, "fill", 1 if kind in ("obstacle", "goal") else 0)
+    return st
+
+
+def _kml_placemark(folder: ET.Element, s: Shape, kind: str, sid: str, origin: tuple[float, float, float]) -> None:
+    """Shape ``s`` as a Placemark of ``folder``, in style ``sid``."""
+    pm = _sub(folder, "Placemark")
+    _sub(pm, "name", s.props.get("name", kind))
+    desc = ", ".join(f"{k}={v}" for k, v in s.props.items() if k != "name")
+    _sub(pm, "description", desc)
+    _sub(pm, "styleUrl", f"#{sid}")
+    ll = np.round(lonlat(origin, s.xy), DECIMALS)
+    if s.geometry == "Polygon":
+        ll = np.vstack([ll, ll[:1]])
+    if s.height_m is not None:  # obstacles: a block of their height in 3D viewers
+        text = " ".join(f"{lon:.7f},{lat:.7f},{s.height_m:g}" for lon, lat in ll)
+    else:
+        text = " ".join(f"{lon:.7f},{lat:.7f}" for lon, lat in ll)
+    if s.geometry == "Point":
+        _sub(_sub(pm, "Point"), "coordinates", text)
+    elif s.geometry == "LineString":
+        ls_ = _sub(pm, "LineString")
+        _sub(ls_, "tessellate", 1)
+        _sub(ls_, "coordinates", text)
+    else:
+        poly = _sub(pm, "Polygon")
+        if s.height_m is not None:
+            _sub(poly, "extrude", 1)
+            _sub(poly, "altitudeMode", "relativeToGround")
+        _sub(_sub(_sub(poly, "outerBoundaryIs"), "LinearRing"), "coordinates", text)
 
 
 # ----------------------------------------------------------------------------- files

@@ -27,57 +27,17 @@ def _fmt(x, spec=".1f", none="-"):
 # ----------------------------------------------------------------------------- status
 def status(gl: GcsLink, with_params: bool = True) -> Outcome:
     v = gl.v
-    gl.request(mavlink.MAVLINK_MSG_ID_SYS_STATUS, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
-               mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE)
-    gl.wait_for(lambda: v.get("GLOBAL_POSITION_INT") is not None and v.get("SYS_STATUS") is not None,
-                min(gl.timeout, 1.0))
-    # every PMON_STAT on this connection is fresh: it was opened a moment ago
-    app_heard = gl.wait_for(lambda: v.n_stat > 0, min(gl.timeout, STAT_WAIT_S))
-    app_beating = ("HEARTBEAT", P.APP_COMPID) in v.seen_at
-    if not app_heard and app_beating and gl.timeout > STAT_WAIT_S:
-        # the app is there (its HEARTBEAT came) and its PMON_STAT was lost on the way: an
-        # autopilot forwarding a tick's burst (4 PMON_TGT, then PMON_STAT) drops its tail under
-        # load (PX4's forwarding queue, docs/MAVLINK.md); wait the rest of --timeout for the next
-        app_heard = gl.wait_for(lambda: v.n_stat > 0, gl.timeout - STAT_WAIT_S)
+    app_heard, app_beating = _wait_for_status(gl)
     params = None
     if app_heard and with_params:
         try:
             params = gl.params_list()
         except GcsError:
             params = None
-    hb_age = time.monotonic() - v.seen_at.get(("HEARTBEAT", v.autopilot_comp), -math.inf)
-    gp, ss = v.get("GLOBAL_POSITION_INT"), v.get("SYS_STATUS")
-    landed = {mavlink.MAV_LANDED_STATE_ON_GROUND: "on ground", mavlink.MAV_LANDED_STATE_IN_AIR: "in air",
-              mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
-              mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")
-    radio = v.get("RADIO_STATUS", 68) or v.last.get(("RADIO_STATUS", 0))
-    prearm = _prearm_ok(gl)
-    vehicle = {
-        "sysid": v.sysid, "mode": v.mode_name, "armed": v.armed, "landed_state": landed,
-        "prearm_ok": prearm,
-        "lat_deg": gp.lat * 1e-7 if gp else None, "lon_deg": gp.lon * 1e-7 if gp else None,
-        "alt_rel_m": gp.relative_alt * 1e-3 if gp else None, "alt_amsl_m": gp.alt * 1e-3 if gp else None,
-        "battery_v": ss.voltage_battery * 1e-3 if ss and ss.voltage_battery != 65535 else None,
-        "battery_pct": ss.battery_remaining if ss and ss.battery_remaining >= 0 else None,
-    }
-    link = {"url": gl.url, "heartbeat_age_s": round(hb_age, 2) if math.isfinite(hb_age) else None,
-            "packet_loss_pct": round(gl.packet_loss_pct(), 1), "received": gl.received,
-            "autopilot_drop_rate_pct": ss.drop_rate_comm / 100 if ss else None,
-            "rssi": radio.rssi if radio is not None else None}
+    link = _link_status(gl)
+    vehicle, landed, prearm = _vehicle_status(gl)
     st = v.app_status if app_heard else None
-    app = None
-    if st is not None:
-        app = {"state": v.app_state, "tick_rate_hz": round(st.tick_rate_hz, 2),
-               "last_tick_time_s": st.last_tick_time_s, "tick_ms": st.tick_ms,
-               "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
-               "overruns": st.overruns, "overrun_stage": st.overrun_stage,
-               "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
-               "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
-               "launch": st.launch_phase, "limits": st.limits,
-               "kraken": None if st.kraken is None else dict(zip(("frames", "rejected", "gated"), st.kraken)),
-               "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
-               "next_enu_m": list(st.next_enu) if st.next_enu else None,
-               "params": params}
+    app = None if st is None else _app_status(v.app_state, st, params)
     lines = [
         f"vehicle {v.sysid}: {vehicle['mode']}, {'ARMED' if v.armed else 'disarmed'}, {landed}"
         + ("" if prearm is None or v.armed else
@@ -96,27 +56,96 @@ def status(gl: GcsLink, with_params: bool = True) -> Outcome:
         lines.append("onboard app: not heard (no PMON_STAT within "
                      f"{min(gl.timeout, STAT_WAIT_S):g} s{_bad_signature_hint(gl)})")
     else:
-        e = st.uav_enu
-        lines += [
-            f"onboard app: {app['state']}, tick rate {st.tick_rate_hz:.2f} Hz, last tick "
-            f"t={_fmt(st.last_tick_time_s)} s ({_fmt(st.tick_ms, '.0f')} ms), {st.ticks} ticks "
-            f"({st.ticks_skipped} skipped, {st.ticks_late} late"
-            + (f"; {st.overruns} over budget, the last in {st.overrun_stage}" if st.overrun_stage else "") + ")",
-            f"  DF datagrams {st.datagrams_accepted} accepted, {st.datagrams_rejected} rejected; "
-            f"setpoints refused {st.setpoints_refused}",
-            *([] if st.kraken is None else [
-                f"  KrakenSDR {st.kraken[0]} frames, {st.kraken[1]} rejected, {st.kraken[2]} gated"]),
-            f"  UAV ENU   {_enu(e)}   next {_enu(st.next_enu)}",
-        ]
-        if st.launch_phase:
-            lines.append(f"  launch    {st.launch_phase}")
-        if st.limits:
-            lines.append(f"  speed     {st.limits}")
-        lines += [f"  WARNING   {w}" for w in st.warnings]
-        if params:
-            lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
+        lines += _app_lines(app["state"], st, params)
     return Outcome("\n".join(lines), {"vehicle": vehicle, "link": link, "app": app,
                                        "app_heartbeat_state": v.app_state if app_beating else None})
+
+
+def _wait_for_status(gl: GcsLink) -> tuple[bool, bool]:
+    """Ask for the vehicle's status and wait for it and the app's PMON_STAT: (app heard, app's
+    HEARTBEAT seen)."""
+    v = gl.v
+    gl.request(mavlink.MAVLINK_MSG_ID_SYS_STATUS, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+               mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE)
+    gl.wait_for(lambda: v.get("GLOBAL_POSITION_INT") is not None and v.get("SYS_STATUS") is not None,
+                min(gl.timeout, 1.0))
+    # every PMON_STAT on this connection is fresh: it was opened a moment ago
+    app_heard = gl.wait_for(lambda: v.n_stat > 0, min(gl.timeout, STAT_WAIT_S))
+    app_beating = ("HEARTBEAT", P.APP_COMPID) in v.seen_at
+    if not app_heard and app_beating and gl.timeout > STAT_WAIT_S:
+        # the app is there (its HEARTBEAT came) and its PMON_STAT was lost on the way: an
+        # autopilot forwarding a tick's burst (4 PMON_TGT, then PMON_STAT) drops its tail under
+        # load (PX4's forwarding queue, docs/MAVLINK.md); wait the rest of --timeout for the next
+        app_heard = gl.wait_for(lambda: v.n_stat > 0, gl.timeout - STAT_WAIT_S)
+    return app_heard, app_beating
+
+
+def _vehicle_status(gl: GcsLink) -> tuple[dict, str, bool | None]:
+    """The vehicle's part of a status: (its --json dict, landed state, pre-arm checks passing)."""
+    v = gl.v
+    gp, ss = v.get("GLOBAL_POSITION_INT"), v.get("SYS_STATUS")
+    landed = {mavlink.MAV_LANDED_STATE_ON_GROUND: "on ground", mavlink.MAV_LANDED_STATE_IN_AIR: "in air",
+              mavlink.MAV_LANDED_STATE_TAKEOFF: "taking off",
+              mavlink.MAV_LANDED_STATE_LANDING: "landing"}.get(v.landed_state, "unknown")
+    prearm = _prearm_ok(gl)
+    vehicle = {
+        "sysid": v.sysid, "mode": v.mode_name, "armed": v.armed, "landed_state": landed,
+        "prearm_ok": prearm,
+        "lat_deg": gp.lat * 1e-7 if gp else None, "lon_deg": gp.lon * 1e-7 if gp else None,
+        "alt_rel_m": gp.relative_alt * 1e-3 if gp else None, "alt_amsl_m": gp.alt * 1e-3 if gp else None,
+        "battery_v": ss.voltage_battery * 1e-3 if ss and ss.voltage_battery != 65535 else None,
+        "battery_pct": ss.battery_remaining if ss and ss.battery_remaining >= 0 else None,
+    }
+    return vehicle, landed, prearm
+
+
+def _link_status(gl: GcsLink) -> dict:
+    v = gl.v
+    hb_age = time.monotonic() - v.seen_at.get(("HEARTBEAT", v.autopilot_comp), -math.inf)
+    ss = v.get("SYS_STATUS")
+    radio = v.get("RADIO_STATUS", 68) or v.last.get(("RADIO_STATUS", 0))
+    return {"url": gl.url, "heartbeat_age_s": round(hb_age, 2) if math.isfinite(hb_age) else None,
+            "packet_loss_pct": round(gl.packet_loss_pct(), 1), "received": gl.received,
+            "autopilot_drop_rate_pct": ss.drop_rate_comm / 100 if ss else None,
+            "rssi": radio.rssi if radio is not None else None}
+
+
+def _app_status(state: str, st: P.AppStatus, params: dict | None) -> dict:
+    """The onboard app's part of a status's --json, from its PMON_STAT."""
+    return {"state": state, "tick_rate_hz": round(st.tick_rate_hz, 2),
+            "last_tick_time_s": st.last_tick_time_s, "tick_ms": st.tick_ms,
+            "ticks": st.ticks, "ticks_skipped": st.ticks_skipped, "ticks_late": st.ticks_late,
+            "overruns": st.overruns, "overrun_stage": st.overrun_stage,
+            "datagrams_accepted": st.datagrams_accepted, "datagrams_rejected": st.datagrams_rejected,
+            "setpoints_refused": st.setpoints_refused, "warnings": list(st.warnings),
+            "launch": st.launch_phase, "limits": st.limits,
+            "kraken": None if st.kraken is None else dict(zip(("frames", "rejected", "gated"), st.kraken)),
+            "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
+            "next_enu_m": list(st.next_enu) if st.next_enu else None,
+            "params": params}
+
+
+def _app_lines(state: str, st: P.AppStatus, params: dict | None) -> list[str]:
+    """The onboard app's part of a status, for people."""
+    lines = [
+        f"onboard app: {state}, tick rate {st.tick_rate_hz:.2f} Hz, last tick "
+        f"t={_fmt(st.last_tick_time_s)} s ({_fmt(st.tick_ms, '.0f')} ms), {st.ticks} ticks "
+        f"({st.ticks_skipped} skipped, {st.ticks_late} late"
+        + (f"; {st.overruns} over budget, the last in {st.overrun_stage}" if st.overrun_stage else "") + ")",
+        f"  DF datagrams {st.datagrams_accepted} accepted, {st.datagrams_rejected} rejected; "
+        f"setpoints refused {st.setpoints_refused}",
+        *([] if st.kraken is None else [
+            f"  KrakenSDR {st.kraken[0]} frames, {st.kraken[1]} rejected, {st.kraken[2]} gated"]),
+        f"  UAV ENU   {_enu(st.uav_enu)}   next {_enu(st.next_enu)}",
+    ]
+    if st.launch_phase:
+        lines.append(f"  launch    {st.launch_phase}")
+    if st.limits:
+        lines.append(f"  speed     {st.limits}")
+    lines += [f"  WARNING   {w}" for w in st.warnings]
+    if params:
+        lines.append("  params    " + " ".join(f"{k.removeprefix('PMON_')}={v_:g}" for k, v_ in params.items()))
+    return lines
 
 
 def _bad_signature_hint(gl: GcsLink) -> str:

@@ -32,6 +32,7 @@ import math
 import threading
 import xml.etree.ElementTree as ET
 from configparser import ConfigParser
+from dataclasses import dataclass
 
 import pytak
 
@@ -48,15 +49,34 @@ def _iso(t: dt.datetime) -> str:
     return t.strftime(TIME_FMT)[:-4] + "Z"  # milliseconds
 
 
-def _event(uid: str, cot_type: str, how: str, lat: float, lon: float, hae: float, ce: float, le: float,
-           callsign: str, now: dt.datetime, stale: dt.datetime, detail_children=()) -> ET.Element:
-    point = pytak.cot_point(lat, lon, round(ce, 2), round(hae, 2), le, precision=7)
+@dataclass(frozen=True)
+class _Marker:
+    """What a CoT event says of one thing: who and what it is, and its ``point``."""
+    uid: str
+    cot_type: str
+    how: str
+    callsign: str
+    lat: float
+    lon: float
+    hae: float
+    ce: float
+    le: float = UNKNOWN
+
+
+def _event(m: _Marker, now: dt.datetime, stale: dt.datetime, detail_children=()) -> ET.Element:
+    point = pytak.cot_point(m.lat, m.lon, round(m.ce, 2), round(m.hae, 2), m.le, precision=7)
     detail = pytak.cot_detail(*detail_children, flow_tag=False)
-    ev = pytak.cot_event(uid=uid, cot_type=cot_type, how=how, point=point, detail=detail, callsign=callsign)
+    ev = pytak.cot_event(uid=m.uid, cot_type=m.cot_type, how=m.how, point=point, detail=detail,
+                         callsign=m.callsign)
     ev.set("time", _iso(now))
     ev.set("start", _iso(now))
     ev.set("stale", _iso(max(stale, now)))
     return ev
+
+
+def _target(est: OutputEstimate, sysid: int) -> _Marker:
+    return _Marker(uid(sysid, est.name), TARGET_TYPE, "m-f", f"PMON {est.name}", est.lat_deg, est.lon_deg,
+                   est.alt_m, est.radius_1sigma_m)
 
 
 def _track(course_deg: float, speed_mps: float) -> ET.Element:
@@ -74,8 +94,7 @@ def target_event(est: OutputEstimate, sysid: int, now: dt.datetime, lost_after_s
                     f"last DF scan {est.age_s:.1f} s before tick t={est.tick_time_s:.1f} s"
                     + ("; degenerate update (prior kept)" if est.degenerate else "")
                     + (f"; {est.doing}" if est.doing != "-" else ""))
-    return _event(uid(sysid, est.name), TARGET_TYPE, "m-f", est.lat_deg, est.lon_deg, est.alt_m,
-                  est.radius_1sigma_m, UNKNOWN, f"PMON {est.name}", now, now + dt.timedelta(seconds=left),
+    return _event(_target(est, sysid), now, now + dt.timedelta(seconds=left),
                   (_track(est.course_deg, est.speed_mps), remarks))
 
 
@@ -83,8 +102,7 @@ def lost_event(est: OutputEstimate, sysid: int, now: dt.datetime) -> ET.Element:
     """The target's last event: stale at once (TAK clients drop it)."""
     remarks = ET.Element("remarks")
     remarks.text = f"pmon estimate {est.name}: lost (no DF scan for {est.age_s:.0f} s)"
-    return _event(uid(sysid, est.name), TARGET_TYPE, "m-f", est.lat_deg, est.lon_deg, est.alt_m,
-                  est.radius_1sigma_m, UNKNOWN, f"PMON {est.name}", now, now, (remarks,))
+    return _event(_target(est, sysid), now, now, (remarks,))
 
 
 def uav_event(gp, sysid: int, now: dt.datetime, stale_s: float, eph_m: float | None = None) -> ET.Element | None:
@@ -96,8 +114,8 @@ def uav_event(gp, sysid: int, now: dt.datetime, stale_s: float, eph_m: float | N
     vn, ve = gp.vx / 100.0, gp.vy / 100.0
     course = math.degrees(math.atan2(ve, vn)) % 360.0
     ce = eph_m if eph_m is not None and math.isfinite(eph_m) else UNKNOWN
-    return _event(f"pmon-{sysid}-uav", UAV_TYPE, "m-g", lat, lon, alt, ce, UNKNOWN, f"PMON UAV {sysid}", now,
-                  now + dt.timedelta(seconds=stale_s), (_track(course, math.hypot(vn, ve)),))
+    return _event(_Marker(f"pmon-{sysid}-uav", UAV_TYPE, "m-g", f"PMON UAV {sysid}", lat, lon, alt, ce),
+                  now, now + dt.timedelta(seconds=stale_s), (_track(course, math.hypot(vn, ve)),))
 
 
 def uid(sysid: int, name: str) -> str:

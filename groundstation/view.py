@@ -361,10 +361,17 @@ class ViewServer:
         self._thread.join(timeout=5)
 
 
+def open_in_browser(srv: ViewServer) -> None:
+    """An ``on_ready`` of ``serve``: the page in the default browser (``pmon gcs view --open``)."""
+    import webbrowser
+    webbrowser.open(srv.url)
+
+
 def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, console,
-          open_browser: bool = False, on_ready=None, stop: threading.Event | None = None) -> Outcome:
+          on_ready=None, stop: threading.Event | None = None) -> Outcome:
     """Serve the page until Ctrl-C, ``duration`` s or ``stop`` is set; one snapshot per PMON_STAT.
-    ``on_ready(server)`` is called once the page is served (tests: its ``url``)."""
+    ``on_ready(server)`` is called once the page is served (``open_in_browser``; tests: its
+    ``url``)."""
     try:
         srv = ViewServer(sc, port).start()
     except OSError as exc:
@@ -379,9 +386,6 @@ def serve(gl: GcsLink, sc, port: int, duration: float | None, as_json: bool, con
             console.file.flush()
         else:
             console.print(f"view: {srv.url}  (scenario {sc.name}, MAVLink {gl.url}; Ctrl-C stops)", soft_wrap=True)
-        if open_browser:
-            import webbrowser
-            webbrowser.open(srv.url)
         if on_ready is not None:
             on_ready(srv)
         srv.bus.publish(state.snapshot())

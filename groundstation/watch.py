@@ -60,37 +60,49 @@ def table(snap: dict, n: int):
     return t
 
 
-def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | None, as_json: bool,
-          console, scenario=None) -> Outcome:
-    """``scenario``: the scene the PNG draws (area, goal, obstacles)."""
-    v = gl.v
-    updates = [0]
-    uav_path: list = []
-    tracks: dict = {}
+class _Updates:
+    """What watch counts and draws, fed every message: an update is a tick seen whole (its
+    PMON_TGTs, then its PMON_STAT), or, while the app does not tick, each PMON_STAT (1 Hz)."""
 
-    shown_tick = [None]
-    last_tgt = [time.monotonic()]  # give the first tick 2 s to arrive whole
+    def __init__(self, v):
+        self.v = v
+        self.n = 0
+        self.uav_path: list = []
+        self.tracks: dict = {}
+        self._shown_tick = None
+        self._last_tgt = time.monotonic()  # give the first tick 2 s to arrive whole
 
-    def on_msg(mtype, msg):
-        # an update = a tick seen whole (its PMON_TGTs, then its PMON_STAT), or, while the app
-        # does not tick, each PMON_STAT (1 Hz)
+    def on_msg(self, mtype, msg) -> None:
+        v = self.v
         if mtype == "PMON_STAT":
             st = P.AppStatus.from_msg(msg)
             tick_t = st.last_tick_time_s
-            whole = bool(v.targets) and tick_t is not None and tick_t != shown_tick[0] and all(
+            whole = bool(v.targets) and tick_t is not None and tick_t != self._shown_tick and all(
                 e.tick_time_s == tick_t for e in v.targets.values())
-            if whole or time.monotonic() - last_tgt[0] > 2.0:
-                updates[0] += 1
-                shown_tick[0] = tick_t
+            if whole or time.monotonic() - self._last_tgt > 2.0:
+                self.n += 1
+                self._shown_tick = tick_t
                 if st.uav_enu:
-                    uav_path.append(st.uav_enu[:2])
+                    self.uav_path.append(st.uav_enu[:2])
         elif mtype == "PMON_TGT":
-            last_tgt[0] = time.monotonic()
+            self._last_tgt = time.monotonic()
             e = P.TargetEstimate.from_msg(msg)
-            hist = tracks.setdefault(e.index, [])
+            hist = self.tracks.setdefault(e.index, [])
             if not hist or hist[-1].t != e.tick_time_s:
                 hist.append(Estimate(e.tick_time_s, e.x, e.y, e.sigma_x, e.sigma_y, e.cov_xy))
-    gl.on_message(on_msg)
+
+    def draw(self, snap: dict, png: str, scenario) -> None:
+        nxt = tuple(snap["next_enu_m"][:2]) if snap["next_enu_m"] else None
+        draw(Flight(tuple(self.uav_path), {k: list(h) for k, h in self.tracks.items()}, {}, nxt, "live"),
+             png, title=f"pmon watch: t={_f(snap['tick_time_s'])} s, app {snap['app_state']}",
+             scenario=scenario)
+
+
+def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | None, as_json: bool,
+          console, scenario=None) -> Outcome:
+    """``scenario``: the scene the PNG draws (area, goal, obstacles)."""
+    updates = _Updates(gl.v)
+    gl.on_message(updates.on_msg)
     t0 = time.monotonic()
     shown, last_update, last_png = 0, time.monotonic(), -math.inf
     live = None
@@ -102,23 +114,14 @@ def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | Non
         while (count is None or shown < count) and (duration is None or time.monotonic() - t0 < duration):
             gl.pump(0.05)
             now = time.monotonic()
-            if updates[0] > shown:
-                shown = updates[0]
+            if updates.n > shown:
+                shown = updates.n
                 last_update = now
                 snap = snapshot(gl)
-                if as_json:
-                    console.file.write(json.dumps({"update": shown, **snap}) + "\n")
-                    console.file.flush()
-                elif live is not None:
-                    live.update(table(snap, shown), refresh=True)
-                else:
-                    console.print(table(snap, shown))
+                _show(snap, shown, as_json, console, live)
                 if png and now - last_png >= 1.0:
                     last_png = now
-                    nxt = tuple(snap["next_enu_m"][:2]) if snap["next_enu_m"] else None
-                    draw(Flight(tuple(uav_path), {k: list(h) for k, h in tracks.items()}, {}, nxt, "live"),
-                         png, title=f"pmon watch: t={_f(snap['tick_time_s'])} s, app {snap['app_state']}",
-                         scenario=scenario)
+                    updates.draw(snap, png, scenario)
             elif now - last_update > gl.timeout:
                 raise GcsError(f"watch: no update from the onboard app for {gl.timeout:g} s "
                                f"({'never heard' if not shown else f'after {shown} updates'})", TIMEOUT)
@@ -127,4 +130,15 @@ def watch(gl: GcsLink, count: int | None, duration: float | None, png: str | Non
     finally:
         if live is not None:
             live.stop()
-    return Outcome("", {"updates": shown, "targets": len(v.targets)})
+    return Outcome("", {"updates": shown, "targets": len(gl.v.targets)})
+
+
+def _show(snap: dict, n: int, as_json: bool, console, live) -> None:
+    """Update ``n``: a JSON line, the live table redrawn, or (not a terminal) the table printed."""
+    if as_json:
+        console.file.write(json.dumps({"update": n, **snap}) + "\n")
+        console.file.flush()
+    elif live is not None:
+        live.update(table(snap, n), refresh=True)
+    else:
+        console.print(table(snap, n))

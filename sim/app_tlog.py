@@ -83,11 +83,6 @@ def app_view(tlog: Path) -> dict:
     monitored: list[float] = []  # autopilot s of the app's heartbeats saying "monitoring"
     chunks = Reassembler(clock=lambda: 0.0)  # a recording: a text is whole when its last chunk is
     t = None
-
-    def add(key, value):
-        seq = out[key]
-        if not seq or seq[-1] != value:
-            seq.append(value)
     while (m := conn.recv_match()) is not None:
         mtype = m.get_type()
         src = (m.get_srcSystem(), m.get_srcComponent())
@@ -97,7 +92,7 @@ def app_view(tlog: Path) -> dict:
                 asked.add(int(m.param1))
             elif mtype == "STATUSTEXT":  # whole: a long text comes in chunks
                 for text in chunks.feed(m):
-                    add("app_said", text.removeprefix("PMON: ").split(" (")[0].strip())
+                    _add_distinct(out["app_said"], text.removeprefix("PMON: ").split(" (")[0].strip())
             elif mtype == "HEARTBEAT" and m.custom_mode == 1 and t is not None:  # monitoring
                 monitored.append(t)
             continue
@@ -109,26 +104,37 @@ def app_view(tlog: Path) -> dict:
             out["unasked"].add(mtype)
         if t is not None:
             timed.append((t, mtype))
-        if mtype == "COMMAND_ACK":
-            seq = out["acks"].setdefault(mavlink.enums["MAV_CMD"][m.command].name, [])
-            name = mavlink.enums["MAV_RESULT"][m.result].name.removeprefix("MAV_RESULT_")
-            if not seq or seq[-1] != name:
-                seq.append(name)
-        elif mtype == "EXTENDED_SYS_STATE":
-            add("landed", mavlink.enums["MAV_LANDED_STATE"][m.landed_state].name.removeprefix("MAV_LANDED_STATE_"))
-        elif mtype == "SYS_STATUS" and m.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
-            add("prearm", bool(m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK))
-        elif mtype == "HEARTBEAT":
-            add("modes", m.custom_mode)
-            if m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and out["armed_t"] is None:
-                out["armed_t"] = t
-        elif mtype == "GLOBAL_POSITION_INT" and m.lat == 0 and m.lon == 0:
-            out["no_fix_positions"] += 1
-        elif mtype == "GPS_GLOBAL_ORIGIN" and out["origin_t"] is None:
-            out["origin_t"] = t
+        _autopilot_said(out, m, mtype, t)
     out["rates_hz"], out["monitoring_s"] = _monitoring_rates(monitored, timed)
     out["unasked"] = sorted(out["unasked"])
     return out
+
+
+def _add_distinct(seq: list, value) -> None:
+    """Append ``value`` unless it repeats the last (``app_view``'s distinct values in order)."""
+    if not seq or seq[-1] != value:
+        seq.append(value)
+
+
+def _autopilot_said(out: dict, m, mtype: str, t: float | None) -> None:
+    """Into ``app_view``'s ``out``: what autopilot message ``m`` (its type, at autopilot s ``t``)
+    tells of acks, landed state, pre-arm, mode, arming, fix and origin."""
+    if mtype == "COMMAND_ACK":
+        _add_distinct(out["acks"].setdefault(mavlink.enums["MAV_CMD"][m.command].name, []),
+                      mavlink.enums["MAV_RESULT"][m.result].name.removeprefix("MAV_RESULT_"))
+    elif mtype == "EXTENDED_SYS_STATE":
+        _add_distinct(out["landed"],
+                      mavlink.enums["MAV_LANDED_STATE"][m.landed_state].name.removeprefix("MAV_LANDED_STATE_"))
+    elif mtype == "SYS_STATUS" and m.onboard_control_sensors_present & mavlink.MAV_SYS_STATUS_PREARM_CHECK:
+        _add_distinct(out["prearm"], bool(m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK))
+    elif mtype == "HEARTBEAT":
+        _add_distinct(out["modes"], m.custom_mode)
+        if m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and out["armed_t"] is None:
+            out["armed_t"] = t
+    elif mtype == "GLOBAL_POSITION_INT" and m.lat == 0 and m.lon == 0:
+        out["no_fix_positions"] += 1
+    elif mtype == "GPS_GLOBAL_ORIGIN" and out["origin_t"] is None:
+        out["origin_t"] = t
 
 
 def _monitoring_rates(monitored: list[float], timed: list[tuple[float, str]]) -> tuple[dict, float]:

@@ -248,21 +248,7 @@ def sqp(pb: CeilingProblem, acc0: np.ndarray, block: int = 1, maxiter: int = 300
         grad = Lp.T @ gp + penalty * (E.T @ ga)
         return f + penalty * pen, (grad * am).reshape(len(x), -1)
 
-    c = am / vm
-
-    def cons(x):
-        z = x.reshape(nb, 2)
-        v = Lv @ z * c
-        return np.concatenate([1.0 - np.sum(z * z, axis=1), 1.0 - np.sum(v * v, axis=1)])
-
-    def cjac(x):
-        z = x.reshape(nb, 2)
-        J1 = np.zeros((nb, nb, 2))
-        J1[np.arange(nb), np.arange(nb)] = -2.0 * z
-        v = Lv @ z * c
-        J2 = -2.0 * v[:, None, :] * (Lv * c)[:, :, None]
-        return np.concatenate([J1.reshape(nb, 2 * nb), J2.reshape(len(Lv), 2 * nb)])
-
+    limits = _limit_constraints(Lv, nb, am / vm)
     batcher = _Batcher(batch, len(acc0))
     out, nits = z0.copy(), np.zeros(len(acc0), dtype=int)
 
@@ -277,7 +263,7 @@ def sqp(pb: CeilingProblem, acc0: np.ndarray, block: int = 1, maxiter: int = 300
             return memo[key]
         try:
             res = minimize(lambda x: float(fg(x)[0]), z0[i].ravel(), jac=lambda x: fg(x)[1], method="SLSQP",
-                           constraints=[dict(type="ineq", fun=cons, jac=cjac)],
+                           constraints=[limits],
                            options=dict(maxiter=maxiter, ftol=ftol))
             out[i], nits[i] = res.x.reshape(nb, 2), res.nit
         finally:
@@ -289,6 +275,24 @@ def sqp(pb: CeilingProblem, acc0: np.ndarray, block: int = 1, maxiter: int = 300
     for t in threads:
         t.join()
     return E @ (out * am), nits, batcher.calls
+
+
+def _limit_constraints(Lv: np.ndarray, nb: int, c: float) -> dict:
+    """SLSQP's inequality on ``sqp``'s scaled accelerations z (nb, 2): |z| <= 1 per block and
+    |v| <= 1 at the block ends (``Lv``: z to velocity, scaled by ``c`` = a_max / v_max)."""
+    def cons(x):
+        z = x.reshape(nb, 2)
+        v = Lv @ z * c
+        return np.concatenate([1.0 - np.sum(z * z, axis=1), 1.0 - np.sum(v * v, axis=1)])
+
+    def cjac(x):
+        z = x.reshape(nb, 2)
+        J1 = np.zeros((nb, nb, 2))
+        J1[np.arange(nb), np.arange(nb)] = -2.0 * z
+        v = Lv @ z * c
+        J2 = -2.0 * v[:, None, :] * (Lv * c)[:, :, None]
+        return np.concatenate([J1.reshape(nb, 2 * nb), J2.reshape(len(Lv), 2 * nb)])
+    return dict(type="ineq", fun=cons, jac=cjac)
 
 
 @dataclass(frozen=True, eq=False)

@@ -123,8 +123,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
     ws = GuidanceWorkspace()  # per method and trial: OSQP warm starts never leak between runs
     uav = None if method.sensing == "fixed" else np.asarray(start, float).copy()
     uav_vel = np.zeros(2)  # planar UAV velocity at ``uav`` (vehicle motion); starts in hover
-    ramps = setup.motion.kind == "vehicle" and setup.motion.jerk_max_mps3 > 0.0
-    uav_acc = np.zeros(2) if ramps else None  # the plan's acceleration there (continuous acceleration)
+    uav_acc = np.zeros(2) if _ramps(setup) else None  # the plan's acceleration there (continuous acceleration)
     err, nees, est = np.zeros((K, M)), np.zeros((K, M)), np.zeros((K, M, 2))
     mode_p = None if true_col is None else np.full((K, M), np.nan)
     reseeds = None if true_col is None else np.zeros((K, M), dtype=bool)
@@ -156,7 +155,7 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav = np.array([path[k + 1, 0], path[k + 1, 1], setup.grid.altitude_m])
         elif uav is not None and k < K - 1 and limits is not None:
             vehicle, uav, uav_vel, uav_acc, miss[k], plan_speed[k] = _fly_tick(setup, limits, res, vehicle, uav,
-                                                                             uav_vel, uav_acc, k == 0, ramps)
+                                                                             uav_vel, uav_acc, k == 0)
             speed[k + 1] = float(np.linalg.norm(uav_vel))
         elif uav is not None and k < K - 1:
             uav, uav_vel = _jump_tick(res, uav)
@@ -166,8 +165,13 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
                        reseeds=reseeds)
 
 
+def _ramps(setup: MonitorSetup) -> bool:
+    """Whether plans carry their acceleration over (vehicle motion with a jerk limit)."""
+    return setup.motion.kind == "vehicle" and setup.motion.jerk_max_mps3 > 0.0
+
+
 def _fly_tick(setup: MonitorSetup, limits: VehicleLimits, res, vehicle: VehicleState, uav: np.ndarray,
-              uav_vel: np.ndarray, uav_acc: np.ndarray | None, first: bool, ramps: bool):
+              uav_vel: np.ndarray, uav_acc: np.ndarray | None, first: bool):
     """A flown method's move after a tick (``res``): the copter flies the plan's next velocity.
     Returns the vehicle, its ENU position and planar velocity, the next plan's starting
     acceleration, its distance from the planned point (m) and the plan's speed (m/s)."""
@@ -176,7 +180,7 @@ def _fly_tick(setup: MonitorSetup, limits: VehicleLimits, res, vehicle: VehicleS
     v_next = np.asarray(p.velocities[p.index], float)[:2] if ok else None
     planned = p.position[:2] if ok else uav[:2]
     vehicle = fly_plan(vehicle, v_next, setup.grid.altitude_m, setup.model.dt_s, limits, first=first, a_k=uav_acc)
-    if ramps:  # where the plan's acceleration ended: the next plan's starts there
+    if _ramps(setup):  # where the plan's acceleration ended: the next plan's starts there
         uav_acc = np.zeros(2) if v_next is None else 2.0 * (v_next - uav_vel) / setup.model.dt_s - uav_acc
     uav, uav_vel = enu(vehicle.pos), enu(vehicle.vel)[:2]
     return (vehicle, uav, uav_vel, uav_acc, float(np.linalg.norm(uav[:2] - planned)),

@@ -127,8 +127,31 @@ def main(argv=None) -> int:
     """``pmon feed live|replay ...`` (also ``python -m sim.feed``)."""
     import signal
 
-    from onboard.argcheck import HOST_PORT, MAVLINK_URL, OUT_FILE, SEED, SPEEDUP, OneLineParser, fail, number
-    from onboard.config import ConfigError, load_scenario
+    from onboard.argcheck import fail
+    from onboard.config import ConfigError
+
+    ap = _parser()
+    args = ap.parse_args(argv)
+    host, port = args.to
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        if args.mode == "live":
+            return _live(args, stop)
+        if args.df == "kraken":
+            from sim.kraken import replay_from_args
+            replay_from_args(args, stop, log=lambda s: print(s, flush=True))
+            return 0
+        replay(args.file, (host, port), args.mavlink, args.speedup, stop,
+               log=lambda s: print(s, flush=True))
+        return 0
+    except (ConfigError, ValueError, OSError) as exc:
+        return fail(ap.prog, str(exc))
+
+
+def _parser():
+    from onboard.argcheck import HOST_PORT, MAVLINK_URL, OUT_FILE, SEED, SPEEDUP, OneLineParser, number
 
     ap = OneLineParser(prog="pmon feed", description="simulated DF feed to the onboard app")
     sub = ap.add_subparsers(dest="mode", required=True)
@@ -159,42 +182,35 @@ def main(argv=None) -> int:
     rp.add_argument("--speedup", type=SPEEDUP, default=1.0, help="without --mavlink: wall-clock pace")
     from sim.kraken import add_replay_arguments
     add_replay_arguments(rp)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def _live(args, stop: threading.Event) -> int:
+    """``pmon feed live``: the feed (datagrams, or KrakenSDR's files with ``--df kraken``) until
+    its end or ``stop``."""
+    from onboard.config import load_scenario
+
     host, port = args.to
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    sc = load_scenario(args.scenario)
+    key = None
+    if args.signing_key:
+        from onboard.app.signing import load_key
+        key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
+    cfg = LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed, args.duration, args.start,
+                         signing_key=key, altitude_m=args.altitude, kind=args.kind)
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    writer = None
+    if args.df == "kraken":
+        from sim.kraken import feed_from_args
+        feed, writer = feed_from_args(args, sc, cfg, log)
+    else:
+        feed = LiveFeed(cfg, sc, log=log)
+    feed.stop_event = stop
     try:
-        if args.mode == "live":
-            sc = load_scenario(args.scenario)
-            key = None
-            if args.signing_key:
-                from onboard.app.signing import load_key
-                key = load_key(args.signing_key)  # KeyFileError is a ValueError: exit 2
-            cfg = LiveFeedConfig(args.mavlink, host, port, args.truth, args.seed, args.duration, args.start,
-                                 signing_key=key, altitude_m=args.altitude, kind=args.kind)
-            log = lambda s: print(s, flush=True)  # noqa: E731
-            writer = None
-            if args.df == "kraken":
-                from sim.kraken import feed_from_args
-                feed, writer = feed_from_args(args, sc, cfg, log)
-            else:
-                feed = LiveFeed(cfg, sc, log=log)
-            feed.stop_event = stop
-            try:
-                return feed.run()
-            finally:
-                if writer is not None:
-                    writer.close()
-        if args.df == "kraken":
-            from sim.kraken import replay_from_args
-            replay_from_args(args, stop, log=lambda s: print(s, flush=True))
-            return 0
-        replay(args.file, (host, port), args.mavlink, args.speedup, stop,
-               log=lambda s: print(s, flush=True))
-        return 0
-    except (ConfigError, ValueError, OSError) as exc:
-        return fail(ap.prog, str(exc))
+        return feed.run()
+    finally:
+        if writer is not None:
+            writer.close()
 
 
 if __name__ == "__main__":

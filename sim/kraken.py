@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from onboard.app.kraken_line import KrakenLine
 from onboard.core import doa
 from onboard.settings import ConfigError
 from sim.live_feed import LiveFeed, LiveFeedConfig, Telemetry
@@ -101,13 +102,15 @@ def papr_db(p: np.ndarray) -> float:
     return float(10 * np.log10(np.abs(p).max() / np.abs(p).mean()))
 
 
-def format_line(epoch_ms: int, doa_deg: float, confidence: float, power_db: float, freq_hz: int, array: str,
-                latency_ms: int, station: str, lat: float, lon: float, heading_deg: float, spectrum_db) -> str:
-    """A line as KrakenSDR's ``SignalProcessor.run`` writes it, its newline included: the field
-    order, the ", " separators, the spectrum's ``{:.2f}``, the " \\n" end."""
-    head = (f"{int(epoch_ms)}, {doa_deg}, {confidence}, {power_db}, {int(freq_hz)}, {array}, {int(latency_ms)}, "
-            f"{station}, {lat}, {lon}, {heading_deg}, {heading_deg}, GPS, R, R, R, R")
-    return head + "".join(", " + "{:.2f}".format(v) for v in spectrum_db) + " \n"
+def format_line(ln: KrakenLine) -> str:
+    """``ln`` as KrakenSDR's ``SignalProcessor.run`` writes it, its newline included: the field
+    order, the ", " separators, the spectrum's ``{:.2f}``, the " \\n" end (the reader's
+    ``KrakenLine``, written: ``parse_line`` reads it back)."""
+    head = (f"{int(ln.epoch_ms)}, {ln.doa_deg}, {ln.confidence}, {ln.power_db}, {int(ln.freq_hz)}, {ln.array}, "
+            f"{int(ln.latency_ms)}, {ln.station}, {ln.lat_deg}, {ln.lon_deg}, {ln.heading_deg}, {ln.heading_deg}, "
+            "GPS, R, R, R, R")
+    spectrum = () if ln.spectrum is None else ln.spectrum
+    return head + "".join(", " + "{:.2f}".format(v) for v in spectrum) + " \n"
 
 
 def status_json(epoch_ms: int, overdrive: bool = False, daq_ok: bool = True) -> str:
@@ -120,11 +123,13 @@ def status_json(epoch_ms: int, overdrive: bool = False, daq_ok: bool = True) -> 
 
 
 def frame_lines(epoch_ms: int, scans, freqs: dict[int, float], yaw_rad: float, model: KrakenModel,
-                rng: np.random.Generator, lat: float = 0.0, lon: float = 0.0, heading_deg: float = 0.0) -> str:
+                rng: np.random.Generator, gps: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> str:
     """The document of one frame: per channel with a VFO (``freqs``: channel -> Hz), its line,
     from ``scans`` (per channel: bearings in rad and the mask of the target's, as
     ``df_scan_labelled`` gives them). Channels with nothing to show have no line. Random draws
-    (floor, multipath powers, channel power) from ``rng`` in channel order."""
+    (floor, multipath powers, channel power) from ``rng`` in channel order. ``gps``: KrakenSDR's
+    own fix, (latitude deg, longitude deg, heading deg), as each line carries it."""
+    lat, lon, heading_deg = gps
     out = []
     for ch, (bearings, is_target) in enumerate(scans):
         if ch not in freqs:
@@ -139,8 +144,8 @@ def frame_lines(epoch_ms: int, scans, freqs: dict[int, float], yaw_rad: float, m
         p = render_spectrum(theta, power[keep], model, rng)
         theta0 = float(np.argmax(p))  # DOA_theta[argmax]: its 1-degree grid
         main = theta0 if model.convention == "unit_circle" else 360.0 - theta0
-        out.append(format_line(epoch_ms, main, papr_db(p), round(chan_db, 4), int(freqs[ch]), "UCA",
-                               model.latency_ms, model.station, lat, lon, heading_deg, plot_db(p)))
+        out.append(format_line(KrakenLine(epoch_ms, main, papr_db(p), round(chan_db, 4), int(freqs[ch]), "UCA",
+                                          model.latency_ms, model.station, lat, lon, heading_deg, plot_db(p))))
     return "".join(out)
 
 
@@ -289,7 +294,7 @@ class KrakenFeed(LiveFeed):
         epoch = int(round(unix * 1000.0 + self.model.latency_ms / 2.0))  # the end of the acquisition
         lat, lon, _ = self.frame.geodetic_from_enu(uav)
         doc = frame_lines(epoch, labelled, self.freqs, yaw, self.model, self.render_rng,
-                          round(lat, 7), round(lon, 7), self._gps_heading(T, tel))
+                          (round(lat, 7), round(lon, 7), self._gps_heading(T, tel)))
         if not doc:
             return  # no VFO above the squelch: KrakenSDR writes nothing
         every = self.model.overdrive_every

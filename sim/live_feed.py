@@ -292,10 +292,7 @@ class LiveFeed:
                             else self.sc.mission.duration_s))
         try:
             if out is not None:
-                o = self.sc.origin
-                out.write(json.dumps({"header": {
-                    "scenario": self.sc.name, "seed": self.cfg.seed, "origin": [o.lat_deg, o.lon_deg, o.alt_m],
-                    "targets": [t.name for t in self.sc.targets], "scans": n_scans}}) + "\n")
+                out.write(json.dumps(self._truth_header(n_scans)) + "\n")
             # wait for the truth world's first steps (its warm-up: ~1 s for the first), the
             # clock and a position (and the arming, if asked); the first scan is the next whole
             # second after all that, so no scan is late because the simulator was still starting
@@ -313,12 +310,7 @@ class LiveFeed:
                     if restart is None:
                         return 130
                     T, resets = restart
-                # a telemetry sample at or after T makes the pose an interpolation, not a guess
-                deadline = time.monotonic() + 0.5
-                while (tel.poses.latest() is None or tel.poses.latest().t < T) \
-                        and time.monotonic() < deadline and not self.stop_event.is_set():
-                    time.sleep(0.001)
-                uav = tel.poses.at(T)
+                uav = self._uav_at(tel, T)
                 if uav is None:  # the targets moved on all the same (their step k is used up)
                     self.log(f"feed: no UAV position at t={T:.1f}: scan skipped")
                     T += 1.0
@@ -346,6 +338,21 @@ class LiveFeed:
             sock.close()
             if out is not None:
                 out.close()
+
+    def _truth_header(self, n_scans: int) -> dict:
+        """The truth JSONL's first line."""
+        o = self.sc.origin
+        return {"header": {"scenario": self.sc.name, "seed": self.cfg.seed, "origin": [o.lat_deg, o.lon_deg, o.alt_m],
+                           "targets": [t.name for t in self.sc.targets], "scans": n_scans}}
+
+    def _uav_at(self, tel, T: float):
+        """The UAV's ENU position at autopilot time ``T`` (None if unknown), after waiting up to
+        0.5 s for a telemetry sample at or after T: an interpolation, not a guess."""
+        deadline = time.monotonic() + 0.5
+        while (tel.poses.latest() is None or tel.poses.latest().t < T) \
+                and time.monotonic() < deadline and not self.stop_event.is_set():
+            time.sleep(0.001)
+        return tel.poses.at(T)
 
     def _wait_for_vehicle(self, tel) -> bool:
         """Until the clock and a position are known and the vehicle is as ``start`` asks

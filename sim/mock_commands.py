@@ -94,9 +94,17 @@ class Commands:
 
     def _command(self, link: _Link, cmd: _Command) -> int:
         """Run a command; returns the MAV_RESULT ArduCopter 4.5 would answer."""
+        for run in (self._flight_command, self._message_command, self._setting_command):
+            result = run(link, cmd)
+            if result is not None:
+                return result
+        return mavlink.MAV_RESULT_UNSUPPORTED
+
+    def _flight_command(self, link: _Link, cmd: _Command) -> int | None:
+        """Arming, take-off, modes, reposition, termination, reboot; None: not one of these."""
         m = mavlink
         c = self.copter
-        p1, p2, p3, p4 = cmd.params
+        p1, p2, _, _ = cmd.params
         ok = lambda b: m.MAV_RESULT_ACCEPTED if b else m.MAV_RESULT_FAILED  # noqa: E731
         if cmd.command == m.MAV_CMD_COMPONENT_ARM_DISARM:
             if p1 == 1.0:
@@ -120,6 +128,23 @@ class Commands:
             if cmd.frame is None:
                 return m.MAV_RESULT_UNSUPPORTED  # ArduPilot takes it as COMMAND_INT only
             return self._do_reposition(cmd)
+        if cmd.command == m.MAV_CMD_RUN_PREARM_CHECKS:
+            return m.MAV_RESULT_TEMPORARILY_REJECTED if c.armed else m.MAV_RESULT_ACCEPTED
+        if cmd.command == m.MAV_CMD_DO_FLIGHTTERMINATION:
+            if p1 > 0.5:
+                c.disarm(force=True, reason=" (flight termination)")
+                return m.MAV_RESULT_ACCEPTED
+            return m.MAV_RESULT_FAILED
+        if cmd.command == m.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            # A mock cannot reboot; refuse the way ArduPilot refuses when armed.
+            return m.MAV_RESULT_FAILED if c.armed else m.MAV_RESULT_UNSUPPORTED
+        return None
+
+    def _message_command(self, link: _Link, cmd: _Command) -> int | None:
+        """What asks for messages (streams, one-offs, version, home, banner) or sets home; None:
+        not one of these."""
+        m = mavlink
+        p1, p2, _, _ = cmd.params
         if cmd.command == m.MAV_CMD_REQUEST_MESSAGE:
             return self._request_message(link, int(p1))
         if cmd.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -135,6 +160,18 @@ class Commands:
             self._replies.append(self._home_position(link))
             self._replies.append(self._gps_global_origin(link))
             return m.MAV_RESULT_ACCEPTED
+        if cmd.command == m.MAV_CMD_DO_SET_HOME:
+            return self._do_set_home(cmd)
+        if cmd.command == m.MAV_CMD_DO_SEND_BANNER:
+            self._banner(link)
+            return m.MAV_RESULT_ACCEPTED
+        return None
+
+    def _setting_command(self, link: _Link, cmd: _Command) -> int | None:
+        """Yaw and speed; None: not one of these."""
+        m = mavlink
+        c = self.copter
+        p1, p2, _, p4 = cmd.params
         if cmd.command == m.MAV_CMD_CONDITION_YAW:
             if 0.0 <= p1 <= 360.0 and p4 in (0.0, 1.0):
                 target = math.radians(p1) + (c.state.yaw if p4 == 1.0 else 0.0)
@@ -149,22 +186,7 @@ class Commands:
                 return m.MAV_RESULT_DENIED
             c.speed[key] = p2
             return m.MAV_RESULT_ACCEPTED
-        if cmd.command == m.MAV_CMD_DO_SET_HOME:
-            return self._do_set_home(cmd)
-        if cmd.command == m.MAV_CMD_DO_SEND_BANNER:
-            self._banner(link)
-            return m.MAV_RESULT_ACCEPTED
-        if cmd.command == m.MAV_CMD_RUN_PREARM_CHECKS:
-            return m.MAV_RESULT_TEMPORARILY_REJECTED if c.armed else m.MAV_RESULT_ACCEPTED
-        if cmd.command == m.MAV_CMD_DO_FLIGHTTERMINATION:
-            if p1 > 0.5:
-                c.disarm(force=True, reason=" (flight termination)")
-                return m.MAV_RESULT_ACCEPTED
-            return m.MAV_RESULT_FAILED
-        if cmd.command == m.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
-            # A mock cannot reboot; refuse the way ArduPilot refuses when armed.
-            return m.MAV_RESULT_FAILED if c.armed else m.MAV_RESULT_UNSUPPORTED
-        return m.MAV_RESULT_UNSUPPORTED
+        return None
 
     def _location_to_ned(self, lat_e7: float, lon_e7: float, alt: float,
                          frame: int) -> Optional[Vec3]:

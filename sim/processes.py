@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
@@ -76,19 +77,28 @@ class Proc:
         self.log.close()
 
 
+@dataclass(frozen=True)
+class MockLinks:
+    """The mock process's MAVLink links on 127.0.0.1: ``tcp`` TCP ports (``MockProcess.port``);
+    ``udp_out``: also stream to a ground station listening on udp PORT; ``udpin``: also listen on
+    a UDP port (``MockProcess.udpin_port``)."""
+    tcp: int
+    udp_out: int | None = None
+    udpin: bool = False
+
+
 class MockProcess:
     """The mock autopilot (``python -m sim.autopilot``, ArduCopter's boot by default) as a process
     with ArduPilotSitl's interface and port layout, so a Mission flies either."""
 
     def __init__(self, home: tuple[float, ...], speedup: float, params: Mapping[str, float],
-                 ports: int, log_path: Path, seed: int = 1, ready_s: float | None = None,
-                 udp_out: int | None = None, udpin: bool = False, signing_key_path: str | None = None):
-        """``ready_s``: autopilot s until it can arm (None: ArduCopter's); ``udp_out``: also stream
-        to a ground station listening on udp 127.0.0.1:PORT, ``udpin``: also listen on a UDP port
-        (``udpin_port``), neither counted in ``ports``; ``signing_key_path``: MAVLink 2 signing."""
-        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), ports
-        self.log_path, self.seed, self.ready_s, self.udp_out = log_path, seed, ready_s, udp_out
-        self.udpin, self.signing_key_path = udpin, signing_key_path
+                 links: MockLinks, log_path: Path, seed: int = 1, ready_s: float | None = None,
+                 signing_key_path: str | None = None):
+        """``ready_s``: autopilot s until it can arm (None: ArduCopter's); ``signing_key_path``:
+        MAVLink 2 signing."""
+        self.home, self.speedup, self.params, self.ports = home, speedup, dict(params), links.tcp
+        self.log_path, self.seed, self.ready_s, self.udp_out = log_path, seed, ready_s, links.udp_out
+        self.udpin, self.signing_key_path = links.udpin, signing_key_path
         self.proc = None
         self._ports: list[int] = []
         self.udpin_port: int | None = None

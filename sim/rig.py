@@ -160,9 +160,9 @@ class Rig:
                            dict(cfg.params), workdir=workdir, log_path=self.out / "autopilot.log",
                            listeners={"gcs": gcs, "api": 1})
         if not cfg.in_process:
-            from sim.processes import MockProcess
-            return MockProcess(self.home, cfg.speedup, cfg.params, cfg.ports, self.out / "autopilot.log", seed,
-                               ready_s=cfg.ready_s, udp_out=cfg.gcs_udp_out, udpin=cfg.gcs_udpin,
+            from sim.processes import MockLinks, MockProcess
+            return MockProcess(self.home, cfg.speedup, cfg.params, MockLinks(cfg.ports, cfg.gcs_udp_out, cfg.gcs_udpin),
+                               self.out / "autopilot.log", seed, ready_s=cfg.ready_s,
                                signing_key_path=cfg.signing_key_path)
         from sim.autopilot import BootTimeline, MockAutopilot
 

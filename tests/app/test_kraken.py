@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from onboard.app import kraken_line as kl
+from onboard.app.kraken_line import KrakenLine
 from onboard.app.clock import ManualClock, UtcMap
 from onboard.app.datagram import ScanBuffer
 from onboard.app.kraken import KrakenSource
@@ -96,7 +97,7 @@ def _doc(rig: Rig, t: float, bearings_per_ch, model: KrakenModel = CLEAN, seed: 
 # ----------------------------------------------------------------------------- the line
 def test_a_line_as_krakensdr_writes_it_parses_field_by_field():
     s = plot_db(render_spectrum([40.0], [1.0], CLEAN, np.random.default_rng(0)))
-    text = format_line(1712345678901, 40.0, 17.25, -42.5, 433200000, "UCA", 436, "NOCALL", 35.1, 33.4, 12.5, s)
+    text = format_line(KrakenLine(1712345678901, 40.0, 17.25, -42.5, 433200000, "UCA", 436, "NOCALL", 35.1, 33.4, 12.5, s))
     assert text.endswith(" \n") and text.count(",") == kl.HEADER_FIELDS + doa.SPECTRUM_BINS - 1
     line = kl.parse_line(text.encode()[:-1])
     assert (line.epoch_ms, line.doa_deg, line.confidence, line.power_db, line.freq_hz, line.array,
@@ -118,8 +119,8 @@ def _app_bearing(doa_field: float, heading_deg: float, convention: str = "unit_c
     theta = doa_field if convention == "unit_circle" else (360.0 - doa_field) % 360.0
     rig = Rig(replace(SC.kraken, measurements=measurements), yaw_deg=heading_deg)
     s = plot_db(render_spectrum([theta], [1.0], CLEAN, np.random.default_rng(1)))
-    text = format_line(rig.epoch(100.0), doa_field, 20.0, -40.0, FREQS[0], "UCA", 436, "X", LAT, LON,
-                       heading_deg, s)
+    text = format_line(KrakenLine(rig.epoch(100.0), doa_field, 20.0, -40.0, FREQS[0], "UCA", 436, "X", LAT, LON,
+                                  heading_deg, s))
     rig.src.offer("doa", text.encode())
     d = rig.buffer.pending[100.0][0]
     assert len(d.bearings) == 1, d.bearings
@@ -198,7 +199,7 @@ def test_heading_is_taken_at_the_frames_time_not_the_ticks():
     yaw_then = math.radians(-4.0)
     theta = doa.array_from_bearing(0.7, yaw_then)
     s = plot_db(render_spectrum([theta], [1.0], CLEAN, np.random.default_rng(2)))
-    text = format_line(rig.epoch(t), float(round(theta)), 20.0, -40.0, FREQS[0], "UCA", 436, "X", 0, 0, 0, s)
+    text = format_line(KrakenLine(rig.epoch(t), float(round(theta)), 20.0, -40.0, FREQS[0], "UCA", 436, "X", 0, 0, 0, s))
     rig.src.offer("doa", text.encode())
     assert rig.buffer.pending == {}  # held: a frame nearer 100 s may follow
     rig.clock.t = 100.9
