@@ -151,34 +151,39 @@ def _aggregate(trials, data, runs, greedy) -> dict:
             print(f"\nceiling 9 m/s / ceiling 20 m/s on {len(ts)} trials: {v:.3f} ({lo:.3f}, {hi:.3f})")
             res["ceiling9_over_ceiling20"] = [round(v, 4), round(lo, 4), round(hi, 4), len(ts)]
     if r9:
-        wins: dict = {}
-        for t in r9:
-            name = str(r9[t]["names"][int(r9[t]["refined"][np.argmin(r9[t]["refined_values"])])])
-            if float(r9[t]["value"]) < float(np.min(r9[t]["refined_values"])) - 1e-12:
-                name = "a start as it is"
-            wins[name] = wins.get(name, 0) + 1
-        res["winning_start_9"] = wins
-        print(f"\nthe 9 m/s ceiling came from (refined start: trials): {wins}")
-        rad, spd = [], []
-        for t in r9:
-            a = r9[t]["acc"]
-            v = np.vstack([[0.0, 0.0], np.cumsum(a, axis=0)])
-            sp = np.linalg.norm(v[60:-1], axis=1)
-            an = np.abs(v[60:-1, 0] * a[60:, 1] - v[60:-1, 1] * a[60:, 0]) / np.maximum(sp, 1e-9)
-            keep = (sp > 0.5) & (an > 1e-3)
-            rad += list(sp[keep] ** 2 / an[keep])
-            spd += list(np.linalg.norm(v[60:], axis=1))
-        res["ceiling9_60_99"] = {"speed_median_mps": round(float(np.median(spd)), 2),
-                                 "turn_radius_quartiles_m": np.percentile(rad, [25, 50, 75]).round(1).tolist()}
-        print(f"the 9 m/s ceiling at 60-99 s: speed {np.median(spd):.2f} m/s (median), turn radius "
-              f"{res['ceiling9_60_99']['turn_radius_quartiles_m']} m (quartiles)")
-    q = r9
-    if q:
-        cpu = [float(q[t]["cpu_s"]) for t in q]
-        res["cpu_s_per_trial"] = {"median": round(float(np.median(cpu)), 1), "max": round(float(np.max(cpu)), 1),
-                                  "total_min": round(float(np.sum(cpu)) / 60, 1)}
-        print(f"\nCPU per trial (9 m/s, quick): median {np.median(cpu):.1f} s, max {np.max(cpu):.1f} s, "
-              f"total {np.sum(cpu) / 60:.1f} min for {len(cpu)} trials")
+        res.update(_ceiling9(r9))
+    return res
+
+
+def _ceiling9(r9: dict) -> dict:
+    """The 9 m/s ceiling's winning starts, its speed and turn radius at 60-99 s, its CPU per trial."""
+    res: dict = {}
+    wins: dict = {}
+    for t in r9:
+        name = str(r9[t]["names"][int(r9[t]["refined"][np.argmin(r9[t]["refined_values"])])])
+        if float(r9[t]["value"]) < float(np.min(r9[t]["refined_values"])) - 1e-12:
+            name = "a start as it is"
+        wins[name] = wins.get(name, 0) + 1
+    res["winning_start_9"] = wins
+    print(f"\nthe 9 m/s ceiling came from (refined start: trials): {wins}")
+    rad, spd = [], []
+    for t in r9:
+        a = r9[t]["acc"]
+        v = np.vstack([[0.0, 0.0], np.cumsum(a, axis=0)])
+        sp = np.linalg.norm(v[60:-1], axis=1)
+        an = np.abs(v[60:-1, 0] * a[60:, 1] - v[60:-1, 1] * a[60:, 0]) / np.maximum(sp, 1e-9)
+        keep = (sp > 0.5) & (an > 1e-3)
+        rad += list(sp[keep] ** 2 / an[keep])
+        spd += list(np.linalg.norm(v[60:], axis=1))
+    res["ceiling9_60_99"] = {"speed_median_mps": round(float(np.median(spd)), 2),
+                             "turn_radius_quartiles_m": np.percentile(rad, [25, 50, 75]).round(1).tolist()}
+    print(f"the 9 m/s ceiling at 60-99 s: speed {np.median(spd):.2f} m/s (median), turn radius "
+          f"{res['ceiling9_60_99']['turn_radius_quartiles_m']} m (quartiles)")
+    cpu = [float(r9[t]["cpu_s"]) for t in r9]
+    res["cpu_s_per_trial"] = {"median": round(float(np.median(cpu)), 1), "max": round(float(np.max(cpu)), 1),
+                              "total_min": round(float(np.sum(cpu)) / 60, 1)}
+    print(f"\nCPU per trial (9 m/s, quick): median {np.median(cpu):.1f} s, max {np.max(cpu):.1f} s, "
+          f"total {np.sum(cpu) / 60:.1f} min for {len(cpu)} trials")
     return res
 
 

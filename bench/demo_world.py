@@ -182,7 +182,7 @@ def check(sc, n_scans: int) -> bool:
     return bool(np.array_equal(ours, theirs))
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m bench.demo_world", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1,2,3,4,5")
     ap.add_argument("--repeats", type=int, default=10)
@@ -197,6 +197,11 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--check", action="store_true", help="only check fly() against sim.evaluation.run_method")
     add_set_option(ap)
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     sc = load_scenario("paper", set_overrides(ap, args))
     n_scans = int(round(sc.mission.duration_s / sc.dynamics.dt_s))
@@ -215,13 +220,32 @@ def main(argv=None) -> int:
         print(f"seed {s}'s world: wall stops (scan, target) {wall_stops(demo_truth(sc, s, n_scans)[0])}")
     print(f"demo worlds {seeds}, {args.repeats} draws each, variants {', '.join(variants)}, launch {args.launch} "
           f"scans{set_label(args)}; {len(jobs)} closed loops on {args.workers} worker(s)", flush=True)
+    results = _run_jobs(functools.partial(_job, sc, n_scans, args.launch), jobs, args.workers)
+    out: dict = {"bench": "demo_world", "seeds": seeds, "repeats": args.repeats, "launch": args.launch,
+                 "variants": {}, "demo_runs": {}, "replay": {}, "starts": {}}
+    print(f"\nper seed: r (RMSE from {ev.DEFAULT_WINDOW_S:g} s, all targets) mean over draws [min-max]; "
+          "mean per-target RMSE; per target (mean over draws)")
+    for v in variants if args.repeats else ():
+        out["variants"][v] = _variant_rows(results, v, seeds, args.repeats, w0)
+    if args.starts:
+        for s in seeds:
+            r_ = np.array([figures(results[("start", s, "eval", r)], w0)[0] for r in range(args.starts)])
+            out["starts"][s] = {"r_mean": round(float(r_.mean()), 2), "r_median": round(float(np.median(r_)), 2)}
+            print(f"eval from {args.starts} random starts, s{s}: r mean {r_.mean():.1f}, median {np.median(r_):.1f}")
+    if args.runs:
+        _demo_runs(sc, args, seeds, w0, out)
+    print(json.dumps(out))
+    return 0
+
+
+def _run_jobs(run, jobs: list, workers: int) -> dict:
+    """Each job's errors by job, on ``workers`` spawned processes (or in this one)."""
     results: dict = {}
-    run = functools.partial(_job, sc, n_scans, args.launch)
-    if args.workers > 1 and jobs:
+    if workers > 1 and jobs:
         import multiprocessing as mp
 
         from sim.workers import worker_pool
-        with worker_pool(mp.get_context("spawn"), args.workers) as pool:
+        with worker_pool(mp.get_context("spawn"), workers) as pool:
             for i, (job, err, wall) in enumerate(pool.imap_unordered(run, jobs), 1):
                 results[job] = err
                 print(f"  {i}/{len(jobs)} {job} {wall:.0f} s", flush=True)
@@ -229,49 +253,45 @@ def main(argv=None) -> int:
         for i, job in enumerate(jobs, 1):
             job, results[job], wall = run(job)
             print(f"  {i}/{len(jobs)} {job} {wall:.0f} s", flush=True)
-    out: dict = {"bench": "demo_world", "seeds": seeds, "repeats": args.repeats, "launch": args.launch,
-                 "variants": {}, "demo_runs": {}, "replay": {}, "starts": {}}
-    print(f"\nper seed: r (RMSE from {ev.DEFAULT_WINDOW_S:g} s, all targets) mean over draws [min-max]; "
-          "mean per-target RMSE; per target (mean over draws)")
-    for v in variants if args.repeats else ():
-        rows = {}
-        for s in seeds:
-            figs = [figures(results[("s0", s, v, r)], w0) for r in range(args.repeats)]
-            r_ = np.array([f[0] for f in figs])
-            rows[s] = {"r_mean": round(float(r_.mean()), 2), "r_min": round(float(r_.min()), 2),
-                       "r_max": round(float(r_.max()), 2),
-                       "per_target_mean": round(float(np.mean([f[1] for f in figs])), 2),
-                       "per_target": np.mean([f[2] for f in figs], axis=0).round(1).tolist()}
-        out["variants"][v] = rows
-        print(f"{v:>12}: " + "  ".join(f"s{s} {x['r_mean']:5.1f} [{x['r_min']:.1f}-{x['r_max']:.1f}] "
-                                        f"{x['per_target_mean']:.1f}" for s, x in rows.items())
-              + f"  | mean r {np.mean([x['r_mean'] for x in rows.values()]):.1f}, "
-              f"per-target {np.mean([x['per_target_mean'] for x in rows.values()]):.1f}")
-        for s, x in rows.items():
-            print(f"{'':>14}s{s} per target {x['per_target']}")
-    if args.starts:
-        for s in seeds:
-            r_ = np.array([figures(results[("start", s, "eval", r)], w0)[0] for r in range(args.starts)])
-            out["starts"][s] = {"r_mean": round(float(r_.mean()), 2), "r_median": round(float(np.median(r_)), 2)}
-            print(f"eval from {args.starts} random starts, s{s}: r mean {r_.mean():.1f}, median {np.median(r_):.1f}")
-    if args.runs:
-        from sim.demo import score
-        for s in seeds:
-            d = Path(args.runs.format(seed=s))
-            if not (d / "run.jsonl").exists():
-                continue
-            rep = score(d / "run.jsonl", d / "truth.jsonl", sc)
-            figs = [figures(e, w0) for e in replay(sc, d, args.replay_draws, args.replay_guidance_s)]
-            r_ = [round(f[0], 1) for f in figs]
-            out["demo_runs"][s] = {"r": rep["mission_rmse_m"], "per_target": rep["rmse_window_m"]}
-            out["replay"][s] = {"r_mean": round(float(np.mean(r_)), 2), "r": r_,
-                                "per_target": np.mean([f[2] for f in figs], axis=0).round(1).tolist()}
-            print(f"demo run {d}: r {rep['mission_rmse_m']}, per target {rep['rmse_window_m']}; its bearings "
-                  f"replayed (tracking only, {args.replay_draws} draws, guidance limit {args.replay_guidance_s} s): "
-                  f"r {out['replay'][s]['r_mean']} (draws {min(r_)}-{max(r_)}), "
-                  f"per target {out['replay'][s]['per_target']}")
-    print(json.dumps(out))
-    return 0
+    return results
+
+
+def _variant_rows(results: dict, v: str, seeds: list[int], repeats: int, w0: int) -> dict:
+    """A variant's figures per seed over its draws, printed."""
+    rows = {}
+    for s in seeds:
+        figs = [figures(results[("s0", s, v, r)], w0) for r in range(repeats)]
+        r_ = np.array([f[0] for f in figs])
+        rows[s] = {"r_mean": round(float(r_.mean()), 2), "r_min": round(float(r_.min()), 2),
+                   "r_max": round(float(r_.max()), 2),
+                   "per_target_mean": round(float(np.mean([f[1] for f in figs])), 2),
+                   "per_target": np.mean([f[2] for f in figs], axis=0).round(1).tolist()}
+    print(f"{v:>12}: " + "  ".join(f"s{s} {x['r_mean']:5.1f} [{x['r_min']:.1f}-{x['r_max']:.1f}] "
+                                    f"{x['per_target_mean']:.1f}" for s, x in rows.items())
+          + f"  | mean r {np.mean([x['r_mean'] for x in rows.values()]):.1f}, "
+          f"per-target {np.mean([x['per_target_mean'] for x in rows.values()]):.1f}")
+    for s, x in rows.items():
+        print(f"{'':>14}s{s} per target {x['per_target']}")
+    return rows
+
+
+def _demo_runs(sc, args, seeds: list[int], w0: int, out: dict) -> None:
+    """--runs: each seed's demo run scored, and its bearings replayed (tracking only), into ``out``."""
+    from sim.demo import score
+    for s in seeds:
+        d = Path(args.runs.format(seed=s))
+        if not (d / "run.jsonl").exists():
+            continue
+        rep = score(d / "run.jsonl", d / "truth.jsonl", sc)
+        figs = [figures(e, w0) for e in replay(sc, d, args.replay_draws, args.replay_guidance_s)]
+        r_ = [round(f[0], 1) for f in figs]
+        out["demo_runs"][s] = {"r": rep["mission_rmse_m"], "per_target": rep["rmse_window_m"]}
+        out["replay"][s] = {"r_mean": round(float(np.mean(r_)), 2), "r": r_,
+                            "per_target": np.mean([f[2] for f in figs], axis=0).round(1).tolist()}
+        print(f"demo run {d}: r {rep['mission_rmse_m']}, per target {rep['rmse_window_m']}; its bearings "
+              f"replayed (tracking only, {args.replay_draws} draws, guidance limit {args.replay_guidance_s} s): "
+              f"r {out['replay'][s]['r_mean']} (draws {min(r_)}-{max(r_)}), "
+              f"per target {out['replay'][s]['per_target']}")
 
 
 if __name__ == "__main__":

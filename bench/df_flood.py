@@ -144,12 +144,6 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     st = {"i": 0, "proc": None, "t0": None, "before": None, "hb_age": 0.0, "done": False}
     setpoints: list[float] = []  # autopilot time of each setpoint received
 
-    def snapshot(app) -> dict:
-        return {"rejected": dict(app.scans.rejected), "dropped": dict(app.df.dropped),
-                "kernel_drops": udp_drops(app.sensor_port), "sp_n": len(setpoints),
-                "t": app.clock.now(), "errors": app.errors.total, "received": app.df.received,
-                "reader_cpu_s": thread_cpu_s(app.df.thread_id)}
-
     def on_app(app):
         if st["done"]:
             return
@@ -159,7 +153,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
             if not monitoring:
                 return
             ph = phases[st["i"]]
-            st["before"], st["hb_age"], st["t0"] = snapshot(app), 0.0, time.monotonic()
+            st["before"], st["hb_age"], st["t0"] = _snapshot(app, setpoints), 0.0, time.monotonic()
             st["proc"] = _sender(ph, app.sensor_port)
             log(f"phase {ph['name']}: {ph['rate_hz']:g} datagrams/s from {ph['src']} for {ph['seconds']:g} s "
                 f"(mission t {app.clock.now():.0f} s)")
@@ -169,18 +163,11 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
             return
         time.sleep(1.0)  # let the app drain what is queued
         sent = json.loads(proc.stdout.read().strip().splitlines()[-1])
-        out["phases"].append(_phase_figures(phases[st["i"]], sent, st["before"], snapshot(app), setpoints,
+        out["phases"].append(_phase_figures(phases[st["i"]], sent, st["before"], _snapshot(app, setpoints), setpoints,
                                             st["hb_age"]))
         log(f"  {out['phases'][-1]}")
         st["proc"], st["i"] = None, st["i"] + 1
         st["done"] = st["i"] == len(phases)
-
-    def after(app):
-        out["app_errors"] = dict(app.errors.counts)
-        out["io_errors"] = app.counters.get("io_errors", 0)
-        out["tick_errors"] = app.counters.get("tick_errors", 0)
-        out["watchdog"] = dict(app.watchdog.counts)
-        out["state_end"] = State(app.state).name
 
     # mission s from arming (the feed's duration): the launch (monitoring ~20 s after boot,
     # measured), each phase (its wall seconds + ~2 s to read it back), a margin
@@ -188,15 +175,36 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     try:
         run = latency.fly(duration, speedup, seed, cfg_extra={"df_sources": (Source("127.0.0.1"),)},
                           on_app=on_app, on_setpoint=lambda msg: setpoints.append(time.monotonic()),
-                          after=after)
+                          after=lambda app: out.update(_app_end(app)))
     finally:
         logging.getLogger("pmon").removeHandler(tb)
         if st["proc"] is not None and st["proc"].poll() is None:
             st["proc"].kill()
     out["phases_done"] = len(out["phases"]) == len(phases)
+    return {**out, **_run_figures(run, tb, speedup)}
+
+
+def _snapshot(app, setpoints: list[float]) -> dict:
+    """The app's DF and setpoint counts now (a phase's figures are two of these apart)."""
+    return {"rejected": dict(app.scans.rejected), "dropped": dict(app.df.dropped),
+            "kernel_drops": udp_drops(app.sensor_port), "sp_n": len(setpoints),
+            "t": app.clock.now(), "errors": app.errors.total, "received": app.df.received,
+            "reader_cpu_s": thread_cpu_s(app.df.thread_id)}
+
+
+def _app_end(app) -> dict:
+    """The app's errors and state at the end of the flight."""
+    from onboard.app.contract import State
+    return {"app_errors": dict(app.errors.counts), "io_errors": app.counters.get("io_errors", 0),
+            "tick_errors": app.counters.get("tick_errors", 0), "watchdog": dict(app.watchdog.counts),
+            "state_end": State(app.state).name}
+
+
+def _run_figures(run: dict, tb, speedup: float) -> dict:
+    """The flight's tick figures, the tracebacks logged, the speed-up asked and achieved."""
     f = run["figures"]
-    out.update({k: f[k] for k in ("scans", "ticks", "monitoring_ticks", "ticks_missed", "ticks_late",
-                                  "scans_unticked", "ticks_skipped")})
+    out = {k: f[k] for k in ("scans", "ticks", "monitoring_ticks", "ticks_missed", "ticks_late",
+                             "scans_unticked", "ticks_skipped")}
     out["tracebacks_logged"] = tb.n
     out["first_traceback"] = tb.first
     out["speedup"] = speedup

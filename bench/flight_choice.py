@@ -73,21 +73,7 @@ def paired_against(a: np.ndarray, b: np.ndarray, seed: int) -> tuple[tuple, tupl
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.flight_choice", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--trials", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=2024)
-    ap.add_argument("--workers", type=int, default=None)
-    ap.add_argument("--autopilot", default="stock", choices=sorted(ev.AUTOPILOTS),
-                    help="the autopilot parameters every flight variant flies with (default stock)")
-    ap.add_argument("--variant", nargs="+", action="append", default=[], metavar=("NAME", "KEY=VALUE"),
-                    help="a variant: its name, then the scenario settings it changes; repeatable")
-    ap.add_argument("--with", dest="others", default="", help="comma-separated registered methods run beside")
-    ap.add_argument("--out", default=None, help="write pmon eval's files here (default: none)")
-    ap.add_argument("--against", action="append", default=[], metavar="CSV:METHOD",
-                    help="a stored run's per_trial.csv and method (same seed and truths): the base paired "
-                         "with it trial by trial; repeatable")
-    ap.add_argument("--quiet", action="store_true")
-    add_set_option(ap)
+    ap = _parser()
     args = ap.parse_args(argv)
     try:
         stored = [(spec, stored_trials(spec)) for spec in args.against]
@@ -111,6 +97,46 @@ def main(argv: list[str] | None = None) -> int:
           f"wall {summary.wall_s:.0f} s")
     print(f"{'method':34s} {'RMSE':>6s} {'minus base (95 % CI)':>24s} {'over base (95 % CI)':>22s} "
           f"{'ms/tick':>8s} {'from plan med/p95':>18s}")
+    out = _method_rows(cfg, summary, base, variants)
+    tails = figures(cfg, trials)  # bench/consistency.py's: where each filter's error and NEES come from
+    for m in cfg.methods:
+        s, t = summary.methods[m.name], tails[m.name]
+        print(f"{m.name:34s} ANEES {s.nees_mean:.2f}, RMSE / bound {s.rmse_over_bound:.2f}, median per-trial ratio "
+              f"{t.get('over_bound_trial_median', float('nan'))}; largest (trial, target) NEES {t['top5']}; "
+              "largest shares of the squared error: " + ", ".join(
+                  f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
+                  for p in t["worst_pairs"]))
+        out[m.name].update(anees=round(s.nees_mean, 4), over_bound=round(s.rmse_over_bound, 4), top5_nees=t["top5"],
+                           worst_pairs=t["worst_pairs"])
+    _against_stored(summary, base, stored, args.seed, out)
+    if args.out:
+        command = "python -m bench.flight_choice " + " ".join(sys.argv[1:] if argv is None else argv)
+        ev.write_outputs(summary, trials, args.out, command, figures=False)
+    print(json.dumps(out))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m bench.flight_choice", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--autopilot", default="stock", choices=sorted(ev.AUTOPILOTS),
+                    help="the autopilot parameters every flight variant flies with (default stock)")
+    ap.add_argument("--variant", nargs="+", action="append", default=[], metavar=("NAME", "KEY=VALUE"),
+                    help="a variant: its name, then the scenario settings it changes; repeatable")
+    ap.add_argument("--with", dest="others", default="", help="comma-separated registered methods run beside")
+    ap.add_argument("--out", default=None, help="write pmon eval's files here (default: none)")
+    ap.add_argument("--against", action="append", default=[], metavar="CSV:METHOD",
+                    help="a stored run's per_trial.csv and method (same seed and truths): the base paired "
+                         "with it trial by trial; repeatable")
+    ap.add_argument("--quiet", action="store_true")
+    add_set_option(ap)
+    return ap
+
+
+def _method_rows(cfg, summary, base, variants) -> dict:
+    """Each method's RMSE and ms per tick, a variant's paired with the base, printed; by method."""
     out = {}
     for m in cfg.methods:
         s = summary.methods[m.name]
@@ -126,28 +152,18 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"{m.name:34s} {s.rmse_mean_m:6.1f} {'':24s} {'':22s} {s.tick_ms:8.0f} {plan:>18s}")
             out[m.name] = {"rmse_m": round(s.rmse_mean_m, 4), "ms_per_tick": round(s.tick_ms, 1)}
-    tails = figures(cfg, trials)  # bench/consistency.py's: where each filter's error and NEES come from
-    for m in cfg.methods:
-        s, t = summary.methods[m.name], tails[m.name]
-        print(f"{m.name:34s} ANEES {s.nees_mean:.2f}, RMSE / bound {s.rmse_over_bound:.2f}, median per-trial ratio "
-              f"{t.get('over_bound_trial_median', float('nan'))}; largest (trial, target) NEES {t['top5']}; "
-              "largest shares of the squared error: " + ", ".join(
-                  f"trial {p['trial']} {p['target']} {p['rmse_m']} m ({100 * p['share']:.1f} %, NEES {p['nees']})"
-                  for p in t["worst_pairs"]))
-        out[m.name].update(anees=round(s.nees_mean, 4), over_bound=round(s.rmse_over_bound, 4), top5_nees=t["top5"],
-                           worst_pairs=t["worst_pairs"])
+    return out
+
+
+def _against_stored(summary, base, stored, seed: int, out: dict) -> None:
+    """--against: the base paired trial by trial with each stored run, printed and into ``out``."""
     for spec, other in stored:
         base_r = summary.methods[base.name].per_trial_rmse
-        d, ratio = paired_against(base_r, other, args.seed)
+        d, ratio = paired_against(base_r, other, seed)
         n = min(len(base_r), len(other))
         print(f"{base.name} against {spec} (trials 0-{n - 1}, paired): minus it {d[0]:+.2f} m ({d[1]:+.2f}, {d[2]:+.2f}), "
               f"RMS of per-trial RMSE over its {ratio[0]:.3f} ({ratio[1]:.3f}, {ratio[2]:.3f})")
         out[f"{base.name} against {spec}"] = {"minus_m": [round(x, 4) for x in d], "over": [round(x, 4) for x in ratio]}
-    if args.out:
-        command = "python -m bench.flight_choice " + " ".join(sys.argv[1:] if argv is None else argv)
-        ev.write_outputs(summary, trials, args.out, command, figures=False)
-    print(json.dumps(out))
-    return 0
 
 
 if __name__ == "__main__":

@@ -206,14 +206,7 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         scen = Path(tmp) / "scenario.yaml"
-        tree = yaml.safe_load(open(root / "config" / "paper.yaml"))
-        for key, value in overrides.items():
-            node = tree
-            *parents, last = key.split(".")
-            for part in parents:
-                node = node[part]
-            node[last] = value
-        scen.write_text(yaml.safe_dump(tree))
+        scen.write_text(yaml.safe_dump(_overridden(yaml.safe_load(open(root / "config" / "paper.yaml")), overrides)))
         run, truth = Path(tmp) / "run.jsonl", Path(tmp) / "truth.jsonl"
         rig = Rig(RigConfig(scenario=str(scen), seed=seed, feed_seed=seed, speedup=speedup, ready_s=DEMO_READY_S,
                             in_process=True, auto_launch=True, df=df, multipath=multipath,
@@ -240,6 +233,28 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
             k = app.kraken.source
             kraken = {"frames": k.frames, "missed": k.missed, "scans": k.scans, "decimated": k.decimated,
                       "rejected": {r: n for r, n in k.rejected.items() if n}}
+    out = {**_scan_figures(scans, ticks), "ticks_skipped": app.counters.get("ticks_skipped", 0),
+           "ticks_late": app.counters.get("ticks_late", 0),
+           "load_avg_1m_end": round(__import__("os").getloadavg()[0], 2)}
+    if kraken is not None:
+        out["kraken"] = kraken
+    return out
+
+
+def _overridden(tree: dict, overrides: dict) -> dict:
+    """The scenario tree with each dotted ``overrides`` key set (in place)."""
+    for key, value in overrides.items():
+        node = tree
+        *parents, last = key.split(".")
+        for part in parents:
+            node = node[part]
+        node[last] = value
+    return tree
+
+
+def _scan_figures(scans: list[dict], ticks: dict) -> dict:
+    """The truth's scans against the run log's ticks: how many were ticked on every channel, when
+    the others came, and the tracking RMSE (after the first ten ticked scans, or half)."""
     errs, ticked, unticked = [], 0, []
     for s in scans:
         tk = ticks.get(s["t"])
@@ -251,14 +266,9 @@ def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bo
             errs.append(np.linalg.norm(np.array(tk["means"])[:, :2] - np.array(s["targets"])[:, :2], axis=1))
     e = np.array(errs)
     w0 = min(10, len(e) // 2)
-    out = {"scans": len(scans), "ticked_all_channels": ticked, "unticked_s_after_first": unticked,
-           "rmse_m": float(np.sqrt((e[w0:] ** 2).mean())) if len(e) else float("nan"),
-           "rmse_per_target_m": np.sqrt((e[w0:] ** 2).mean(axis=0)).round(2).tolist() if len(e) else [],
-           "ticks_skipped": app.counters.get("ticks_skipped", 0), "ticks_late": app.counters.get("ticks_late", 0),
-           "load_avg_1m_end": round(__import__("os").getloadavg()[0], 2)}
-    if kraken is not None:
-        out["kraken"] = kraken
-    return out
+    return {"scans": len(scans), "ticked_all_channels": ticked, "unticked_s_after_first": unticked,
+            "rmse_m": float(np.sqrt((e[w0:] ** 2).mean())) if len(e) else float("nan"),
+            "rmse_per_target_m": np.sqrt((e[w0:] ** 2).mean(axis=0)).round(2).tolist() if len(e) else []}
 
 
 def stack(args) -> dict:

@@ -71,29 +71,18 @@ def refine(self, inputs, res):
         return None
     m = self.motion
     dt, amax, vmax = self.model.dt_s, m.accel_max_mps2, m.speed_max_mps
-    H = self.steps
     p0 = np.asarray(inputs.position, float)[:2]
     v0 = np.asarray(inputs.velocity, float)[:2]
     a_cur = np.zeros(2) if inputs.acceleration is None else np.asarray(inputs.acceleration, float)[:2]
-    targets = np.stack([p.means[:H, :2] for p in inputs.plans], axis=1)  # (H, M, 2)
+    targets, P0 = _belief(inputs, self.steps)
     H = len(targets)
-    lw = inputs.log_weights
-    w = np.exp(lw - logsumexp(lw, axis=1, keepdims=True))
-    x = inputs.particles[:, :, PLANAR]
-    mean = np.einsum("mn,mnd->md", w, x)
-    dev = x - mean[:, None]
-    P0 = np.einsum("mn,mni,mnj->mij", w, dev, dev)
     A, _, Q = planar_model(self.model)
     c_meas = self.sigma_rad ** 2 / max(self.reduction, 1e-12)
     kin = kinematics(H + 1, dt)
-    nb = -(-H // block)
-    E = np.zeros((H, nb))
-    E[np.arange(H), np.arange(H) // block] = 1.0
+    E, nb = _blocks(H, block)
     tk = dt * np.arange(1, H + 1)
     Lp, Lv = kin.Lp[1:], kin.Lv[1:]
-    sub_t = np.r_[np.repeat(np.arange(H), len(kin.Ls) // H) * dt
-                  + np.tile(np.arange(len(kin.Ls) // H) / (len(kin.Ls) // H) * dt, H), H * dt][:len(kin.Ls)]
-    Ls = kin.Ls
+    sub_t, Ls = _sample_times(kin, H, dt), kin.Ls
     lo, hi = np.asarray(self.area.minimum, float)[:2], np.asarray(self.area.maximum, float)[:2]
     normals, offsets = blocking_2d(self.area.obstacles, self.grid.altitude_m)
     route = res.paths[res.index][:H, :2]
@@ -103,20 +92,8 @@ def refine(self, inputs, res):
 
     def fg(z):
         a = E @ z.reshape(nb, 2) * amax
-        pos = positions(a)
-        f, gp = score(P0, A, Q, targets, pos, c_meas, grad=True)
-        pts = p0 + v0 * sub_t[:, None] + Ls @ a
-        buf = 1.0
-        lo_ex = np.maximum(lo + buf - pts, 0.0)
-        hi_ex = np.maximum(pts - hi + buf, 0.0)
-        pen = np.sum(lo_ex ** 2 + hi_ex ** 2)
-        gpts = -2 * lo_ex + 2 * hi_ex
-        if len(offsets):
-            cl, face = clearance(SimpleNamespace(normals=normals, offsets=offsets), pts)
-            ex = np.maximum(buf + 5.0 - cl, 0.0)
-            pen += np.sum(ex ** 2)
-            nrm = normals[np.arange(len(offsets))[None], face]
-            gpts += np.sum(-2 * ex[..., None] * nrm, axis=1)
+        f, gp = score(P0, A, Q, targets, positions(a), c_meas, grad=True)
+        pen, gpts = _keep_out(p0 + v0 * sub_t[:, None] + Ls @ a, lo, hi, normals, offsets)
         ga = Lp.T @ gp + 100.0 * (Ls.T @ gpts)
         return f + 100.0 * pen, (E.T @ ga * amax).ravel()
 
@@ -131,6 +108,73 @@ def refine(self, inputs, res):
         v = v0 / vmax + Lv @ (E @ zz) * c
         return np.concatenate([1.0 - np.sum(zz * zz, axis=1), 1.0 - np.sum(v * v, axis=1)])
 
+    out = _slsqp(fg, cons, z0, iters)
+    a_ref = E @ out.x.reshape(nb, 2) * amax
+    a_ref *= np.minimum(1.0, amax / np.maximum(np.linalg.norm(a_ref, axis=1, keepdims=True), 1e-12))
+    f_ref = score(P0, A, Q, targets, positions(a_ref), c_meas)
+    _log(t0, out.nit, f_route, f_ref)
+    if not f_ref < f_route * (1 - 1e-4):
+        return None
+    p1, v1 = _first_move(m, p0, v0, a_cur, a_ref, dt)
+    ok = _first_step(p1[:, None].copy(), v1[:, None].copy(), p0, self.grid, m, dt, self.area.minimum, self.area.maximum,
+                     self.area.obstacles)
+    if not ok[0]:
+        return None
+    return p1[0], v1[0]
+
+
+def _blocks(H: int, block: int):
+    """(H, nb) ones mapping each of the nb blocks of ``block`` steps to its steps: one acceleration per block."""
+    nb = -(-H // block)
+    E = np.zeros((H, nb))
+    E[np.arange(H), np.arange(H) // block] = 1.0
+    return E, nb
+
+
+def _sample_times(kin, H: int, dt: float):
+    """The times of the kinematics' sub-step samples (``kin.Ls``'s rows)."""
+    return np.r_[np.repeat(np.arange(H), len(kin.Ls) // H) * dt
+                 + np.tile(np.arange(len(kin.Ls) // H) / (len(kin.Ls) // H) * dt, H), H * dt][:len(kin.Ls)]
+
+
+def _log(t0: float, nit: int, f_route: float, f_ref: float) -> None:
+    """One line per refinement (ms, iterations, the route's and the refined score) to $LOG, if set."""
+    if os.environ.get(LOG):
+        with open(os.environ[LOG], "a") as fh:
+            fh.write(f"{1e3 * (time.perf_counter() - t0):.2f} {nit} {f_route:.6g} {f_ref:.6g}\n")
+
+
+def _belief(inputs, steps: int):
+    """The targets' predicted planar means over the horizon (H, M, 2) and each target's planar
+    particle covariance now (M, 4, 4)."""
+    targets = np.stack([p.means[:steps, :2] for p in inputs.plans], axis=1)
+    lw = inputs.log_weights
+    w = np.exp(lw - logsumexp(lw, axis=1, keepdims=True))
+    x = inputs.particles[:, :, PLANAR]
+    mean = np.einsum("mn,mnd->md", w, x)
+    dev = x - mean[:, None]
+    return targets, np.einsum("mn,mni,mnj->mij", w, dev, dev)
+
+
+def _keep_out(pts, lo, hi, normals, offsets):
+    """The squared excursion of the sampled route past the area's edges (1 m inside) and into the
+    obstacles (6 m clear), and its gradient per point."""
+    buf = 1.0
+    lo_ex = np.maximum(lo + buf - pts, 0.0)
+    hi_ex = np.maximum(pts - hi + buf, 0.0)
+    pen = np.sum(lo_ex ** 2 + hi_ex ** 2)
+    gpts = -2 * lo_ex + 2 * hi_ex
+    if len(offsets):
+        cl, face = clearance(SimpleNamespace(normals=normals, offsets=offsets), pts)
+        ex = np.maximum(buf + 5.0 - cl, 0.0)
+        pen += np.sum(ex ** 2)
+        nrm = normals[np.arange(len(offsets))[None], face]
+        gpts += np.sum(-2 * ex[..., None] * nrm, axis=1)
+    return pen, gpts
+
+
+def _slsqp(fg, cons, z0, iters: int):
+    """SLSQP on ``fg`` (value and gradient, evaluated once per point) under ``cons`` >= 0."""
     memo = {}
 
     def cached(z):
@@ -139,27 +183,20 @@ def refine(self, inputs, res):
             memo.clear()
             memo[k] = fg(z)
         return memo[k]
-    out = minimize(lambda z: float(cached(z)[0]), z0.ravel(), jac=lambda z: cached(z)[1], method="SLSQP",
-                   constraints=[dict(type="ineq", fun=cons)], options=dict(maxiter=iters, ftol=1e-9))
-    a_ref = E @ out.x.reshape(nb, 2) * amax
-    a_ref *= np.minimum(1.0, amax / np.maximum(np.linalg.norm(a_ref, axis=1, keepdims=True), 1e-12))
-    f_ref = score(P0, A, Q, targets, positions(a_ref), c_meas)
-    if os.environ.get(LOG):
-        with open(os.environ[LOG], "a") as fh:
-            fh.write(f"{1e3 * (time.perf_counter() - t0):.2f} {out.nit} {f_route:.6g} {f_ref:.6g}\n")
-    if not f_ref < f_route * (1 - 1e-4):
-        return None
+    return minimize(lambda z: float(cached(z)[0]), z0.ravel(), jac=lambda z: cached(z)[1], method="SLSQP",
+                    constraints=[dict(type="ineq", fun=cons)], options=dict(maxiter=iters, ftol=1e-9))
+
+
+def _first_move(m, p0, v0, a_cur, a_ref, dt: float):
+    """The vehicle's position and velocity after the refined plan's first step: the motion's own
+    jerk-limited step, or the acceleration held with the speed capped."""
     if m.jerk_max_mps3 > 0.0:
         p1, v1, _ = m.step(p0[None], v0[None], a_cur[None], a_ref[:1], dt)
-    else:
-        v1 = v0[None] + a_ref[:1] * dt
-        v1 *= min(1.0, vmax / max(float(np.linalg.norm(v1)), 1e-12))
-        p1 = p0[None] + 0.5 * (v0[None] + v1) * dt
-    ok = _first_step(p1[:, None].copy(), v1[:, None].copy(), p0, self.grid, m, dt, self.area.minimum, self.area.maximum,
-                     self.area.obstacles)
-    if not ok[0]:
-        return None
-    return p1[0], v1[0]
+        return p1, v1
+    vmax = m.speed_max_mps
+    v1 = v0[None] + a_ref[:1] * dt
+    v1 *= min(1.0, vmax / max(float(np.linalg.norm(v1)), 1e-12))
+    return p0[None] + 0.5 * (v0[None] + v1) * dt, v1
 
 
 def _refined_plan(self, inputs, rng):

@@ -38,16 +38,11 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict:
-    sc = load_scenario("paper")
+def _fence_check(sc, fence: dict, st: dict):
+    """A setpoint listener counting into ``fence`` the setpoints outside the area, the app's
+    altitude band or an inflated obstacle."""
     lo, hi = np.array(sc.area.min_m), np.array(sc.area.max_m)
     inflated = Obstacles.from_boxes(sc.obstacles).inflate(sc.uav.obstacle_margin_m)
-    fence = {"outside": 0, "examples": [], "received": 0}
-    # constant-size bookkeeping: RSS at the warm-up mark, at the end, and its max
-    st = {"app": None, "base": None, "end": None, "max": -np.inf, "snap": None, "growth": None}
-    load0 = os.getloadavg()[0]
-    if trace:
-        tracemalloc.start(8)
 
     def check(msg):  # mock home = mission origin: local NED = (north, east, -up)
         fence["received"] += 1
@@ -59,6 +54,17 @@ def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict
             fence["outside"] += 1
             if len(fence["examples"]) < 5:
                 fence["examples"].append(p.round(2).tolist())
+    return check
+
+
+def soak(duration: float, speedup: float, seed: int = 1, trace: int = 0) -> dict:
+    fence = {"outside": 0, "examples": [], "received": 0}
+    # constant-size bookkeeping: RSS at the warm-up mark, at the end, and its max
+    st = {"app": None, "base": None, "end": None, "max": -np.inf, "snap": None, "growth": None}
+    check = _fence_check(load_scenario("paper"), fence, st)
+    load0 = os.getloadavg()[0]
+    if trace:
+        tracemalloc.start(8)
 
     def on_app(app):
         st["app"] = app

@@ -106,7 +106,18 @@ def wall_stop_rows(path: str, rows: list[tuple[int, str, float]], stopped: set[i
     return "\n".join(lines)
 
 
-def main() -> None:
+def _not_optimal(statuses) -> list[str]:
+    """A target's runs of steps whose plan was not optimal: "status at t = a-b s" each."""
+    runs, k = [], 0
+    for status, group in groupby(statuses):
+        e = k + len(list(group)) - 1
+        if status != "optimal":
+            runs.append(f"{status} at t = {k}" + (f"-{e} s" if e > k else " s"))
+        k = e + 1
+    return runs
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=2024)
@@ -118,6 +129,11 @@ def main() -> None:
                     help="a pmon eval per_trial.csv of these trials: per method, the RMS of the window RMSE "
                          "over the trials with a wall stop and over the others")
     add_set_option(ap, "guidance.max_qp_solves=40")
+    return ap
+
+
+def main() -> None:
+    ap = _parser()
     args = ap.parse_args()
     try:
         shows = [tuple(int(v) for v in item.split(":")) for item in args.show]
@@ -158,13 +174,8 @@ def main() -> None:
     for trial, target in shows:
         if target > len(trials[trial]):
             ap.error(f"--show {trial}:{target}: the scenario has {len(trials[trial])} targets")
-        runs, k = [], 0
-        for status, group in groupby(trials[trial][target - 1]):
-            e = k + len(list(group)) - 1
-            if status != "optimal":
-                runs.append(f"{status} at t = {k}" + (f"-{e} s" if e > k else " s"))
-            k = e + 1
-        print(f"trial {trial} T{target}: " + ("; ".join(runs) or "optimal at every step"))
+        print(f"trial {trial} T{target}: " + ("; ".join(_not_optimal(trials[trial][target - 1]))
+                                              or "optimal at every step"))
         if args.trace:
             print("\n".join(pair_trace(overrides, args.trials, args.seed, trial, target)))
     print(json.dumps({"trials": args.trials, "target_steps": steps, "fallback_steps": fallback,

@@ -192,7 +192,8 @@ def test_no_module_is_longer_than_the_limit_but_the_allowed():
 
 MAX_FUNCTION_LINES = 60  # past this a function usually does two things: split it into named helpers (issue 43)
 MAX_PARAMETERS = 8  # past this the arguments travel together: a frozen dataclass of them (issue 43)
-SHAPED_PACKAGES = ("groundstation", "sim")  # onboard/ and bench/ are not yet held to the limits
+# onboard/core/ and onboard/settings.py are not yet held to the limits
+SHAPED_PACKAGES = ("groundstation", "sim", "onboard/app", "bench")
 # functions ("path:Class.name") allowed past MAX_FUNCTION_LINES, each with why; an entry back
 # under the limit is removed
 LONG_FUNCTIONS: dict[str, str] = {}
@@ -214,6 +215,12 @@ WIDE_SIGNATURES = {
     "sim/ceiling_search.py:cross_entropy": "the cross-entropy method's tuning, each with its default",
     "sim/route_score.py:particle_route_scores": "the beliefs, the routes and the motion and sensor models",
     "sim/guided.py:fly_timeline": "a timeline of setpoints flown under the firmware's rate, timeout and limits",
+    "onboard/app/kraken.py:KrakenSource.__init__": "the KrakenSDR section, the autopilot's clock, poses and UTC "
+                                                   "map, and the callbacks into the app; built by KrakenInput, "
+                                                   "bench/kraken.py and the tests' hand-fed source",
+    "bench/sitl_response.py:fly_limits": "one SITL flight's limits, cases and firmware, each a command-line option",
+    "bench/consistency.py:consistency": "`pmon eval`'s trial options and where to write, keyword-called by "
+                                        "bench/oracle_steering.py too",
 }
 
 
@@ -245,9 +252,10 @@ def function_shapes(packages=SHAPED_PACKAGES) -> list[tuple[str, int, int]]:
 
 
 def test_no_function_is_longer_or_wider_than_the_limits_but_the_allowed():
-    """A function of groundstation/ or sim/ is at most MAX_FUNCTION_LINES lines and takes at most
-    MAX_PARAMETERS parameters; LONG_FUNCTIONS and WIDE_SIGNATURES name the few that may not, and
-    why. onboard/ and bench/ are not yet covered (SHAPED_PACKAGES)."""
+    """A function of groundstation/, sim/, onboard/app/ or bench/ is at most MAX_FUNCTION_LINES
+    lines and takes at most MAX_PARAMETERS parameters; LONG_FUNCTIONS and WIDE_SIGNATURES name the
+    few that may not, and why. onboard/core/ and onboard/settings.py are not yet covered
+    (SHAPED_PACKAGES)."""
     shapes = function_shapes()
     long_ = {f: n for f, n, _ in shapes if n > MAX_FUNCTION_LINES}
     wide = {f: k for f, _, k in shapes if k > MAX_PARAMETERS}

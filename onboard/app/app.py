@@ -56,6 +56,7 @@ from onboard.app import launch
 from onboard.app.autopilot_side import AutopilotSide
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
+from onboard.app.context import AppContext
 from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
 from onboard.app.counters import Counters
 from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
@@ -173,18 +174,15 @@ class OnboardApp:
         o = scenario.origin
         self.publisher = Publisher(self.link, self.clock, vehicle, lambda: self.machine.state, self._status)
         say = self.publisher.say
-        self.autopilot = AutopilotSide(self.link, self.clock, self.mono, Frame(o.lat_deg, o.lon_deg, o.alt_m),
-                                       vehicle, self, say, self.counters, cfg.target_system, cfg.link_timeout_s,
-                                       self.events_meta)
+        ctx = AppContext(cfg, self.link, self.clock, self.mono, self.params, self.counters, say, self.lock)
+        self.autopilot = AutopilotSide(ctx, Frame(o.lat_deg, o.lon_deg, o.alt_m), vehicle, self, self.events_meta)
         self.limits = PlanLimits(scenario, self.params, vehicle, say)
         self.core = MonitorCore(scenario, self.params, self.limits, np.random.default_rng(cfg.seed))
         self.stream = SetpointStream(self.link, self.autopilot, self.params, lambda: self.core.setup,
                                      self.counters, say, self.mono)
-        self.machine = StateMachine(self.link, self.clock, self.autopilot, self.publisher, self.stream,
-                                    self.limits, self.scans, self.params, cfg.auto_launch)
-        self.worker = TickWorker(self.core, self.lock, self.clock, self.mono, self.params, self.autopilot,
-                                 self.machine, self.stream, self.publisher, self.tick_log, self.counters,
-                                 tick, cfg.trim_memory_s)
+        self.machine = StateMachine(ctx, self.autopilot, self.publisher, self.stream, self.limits, self.scans)
+        self.worker = TickWorker(ctx, self.core, self.autopilot, self.machine, self.stream, self.publisher,
+                                 self.tick_log, tick)
         self.schedule = TickSchedule(self.scans, self.params, self.clock, self.mono, self.worker,
                                      self.counters, say)
         self.df_scans = DfScans(self.df, self.scans, self.clock, self.counters, say)

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, Protocol
+from typing import Protocol
 
 from onboard.app.autopilot_profiles import profile_for
 from onboard.app.clock import UtcMap
-from onboard.app.counters import Counters
-from onboard.app.mavlink_connection import Link, mavlink, param_name
+from onboard.app.context import AppContext
+from onboard.app.mavlink_connection import mavlink, param_name
 from onboard.app.pose import (
     FixedOrigin,
     Frame,
@@ -50,27 +50,30 @@ class AutopilotEvents(Protocol):
 
 
 class AutopilotSide:
-    def __init__(self, link: Link, clock, mono: Callable[[], float], frame: Frame, vehicle: Vehicle,
-                 events: AutopilotEvents, say, counters: Counters, target_system: int | None = None,
-                 link_timeout_s: float = 3.0, events_meta: EventMetadata | None = None):
-        self.link = link
-        self.clock = clock
-        self.mono = mono
+    """``ctx``: the app's shared parts (its link, clocks, counters, voice; the config's
+    ``target_system`` and ``link_timeout_s``); ``frame``: the mission's ENU frame; ``events``:
+    who hears what the autopilot did."""
+
+    def __init__(self, ctx: AppContext, frame: Frame, vehicle: Vehicle, events: AutopilotEvents,
+                 events_meta: EventMetadata | None = None):
+        self.link = ctx.link
+        self.clock = ctx.clock
+        self.mono = ctx.mono
         self.frame = frame  # the mission's ENU frame
         self.vehicle = vehicle
         self.poses = PoseHistory()
         self.origin = FixedOrigin()  # the autopilot's NED origin, fixed once (pose.py)
         self.utc = UtcMap()  # its UTC (SYSTEM_TIME): a DF's Unix stamps on its clock (KrakenSDR)
         self.events = events
-        self.say = say
-        self.counters = counters
-        self.target_system = target_system  # None: the first autopilot heard
-        self.link_timeout_s = link_timeout_s  # local s without a heartbeat -> link lost
+        self.say = ctx.say
+        self.counters = ctx.counters
+        self.target_system = ctx.cfg.target_system  # None: the first autopilot heard
+        self.link_timeout_s = ctx.cfg.link_timeout_s  # local s without a heartbeat -> link lost
         self.events_meta = events_meta  # PX4's event metadata (its EVENTs in words), if given
         self.link_lost = False
         self._link_lost_local = -math.inf
         self._msg_interval_local = -math.inf
-        self._started_local = mono()
+        self._started_local = ctx.mono()
         self._clock_resets = 0
         self._clock_seen = (0, 0)  # clock.jumps, clock.jumps_ignored already reported
 

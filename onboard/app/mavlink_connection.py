@@ -26,6 +26,7 @@ from onboard.app.mavlink2 import mavlink, mavutil
 
 COMP_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
 RECONNECT_S = 1.0  # wall seconds between attempts to reopen a dropped stream link
+LINK_ID = 1  # the signing link id this end stamps: one per connection (MAVLink 2 signing)
 
 
 class _PeerGone(Exception):
@@ -65,14 +66,13 @@ class Link:
 
     def __init__(self, url: str, baud: int = 57600, tlog_path: str | None = None,
                  source_system: int = 1, source_component: int = COMP_ID,
-                 signing_key: bytes | None = None, link_id: int = 1, wait_for_peer: bool = False,
+                 signing_key: bytes | None = None, wait_for_peer: bool = False,
                  unsigned_from: tuple[tuple[int, int], ...] = ()):
         self.url = url
         self.baud = baud
         self._source = [source_system, source_component]
         self._key = signing_key
         self._unsigned_from = tuple(unsigned_from)  # senders taken unsigned (signing.configure)
-        self._link_id = link_id
         self.signing = signing_key is not None
         self._lock = threading.Lock()
         self._tlog = open(tlog_path, "wb") if tlog_path else None
@@ -109,7 +109,7 @@ class Link:
         conn.handle_eof = gone
         if self._key is not None:  # unsigned / wrongly signed packets become BAD_DATA
             from onboard.app.signing import apply
-            apply(conn, self._key, self._link_id, self._unsigned_from)
+            apply(conn, self._key, LINK_ID, self._unsigned_from)
         return conn
 
     def _encoder(self) -> mavlink.MAVLink:

@@ -80,8 +80,7 @@ def run(args) -> int:
     from onboard.app.app import AppConfig, OnboardApp
     from onboard.app.px4_events import EventMetadataError
     from onboard.app.signing import KeyFileError
-    from onboard.config import ConfigError, load_scenario, override
-    from onboard.policy import POLICIES
+    from onboard.config import ConfigError
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s", stream=sys.stdout)
@@ -91,14 +90,8 @@ def run(args) -> int:
         print("pmon run: --autopilot-unsigned needs --signing-key (without a key nothing is signed)",
               file=sys.stderr)
         return 2
-    try:  # a bad scenario refuses to start, with one error naming the field
-        sc = load_scenario(args.scenario, POLICIES[args.policy])
-        if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
-            sc = override(sc, {"kraken.url": args.kraken})
-        if args.rt_priority is not None:
-            sc = override(sc, {"app.rt_priority": args.rt_priority})
-    except ConfigError as exc:
-        print(f"pmon run: {exc}", file=sys.stderr)
+    sc = _scenario(args)
+    if sc is None:
         return 2
     cfg = AppConfig(args.mavlink, host, port, args.baud, args.sysid, args.auto_launch,
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
@@ -115,16 +108,9 @@ def run(args) -> int:
         what = exc.filename or f"--mavlink {args.mavlink} or --df {host}:{port}"
         print(f"pmon run: cannot open {what}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    for item in args.param:
-        name, _, value = item.partition("=")
-        try:
-            refused = app.params.set(name.strip().upper(), float(value))
-        except ValueError:
-            refused = f"{item!r}: value is not a number"
-        if refused:
-            print(f"pmon run: --param {refused}", file=sys.stderr)
-            app.stop()
-            return 2
+    if not _set_params(app, args.param):
+        app.stop()
+        return 2
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -139,17 +125,54 @@ def run(args) -> int:
             pass
     finally:
         app.stop()
-        c = app.counters
-        print(f"pmon run: stopped: {c.get('ticks', 0)} ticks, {c.get('ticks_skipped', 0)} skipped, "
-              f"{c.get('ticks_late', 0)} late{_overruns(c)}, datagrams {app.scans.accepted} accepted "
-              f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
-        if app.kraken is not None:
-            k, p = app.kraken.source, app.kraken.poller
-            print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames ({k.missed} missed), {k.scans} scans, "
-                  f"{sum(k.rejected.values())} rejected {dict((r, n) for r, n in k.rejected.items() if n)}, "
-                  f"gated {dict((g, n) for g, n in k.gated.items() if n)}, {k.repeated} repeated, "
-                  f"read errors {p.errors}, reader restarts {p.restarts}", flush=True)
+        _report_stopped(app)
     return 0
+
+
+def _scenario(args):
+    """The scenario with the command line's overrides, or None (the error said): a bad scenario
+    refuses to start, with one error naming the field."""
+    from onboard.config import ConfigError, load_scenario, override
+    from onboard.policy import POLICIES
+
+    try:
+        sc = load_scenario(args.scenario, POLICIES[args.policy])
+        if args.kraken:  # --kraken URL: the scenario's kraken.url, checked as a file's
+            sc = override(sc, {"kraken.url": args.kraken})
+        if args.rt_priority is not None:
+            sc = override(sc, {"app.rt_priority": args.rt_priority})
+    except ConfigError as exc:
+        print(f"pmon run: {exc}", file=sys.stderr)
+        return None
+    return sc
+
+
+def _set_params(app, items: list[str]) -> bool:
+    """Each --param NAME=VALUE into the app's parameters; False (the first refusal said) if one is refused."""
+    for item in items:
+        name, _, value = item.partition("=")
+        try:
+            refused = app.params.set(name.strip().upper(), float(value))
+        except ValueError:
+            refused = f"{item!r}: value is not a number"
+        if refused:
+            print(f"pmon run: --param {refused}", file=sys.stderr)
+            return False
+    return True
+
+
+def _report_stopped(app) -> None:
+    """The run's counts, once stopped."""
+    c = app.counters
+    print(f"pmon run: stopped: {c.get('ticks', 0)} ticks, {c.get('ticks_skipped', 0)} skipped, "
+          f"{c.get('ticks_late', 0)} late{_overruns(c)}, datagrams {app.scans.accepted} accepted "
+          f"{app.scans.rejected_total} rejected {app.df.dropped_total} dropped unparsed", flush=True)
+    if app.kraken is not None:
+        k, p = app.kraken.source, app.kraken.poller
+        print(f"pmon run: KrakenSDR: {k.lines} lines, {k.frames} frames ({k.missed} missed), {k.scans} scans, "
+              f"{sum(k.rejected.values())} rejected {dict((r, n) for r, n in k.rejected.items() if n)}, "
+              f"gated {dict((g, n) for g, n in k.gated.items() if n)}, {k.repeated} repeated, "
+              f"read errors {p.errors}, reader restarts {p.restarts}", flush=True)
 
 
 def _process_scheduling(cpus: tuple[int, ...] | None, lock: bool) -> list:

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 
 from onboard.app import launch
+from onboard.app.context import AppContext
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
 from onboard.app.dispatch import ack
 from onboard.app.mavlink_connection import mavlink
@@ -51,19 +52,20 @@ class ModeEntry:
 class StateMachine:
     """``autopilot``: the autopilot side; ``publisher``: says and heartbeats; ``stream``: the
     setpoint stream; ``limits``: the plan limits (their warning is said again at start);
-    ``scans``: the scan buffer (start needs fresh DF data); ``params``: PMON_ALT for a launch."""
+    ``scans``: the scan buffer (start needs fresh DF data); ``ctx``: the app's link, clock,
+    parameters (PMON_ALT for a launch) and config (``auto_launch``)."""
 
-    def __init__(self, link, clock, autopilot, publisher, stream, limits, scans, params, auto_launch: bool = False):
-        self.link = link
-        self.clock = clock
+    def __init__(self, ctx: AppContext, autopilot, publisher, stream, limits, scans):
+        self.link = ctx.link
+        self.clock = ctx.clock
         self.autopilot = autopilot
         self.publisher = publisher
         self.say = publisher.say
         self.stream = stream
         self.limits = limits
         self.scans = scans
-        self.params = params
-        self.auto_launch = auto_launch
+        self.params = ctx.params
+        self.auto_launch = ctx.cfg.auto_launch
         self.state = State.IDLE
         self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
         self.entry: ModeEntry | None = None  # entering the mission mode after start/resume

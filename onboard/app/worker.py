@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from onboard.app.contract import TGT_MODES, State
-from onboard.app.counters import Counters
+from onboard.app.context import AppContext
 from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
 from onboard.app.overrun import StageTimer, core_stages, describe, overrun_stage
@@ -72,23 +72,24 @@ class Sent:
 
 
 class TickWorker:
-    """``autopilot``: its poses and vehicle; ``machine``: the state machine; ``stream``: the
+    """``ctx``: the app's lock, clocks, parameters, counters and config (``trim_memory_s``);
+    ``autopilot``: its poses and vehicle; ``machine``: the state machine; ``stream``: the
     setpoint stream; ``publisher``: says, PMON_TGT, PMON_STAT; ``log``: the tick log."""
 
-    def __init__(self, core: MonitorCore, lock, clock, mono, params, autopilot, machine, stream, publisher,
-                 log: TickLog, counters: Counters, tick: Callable = monitor.tick, trim_memory_s: float = 60.0):
+    def __init__(self, ctx: AppContext, core: MonitorCore, autopilot, machine, stream, publisher,
+                 log: TickLog, tick: Callable = monitor.tick):
         self.core = core
-        self.lock = lock
-        self.clock = clock
-        self.mono = mono
-        self.params = params
+        self.lock = ctx.lock
+        self.clock = ctx.clock
+        self.mono = ctx.mono
+        self.params = ctx.params
         self.autopilot = autopilot
         self.machine = machine
         self.stream = stream
         self.publisher = publisher
         self.say = publisher.say
         self.log = log
-        self.counters = counters
+        self.counters = ctx.counters
         self.tick = tick
         self.busy = False  # a job handed over and not finished
         self.running: TickJob | None = None  # the job being ticked (the watchdog reads it)
@@ -100,8 +101,8 @@ class TickWorker:
         self._announced: list[str | None] = [None] * n  # the mode last said per target (MODE_SAY_P)
         self._modes: list[tuple[int, float, int]] = [(0, math.nan, -1)] * n  # PMON_TGT's mode fields
         # autopilot s between returns of freed heap memory to the OS (see _trim_memory)
-        self.trim_memory_s = trim_memory_s
-        self._malloc_trim = _malloc_trim() if trim_memory_s > 0 else None
+        self.trim_memory_s = ctx.cfg.trim_memory_s
+        self._malloc_trim = _malloc_trim() if self.trim_memory_s > 0 else None
         self._trimmed_t = -math.inf
         self.last_overrun: str | None = None  # the stage the newest overrun passed its budget in
         self._overrun_said_t = -math.inf  # autopilot s an overrun was last said

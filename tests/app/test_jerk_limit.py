@@ -13,7 +13,9 @@ import pytest
 from onboard.app.mavlink2 import mavlink
 
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, arducopter_jerk_xy
+from onboard.app.app import AppConfig
 from onboard.app.autopilot_side import AutopilotSide
+from onboard.app.context import AppContext
 from onboard.app.counters import Counters
 from onboard.app.plan_limits import PlanLimits
 from onboard.app.vehicle_state import Vehicle
@@ -84,8 +86,9 @@ class _Events:
 def _side(profile=ARDUPILOT):
     said, events = [], _Events()
     vehicle = Vehicle(sysid=1, compid=1, profile=profile)
-    side = AutopilotSide(None, None, time.monotonic, None, vehicle, events,
-                         lambda text, severity=None, once=None: said.append((text, once)), Counters())
+    ctx = AppContext(AppConfig(""), None, None, time.monotonic, None, Counters(),
+                     lambda text, severity=None, once=None: said.append((text, once)), None)
+    side = AutopilotSide(ctx, None, vehicle, events)
     return side, said, events
 
 
