@@ -306,15 +306,16 @@ def _features(trials, data, runs, greedy, setup) -> dict:
 
 
 def _route_pursuit_speed(vmax: float = 9.0, accel: float = 2.5) -> list[float]:
-    """The speed the flight planner's route pursuit (``planning._fly``) settles at on a straight
+    """The speed the flight planner's route pursuit (``routes.fly_routes``) settles at on a straight
     2 km route at v_max 9 m/s, from rest and from 9 m/s: the mean over ticks 20-49 and 5-9."""
-    from onboard.core.planning import CandidateGrid, UavMotion, _fly, _sample_route
+    from onboard.core.planning import CandidateGrid, UavMotion, UavState
+    from onboard.core.routes import fly_routes, sample_routes
 
     motion, grid = UavMotion("vehicle", vmax, accel, 0.0), CandidateGrid(5.0, 4, 15, 40.0)
-    route = _sample_route(np.array([[0.0, 0.0], [2000.0, 0.0]]), 1.0, 40.0, vmax * 52, 2.0)[None]
+    route = sample_routes([np.array([[0.0, 0.0], [2000.0, 0.0]])], 40.0, vmax * 52, 2.0)[:1]  # turning left
     out = []
     for v0, ticks in ((0.0, slice(20, 50)), (vmax, slice(5, 10))):
-        _, vel = _fly(route, np.zeros(2), np.array([v0, 0.0]), motion, grid, 50, 1.0, 2.0)
+        _, vel = fly_routes(route, UavState(np.zeros(2), np.array([v0, 0.0])), motion, grid, 50, 1.0, 2.0)
         out.append(round(float(np.linalg.norm(vel[0, ticks], axis=1).mean()), 2))
     print(f"\nthe flight's route pursuit on a straight route at v_max {vmax:g} m/s settles at {out[0]:.2f} m/s "
           f"from rest, {out[1]:.2f} m/s from {vmax:g} m/s")

@@ -22,14 +22,13 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import itertools  # noqa: E402
-import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace, plan_guidance, winding  # noqa: E402
-from onboard.core.guidance_search import FaceSearch  # noqa: E402
+from onboard.core.guidance_search import FaceSearch, GuidanceRequest  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.truth import TruthWorld  # noqa: E402
 
@@ -76,8 +75,7 @@ def main() -> None:
     print(describe("best, 1000 QPs", plan_guidance(m, big, obs, x, goal, workspace=ws)))
     T, k = params.horizon, args.obstacle
     for margin in (params.obstacle_margin_m, 0.0):
-        search = FaceSearch(m, replace(params, max_qp_solves=10**6), obs, x, goal, prev, ws, time.perf_counter,
-                            None, False, margin)
+        search = FaceSearch(GuidanceRequest(m, replace(params, max_qp_solves=10**6), obs, x, goal, prev, ws), margin)
         base, _ = search.shifted(prev)
         n = 0
         for cuts in itertools.combinations(range(1, T - 1), len(seq) - 1):

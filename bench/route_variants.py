@@ -38,7 +38,8 @@ from onboard.core import planners as _planners
 from onboard.core import planning as _planning
 from onboard.core.information import bearing_update_components, predict_planar_components
 from onboard.core.information import PLANAR, planar_model
-from onboard.core.planning import _first_step, blocking_2d
+from onboard.core.planning import Moves, _first_step
+from onboard.core.routes import blocking_2d
 from onboard.core.tracking import logsumexp
 from sim.ceiling import clearance, kinematics
 from sim.route_score import score
@@ -116,8 +117,7 @@ def refine(self, inputs, res):
     if not f_ref < f_route * (1 - 1e-4):
         return None
     p1, v1 = _first_move(m, p0, v0, a_cur, a_ref, dt)
-    ok = _first_step(p1[:, None].copy(), v1[:, None].copy(), p0, self.grid, m, dt, self.area.minimum, self.area.maximum,
-                     self.area.obstacles)
+    ok = _first_step(p1[:, None].copy(), v1[:, None].copy(), p0, Moves(self.grid, self.area, m), dt)
     if not ok[0]:
         return None
     return p1[0], v1[0]

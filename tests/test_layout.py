@@ -165,7 +165,6 @@ MAX_MODULE_LINES = 500  # past this a module usually holds two roles: split it b
 # modules allowed past MAX_MODULE_LINES, each with why; an entry back under the limit is removed
 LONG_MODULES = {
     "onboard/settings.py": "every setting of a scenario declared once, in one table; its split is its own change",
-    "onboard/core/planning.py": "the planners' candidates, motion and lookahead routes; its split is its own change",
 }
 
 
@@ -192,11 +191,13 @@ def test_no_module_is_longer_than_the_limit_but_the_allowed():
 
 MAX_FUNCTION_LINES = 60  # past this a function usually does two things: split it into named helpers (issue 43)
 MAX_PARAMETERS = 8  # past this the arguments travel together: a frozen dataclass of them (issue 43)
-# onboard/core/ and onboard/settings.py are not yet held to the limits
-SHAPED_PACKAGES = ("groundstation", "sim", "onboard/app", "bench")
+# onboard/settings.py (and onboard/'s top-level modules) are not yet held to the limits
+SHAPED_PACKAGES = ("groundstation", "sim", "onboard/app", "onboard/core", "bench")
 # functions ("path:Class.name") allowed past MAX_FUNCTION_LINES, each with why; an entry back
 # under the limit is removed
-LONG_FUNCTIONS: dict[str, str] = {}
+LONG_FUNCTIONS: dict[str, str] = {
+    "onboard/core/steering.py:side_modes": "not yet split (issue 43): its own change",
+}
 # functions allowed more than MAX_PARAMETERS parameters (self/cls not counted), each with why; an
 # entry back within the limit is removed
 WIDE_SIGNATURES = {
@@ -221,6 +222,20 @@ WIDE_SIGNATURES = {
     "bench/sitl_response.py:fly_limits": "one SITL flight's limits, cases and firmware, each a command-line option",
     "bench/consistency.py:consistency": "`pmon eval`'s trial options and where to write, keyword-called by "
                                         "bench/oracle_steering.py too",
+    # onboard/core: intent.py and intent_tick.py are another change's; the calls they make stay as they are
+    "onboard/core/intent.py:predict_aimed": "the aimed prediction's particles, aims, model and steering gains; "
+                                            "intent.py is grouped in its own change",
+    "onboard/core/guidance.py:plan_guidance": "called by keyword from intent_tick.py (with_feedback='constrained' "
+                                              "too); it builds a GuidanceRequest, and takes one when that caller "
+                                              "changes",
+    "onboard/core/monitor.py:tick": "the tick's inputs and the UAV's state, keyword-called by the app, sim/, "
+                                    "bench/, examples/ and tests; not yet grouped (issue 43)",
+    "onboard/core/monitor.py:_tick_with_modes": "tick's arguments, passed on; grouped with tick's",
+    "onboard/core/monitor.py:_plan_uav": "tick's UAV arguments, passed on; grouped with tick's",
+    "onboard/core/monitor.py:_predict": "not yet grouped (issue 43): its own change",
+    "onboard/core/steering.py:side_modes": "not yet grouped (issue 43): its own change",
+    "onboard/core/steering.py:_carry_modes": "not yet grouped (issue 43): its own change",
+    "onboard/core/steering.py:reference_laws": "not yet grouped (issue 43): its own change",
 }
 
 
@@ -252,9 +267,9 @@ def function_shapes(packages=SHAPED_PACKAGES) -> list[tuple[str, int, int]]:
 
 
 def test_no_function_is_longer_or_wider_than_the_limits_but_the_allowed():
-    """A function of groundstation/, sim/, onboard/app/ or bench/ is at most MAX_FUNCTION_LINES
-    lines and takes at most MAX_PARAMETERS parameters; LONG_FUNCTIONS and WIDE_SIGNATURES name the
-    few that may not, and why. onboard/core/ and onboard/settings.py are not yet covered
+    """A function of groundstation/, sim/, onboard/app/, onboard/core/ or bench/ is at most
+    MAX_FUNCTION_LINES lines and takes at most MAX_PARAMETERS parameters; LONG_FUNCTIONS and
+    WIDE_SIGNATURES name the few that may not, and why. onboard/settings.py is not yet covered
     (SHAPED_PACKAGES)."""
     shapes = function_shapes()
     long_ = {f: n for f, n, _ in shapes if n > MAX_FUNCTION_LINES}

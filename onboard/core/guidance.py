@@ -49,7 +49,7 @@ from onboard.core.guidance_laws import FreeLaw, LocalLaw, free_law
 from onboard.core.guidance_params import GuidanceParams
 from onboard.core.guidance_plan import Plan
 from onboard.core.guidance_qp import KN, GuidanceWorkspace
-from onboard.core.guidance_search import FaceSearch
+from onboard.core.guidance_search import FaceSearch, GuidanceRequest
 from onboard.core.obstacles import Obstacles
 
 # the guidance's interface, wherever its parts are held
@@ -83,8 +83,8 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     """
     t_start = timer()
     nearby = () if nearby is None else (nearby,) if isinstance(nearby, Plan) else tuple(nearby)
-    plan = _search(model, params, obstacles, mean0, goal, previous, workspace, timer, with_feedback, sides,
-                   strict_sides, params.obstacle_margin_m, nearby, explore, ahead)
+    request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides)
+    plan = _search(request, params.obstacle_margin_m, with_feedback, nearby, explore, ahead)
     left = None if params.max_solve_time_s is None else t_start + params.max_solve_time_s - timer()
     if (plan.feasible or not explore or not len(obstacles) or params.obstacle_margin_m <= 0.0
             or (left is not None and left <= 0)):
@@ -92,23 +92,22 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     # noise has carried the target so close to an obstacle, or so fast toward it, that no control
     # keeps the margin: it keeps clear of the obstacle itself (the margin stays vertical, which
     # keeps ground targets level with the obstacles' bases)
-    retry = _search(model, replace(params, max_solve_time_s=left), obstacles, mean0, goal, previous, workspace,
-                    timer, with_feedback, sides, strict_sides, 0.0, nearby, True, ahead)
+    retry = _search(replace(request, params=replace(params, max_solve_time_s=left)), 0.0, with_feedback, nearby, True,
+                    ahead)
     return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
 
 
-def _search(model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,
-            goal: np.ndarray, previous: Plan | None, workspace: GuidanceWorkspace | None,
-            timer: Callable[[], float], with_feedback: bool | str, sides: np.ndarray | None, strict_sides: bool,
-            lateral_margin_m: float, nearby: tuple[Plan, ...] = (), explore: bool = True, ahead: int = 0) -> Plan:
+def _search(request: GuidanceRequest, lateral_margin_m: float, with_feedback: bool | str,
+            nearby: tuple[Plan, ...] = (), explore: bool = True, ahead: int = 0) -> Plan:
     """``plan_guidance``'s search (``FaceSearch``) with the obstacles inflated by
     ``lateral_margin_m`` sideways, as a plan."""
-    search = FaceSearch(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides,
-                        lateral_margin_m)
-    search.run(previous, nearby, explore)
+    model, timer = request.model, request.timer
+    search = FaceSearch(request, lateral_margin_m)
+    search.run(request.previous, nearby, explore)
     best = search.best
     if best is None:
-        return _fallback(model, params, search.mean0, previous, search.K, timer() - search.t_start, search.solves)
+        return _fallback(model, request.params, search.mean0, request.previous, search.K, timer() - search.t_start,
+                         search.solves)
     controls = search.controls()
     status = search.status()
     active = best.sol.active

@@ -20,6 +20,7 @@ set), and keeps the cheapest feasible plan that lies in the asked-for class of s
 from __future__ import annotations
 
 import itertools
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Iterator
 
@@ -44,6 +45,25 @@ _PAIR_MOVES = 4  # when no single move improves, pairs of this many cheapest one
 
 
 @dataclass(frozen=True, eq=False)
+class GuidanceRequest:
+    """One P1 solve's inputs (``plan_guidance``'s): the dynamics and P1's settings, the
+    obstacles, the start state (6,) and the goal centroid (3,), the warm start (last tick's plan,
+    or None), the QP cache (None: a fresh one), the clock, and the sides to hold to (``sides``
+    (K,), or None; ``strict_sides``: round each that way)."""
+
+    model: MotionModel
+    params: GuidanceParams
+    obstacles: Obstacles
+    mean0: np.ndarray
+    goal: np.ndarray
+    previous: Plan | None = None
+    workspace: GuidanceWorkspace | None = None
+    timer: Callable[[], float] = time.perf_counter
+    sides: np.ndarray | None = None
+    strict_sides: bool = False
+
+
+@dataclass(frozen=True, eq=False)
 class Found:
     """A feasible assignment in the asked-for class: P1's cost, the faces (T-1, K), the path
     p_1..p_(T+1) (T+1, 2) as the dynamics fly it, and the QP's solution."""
@@ -57,13 +77,13 @@ class Found:
 class FaceSearch:
     """P1's search over face assignments from one start; ``run`` it, then read ``best``."""
 
-    def __init__(self, model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,
-                 goal: np.ndarray, previous: Plan | None, workspace: GuidanceWorkspace | None,
-                 timer: Callable[[], float], sides: np.ndarray | None, strict_sides: bool,
-                 lateral_margin_m: float):
+    def __init__(self, request: GuidanceRequest, lateral_margin_m: float):
+        """The search for ``request`` with the obstacles inflated by ``lateral_margin_m`` sideways."""
+        model, params, obstacles, timer = request.model, request.params, request.obstacles, request.timer
+        mean0, goal, previous, workspace = request.mean0, request.goal, request.previous, request.workspace
         self.t_start = timer()
         self.model, self.params, self.timer = model, params, timer
-        self.sides, self.strict_sides = sides, strict_sides
+        self.sides, self.strict_sides = request.sides, request.strict_sides
         self.T, self.K = T, K = params.horizon, len(obstacles)
         mean0 = np.asarray(mean0, dtype=float)
         self.goal2 = np.asarray(goal, dtype=float)[:2]

@@ -19,14 +19,13 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from onboard.core.information import information_reduction_factor
-from onboard.core.planning import (CandidateGrid, LookaheadParams, PlanningResult, UavMotion, admissible,
-                                   candidate_positions, choose_lookahead, choose_next_position)
+from onboard.core.planning import (Area, CandidateGrid, LookaheadParams, Moves, PlanningResult, RouteScoring, UavMotion,
+                                   UavState, candidate_positions, choose_lookahead, choose_next_position)
 
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel
     from onboard.core.guidance import Plan
     from onboard.core.monitor_setup import MonitorSetup
-    from onboard.core.obstacles import Obstacles
     from onboard.core.tracking import ParticleSet
 
 ORBIT_RADIUS_M = 150.0  # the orbit baseline's circle around the targets' initial centroid
@@ -44,6 +43,11 @@ class PlanningInputs:
     # per belief, the weight of its score (None: 1 each): with motion modes the lookahead scores
     # a target's likely modes as beliefs of their own, weighted by their probabilities
     weights: np.ndarray | None = None
+
+    @property
+    def uav(self) -> UavState:
+        """Where the UAV plans from, as the planners take it."""
+        return UavState(self.position, self.velocity, self.acceleration)
 
     @property
     def particles(self) -> np.ndarray:
@@ -66,19 +70,6 @@ class Planner(ABC):
 
 
 @dataclass(frozen=True, eq=False)
-class Area:
-    """Where the UAV may go: the surveillance area's box and the obstacles (already inflated by
-    the UAV's clearance margin)."""
-
-    minimum: np.ndarray
-    maximum: np.ndarray
-    obstacles: Obstacles
-
-    def admissible(self, candidates: np.ndarray, start: np.ndarray) -> np.ndarray:
-        return admissible(candidates, start, self.minimum, self.maximum, self.obstacles)
-
-
-@dataclass(frozen=True, eq=False)
 class GreedyPlanner(Planner):
     """The paper's one-step rule: the admissible next position whose pseudo-updated beliefs have
     the least summed trace (``objective``: all states or the position), S_(t+1) for the jump
@@ -92,9 +83,8 @@ class GreedyPlanner(Planner):
     dt_s: float
 
     def plan(self, inputs: PlanningInputs, rng: np.random.Generator) -> PlanningResult:
-        return choose_next_position(inputs.particles, inputs.log_weights, inputs.position, self.grid,
-                                    self.sigma_rad, self.area.minimum, self.area.maximum, self.area.obstacles,
-                                    self.objective, self.motion, inputs.velocity, self.dt_s, inputs.acceleration)
+        return choose_next_position(inputs.particles, inputs.log_weights, inputs.uav,
+                                    Moves(self.grid, self.area, self.motion), self.sigma_rad, self.objective, self.dt_s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,10 +102,9 @@ class LookaheadPlanner(Planner):
 
     def plan(self, inputs: PlanningInputs, rng: np.random.Generator) -> PlanningResult:
         paths = np.stack([p.means[:self.steps] for p in inputs.plans])
-        return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.position, inputs.velocity,
-                                self.grid, self.motion, self.model, self.sigma_rad, self.reduction,
-                                self.area.minimum, self.area.maximum, self.area.obstacles, params=self.params,
-                                acceleration=inputs.acceleration, target_weights=inputs.weights)
+        return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.uav,
+                                Moves(self.grid, self.area, self.motion),
+                                RouteScoring(self.model, self.sigma_rad, self.reduction, self.params), inputs.weights)
 
 
 def _chosen(candidates: np.ndarray, ok: np.ndarray, index: int | None, n_targets: int) -> PlanningResult:

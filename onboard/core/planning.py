@@ -1,5 +1,9 @@
 """Next UAV position: candidate set S_(t+1) (eq. (3) of the paper), pseudo-posteriors from ideal
-bearings (eq. (11)) and the argmin of summed traces (eq. (12)).
+bearings (eq. (11)) and the argmin of summed traces (eq. (12)); beyond the paper, the UAV's motion
+between ticks and the non-myopic route planner (its route geometry: onboard/core/routes.py).
+
+What a planner is asked travels as frozen requests: ``UavState`` (where the UAV plans from),
+``Moves`` (how and where it may move) and, for the lookahead, ``RouteScoring``.
 """
 from __future__ import annotations
 
@@ -12,16 +16,12 @@ from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
+from onboard.core.routes import (blocking_2d, fly_routes, inside_2d, planar_norms, route_polylines, route_waypoints,
+                                 sample_routes)
 from onboard.core.setpoint import ramp_displacement, ramp_velocity
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
-
-
-def _norms(xy: np.ndarray) -> np.ndarray:
-    """|xy| of planar vectors (C, 2) as (C, 1): np.linalg.norm's values (sqrt(x x + y y)) without
-    its generic path, which costs more than the arithmetic in the route planner's loops."""
-    return np.sqrt(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1])[:, None]
 
 
 @dataclass(frozen=True)
@@ -105,20 +105,41 @@ class PlanningResult:
         return None if self.index is None else self.candidates[self.index]
 
 
-def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, center: np.ndarray,
-                         grid: CandidateGrid, sigma_rad: float, area_min, area_max,
-                         uav_obstacles: Obstacles, objective: str = "trace",
-                         motion: "UavMotion | None" = None, velocity: np.ndarray | None = None,
-                         dt: float = 1.0, acceleration: np.ndarray | None = None) -> PlanningResult:
-    """Eq. (12) over the admissible next positions around ``center``: the paper's
-    S_(t+1) with the jump motion (default), or those a vehicle reaches in one tick (from
-    ``velocity`` and, continuous acceleration, ``acceleration``)."""
-    motion = motion or JUMP
-    velocity = np.zeros(2) if velocity is None else velocity
-    paths, vel = motion_sequences(center, velocity, grid, motion, 1, dt, acceleration)
+@dataclass(frozen=True, eq=False)
+class Area:
+    """Where the UAV may go: the surveillance area's box and the obstacles (already inflated by
+    the UAV's clearance margin)."""
+
+    minimum: np.ndarray
+    maximum: np.ndarray
+    obstacles: Obstacles
+
+    def admissible(self, candidates: np.ndarray, start: np.ndarray) -> np.ndarray:
+        return admissible(candidates, start, self.minimum, self.maximum, self.obstacles)
+
+
+@dataclass(frozen=True, eq=False)
+class UavState:
+    """Where the UAV plans from: its position (ENU m; the planners read x and y), its planar
+    velocity there (ENU m/s; None: at rest) and the plan's planar acceleration there (ENU m/s^2,
+    a continuous acceleration's; None: 0)."""
+
+    position: np.ndarray
+    velocity: np.ndarray | None = None
+    acceleration: np.ndarray | None = None
+
+
+def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, uav: UavState, moves: Moves,
+                         sigma_rad: float, objective: str = "trace", dt: float = 1.0) -> PlanningResult:
+    """Eq. (12) over the admissible next positions around ``uav.position``: the paper's S_(t+1)
+    with the jump motion (``Moves``' default), or those a vehicle reaches in one tick of ``dt``
+    seconds (from ``uav.velocity`` and, continuous acceleration, ``uav.acceleration``)."""
+    center, grid = uav.position, moves.grid
+    velocity = np.zeros(2) if uav.velocity is None else uav.velocity
+    paths, vel = motion_sequences(center, velocity, grid, moves.motion, 1, dt, uav.acceleration)
     cand = paths[:, 0]
     start = np.array([center[0], center[1], grid.altitude_m])
-    ok = admissible(cand, start, area_min, area_max, uav_obstacles)
+    ok = moves.area.admissible(cand, start)
     traces = pseudo_posterior_traces(particles, log_weights, cand, sigma_rad, objective)
     scores = np.where(ok, traces.sum(axis=1), np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
@@ -160,10 +181,10 @@ class UavMotion:
         speed_max_mps (the end acceleration then what gives that speed). Returns (p, v, a) at
         the tick's end."""
         dj = a_new - a
-        n = _norms(dj)
+        n = planar_norms(dj)
         a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
         v_new = ramp_velocity(v, a, a_end, dt)
-        sp = _norms(v_new)
+        sp = planar_norms(v_new)
         v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
         a_end = 2.0 * (v_new - v) / dt - a
         disp = ramp_displacement(v, a, a_end, dt)
@@ -171,6 +192,16 @@ class UavMotion:
 
 
 JUMP = UavMotion("jump", math.inf, math.inf, 0.0)  # the paper's motion: no speed or acceleration limit applies
+
+
+@dataclass(frozen=True, eq=False)
+class Moves:
+    """How and where the UAV may move between ticks: the candidate grid (S_(t+1), and the
+    vehicle's accelerations), the area and the motion (default the paper's jump)."""
+
+    grid: CandidateGrid
+    area: Area
+    motion: UavMotion = JUMP
 
 
 def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
@@ -245,7 +276,7 @@ def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
         normals, offsets = blocking_2d(uav_obstacles, float(ext[0, 0, 2]))
         ok = np.all((ends >= np.asarray(area_min)) & (ends <= np.asarray(area_max)), axis=1)
         blocked = polygons_crossed(normals, offsets, starts[:, :2], ends[:, :2])
-        ok &= ~(blocked | _inside_2d(normals, offsets, ends[:, :2]))
+        ok &= ~(blocked | inside_2d(normals, offsets, ends[:, :2]))
     ok = ok.reshape(C, H)
     alive = np.logical_and.accumulate(ok, axis=1)
     n_ok = alive.sum(axis=1)  # the steps before the first that is not admissible
@@ -280,187 +311,20 @@ class LookaheadParams:
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
-def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lateral faces (K, 4, 2), offsets (K, 4) of the obstacles the UAV cannot overfly at its altitude."""
-    if not len(uav_obstacles):
-        return np.zeros((0, 4, 2)), np.zeros((0, 4))
-    n, b, lo, hi = uav_obstacles.lateral()
-    keep = (lo < altitude_m) & (hi > altitude_m)
-    return n[keep], b[keep]
+@dataclass(frozen=True, eq=False)
+class RouteScoring:
+    """How the lookahead draws and scores its routes: the targets' motion model (its tick is the
+    planner's), the bearing noise sigma, the information reduction factor q (p_D, clutter) and
+    the route planner's knobs."""
+
+    model: MotionModel
+    sigma_rad: float
+    reduction: float
+    params: LookaheadParams
 
 
-def _inside_2d(normals, offsets, pts, extra: float = 0.0) -> np.ndarray:
-    if not len(offsets):
-        return np.zeros(len(pts), dtype=bool)
-    c = np.einsum("kfd,pd->pkf", normals, pts) - offsets[None] - extra
-    return np.all(c < 0, axis=-1).any(axis=-1)
-
-
-def _corners_2d(normals, offsets, extra: float) -> np.ndarray:
-    out = []
-    for k in range(len(offsets)):
-        for f in range(4):
-            g = (f + 1) % 4
-            out.append(np.linalg.solve(np.stack([normals[k, f], normals[k, g]]),
-                                       [offsets[k, f] + extra, offsets[k, g] + extra]))
-    return np.array(out).reshape(-1, 2)
-
-
-def route_polylines(start: np.ndarray, waypoints: np.ndarray, normals, offsets,
-                    clearance: float) -> list[np.ndarray]:
-    """Shortest polyline start -> each waypoint around the blocking polygons (visibility graph
-    over their corners pushed out by ``clearance``); a waypoint no route reaches gets None."""
-    corners = _corners_2d(normals, offsets, clearance)
-    if len(corners):
-        corners = corners[~_inside_2d(normals, offsets, corners)]
-    nodes = np.vstack([start[None], corners, waypoints])
-    n, nc = len(nodes), 1 + len(corners)
-    i, j = np.triu_indices(n, 1)
-    keep = (i < nc) | (j < nc)  # waypoint-waypoint edges are never needed
-    i, j = i[keep], j[keep]
-    ok = ~polygons_crossed(normals, offsets, nodes[i], nodes[j])
-    if not len(offsets):
-        return [np.vstack([start, w]) for w in waypoints]
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import shortest_path
-    w = np.maximum(np.linalg.norm(nodes[i] - nodes[j], axis=1), 1e-9)
-    graph = coo_matrix((w[ok], (i[ok], j[ok])), shape=(n, n)).tocsr()
-    dist, pred = shortest_path(graph, directed=False, indices=0, return_predecessors=True)
-    out = []
-    for t in range(nc, n):
-        if not np.isfinite(dist[t]):
-            out.append(None)
-            continue
-        order, v = [t], t
-        while v != 0:
-            v = pred[v]
-            order.append(v)
-        out.append(nodes[order[::-1]])
-    return out
-
-
-def _sample_routes(polys: list[np.ndarray], radius: float, length: float, ds: float) -> np.ndarray:
-    """(2 C, S, 2): for each polyline, points every ds metres along it, then along a circle of
-    ``radius`` that starts at its end, tangent to the last leg, turning left (route 2c) or right
-    (route 2c + 1), up to ``length``. All routes at once: the polylines are padded with zero legs;
-    what both turns share (the polyline's samples, the arc's angles) is computed once."""
-    C = len(polys)
-    n_seg = np.array([len(pl) - 1 for pl in polys])
-    V = int(n_seg.max()) + 1
-    poly = np.empty((C, V, 2))  # each polyline, then its end point repeated
-    for c, pl in enumerate(polys):
-        poly[c, :len(pl)] = pl
-        poly[c, len(pl):] = pl[-1]
-    seg = np.diff(poly, axis=1)
-    seg_len = np.linalg.norm(seg, axis=2)
-    cum = np.concatenate([np.zeros((C, 1)), np.cumsum(seg_len, axis=1)], axis=1)
-    total = cum[np.arange(C), n_seg]
-    s = np.arange(0.0, length + ds, ds)
-    on = s[None, :] <= total[:, None]  # (C, S) along the polyline, else on the circle
-    end = poly[np.arange(C), n_seg]
-    # the last leg longer than 1e-9 m (the padding's zero legs come after n_seg): its direction
-    real = (seg_len > 1e-9) & (np.arange(V - 1)[None, :] < n_seg[:, None])
-    last = (V - 2) - np.argmax(real[:, ::-1], axis=1)
-    tangent = np.tile([1.0, 0.0], (C, 1))
-    for c in np.flatnonzero(total > 1e-9):
-        tangent[c] = seg[c, last[c]] / np.linalg.norm(seg[c, last[c]])
-    # on the polyline: the leg each sample falls on (searchsorted along each route's arc length)
-    k = np.clip(np.array([np.searchsorted(row, s, side="right") for row in cum]) - 1, 0,
-                np.maximum(n_seg - 1, 0)[:, None])
-    rows = np.arange(C)[:, None]
-    frac = (s[None, :] - cum[rows, k]) / np.maximum(seg_len[rows, k], 1e-12)
-    along = poly[rows, k] + frac[..., None] * seg[rows, k]
-    flat = total <= 1e-9  # a route that is its end point: the circle at once
-    along[flat] = end[flat][:, None]
-    ang = (s[None, :] - total[:, None]) / radius  # arc angle travelled on the circle
-    cos, sin = np.cos(ang)[..., None], np.sin(ang)[..., None]
-    out = np.empty((C, 2, len(s), 2))
-    for i, side in enumerate((1.0, -1.0)):
-        normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-        centre = end + radius * normal
-        r0 = -normal  # from the centre to the end point
-        r1 = side * np.stack([-r0[:, 1], r0[:, 0]], axis=1)  # the travel direction at the start
-        circle = centre[:, None] + radius * (cos * r0[:, None] + sin * r1[:, None])
-        out[:, i] = np.where(on[..., None], along, circle)
-    return out.reshape(2 * C, len(s), 2)
-
-
-def _fly(routes: np.ndarray, p0: np.ndarray, v0: np.ndarray, motion: "UavMotion", grid: CandidateGrid,
-         steps: int, dt: float, ds: float, a0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (C, steps, 2) and velocities (C, steps, 2) of the UAV following each sampled
-    route (C, S, 2). Jump: full-speed arc length N_r Delta_r per tick along the route. Vehicle:
-    pursuit of a carrot on the route with |dv| <= a_max dt and |v| <= v_max every tick; with a
-    continuous acceleration (``motion.jerk_max_mps3`` > 0, from ``a0``) the acceleration asked
-    for is dv / dt (|.| <= a_max), ramped to over the tick (UavMotion.step)."""
-    C, S, _ = routes.shape
-    idx = np.arange(C)
-    if motion.kind == "jump":
-        step = grid.n_radial * grid.step_m
-        k = np.minimum(np.round(np.arange(1, steps + 1) * step / ds).astype(int), S - 1)
-        pos = routes[:, k]
-        prev = np.concatenate([np.broadcast_to(p0, (C, 1, 2)), pos[:, :-1]], axis=1)
-        return pos, (pos - prev) / dt
-    vmax, amax = motion.speed_max_mps, motion.accel_max_mps2
-    p = np.broadcast_to(np.asarray(p0, float), (C, 2)).copy()
-    v = np.broadcast_to(np.asarray(v0, float), (C, 2)).copy()
-    ramps = motion.jerk_max_mps3 > 0.0
-    a = np.broadcast_to(np.zeros(2) if a0 is None else np.asarray(a0, float)[:2], (C, 2)).copy()
-    near = np.zeros(C, dtype=int)  # the route sample reached so far (progress, in samples of ds)
-    pos, vel = np.empty((C, steps, 2)), np.empty((C, steps, 2))
-    look = vmax * dt
-    window = np.arange(int(2 * look / ds) + 2)[None]
-    lead = int(round(look / ds))
-    # the routes flat, x and y apart: the window's gathers are then 1-D takes (the loop's cost)
-    flat = routes.reshape(-1, 2)
-    rx, ry = np.ascontiguousarray(flat[:, 0]), np.ascontiguousarray(flat[:, 1])
-    first = idx * S
-    for i in range(steps):
-        # progress: the route point nearest to p in a window ahead of the last progress
-        win = first[:, None] + np.minimum(near[:, None] + window, S - 1)
-        dx, dy = rx.take(win) - p[:, :1], ry.take(win) - p[:, 1:]
-        near = win[idx, np.argmin(dx * dx + dy * dy, axis=1)] - first
-        carrot = flat[first + np.minimum(near + lead, S - 1)]
-        to = carrot - p
-        dist = _norms(to)
-        v_des = to / np.maximum(dist, 1e-9) * np.minimum(vmax, dist / dt)
-        dv = v_des - v
-        n = _norms(dv)
-        dv *= np.minimum(1.0, amax * dt / np.maximum(n, 1e-12))
-        if ramps:
-            p, v, a = motion.step(p, v, a, dv / dt, dt)
-            pos[:, i], vel[:, i] = p, v
-            continue
-        v_new = v + dv
-        sp = _norms(v_new)
-        v_new *= np.minimum(1.0, vmax / np.maximum(sp, 1e-12))
-        p = p + 0.5 * (v + v_new) * dt
-        v = v_new
-        pos[:, i], vel[:, i] = p, v
-    return pos, vel
-
-
-def _route_waypoints(position: np.ndarray, target_paths: np.ndarray, params: LookaheadParams,
-                     area_min, area_max, normals, offsets, margin: float) -> np.ndarray:
-    p0 = np.asarray(position, float)[:2]
-    ang = np.arange(params.n_headings) * 2.0 * np.pi / params.n_headings
-    rr = np.repeat(np.asarray(params.ranges_m, float), len(ang))
-    aa = np.tile(ang, len(params.ranges_m))
-    polar = p0 + np.column_stack([rr * np.cos(aa), rr * np.sin(aa)])
-    H = target_paths.shape[1]
-    at = [target_paths[:, k, :2] for k in sorted({max(H // 2 - 1, 0), H - 1})]
-    targets = np.vstack(at + [a.mean(axis=0, keepdims=True) for a in at])
-    wp = np.vstack([p0[None], polar, targets])
-    lo = np.asarray(area_min, float)[:2] + margin
-    hi = np.asarray(area_max, float)[:2] - margin
-    wp = np.clip(wp, lo, hi)
-    return wp[~_inside_2d(normals, offsets, wp)]
-
-
-def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray,
-                     position: np.ndarray, velocity: np.ndarray, grid: CandidateGrid, motion: UavMotion,
-                     model: MotionModel, sigma_rad: float, reduction: float, area_min, area_max,
-                     uav_obstacles: Obstacles, *, params: LookaheadParams,
-                     acceleration: np.ndarray | None = None, target_weights: np.ndarray | None = None
+def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, uav: UavState,
+                     moves: Moves, scoring: RouteScoring, target_weights: np.ndarray | None = None
                      ) -> PlanningResult:
     """Non-myopic next position: score candidate *routes* over H = target_paths.shape[1] ticks.
 
@@ -471,7 +335,7 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     predicted positions and centroid), the shortest polyline around the obstacles the UAV
     cannot overfly, flown at the speed limit, then a circle through the waypoint; the UAV's
     positions along it come from the motion model (jump: N_r Delta_r per tick; vehicle: speed
-    and acceleration limits from the current velocity, and ``acceleration`` with a continuous
+    and acceleration limits from ``uav.velocity``, and ``uav.acceleration`` with a continuous
     acceleration). Along each route the planar covariance
     of every target, initialised from its particles, is propagated with (A, Q) and updated with
     an ideal bearing from the route's position at each tick (EKF form, information scaled by the
@@ -483,37 +347,41 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     the reachable set by construction.
     """
     H = target_paths.shape[1]
+    model, area, motion = scoring.model, moves.area, moves.motion
     dt = model.dt_s
-    alt = grid.altitude_m
-    p0 = np.asarray(position, float)[:2]
-    v0 = np.zeros(2) if velocity is None else np.asarray(velocity, float)[:2]
+    alt = moves.grid.altitude_m
+    p0 = np.asarray(uav.position, float)[:2]
+    v0 = np.zeros(2) if uav.velocity is None else np.asarray(uav.velocity, float)[:2]
     if motion.kind == "jump":
         v0 = np.zeros(2)
-    routes = _routes(p0, target_paths, grid, motion, params, dt, area_min, area_max, uav_obstacles)
+    routes = _routes(p0, target_paths, moves, scoring.params, dt)
     if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
-        return choose_next_position(particles, log_weights, np.r_[p0, alt], grid, sigma_rad, area_min,
-                                    area_max, uav_obstacles, "position_trace", motion, v0, dt, acceleration)
-    pos, vel = _fly(routes, p0, v0, motion, grid, H, dt, params.spacing_m, acceleration)  # (C, H, 2)
-    ok = _first_step(pos, vel, p0, grid, motion, dt, area_min, area_max, uav_obstacles)
+        return choose_next_position(particles, log_weights, UavState(np.r_[p0, alt], v0, uav.acceleration), moves,
+                                    scoring.sigma_rad, "position_trace", dt)
+    pos, vel = fly_routes(routes, UavState(p0, v0, uav.acceleration), motion, moves.grid, H, dt,
+                          scoring.params.spacing_m)  # (C, H, 2)
+    ok = _first_step(pos, vel, p0, moves, dt)
     # a route that would leave the area or cross an obstacle later is scored as stopping there
     start3 = np.r_[p0, alt]
     paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
-    _, paths3 = _admissible_paths(paths3, start3, area_min, area_max, uav_obstacles)
-    total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, sigma_rad, reduction)
+    _, paths3 = _admissible_paths(paths3, start3, area.minimum, area.maximum, area.obstacles)
+    total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, scoring.sigma_rad,
+                          scoring.reduction)
     summed = total.sum(axis=1) if target_weights is None else total @ np.asarray(target_weights, float)
     scores = np.where(ok, summed, np.inf)
     index = int(np.argmin(scores)) if ok.any() else None
     return PlanningResult(paths3[:, 0], ok, total, scores, index, paths3, vel[:, 0])
 
 
-def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motion: UavMotion,
-            params: LookaheadParams, dt: float, area_min, area_max, uav_obstacles: Obstacles) -> np.ndarray:
+def _routes(p0: np.ndarray, target_paths: np.ndarray, moves: Moves, params: LookaheadParams, dt: float
+            ) -> np.ndarray:
     """The candidate routes (C, S, 2), sampled every ``spacing_m``: to each waypoint the shortest
     polyline around the obstacles the UAV cannot overfly, then a circle turning left or right."""
     H = target_paths.shape[1]
-    normals, offsets = blocking_2d(uav_obstacles, grid.altitude_m)
-    wp = _route_waypoints(p0, target_paths, params, area_min, area_max, normals, offsets,
-                          params.corner_clearance_m)
+    grid, motion, area = moves.grid, moves.motion, moves.area
+    normals, offsets = blocking_2d(area.obstacles, grid.altitude_m)
+    wp = route_waypoints(p0, target_paths, params, area.minimum, area.maximum, normals, offsets,
+                         params.corner_clearance_m)
     clearance = params.corner_clearance_m
     if motion.kind == "vehicle":  # it cuts corners: about half its turning radius v^2 / a
         clearance += 0.5 * motion.speed_max_mps ** 2 / motion.accel_max_mps2
@@ -523,20 +391,20 @@ def _routes(p0: np.ndarray, target_paths: np.ndarray, grid: CandidateGrid, motio
     kept = [pl for pl in polys if pl is not None]
     if not kept:
         return np.zeros((0, 0, 2))
-    return _sample_routes(kept, params.loiter_radius_m, length, params.spacing_m)
+    return sample_routes(kept, params.loiter_radius_m, length, params.spacing_m)
 
 
-def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: CandidateGrid, motion: UavMotion,
-                dt: float, area_min, area_max, uav_obstacles: Obstacles) -> np.ndarray:
+def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, moves: Moves, dt: float) -> np.ndarray:
     """(C,) the routes whose first step is admissible. Jump: each route's first move is snapped
     (in place in ``pos``, ``vel``) to the admissible point of the paper's S_(t+1) nearest to it.
     Vehicle: the first step admissible and the vehicle's braking path from there clear too."""
     C = len(pos)
+    grid, motion, area = moves.grid, moves.motion, moves.area
     alt = grid.altitude_m
     start3 = np.r_[p0, alt]
     if motion.kind == "jump":
         grid_pts = candidate_positions(p0, grid)
-        grid_ok = admissible(grid_pts, start3, area_min, area_max, uav_obstacles)
+        grid_ok = area.admissible(grid_pts, start3)
         d = np.linalg.norm(grid_pts[None, :, :2] - pos[:, :1, :], axis=2)
         d[:, ~grid_ok] = np.inf
         snap = np.argmin(d, axis=1)
@@ -545,12 +413,12 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, grid: Candidat
         vel[:, 0] = (pos[:, 0] - p0) / dt
         return ok
     first = np.column_stack([pos[:, 0], np.full(C, alt)])
-    ok = admissible(first, start3, area_min, area_max, uav_obstacles)
+    ok = area.admissible(first, start3)
     sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
     stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
     if motion.jerk_max_mps3 > 0.0:  # the braking acceleration is ramped to: up to 2 a_max / jerk later
         stop = stop + vel[:, 0] * 2.0 * motion.accel_max_mps2 / motion.jerk_max_mps3
-    return ok & admissible(np.column_stack([stop, np.full(C, alt)]), first, area_min, area_max, uav_obstacles)
+    return ok & area.admissible(np.column_stack([stop, np.full(C, alt)]), first)
 
 
 def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, pos: np.ndarray,

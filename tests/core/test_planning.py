@@ -7,7 +7,7 @@ import pytest
 from onboard.config import override
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import _admissible_paths, admissible, candidate_positions, choose_next_position
-from tests.support.planning_cases import AREA, GRID, LOOKAHEAD, MODEL, VEHICLE, still_targets as _still_targets
+from tests.support.planning_cases import GRID, MODEL, SCORING, VEHICLE, moves, still_targets as _still_targets
 
 
 def test_candidate_set_is_the_papers():
@@ -64,8 +64,8 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
     particles[0, :, 0] = rng.normal(0, 2, n)
     particles[0, :, 1] = 200 + rng.normal(0, 60, n)
     logw = np.full((1, n), -math.log(n))
-    res = choose_next_position(particles, logw, np.array([0.0, 0.0]), GRID, math.radians(1.0),
-                               (-1e3, -1e3, 0), (1e3, 1e3, 1e3), Obstacles.empty(), "position_trace")
+    res = choose_next_position(particles, logw, UavState(np.array([0.0, 0.0])),
+                               moves(box=((-1e3, -1e3, 0), (1e3, 1e3, 1e3))), math.radians(1.0), "position_trace")
     move = res.position[:2]
     assert np.isclose(np.linalg.norm(move), 20.0)
     assert abs(move[0]) > 3 * abs(move[1])
@@ -75,7 +75,7 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 
 # --------------------------------------------------------------------------- beyond the paper
 
-from onboard.core.planning import JUMP, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning import JUMP, UavState, choose_lookahead, motion_sequences  # noqa: E402
 
 
 def test_vehicle_reachable_set_respects_speed_and_acceleration():
@@ -93,10 +93,9 @@ def test_vehicle_reachable_set_respects_speed_and_acceleration():
 def test_both_planners_move_a_vehicle_within_its_limits(rng):
     particles, logw, plans = _still_targets(rng, [[0.0, 500.0]])
     v0 = np.array([6.0, -4.0])
-    for res in (choose_next_position(particles, logw, np.array([0.0, 0.0]), GRID, math.radians(1.0), *AREA,
-                                     Obstacles.empty(), "position_trace", VEHICLE, v0, 1.0),
-                choose_lookahead(particles, logw, plans, np.array([0.0, 0.0]), v0, GRID, VEHICLE, MODEL,
-                                 math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)):
+    uav = UavState(np.array([0.0, 0.0]), v0)
+    for res in (choose_next_position(particles, logw, uav, moves(VEHICLE), math.radians(1.0), "position_trace", 1.0),
+                choose_lookahead(particles, logw, plans, uav, moves(VEHICLE), SCORING)):
         v1 = res.velocities[res.index]
         assert np.linalg.norm(v1 - v0) <= 2.5 + 1e-9 and np.linalg.norm(v1) <= 10.0 + 1e-9
         # the move is the one the velocities imply (constant acceleration over the tick)
@@ -109,10 +108,8 @@ def test_lookahead_approaches_distant_targets_where_greedy_only_crosses(rng):
     centres = [[-60.0, 600.0], [60.0, 600.0]]
     particles, logw, plans = _still_targets(rng, centres)
     here = np.array([0.0, 0.0])
-    greedy = choose_next_position(particles, logw, here, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
-                                  "position_trace")
-    look = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, JUMP, MODEL,
-                            math.radians(1.0), 0.95, *AREA, Obstacles.empty(), params=LOOKAHEAD)
+    greedy = choose_next_position(particles, logw, UavState(here), moves(), math.radians(1.0), "position_trace")
+    look = choose_lookahead(particles, logw, plans, UavState(here, np.zeros(2)), moves(JUMP), SCORING)
     assert look.position[1] > 10.0  # toward the targets
     assert look.position[1] > greedy.position[1] + 5.0
     # and the route it scores keeps approaching, then turns (diversifies the geometry)
@@ -131,8 +128,7 @@ def test_lookahead_routes_around_a_wall_it_cannot_overfly(rng):
     particles, logw, plans = _still_targets(rng, [[0.0, 400.0]])
     here = np.array([0.0, 0.0])
     for motion in (JUMP, VEHICLE):
-        res = choose_lookahead(particles, logw, plans, here, np.zeros(2), GRID, motion, MODEL, math.radians(1.0),
-                               0.95, *AREA, wall, params=LOOKAHEAD)
+        res = choose_lookahead(particles, logw, plans, UavState(here, np.zeros(2)), moves(motion, wall), SCORING)
         path = np.concatenate([[[0.0, 0.0, 40.0]], res.paths[res.index]])
         assert not wall.segments_cross(path[:-1], path[1:]).any()
         assert path[:, 1].max() > 180.0  # it got past the wall within the horizon

@@ -5,12 +5,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from onboard.core.obstacles import Obstacles
-from onboard.core.planning import choose_lookahead, choose_next_position
+from onboard.core.planning import UavState, choose_lookahead, choose_next_position
 from onboard.core.setpoint import plan_setpoint
 from sim.guided import enu, fly_plan
 from sim.multicopter import VehicleState, advance_input
-from tests.support.planning_cases import AREA, GRID, LOOKAHEAD, MODEL, VEHICLE, still_targets as _still_targets
+from tests.support.planning_cases import SCORING, VEHICLE, moves, still_targets as _still_targets
 
 
 @pytest.mark.parametrize("offset", [0.0, 0.13, 0.5, 1.0])
@@ -20,10 +19,9 @@ def test_the_firmware_carries_the_setpoint_to_the_planned_next_state(rng, offset
     velocity when the next tick comes, for both planners on the vehicle motion."""
     particles, logw, plans = _still_targets(rng, [[0.0, 500.0], [300.0, 200.0]])
     p0, v0 = np.array([10.0, -20.0]), np.array([6.0, -4.0])
-    for res in (choose_next_position(particles, logw, p0, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
-                                     "position_trace", VEHICLE, v0, 1.0),
-                choose_lookahead(particles, logw, plans, p0, v0, GRID, VEHICLE, MODEL, math.radians(1.0), 0.95,
-                                 *AREA, Obstacles.empty(), params=LOOKAHEAD)):
+    uav = UavState(p0, v0)
+    for res in (choose_next_position(particles, logw, uav, moves(VEHICLE), math.radians(1.0), "position_trace", 1.0),
+                choose_lookahead(particles, logw, plans, uav, moves(VEHICLE), SCORING)):
         v1 = res.velocities[res.index]
         assert np.linalg.norm(v1 - v0) > 0.5  # the plan accelerates: the test sees the acceleration term
         pos, vel, acc = plan_setpoint(p0, v0, v1, 1.0, offset)
@@ -72,10 +70,9 @@ def test_a_continuous_acceleration_starts_where_the_last_plan_left_it_and_ends_o
     planned next position with the planned velocity at the next tick."""
     particles, logw, plans = _still_targets(rng, [[0.0, 500.0], [300.0, 200.0]])
     p0, v0, a0 = np.array([10.0, -20.0]), np.array([6.0, -4.0]), np.array([-2.0, 1.5])
-    for res in (choose_next_position(particles, logw, p0, GRID, math.radians(1.0), *AREA, Obstacles.empty(),
-                                     "position_trace", RAMPS, v0, 1.0, a0),
-                choose_lookahead(particles, logw, plans, p0, v0, GRID, RAMPS, MODEL, math.radians(1.0), 0.95,
-                                 *AREA, Obstacles.empty(), params=LOOKAHEAD, acceleration=a0)):
+    uav = UavState(p0, v0, a0)
+    for res in (choose_next_position(particles, logw, uav, moves(RAMPS), math.radians(1.0), "position_trace", 1.0),
+                choose_lookahead(particles, logw, plans, uav, moves(RAMPS), SCORING)):
         v1 = res.velocities[res.index]
         _, _, acc = plan_setpoint(p0, v0, v1, 1.0, 0.0, a0)
         np.testing.assert_allclose(acc, a0, atol=1e-12)

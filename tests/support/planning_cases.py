@@ -1,5 +1,6 @@
 """Planning cases the core's planning and setpoint tests share: a candidate grid, a motion model,
-a vehicle, the lookahead's declared defaults, an area, and beliefs around targets standing still."""
+a vehicle, the lookahead's declared defaults and its scoring, an area, and beliefs around targets
+standing still."""
 from __future__ import annotations
 
 import math
@@ -7,7 +8,8 @@ import math
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.planning import CandidateGrid, LookaheadParams, UavMotion
+from onboard.core.obstacles import Obstacles
+from onboard.core.planning import JUMP, Area, CandidateGrid, LookaheadParams, Moves, RouteScoring, UavMotion
 from onboard.settings import Lookahead
 
 GRID = CandidateGrid(step_m=5.0, n_radial=4, n_heading=15, altitude_m=40.0)
@@ -15,6 +17,12 @@ MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10
 VEHICLE = UavMotion("vehicle", speed_max_mps=10.0, accel_max_mps2=2.5, jerk_max_mps3=0.0)
 LOOKAHEAD = LookaheadParams.from_config(Lookahead())  # the declared defaults
 AREA = ((-2e3, -2e3, 0.0), (2e3, 2e3, 1e3))
+SCORING = RouteScoring(MODEL, math.radians(1.0), 0.95, LOOKAHEAD)  # 1 deg bearings, q 0.95
+
+
+def moves(motion: UavMotion = JUMP, obstacles: Obstacles | None = None, box=AREA) -> Moves:
+    """GRID's moves in ``box`` (default AREA) around ``obstacles`` (default none)."""
+    return Moves(GRID, Area(*box, Obstacles.empty() if obstacles is None else obstacles), motion)
 
 
 def still_targets(rng, centres, n=2000, pos_sd=(15.0, 60.0), H=30):
