@@ -95,6 +95,24 @@ def test_an_aimed_particle_turns_toward_its_own_destination():
     assert x[1, 4] < -5.0 and abs(x[1, 3]) < 1e-6  # heading south
 
 
+def test_the_recovery_is_raised_only_by_the_weight_no_goal_predicts():
+    from onboard.core.tracking import ParticleSet, Recovery
+
+    rec = Recovery(0.01, 0.02, 50.0)
+    raised = replace(PARAMS, recovery_prior_raise=0.05, recovery_sigma_raise_m=150.0)
+    modes = np.array([0, 0, im.STATIONARY, im.FREE, im.AIMED])
+    logw = np.log(np.array([0.3, 0.2, 0.1, 0.25, 0.15]))
+    ps = ParticleSet(np.zeros((5, 6)), logw, None, modes)
+    assert im.unpredicted_weight(ps) == pytest.approx(0.4)
+    r = im.raised_recovery(rec, 0.4, raised)
+    assert r.prior == pytest.approx(0.01 + 0.05 * 0.4) and r.sigma_m == pytest.approx(50.0 + 150.0 * 0.4)
+    assert r.share == rec.share
+    assert im.raised_recovery(rec, 0.0, raised) is rec  # a belief on its goals keeps the configured one
+    assert im.raised_recovery(rec, 1.0, PARAMS) is rec  # raises off: unchanged
+    assert im.raised_recovery(rec, 1.0, replace(raised, recovery_prior_raise=10.0)).prior == 0.5  # capped
+    assert im.unpredicted_weight(ParticleSet(np.zeros((2, 6)), np.zeros(2), None, None)) == 0.0
+
+
 def test_the_scenario_says_what_it_knows_and_the_rest_is_safe():
     sc = load_scenario("paper")
     t0 = sc.targets[0]
