@@ -174,3 +174,25 @@ def test_a_target_heading_somewhere_nobody_named_is_tracked_honestly():
     assert np.mean(nees[20:]) < 6.0  # the paper's filter, sure of G: in the hundreds
     paper = _fly(_scenario(False), truth, 70)
     assert np.mean(np.array([f[1][0] for f in paper])[20:]) > 20.0
+
+
+def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
+    """The flight default's filter (recovery on) on the target heading east that the scenario says
+    heads south: the recovery raised by the free and elsewhere weight finds it nearer and states a
+    spread that covers the error; without the raise it is surer and farther off."""
+    sc = load_scenario("paper")
+    sc = override(replace(sc, targets=sc.targets[:1], kraken=replace(sc.kraken, vfos=sc.kraken.vfos[:1])),
+                  {"tracking.particles": 800})
+    off = override(sc, {"tracking.intent_recovery_prior": 0.0, "tracking.intent_recovery_sigma_m": 0.0})
+
+    def truth(k):
+        return np.array([[281.0 + 8.0 * k, 925.0, 0.0, 8.0, 0.0, 0.0]])
+
+    def score(s):
+        flown = _fly(s, truth, 70, seed=8)
+        err = np.array([f[0][0] for f in flown])
+        return np.sqrt(np.mean(err[20:] ** 2)), np.mean(np.array([f[1][0] for f in flown])[20:])
+
+    (rmse, nees), (rmse_off, nees_off) = score(sc), score(off)
+    assert rmse < 0.8 * rmse_off, (rmse, rmse_off)
+    assert nees < min(2.0, nees_off), (nees, nees_off)
