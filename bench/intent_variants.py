@@ -26,13 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("kind")
     ap.add_argument("trials", type=int)
     ap.add_argument("constants", nargs="?", default="", help="NAME=VALUE,... of onboard/core modules")
-    ap.add_argument("--recovery-by-motion", default="", metavar="PRIOR,SIGMA_M",
-                    help="experiment: the recovery's prior and width raised by PRIOR and SIGMA_M times the "
-                         "weight of a target's free and aimed modes (its belief's, each tick)")
     add_set_option(ap, "tracking.intent_switch_prob=0.01")
     args = ap.parse_args(argv)
-    if args.recovery_by_motion:
-        _recovery_by_motion(*(float(x) for x in args.recovery_by_motion.split(",")))
     from onboard.config import load_scenario
     from sim import evaluation as ev
 
@@ -49,32 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = ev.make_config(sc, args.trials, 2024, ["flight@stock"], truth=kind, told=told)
     s = ev.summarise(cfg, [ev.run_trial(cfg, i) for i in range(args.trials)]).methods["flight@stock"]
     t = s.truth
-    print(f"{args.kind} {args.constants} {' '.join(args.set)} {args.recovery_by_motion}: rmse {s.rmse_mean_m:.1f} anees {s.nees_mean:.2f} "
+    print(f"{args.kind} {args.constants} {' '.join(args.set)}: rmse {s.rmse_mean_m:.1f} anees {s.nees_mean:.2f} "
           f"far {t['far_fraction']:.3f} lost {t['lost_at_end']}/{t['targets']} "
           f"p90@40 {t.get('true_mode_p90_at_40s')} per_trial {np.round(s.per_trial_rmse, 1).tolist()}", flush=True)
     return 0
-
-
-def _recovery_by_motion(extra_prior: float, extra_sigma_m: float) -> None:
-    """Patches ``tracking.recover`` (as onboard/core/intent_tick.py calls it): a belief whose weight
-    lies in the free and aimed modes (motion nobody predicts well) gets a likelier and wider
-    recovery along the bearings, one heading for a goal the configured one."""
-    from dataclasses import replace
-
-    from onboard.core import intent as im
-    from onboard.core import tracking
-
-    own = tracking.recover
-
-    def recover(ps, sensor_xy, bearings, rec, sigma_rad, rng, new_modes=None):
-        if new_modes is None and ps.modes is not None:
-            w = ps.weights
-            moving = float(w[(ps.modes == im.FREE) | (ps.modes == im.AIMED)].sum() / w.sum())
-            rec = replace(rec, prior=min(0.5, rec.prior + extra_prior * moving),
-                          sigma_m=rec.sigma_m + extra_sigma_m * moving)
-        return own(ps, sensor_xy, bearings, rec, sigma_rad, rng, new_modes)
-
-    tracking.recover = recover
 
 
 if __name__ == "__main__":

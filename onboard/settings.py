@@ -339,6 +339,11 @@ class Tracking:
                                        experimental=True)
     intent_free_accel_mps2: float = number(1.0, 0, 20, "m/s^2", "with intent: a free target's random "
                                            "acceleration, per axis", lo_open=True, experimental=True)
+    intent_recovery_prior: float = number(0.05, 0, 0.5, "", "with intent and recovery_prior: the recovery's "
+                                          "prior raised by this times the weight of a target's free and aimed "
+                                          "modes (motion no goal predicts)", experimental=True)
+    intent_recovery_sigma_m: float = number(150.0, 0, 5000, "m", "with intent and recovery_prior: the "
+                                            "recovery's width raised by this times that weight", experimental=True)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ Pure numpy: every random number from the caller's Generator.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -87,6 +87,28 @@ class IntentParams:
     free_accel_sigma_mps2: float  # FREE: white acceleration, per axis
     speed_max_mps: float  # FREE: speed bound (the guidance's)
     stationary_sigma_m: float  # STATIONARY: position jitter per tick, per axis
+    recovery_prior_raise: float = 0.0  # the recovery's prior raised by this x the unpredicted weight
+    recovery_sigma_raise_m: float = 0.0  # and its width (m) by this x that weight
+
+
+def unpredicted_weight(ps) -> float:
+    """The share of a belief's weight in FREE and AIMED: motion no named goal or standing predicts."""
+    if ps.modes is None:
+        return 0.0
+    w = np.exp(ps.log_weights - np.max(ps.log_weights))
+    return float(w[(ps.modes == FREE) | (ps.modes == AIMED)].sum() / w.sum())
+
+
+def raised_recovery(rec, unpredicted: float, params: IntentParams):
+    """``rec`` (``tracking.Recovery``) for a target whose weight ``unpredicted`` lies in FREE and
+    AIMED: its prior raised by ``recovery_prior_raise`` and its width by ``recovery_sigma_raise_m``
+    times that weight (prior capped at 0.5). Along the line of sight the bearings of one platform
+    say little, so a belief whose motion no goal explains is searched for along the whole bearing;
+    one the bearings place on a goal keeps the configured recovery and its accuracy."""
+    if unpredicted <= 0.0 or (params.recovery_prior_raise <= 0.0 and params.recovery_sigma_raise_m <= 0.0):
+        return rec
+    return replace(rec, prior=min(0.5, rec.prior + params.recovery_prior_raise * unpredicted),
+                   sigma_m=rec.sigma_m + params.recovery_sigma_raise_m * unpredicted)
 
 
 def columns(modes: np.ndarray, n_goals: int) -> np.ndarray:

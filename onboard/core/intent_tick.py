@@ -115,8 +115,8 @@ def update(setup, beliefs: Sequence[tracking.ParticleSet], memory: Sequence[Inte
             reseeded[j] = len(prior) > n
             window = () if reseeded[j] else window
         elif setup.recovery is not None and j_scans:
-            prior = tracking.recover(prior, j_scans[-1][0], j_scans[-1][1], setup.recovery, setup.sensor.sigma_rad,
-                                     rng)
+            rec = im.raised_recovery(setup.recovery, im.unpredicted_weight(prior), setup.intent)
+            prior = tracking.recover(prior, j_scans[-1][0], j_scans[-1][1], rec, setup.sensor.sigma_rad, rng)
         upd = tracking.update(prior, j_scans, setup.sensor)
         degenerate[j] = upd.degenerate
         told = [e < im.EXPLAINED_MIN for e in upd.explained if np.isfinite(e) or e == np.inf]

@@ -95,6 +95,24 @@ def test_an_aimed_particle_turns_toward_its_own_destination():
     assert x[1, 4] < -5.0 and abs(x[1, 3]) < 1e-6  # heading south
 
 
+def test_the_recovery_is_raised_only_by_the_weight_no_goal_predicts():
+    from onboard.core.tracking import ParticleSet, Recovery
+
+    rec = Recovery(0.01, 0.02, 50.0)
+    raised = replace(PARAMS, recovery_prior_raise=0.05, recovery_sigma_raise_m=150.0)
+    modes = np.array([0, 0, im.STATIONARY, im.FREE, im.AIMED])
+    logw = np.log(np.array([0.3, 0.2, 0.1, 0.25, 0.15]))
+    ps = ParticleSet(np.zeros((5, 6)), logw, None, modes)
+    assert im.unpredicted_weight(ps) == pytest.approx(0.4)
+    r = im.raised_recovery(rec, 0.4, raised)
+    assert r.prior == pytest.approx(0.01 + 0.05 * 0.4) and r.sigma_m == pytest.approx(50.0 + 150.0 * 0.4)
+    assert r.share == rec.share
+    assert im.raised_recovery(rec, 0.0, raised) is rec  # a belief on its goals keeps the configured one
+    assert im.raised_recovery(rec, 1.0, PARAMS) is rec  # raises off: unchanged
+    assert im.raised_recovery(rec, 1.0, replace(raised, recovery_prior_raise=10.0)).prior == 0.5  # capped
+    assert im.unpredicted_weight(ParticleSet(np.zeros((2, 6)), np.zeros(2), None, None)) == 0.0
+
+
 def test_the_scenario_says_what_it_knows_and_the_rest_is_safe():
     sc = load_scenario("paper")
     t0 = sc.targets[0]
@@ -156,3 +174,25 @@ def test_a_target_heading_somewhere_nobody_named_is_tracked_honestly():
     assert np.mean(nees[20:]) < 6.0  # the paper's filter, sure of G: in the hundreds
     paper = _fly(_scenario(False), truth, 70)
     assert np.mean(np.array([f[1][0] for f in paper])[20:]) > 20.0
+
+
+def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
+    """The flight default's filter (recovery on) on the target heading east that the scenario says
+    heads south: the recovery raised by the free and elsewhere weight finds it nearer and states a
+    spread that covers the error; without the raise it is surer and farther off."""
+    sc = load_scenario("paper")
+    sc = override(replace(sc, targets=sc.targets[:1], kraken=replace(sc.kraken, vfos=sc.kraken.vfos[:1])),
+                  {"tracking.particles": 800})
+    off = override(sc, {"tracking.intent_recovery_prior": 0.0, "tracking.intent_recovery_sigma_m": 0.0})
+
+    def truth(k):
+        return np.array([[281.0 + 8.0 * k, 925.0, 0.0, 8.0, 0.0, 0.0]])
+
+    def score(s):
+        flown = _fly(s, truth, 70, seed=8)
+        err = np.array([f[0][0] for f in flown])
+        return np.sqrt(np.mean(err[20:] ** 2)), np.mean(np.array([f[1][0] for f in flown])[20:])
+
+    (rmse, nees), (rmse_off, nees_off) = score(sc), score(off)
+    assert rmse < 0.8 * rmse_off, (rmse, rmse_off)
+    assert nees < min(2.0, nees_off), (nees, nees_off)
