@@ -228,11 +228,6 @@ WIDE_SIGNATURES = {
     "onboard/core/guidance.py:plan_guidance": "called by keyword from intent_tick.py (with_feedback='constrained' "
                                               "too); it builds a GuidanceRequest, and takes one when that caller "
                                               "changes",
-    "onboard/core/monitor.py:tick": "the tick's inputs and the UAV's state, keyword-called by the app, sim/, "
-                                    "bench/, examples/ and tests; not yet grouped (issue 43)",
-    "onboard/core/monitor.py:_tick_with_modes": "tick's arguments, passed on; grouped with tick's",
-    "onboard/core/monitor.py:_plan_uav": "tick's UAV arguments, passed on; grouped with tick's",
-    "onboard/core/monitor.py:_predict": "not yet grouped (issue 43): its own change",
     "onboard/core/steering.py:side_modes": "not yet grouped (issue 43): its own change",
     "onboard/core/steering.py:_carry_modes": "not yet grouped (issue 43): its own change",
     "onboard/core/steering.py:reference_laws": "not yet grouped (issue 43): its own change",
