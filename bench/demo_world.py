@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 from bench import add_set_option, set_label, set_overrides  # noqa: E402
 from onboard.config import load_scenario  # noqa: E402
 from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
-from onboard.core.monitor import Scan, initial_state, tick  # noqa: E402
+from onboard.core.monitor import Scan, UavState, initial_state, tick  # noqa: E402
 from sim import evaluation as ev  # noqa: E402
 from sim.guided import enu, fly_plan, ned  # noqa: E402
 from sim.multicopter import VehicleState  # noqa: E402
@@ -106,8 +106,8 @@ def fly(cfg: ev.EvalConfig, method: ev.Method, repeat: int, truth: np.ndarray, s
     for k in range(K):
         scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         flying = k >= launch
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav if flying else None, workspace=ws,
-                          uav_velocity=uav_vel, planner_rng=policy_rng, uav_acceleration=uav_acc)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=UavState(uav, uav_vel, uav_acc) if flying else None,
+                          workspace=ws, planner_rng=policy_rng)
         err[k] = np.linalg.norm(res.means[:, :2] - truth[k, :, :2], axis=1)
         if k == K - 1 or not flying:
             continue

@@ -80,7 +80,7 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
     from onboard.app.pairing import scans_for_tick
     from onboard.app.pose import PoseHistory, PoseSample
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
     from sim.kraken import KrakenModel, frame_lines
     from sim.sensors import DirectionFinder, df_scan_labelled
 
@@ -116,7 +116,7 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
             made.clear()
             src.offer("doa", frame_lines(epoch, labelled, freqs, yaw, model, render_rng).encode())
             scans, _ = scans_for_tick(dict(made), t, M, lambda tm: uav.copy())
-        state, res = tick(setup, state, scans, filter_rng, plan_from=uav, workspace=ws)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=UavState(uav), workspace=ws)
         err[k] = np.linalg.norm(res.means[:, :2] - truth[k, :, :2], axis=1)
         nxt = res.next_position
         if nxt is not None and k < K - 1:

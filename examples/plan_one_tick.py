@@ -14,7 +14,7 @@ import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.bearings import bearing
-from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
 from onboard.policy import DEFAULT, POLICIES, with_policy
 
 
@@ -33,7 +33,7 @@ def main() -> None:
     uav = np.array([*sc.uav.start_m[:2], sc.uav.altitude_m])  # ENU, m
     # one bearing per target channel (rad, clockwise from north), from the UAV to the initial mean
     bearings = tuple(np.atleast_1d(bearing(m[:2], uav[:2])) for m in setup.initial_means)
-    state, result = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav)
+    state, result = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav))
 
     print(f"scenario {sc.name}, policy {args.policy}: {setup.n_targets} targets, "
           f"{setup.n_particles} particles each, planner {setup.planner}")

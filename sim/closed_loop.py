@@ -16,7 +16,7 @@ def closed_loop(setup, ticks: int, seed: int, start_xy=(150.0, 200.0), timer=Non
 
     from onboard.core.bearings import bearing, wrap
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import Scan, initial_state, tick
+    from onboard.core.monitor import Scan, UavState, initial_state, tick
 
     rng = np.random.default_rng(seed)
     state = initial_state(setup, rng)
@@ -27,7 +27,7 @@ def closed_loop(setup, ticks: int, seed: int, start_xy=(150.0, 200.0), timer=Non
     for k in range(ticks):
         bearings = tuple(np.array([float(wrap(bearing(truth[j], uav) + rng.normal(0, setup.sensor.sigma_rad)))])
                          for j in range(setup.n_targets))
-        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws, uav_velocity=vel,
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav, vel), workspace=ws,
                           timer=timer or time.perf_counter)
         yield k, state, res, uav
         truth = np.array([p.means[0] for p in res.plans])

@@ -77,7 +77,7 @@ def measure_tick_s(sc, n: int = 8, warmup: int = 2, clock=time.thread_time) -> f
     (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded: their
     guidance still searches every target's faces from scratch, several times a steady tick."""
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
 
     setup = MonitorSetup.from_scenario(sc)
     rng = np.random.default_rng(0)
@@ -88,7 +88,7 @@ def measure_tick_s(sc, n: int = 8, warmup: int = 2, clock=time.thread_time) -> f
     for _ in range(n):
         bearings = tuple(rng.uniform(-np.pi, np.pi, 2) for _ in range(setup.n_targets))
         t0 = clock()
-        state, _ = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
+        state, _ = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav), workspace=ws)
         times.append(clock() - t0)
     return float(np.median(times[warmup:]))
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.information import information_reduction_factor
-from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
 from sim.eval_config import DEFAULT_WINDOW_S, EvalConfig, _setup_for, make_config, method_named
 from sim.eval_summary import summarise
 from sim.guided import enu, fly_plan, ned
@@ -139,8 +139,8 @@ def run_method(cfg: EvalConfig, method: Method, trial: int, truth: np.ndarray, s
             uav_track[k] = uav
             scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = time.perf_counter()
-        state, res = tick(setup, state, scans, filter_rng, plan_from=None if path is not None else uav,
-                          workspace=ws, uav_velocity=uav_vel, planner_rng=policy_rng, uav_acceleration=uav_acc)
+        plan_from = None if path is not None or uav is None else UavState(uav, uav_vel, uav_acc)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=plan_from, workspace=ws, planner_rng=policy_rng)
         tick_time += time.perf_counter() - t0
         e = res.means[:, :2] - truth[k, :, :2]
         est[k] = res.means[:, :2]

@@ -126,7 +126,7 @@ def _simulate(args) -> int:
 
     from onboard.config import load_scenario
     from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
+    from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
     from sim.sensors import DirectionFinder, df_scan
     from sim.truth import TruthWorld
 
@@ -144,7 +144,7 @@ def _simulate(args) -> int:
     errors = []
     for k in range(args.ticks):
         bearings = df_scan(truth, uav, df, truth_rng)
-        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws)
+        state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav), workspace=ws)
         err = np.linalg.norm(res.means[:, :2] - truth[:, :2], axis=1)
         errors.append(err)
         console.print(f"t={k:3d}s  uav=({uav[0]:6.1f}, {uav[1]:6.1f})  error per target \\[m]: "

@@ -196,7 +196,6 @@ SHAPED_PACKAGES = ("groundstation", "sim", "onboard/app", "onboard/core", "bench
 # functions ("path:Class.name") allowed past MAX_FUNCTION_LINES, each with why; an entry back
 # under the limit is removed
 LONG_FUNCTIONS: dict[str, str] = {
-    "onboard/core/steering.py:side_modes": "not yet split (issue 43): its own change",
 }
 # functions allowed more than MAX_PARAMETERS parameters (self/cls not counted), each with why; an
 # entry back within the limit is removed
@@ -228,14 +227,6 @@ WIDE_SIGNATURES = {
     "onboard/core/guidance.py:plan_guidance": "called by keyword from intent_tick.py (with_feedback='constrained' "
                                               "too); it builds a GuidanceRequest, and takes one when that caller "
                                               "changes",
-    "onboard/core/monitor.py:tick": "the tick's inputs and the UAV's state, keyword-called by the app, sim/, "
-                                    "bench/, examples/ and tests; not yet grouped (issue 43)",
-    "onboard/core/monitor.py:_tick_with_modes": "tick's arguments, passed on; grouped with tick's",
-    "onboard/core/monitor.py:_plan_uav": "tick's UAV arguments, passed on; grouped with tick's",
-    "onboard/core/monitor.py:_predict": "not yet grouped (issue 43): its own change",
-    "onboard/core/steering.py:side_modes": "not yet grouped (issue 43): its own change",
-    "onboard/core/steering.py:_carry_modes": "not yet grouped (issue 43): its own change",
-    "onboard/core/steering.py:reference_laws": "not yet grouped (issue 43): its own change",
 }
 
 

@@ -35,7 +35,7 @@ from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
 from onboard.app.tick_schedule import PLAN_RESERVE_S, TickJob
 from onboard.core import intent_tick, monitor
-from onboard.core.monitor import MonitorSetup, Scan
+from onboard.core.monitor import MonitorSetup, Scan, UavState
 
 # ArduCopter's GUID_TIMEOUT default (s): a target older than this it no longer carries on
 GUID_TIMEOUT_S = 3.0
@@ -159,9 +159,9 @@ class TickWorker:
         setup = self._with_guidance_time(snap.setup, job)
         timer = StageTimer()
         t_core = self.mono()
-        self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=snap.centre,
-                                         workspace=self.core.workspace, uav_velocity=snap.velocity,
-                                         uav_acceleration=snap.acceleration, timer=timer)
+        plan_from = None if snap.centre is None else UavState(snap.centre, snap.velocity, snap.acceleration)
+        self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=plan_from,
+                                         workspace=self.core.workspace, timer=timer)
         t_core_end = self.mono()
         reseeded = self.core.reseed_collapsed(setup, res)
         stages = core_stages(res.timings_s, timer.marks)

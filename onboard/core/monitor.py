@@ -10,9 +10,9 @@ A tick t runs the paper's filter and planner in their order, from the beliefs he
   4. predict each belief to t+1 with its guidance (eq. (9a)): the particles' controls come
      from the configured particle steering (``steering``: the plan's first control, the free law
      where it is exact, reference plans when configured), noise Q;
-  5. plan the next UAV position s_(t+1) from ``plan_from`` with the configured planner
-     (``planners``: the paper's greedy rule by pseudo-updating those predictions, the lookahead,
-     or a baseline).
+  5. plan the next UAV position s_(t+1) from ``plan_from`` (a ``planning.UavState``) with the
+     configured planner (``planners``: the paper's greedy rule by pseudo-updating those
+     predictions, the lookahead, or a baseline).
 """
 from __future__ import annotations
 
@@ -26,12 +26,12 @@ from onboard.core import intent_tick, tracking
 from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
-from onboard.core.planning import PlanningResult
+from onboard.core.planning import PlanningResult, UavState
 from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
                                    SideMode, SideSteering, TargetTick)
 
-__all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "initial_state",
-           "tick", "replanner", "uav_planner", "particle_steering"]
+__all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "UavState",
+           "initial_state", "tick", "replanner", "uav_planner", "particle_steering"]
 
 
 def uav_planner(setup: MonitorSetup) -> Planner:
@@ -104,46 +104,44 @@ def initial_state(setup: MonitorSetup, rng: np.random.Generator) -> MonitorState
 
 
 def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: np.random.Generator,
-         plan_from: np.ndarray | None = None, workspace: GuidanceWorkspace | None = None,
-         timer: Callable[[], float] = time.perf_counter, uav_velocity: np.ndarray | None = None,
-         planner_rng: np.random.Generator | None = None, uav_acceleration: np.ndarray | None = None
+         plan_from: UavState | None = None, workspace: GuidanceWorkspace | None = None,
+         timer: Callable[[], float] = time.perf_counter, planner_rng: np.random.Generator | None = None
          ) -> tuple[MonitorState, TickResult]:
-    """Run one tick (the module's steps 1-5). ``plan_from`` (ENU, m): where the UAV is or will be
-    at the next tick, where the planner starts from; None skips the UAV planning (e.g. fixed
-    sensors). ``uav_velocity`` (ENU, m/s, planar): the UAV's velocity there, for the vehicle
-    motion; ``uav_acceleration`` (ENU, m/s^2, planar): the plan's acceleration there, for a
-    continuous one (``planning.jerk_max_mps3`` > 0; None: 0). ``planner_rng``: the planner's own random stream (the random baseline draws from it;
-    default ``rng``), so a planner's draws never shift the filter's."""
+    """Run one tick (the module's steps 1-5). ``plan_from``: where the planner starts from, the
+    UAV where it is or will be at the next tick (``planning.UavState``: its position, ENU m; its
+    planar velocity, for the vehicle motion; the plan's planar acceleration, for a continuous one,
+    ``planning.jerk_max_mps3`` > 0); None skips the UAV planning (e.g. fixed sensors).
+    ``planner_rng``: the planner's own random stream (the random baseline draws from it; default
+    ``rng``), so a planner's draws never shift the filter's."""
     if setup.intents is not None:
-        return _tick_with_modes(setup, state, scans, rng, plan_from, workspace, timer, uav_velocity, planner_rng,
-                                uav_acceleration)
+        return _tick_with_modes(setup, state, scans, rng, plan_from, workspace, timer, planner_rng)
     t0 = timer()
     posts, means, covs, degenerate = _update_and_estimate(setup, state.beliefs, scans, rng)  # 1, 2
     t1 = timer()
     plans = _guidance(setup, state, means, workspace, timer)  # 3
     t2 = timer()
-    beliefs, memory = _predict(setup, state, posts, means, covs, plans, workspace, timer, rng)  # 4
+    beliefs, memory = _predict(setup, state, posts, means, covs, plans,
+                               lambda goal: replanner(setup, goal, workspace, timer), rng)  # 4
     t3 = timer()
-    planning = _plan_uav(setup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng)  # 5
+    planning = _plan_uav(setup, beliefs, plans, plan_from, rng, planner_rng)  # 5
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
     return (MonitorState(beliefs, plans, state.step + 1, memory),
             TickResult(means, covs, plans, planning, degenerate, timings))
 
 
-def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from, uav_velocity, uav_acceleration, rng, planner_rng,
+def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from: UavState | None, rng, planner_rng,
               weights: np.ndarray | None = None):
     """Step 5: the next UAV position from ``plan_from`` (None: no planning)."""
     if plan_from is None:
         return None
-    vel = np.zeros(2) if uav_velocity is None else np.asarray(uav_velocity, float)[:2]
-    acc = None if uav_acceleration is None else np.asarray(uav_acceleration, float)[:2]
-    return uav_planner(setup).plan(PlanningInputs(beliefs, plans, np.asarray(plan_from, float), vel, acc, weights),
-                                   rng if planner_rng is None else planner_rng)
+    vel = np.zeros(2) if plan_from.velocity is None else np.asarray(plan_from.velocity, float)[:2]
+    acc = None if plan_from.acceleration is None else np.asarray(plan_from.acceleration, float)[:2]
+    inputs = PlanningInputs(beliefs, plans, np.asarray(plan_from.position, float), vel, acc, weights)
+    return uav_planner(setup).plan(inputs, rng if planner_rng is None else planner_rng)
 
 
-def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_from, workspace, timer,
-                     uav_velocity, planner_rng, uav_acceleration):
+def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_from, workspace, timer, planner_rng):
     """``tick`` for beliefs whose particles carry motion modes (onboard/core/intent_tick.py)."""
     M = setup.n_targets
     memory = state.intent if len(state.intent) == M else tuple(intent_tick.IntentMemory() for _ in range(M))
@@ -160,7 +158,7 @@ def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_
     if plan_from is not None:  # 5: the lookahead scores the modes' mixture, the others the likeliest
         pb, paths, weights = intent_tick.planner_inputs(setup, beliefs, upd.posts, per_target, plans, upd.means,
                                                         mixture=setup.planner == "lookahead")
-        planning = _plan_uav(setup, pb, paths, plan_from, uav_velocity, uav_acceleration, rng, planner_rng, weights)
+        planning = _plan_uav(setup, pb, paths, plan_from, rng, planner_rng, weights)
     t4 = timer()
     timings = {"tracking": (t1 - t0) + (t3 - t2), "guidance": t2 - t1, "planning": t4 - t3, "tick": t4 - t0}
     return (MonitorState(beliefs, plans, state.step + 1, (), memory),
@@ -209,15 +207,16 @@ def _guidance(setup: MonitorSetup, state: MonitorState, means: np.ndarray, works
 
 
 def _predict(setup: MonitorSetup, state: MonitorState, posts: Sequence[tracking.ParticleSet], means: np.ndarray,
-             covs: np.ndarray, plans: Sequence[Plan], workspace: GuidanceWorkspace | None,
-             timer: Callable[[], float], rng: np.random.Generator):
+             covs: np.ndarray, plans: Sequence[Plan], replan_to: Callable[[np.ndarray], Replan],
+             rng: np.random.Generator):
     """Step 4: each posterior predicted to t+1 with the particle steering's controls (its
-    reference plans count as tracking time); the beliefs and what the steering keeps."""
+    reference plans count as tracking time); the beliefs and what the steering keeps.
+    ``replan_to(goal)``: the steering's P1 toward a goal (``replanner``)."""
     beliefs, memory = [], []
     budgets = particle_steering(setup).budgets(plans)
     for j in range(setup.n_targets):
         target = TargetTick(posts[j], means[j], covs[j], setup.goals[j], plans[j], state.plans[j],
-                            replanner(setup, setup.goals[j], workspace, timer), budgets[j])
+                            replan_to(setup.goals[j]), budgets[j])
         steered = particle_steering(setup).steer(target, state.steering[j] if state.steering else (), rng)
         post = replace(posts[j], labels=steered.labels)
         beliefs.append(tracking.predict(post, setup.model, steered.controls, rng))

@@ -16,7 +16,7 @@ One abstract class for the role (``ParticleSteering``), chosen once from the con
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
@@ -124,8 +124,7 @@ class ReferenceSteering(ParticleSteering):
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         if not self.constrained(target.plan):
             return self.free(target, rng)
-        laws, metric, refs = reference_laws(self.setup.plan_steering, target.mean, target.cov, target.plan,
-                                            target.previous_plan, memory, target.replan)
+        laws, metric, refs = reference_laws(self.setup.plan_steering, target, memory)
         u = particle_controls(target.plan, target.post.particles, target.goal, self.setup, rng, laws, metric)
         return Steered(u, None, refs)
 
@@ -146,8 +145,7 @@ class SideSteering(ParticleSteering):
     def steer(self, target: TargetTick, memory: Any, rng: np.random.Generator) -> Steered:
         if not self.constrained(target.plan):
             return self.free(target, rng)  # a particle's side is dropped while the mean's plan is free
-        side_laws, modes = side_modes(self.setup, target.post, target.mean, target.cov, target.plan, memory,
-                                      target.previous_plan, target.replan, rng, target.budget)
+        side_laws, modes = side_modes(self.setup, target, memory, rng)
         u = particle_controls(target.plan, target.post.particles, target.goal, self.setup, rng, sides=side_laws)
         return Steered(u, side_laws.labels, modes)
 
@@ -230,19 +228,20 @@ def mahalanobis2(points: np.ndarray, centres: np.ndarray, metric: np.ndarray) ->
 # --------------------------------------------------------------------------- reference plans
 
 
-def reference_laws(ps: PlanSteering, mean: np.ndarray, cov: np.ndarray, plan: Plan, previous: Plan | None,
-                   previous_refs: Sequence[Plan | None], replan: Replan, sides: np.ndarray | None = None,
-                   budget: Budget | None = None) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
-    """The laws of the mean's plan and of plans from ``references`` points, pairs evenly spaced
-    out to +-``spread_sigma`` standard deviations along the cloud's major position axis (velocity
-    regressed on position, as the cloud correlates them), each planned as the mean is (warm-started
-    by last tick's plan from the same offset, else the mean's, so each may round an obstacle on its
-    own side; with ``sides``, never against them: ``guidance.in_class``); the position metric
-    (inverse covariance) that picks a particle's nearest reference; and the reference plans (next
-    tick's warm starts). A reference with no feasible plan is left out. With a ``budget`` (the
+def reference_laws(ps: PlanSteering, target: TargetTick, previous_refs: Sequence[Plan | None],
+                   sides: np.ndarray | None = None, budget: Budget | None = None
+                   ) -> tuple[list[LocalLaw], np.ndarray, tuple[Plan | None, ...]]:
+    """The laws of the mean's plan (``target``'s; its particles are not read) and of plans from
+    ``references`` points, pairs evenly spaced out to +-``spread_sigma`` standard deviations
+    along the cloud's major position axis (velocity regressed on position, as the cloud
+    correlates them), each planned as the mean is (warm-started by last tick's plan from the same
+    offset, else the mean's, so each may round an obstacle on its own side; with ``sides``, never
+    against them: ``guidance.in_class``); the position metric (inverse covariance) that picks a
+    particle's nearest reference; and the reference plans (next tick's warm starts). A reference with no feasible plan is left out. With a ``budget`` (the
     side modes'): each reference is warm-started by its own last plan, else by ``plan`` as it is,
     with at most ``REFERENCE_QPS`` of the budget and no search from scratch."""
-    C = cov[np.ix_(PLANAR, PLANAR)]
+    mean, plan, previous, replan = target.mean, target.plan, target.previous_plan, target.replan
+    C = target.cov[np.ix_(PLANAR, PLANAR)]
     Cpp = C[:2, :2] + 1e-6 * np.eye(2)
     metric = np.linalg.inv(Cpp)
     laws, refs = [plan.law], []
@@ -315,10 +314,10 @@ class Budget:
             self.left -= plan.qp_solves + (LAW_COST if plan.law is not None else 0)
 
 
-def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
-               previous: Sequence[SideMode], previous_plan: Plan | None, replan: Replan,
-               rng: np.random.Generator, budget: int | None = None) -> tuple[SideLaws, tuple[SideMode, ...]]:
-    """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``).
+def side_modes(setup: MonitorSetup, target: TargetTick, previous: Sequence[SideMode],
+               rng: np.random.Generator) -> tuple[SideLaws, tuple[SideMode, ...]]:
+    """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``); ``previous``:
+    its modes of the last tick.
 
     A true target keeps the side of an obstacle its plan took when the obstacle first bound it
     (its guidance is warm-started by its own last plan), and where both sides cost P1 about the
@@ -339,15 +338,37 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
        held to its sides and warm-started by their own plans of the last tick, then by the mode's
        plan of this tick, never searched from scratch (a mode born this tick has its own plan only).
 
-    All of it within ``budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
+    All of it within ``target.budget`` QP solves (None: ``TICK_QP_BUDGET``), spent on the modes holding the
     most weight first: the modes' re-plans (a mode whose plan cannot be shifted again is re-planned
     past the budget: a mode is never lost for want of QPs), then the births, then the references.
     A mode or reference the budget does not reach (or whose warm starts fail) keeps its plan of the
     last tick shifted by a tick (``Plan.shifted``: its law the next control's) for up to
     ``AHEAD_STEPS`` ticks.
     """
-    metric = np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2))
-    budget = Budget(TICK_QP_BUDGET if budget is None else budget)
+    metric = np.linalg.inv(target.cov[:2, :2] + 1e-6 * np.eye(2))
+    budget = Budget(TICK_QP_BUDGET if target.budget is None else target.budget)
+    planned = _planner_within(budget, target.replan)
+    labels, modes, stats, old = _carry_modes(target, previous, planned, metric, len(setup.obstacles))
+    n_old = len(modes)
+    _birth_sides(setup.plan_steering, labels, modes, stats, planned, rng)
+    weight = np.bincount(labels, weights=target.post.weights, minlength=len(modes))
+    refs_of: dict[int, tuple] = {}
+    for m in sorted(range(n_old), key=lambda m: -weight[m]):  # the heaviest modes' references first
+        centre, c = stats[m]  # the mode's particles, planned as a target of their own
+        mode_target = replace(target, mean=centre, cov=c, plan=modes[m].plan, previous_plan=old[m][0])
+        refs_of[m] = reference_laws(setup.plan_steering, mode_target, old[m][1], sides=modes[m].sides, budget=budget)
+    laws, group, out = [], [], []
+    for m, mode in enumerate(modes):
+        mode_laws, _, refs = refs_of[m] if m < n_old else ([mode.plan.law], None, ())
+        laws += mode_laws
+        group += [m] * len(mode_laws)
+        out.append(SideMode(mode.plan, mode.sides, refs))
+    return SideLaws(labels, laws, np.array(group), metric), tuple(out)
+
+
+def _planner_within(budget: Budget, replan: Replan) -> Callable:
+    """``replan`` within ``budget``: a plan of at most ``most`` QP solves (with ``force``, past the
+    budget when it is spent), None when not planned or without a feasible plan and law."""
 
     def planned(x, previous_plan, sides, strict=False, nearby=None, most=MODE_QPS, force=False):
         cap = budget.cap(most)
@@ -358,31 +379,14 @@ def side_modes(setup: MonitorSetup, ps: ParticleSet, mean: np.ndarray, cov: np.n
         p = replan(x, previous_plan, sides, strict, nearby=nearby, budget=cap)
         budget.spend(p)
         return p if p.feasible and p.law is not None else None
-
-    labels, modes, stats, old = _carry_modes(ps, mean, cov, plan, previous, previous_plan, planned, metric,
-                                             len(setup.obstacles))
-    n_old = len(modes)
-    _birth_sides(setup.plan_steering, labels, modes, stats, planned, rng)
-    weight = np.bincount(labels, weights=ps.weights, minlength=len(modes))
-    refs_of: dict[int, tuple] = {}
-    for m in sorted(range(n_old), key=lambda m: -weight[m]):  # the heaviest modes' references first
-        centre, c = stats[m]
-        refs_of[m] = reference_laws(setup.plan_steering, centre, c, modes[m].plan, old[m][0], old[m][1], replan,
-                                    sides=modes[m].sides, budget=budget)
-    laws, group, out = [], [], []
-    for m, mode in enumerate(modes):
-        mode_laws, _, refs = refs_of[m] if m < n_old else ([mode.plan.law], None, ())
-        laws += mode_laws
-        group += [m] * len(mode_laws)
-        out.append(SideMode(mode.plan, mode.sides, refs))
-    return SideLaws(labels, laws, np.array(group), metric), tuple(out)
+    return planned
 
 
-def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan, previous: Sequence[SideMode],
-                 previous_plan: Plan | None, planned: Callable, metric: np.ndarray, K: int):
+def _carry_modes(target: TargetTick, previous: Sequence[SideMode], planned: Callable, metric: np.ndarray, K: int):
     """``side_modes``' step 1: the labels (n,), the modes kept (re-planned, the heaviest first),
     each one's particles' (weighted mean, covariance), and its last plan and references (the
     warm starts)."""
+    ps, mean, cov, plan = target.post, target.mean, target.cov, target.plan
     w, x_all = ps.weights, ps.particles
 
     def moments(sel):
@@ -427,7 +431,7 @@ def _carry_modes(ps: ParticleSet, mean: np.ndarray, cov: np.ndarray, plan: Plan,
     labels = renumber[labels]
     if not modes:
         modes, stats = [SideMode(plan, np.zeros(K, dtype=int))], [(np.asarray(mean, float), cov)]
-        old = [(previous_plan, ())]
+        old = [(target.previous_plan, ())]
     lost = np.flatnonzero(labels < 0)
     if len(lost):
         labels[lost] = np.argmin(mahalanobis2(x_all[lost], np.array([c[:2] for c, _ in stats]), metric), axis=1)

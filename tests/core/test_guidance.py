@@ -275,7 +275,7 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     from dataclasses import replace as dc_replace
     from onboard.core.guidance import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, replanner
-    from onboard.core.steering import reference_laws
+    from onboard.core.steering import TargetTick, reference_laws
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_references=2,
                                                plan_spread_sigma=1.5))
     setup = MonitorSetup.from_scenario(sc)
@@ -284,14 +284,16 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
     plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
-    laws, metric, refs = reference_laws(setup.plan_steering, mean, cov, plan, None, (), replanner(setup, goal, ws, lambda: 0.0))
+    def target(setup, mean, plan, previous):  # reference_laws reads no particles
+        return TargetTick(None, mean, cov, goal, plan, previous, replanner(setup, goal, ws, lambda: 0.0))
+    laws, metric, refs = reference_laws(setup.plan_steering, target(setup, mean, plan, None), ())
     assert len(laws) == 3 and laws[0] is plan.law and len(refs) == 2
     np.testing.assert_allclose(metric, np.linalg.inv(cov[:2, :2] + 1e-6 * np.eye(2)))
     offsets = sorted(lw.x_ref[0] - mean[0] for lw in laws[1:])
     np.testing.assert_allclose(offsets, [-45.0, 45.0], atol=1e-6)  # 1.5 sigma east and west
     assert all(abs(lw.x_ref[1] - mean[1]) < 1e-6 for lw in laws[1:])
     four = MonitorSetup.from_scenario(dc_replace(sc, tracking=dc_replace(sc.tracking, plan_references=4)))
-    laws, _, _ = reference_laws(four.plan_steering, mean, cov, plan, None, (), replanner(four, goal, ws, lambda: 0.0))
+    laws, _, _ = reference_laws(four.plan_steering, target(four, mean, plan, None), ())
     np.testing.assert_allclose(sorted(lw.x_ref[0] - mean[0] for lw in laws[1:]), [-45.0, -22.5, 22.5, 45.0],
                                atol=1e-6)
     # next tick each reference is warm-started by its own plan from the same offset: it keeps
@@ -299,8 +301,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     mean2 = plan.means[0]
     plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan, workspace=ws,
                           with_feedback=True)
-    _, _, own = reference_laws(setup.plan_steering, mean2, cov, plan2, plan, refs, replanner(setup, goal, ws, lambda: 0.0))
-    _, _, cold = reference_laws(setup.plan_steering, mean2, cov, plan2, plan, (), replanner(setup, goal, ws, lambda: 0.0))
+    _, _, own = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), refs)
+    _, _, cold = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), ())
     pairs = [(a, b, c) for a, b, c in zip(refs, own, cold) if b is not None and c is not None]
     assert pairs
     for before, warm, from_mean in pairs:
@@ -410,7 +412,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     from onboard.core import tracking
     from onboard.core.guidance import GuidanceWorkspace, winding
     from onboard.core.monitor import replanner
-    from onboard.core.steering import particle_controls, side_modes
+    from onboard.core.steering import TargetTick, particle_controls, side_modes
     setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
     ws = GuidanceWorkspace()
     goal = setup.goals[0]
@@ -419,7 +421,8 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     ps = tracking.initialise(mean, cov, 2000, rng)
     m, c = tracking.estimate(ps)
     plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=True)
-    laws, modes = side_modes(setup, ps, m, c, plan, (), None, replanner(setup, goal, ws, lambda: 0.0), rng)
+    laws, modes = side_modes(setup, TargetTick(ps, m, c, goal, plan, None, replanner(setup, goal, ws, lambda: 0.0)),
+                             (), rng)
     labels = laws.labels
     assert len(modes) == 2 and modes[0].plan is plan
     assert winding(modes[0].plan.faces)[0] * winding(modes[1].plan.faces)[0] < 0
@@ -444,7 +447,8 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     m2, c2 = tracking.estimate(nxt)
     plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan, workspace=ws,
                           with_feedback=True)
-    laws2, modes2 = side_modes(setup, nxt, m2, c2, plan2, modes, plan, replanner(setup, goal, ws, lambda: 0.0), rng)
+    laws2, modes2 = side_modes(setup, TargetTick(nxt, m2, c2, goal, plan2, plan,
+                                                 replanner(setup, goal, ws, lambda: 0.0)), modes, rng)
     assert len(modes2) == 2
     np.testing.assert_array_equal(laws2.labels, nxt.labels)
     np.testing.assert_array_equal(laws2.group, [0, 0, 0, 1, 1, 1])

@@ -220,7 +220,7 @@ def test_a_planners_draws_never_shift_the_filters(paper):
         uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []
         for _ in range(3):
             bearings = tuple(np.array([0.5 + 0.1 * j]) for j in range(setup.n_targets))
-            state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=uav, workspace=ws,
+            state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav), workspace=ws,
                               planner_rng=prng if separate else None)
             out.append((np.stack([b.particles for b in state.beliefs]), res.planning))  # scans stay put
         return out
