@@ -1,6 +1,6 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
-    python -m bench.planner [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure bench/planner_tick.png]
+    python -m bench.planner [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure docs/planner_tick.png]
                             [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight,...]
                             [--clock wall|cpu] [--repeat 1] [--set tracking.plan_steering=true ...]
 
@@ -85,8 +85,8 @@ def main() -> None:
                     help="time ticks by the wall clock or by this process's CPU time")
     ap.add_argument("--repeat", type=int, default=1, help="fly each case this many times; each tick's least time")
     ap.add_argument("--figure", default="",
-                    help="where to write the figure (default: none; bench/planner_tick.png is the one docs/LOG.md "
-                         "shows, so a run does not rewrite a tracked file unless asked)")
+                    help="where to write the figure (default: none, so a run writes nothing in the repository; "
+                         "docs/planner_tick.png is the one docs/LOG.md shows)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     add_set_option(ap)
     args = ap.parse_args()
