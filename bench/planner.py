@@ -26,22 +26,23 @@ from __future__ import annotations
 
 import os
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+from sim.workers import one_blas_thread  # no numpy import
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import time  # noqa: E402
+one_blas_thread()  # before numpy loads: one core's figures
 
-import numpy as np  # noqa: E402
+import argparse
+import json
+import time
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from sim.closed_loop import tick_timings  # noqa: E402
-from onboard.config import load_scenario, override  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.policy import vehicle_motion, with_policy  # noqa: E402
-from sim.numerics import numerics_description  # noqa: E402
-from sim.multicopter import VehicleLimits  # noqa: E402
+import numpy as np
+
+from bench import add_set_option, set_label, set_overrides
+from sim.closed_loop import tick_timings
+from onboard.config import load_scenario, override
+from onboard.core.monitor import MonitorSetup
+from onboard.policy import vehicle_motion, with_policy
+from sim.numerics import numerics_description
+from sim.multicopter import VehicleLimits
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
          "flight~sides", "flight~nointent")
