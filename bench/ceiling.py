@@ -29,19 +29,21 @@ import os
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from sim.workers import one_blas_thread  # no numpy import
+
+one_blas_thread()  # before numpy loads: one core's figures
+
 from sim.numerics import PINNED  # no numpy import
 
 for _k, _v in PINNED.items():  # the evaluation's kernels (sim/numerics.py), set before numpy loads
     os.environ.setdefault(_k, _v)
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from bench.ceiling_cache import (DEFAULT_CACHE, FLIGHT, _setup, fill_cache, label,  # noqa: E402
+from bench.ceiling_cache import (DEFAULT_CACHE, FLIGHT, _setup, fill_cache, label,
                                  load_trial)
-from sim import ceiling as ce  # noqa: E402
-from sim import ceiling_search as cs  # noqa: E402
+from sim import ceiling as ce
+from sim import ceiling_search as cs
 
 DEFAULT_OUT = "/tmp/ceiling/out"
 

@@ -50,17 +50,17 @@ from sim.workers import one_blas_thread
 # run_trials), so only one thread gives the same figures in this process as in the workers
 one_blas_thread()
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.guidance import GuidanceWorkspace  # noqa: E402
-from onboard.core.monitor import Scan, UavState, initial_state, tick  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.guided import enu, fly_plan, ned  # noqa: E402
-from sim.multicopter import VehicleState  # noqa: E402
-from sim.sensors import df_scan  # noqa: E402
-from sim.truth import simulate_truth  # noqa: E402
+from bench import add_set_option, set_label, set_overrides
+from onboard.config import load_scenario
+from onboard.core.guidance import GuidanceWorkspace
+from onboard.core.monitor import Scan, UavState, initial_state, tick
+from sim import evaluation as ev
+from sim.guided import enu, fly_plan, ned
+from sim.multicopter import VehicleState
+from sim.sensors import df_scan
+from sim.truth import simulate_truth
 
 VARIANTS = {  # name -> (autopilot parameters, launch)
     "eval": ("stock", False),

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from sim.workers import one_blas_thread  # no numpy import
+
+one_blas_thread()  # before numpy loads: one core's figures
 
 import daqp
 import numpy as np

@@ -15,22 +15,21 @@ the commit its figures are of: the truth depends on the guidance).
 """
 from __future__ import annotations
 
-import os
+from sim.workers import one_blas_thread  # no numpy import
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+one_blas_thread()  # before numpy loads: one core's figures
 
-import argparse  # noqa: E402
-import itertools  # noqa: E402
-from dataclasses import replace  # noqa: E402
+import argparse
+import itertools
+from dataclasses import replace
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from onboard.config import load_scenario  # noqa: E402
-from onboard.core.guidance import GuidanceWorkspace, plan_guidance, winding  # noqa: E402
-from onboard.core.guidance_search import FaceSearch, GuidanceRequest  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.truth import TruthWorld  # noqa: E402
+from onboard.config import load_scenario
+from onboard.core.guidance import GuidanceWorkspace, plan_guidance, winding
+from onboard.core.guidance_search import FaceSearch, GuidanceRequest
+from sim import evaluation as ev
+from sim.truth import TruthWorld
 
 
 def describe(name: str, plan) -> str:

@@ -1,6 +1,6 @@
 """Tick time with each UAV planner on the paper scenario, on one core.
 
-    python -m bench.planner [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure bench/planner_tick.png]
+    python -m bench.planner [--ticks 60] [--seed 1 | --seeds 1,2,3] [--figure docs/planner_tick.png]
                             [--cases greedy/jump,lookahead/jump,greedy/vehicle,lookahead/vehicle,flight,...]
                             [--clock wall|cpu] [--repeat 1] [--set tracking.plan_steering=true ...]
 
@@ -26,22 +26,23 @@ from __future__ import annotations
 
 import os
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+from sim.workers import one_blas_thread  # no numpy import
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import time  # noqa: E402
+one_blas_thread()  # before numpy loads: one core's figures
 
-import numpy as np  # noqa: E402
+import argparse
+import json
+import time
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from sim.closed_loop import tick_timings  # noqa: E402
-from onboard.config import load_scenario, override  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from onboard.policy import vehicle_motion, with_policy  # noqa: E402
-from sim.numerics import numerics_description  # noqa: E402
-from sim.multicopter import VehicleLimits  # noqa: E402
+import numpy as np
+
+from bench import add_set_option, set_label, set_overrides
+from sim.closed_loop import tick_timings
+from onboard.config import load_scenario, override
+from onboard.core.monitor import MonitorSetup
+from onboard.policy import vehicle_motion, with_policy
+from sim.numerics import numerics_description
+from sim.multicopter import VehicleLimits
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
          "flight~sides", "flight~nointent")
@@ -85,8 +86,8 @@ def main() -> None:
                     help="time ticks by the wall clock or by this process's CPU time")
     ap.add_argument("--repeat", type=int, default=1, help="fly each case this many times; each tick's least time")
     ap.add_argument("--figure", default="",
-                    help="where to write the figure (default: none; bench/planner_tick.png is the one docs/LOG.md "
-                         "shows, so a run does not rewrite a tracked file unless asked)")
+                    help="where to write the figure (default: none, so a run writes nothing in the repository; "
+                         "docs/planner_tick.png is the one docs/LOG.md shows)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     add_set_option(ap)
     args = ap.parse_args()

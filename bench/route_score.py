@@ -26,22 +26,21 @@ score ratio (the EKF is conservative close in, docs/PLANNING.md). Last line: JSO
 """
 from __future__ import annotations
 
-import os
+from sim.workers import one_blas_thread  # no numpy import
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+one_blas_thread()  # before numpy loads: one core's figures
 
-import argparse  # noqa: E402
-import json  # noqa: E402
+import argparse
+import json
 
-import numpy as np  # noqa: E402
-from scipy import stats  # noqa: E402
+import numpy as np
+from scipy import stats
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from onboard.config import load_scenario, override  # noqa: E402
-from onboard.core.monitor import MonitorSetup  # noqa: E402
-from sim.route_score import compare_routes, snapshots  # noqa: E402
-from onboard.policy import with_policy  # noqa: E402
+from bench import add_set_option, set_label, set_overrides
+from onboard.config import load_scenario, override
+from onboard.core.monitor import MonitorSetup
+from sim.route_score import compare_routes, snapshots
+from onboard.policy import with_policy
 
 
 def main() -> None:

@@ -18,10 +18,10 @@ import warnings
 import xml.etree.ElementTree as ET
 
 warnings.simplefilter("ignore")
-import pytak  # noqa: E402
+import pytak
 
-from sim.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
-from sim.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
+from sim.hub_rig import FRAME, TARGETS, Rig
+from sim.cot import SIGMA, one_sigma_radius_m, split_xml
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--port", type=int, required=True, help="the TAK server's TCP CoT port on 127.0.0.1")

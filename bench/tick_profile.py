@@ -2,7 +2,7 @@
 
     python -m bench.tick_profile [--case flight] [--seeds 1,2,3] [--ticks 60] [--top 25] [--set KEY=VALUE ...]
 
-The same loops as `bench/planner.py --cases CASE` (one BLAS thread, the paper scenario under the
+The same loops as `python -m bench.planner --cases CASE` (one BLAS thread, the paper scenario under the
 flight policy at ArduCopter's stock limits), profiled whole; prints the functions of onboard/ by
 cumulative time with their call counts, then one JSON line: total seconds and calls of the
 guidance's searches (``plan_guidance``, ``FaceSearch.explore``) and the steering's plans
@@ -10,10 +10,9 @@ guidance's searches (``plan_guidance``, ``FaceSearch.explore``) and the steering
 """
 from __future__ import annotations
 
-import os
+from sim.workers import one_blas_thread  # no numpy import
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+one_blas_thread()  # before numpy loads: one core's figures
 
 import argparse
 import cProfile

@@ -22,23 +22,24 @@ from __future__ import annotations
 
 import os
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+from sim.workers import one_blas_thread  # no numpy import
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-from collections import Counter  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from itertools import groupby  # noqa: E402
+one_blas_thread()  # before numpy loads: one core's figures
 
-import numpy as np  # noqa: E402
+import argparse
+import json
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from itertools import groupby
 
-from bench import add_set_option, set_label, set_overrides  # noqa: E402
-from onboard.config import load_scenario  # noqa: E402
-from sim import evaluation as ev  # noqa: E402
-from sim.truth import TruthWorld  # noqa: E402
-from sim.truth_plans import JUMP, JUMP_FLOOR, trial_statuses  # noqa: E402
-from onboard.core.guidance import winding  # noqa: E402
+import numpy as np
+
+from bench import add_set_option, set_label, set_overrides
+from onboard.config import load_scenario
+from sim import evaluation as ev
+from sim.truth import TruthWorld
+from sim.truth_plans import JUMP, JUMP_FLOOR, trial_statuses
+from onboard.core.guidance import winding
 
 
 def _depth(obstacles, xy: np.ndarray) -> float:

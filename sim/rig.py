@@ -202,7 +202,8 @@ class Rig:
             self.proxy = TcpProxy(("127.0.0.1", self.port(APP_PORT)))
             url = f"tcp:127.0.0.1:{self.proxy.port}"
         if cfg.in_process:
-            from onboard.app.app import AppConfig, OnboardApp
+            from onboard.app.app_config import AppConfig
+            from onboard.app.app import OnboardApp
             from onboard.config import override
             sc = self.sc if self.kraken_url is None else override(self.sc, {"kraken.url": self.kraken_url})
             extra = {"rt_priority": app_priority(), **dict(cfg.app_config)}

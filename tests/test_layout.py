@@ -23,22 +23,15 @@ PARTS = {"core", "app", "sim", "gcs", "firmware", "examples"}
 PACKAGES = ("onboard", "sim", "groundstation", "bench")
 
 
-def imported_names(path: Path, skip_type_checking: bool = False) -> list[tuple[int, str]]:
-    """(line, dotted name) of every import in a file, at any depth (a function's lazy import
-    too); relative imports resolved against the file's package. ``skip_type_checking``: leave out
-    what is imported under ``if TYPE_CHECKING:`` (never at run time)."""
+def imported_names(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted name) of every import in a file, at any depth (a function's lazy import,
+    and what is imported under ``if TYPE_CHECKING:`` for the annotations only, too); relative
+    imports resolved against the file's package."""
     tree = ast.parse(path.read_text(), str(path))
     rel = path.relative_to(ROOT).with_suffix("").parts
     pkg = list(rel if path.name == "__init__.py" else rel[:-1])
-    skip: set[int] = set()
-    if skip_type_checking:
-        for node in ast.walk(tree):
-            if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-                skip |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
     out = []
     for node in ast.walk(tree):
-        if id(node) in skip:
-            continue
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -71,7 +64,10 @@ def test_every_test_module_is_in_the_folder_of_its_part():
 
 
 def _module_graph() -> dict[str, set[str]]:
-    """File-level import graph of the packages and bench/, run-time imports only, every depth."""
+    """File-level import graph of the packages and bench/, every import at every depth: a
+    function's lazy one, and one under ``if TYPE_CHECKING:`` too (two modules that need each
+    other's names only for annotations still hold one role between them: the shared names go in
+    a module of their own that both import)."""
     mods = {}
     for pkg in PACKAGES:
         for p in (ROOT / pkg).rglob("*.py"):
@@ -82,7 +78,7 @@ def _module_graph() -> dict[str, set[str]]:
         while name and name not in mods:
             name = name.rpartition(".")[0]
         return name or None
-    return {m: {t for _, n in imported_names(p, skip_type_checking=True) if (t := owner(n)) and t != m}
+    return {m: {t for _, n in imported_names(p) if (t := owner(n)) and t != m}
             for m, p in mods.items()}
 
 
@@ -125,11 +121,25 @@ def test_cycles_finds_a_cycle_and_only_cycles():
     assert cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
 
 
+def test_an_annotation_only_import_closes_a_cycle(tmp_path, monkeypatch):
+    """A module that takes another's names under ``if TYPE_CHECKING:`` still depends on it."""
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "a.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                           "    from pkg.b import B\n")
+    (tmp_path / "pkg" / "b.py").write_text("from .a import A\n")
+    monkeypatch.setitem(globals(), "ROOT", tmp_path)  # imported_names resolves against ROOT
+    mods = ("pkg.a", "pkg.b")
+    graph = {m: {t for t in mods if t != m and t in {n for _, n in imported_names(tmp_path / "pkg" / f"{m[-1]}.py")}}
+             for m in mods}
+    assert graph == {"pkg.a": {"pkg.b"}, "pkg.b": {"pkg.a"}}
+    assert cycles(graph) == [["pkg.a", "pkg.b"]]
+
+
 def test_onboard_imports_nothing_from_sim_or_groundstation():
     """onboard/ is what flies: not even a lazy import of the simulator or the ground station."""
     bad = [f"{m} imports {t}" for m, ts in _module_graph().items() if m.startswith("onboard")
            for t in ts if t.split(".")[0] != "onboard"]
-    for p in (ROOT / "onboard").rglob("*.py"):  # TYPE_CHECKING imports too
+    for p in (ROOT / "onboard").rglob("*.py"):  # tests/ too, which the graph leaves out
         bad += [f"{p.relative_to(ROOT)}:{line} imports {n}" for line, n in imported_names(p)
                 if n.split(".")[0] in ("sim", "groundstation", "bench", "tests")]
     assert not bad, "\n".join(bad)

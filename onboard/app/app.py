@@ -46,20 +46,20 @@ import math
 import select
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from onboard.app import datagram as dg
 from onboard.app import launch
+from onboard.app.app_config import AppConfig
 from onboard.app.autopilot_side import AutopilotSide
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
 from onboard.app.context import AppContext
 from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
 from onboard.app.counters import Counters
-from onboard.app.df_input import DEFAULT_RATE_HZ, DfInput, Source
+from onboard.app.df_input import DfInput
 from onboard.app.df_scans import DfScans
 from onboard.app.dispatch import Router
 from onboard.app.kraken import KrakenInput
@@ -87,40 +87,6 @@ log = logging.getLogger("pmon.app")
 IO_MAVLINK_MAX = 500  # MAVLink messages handled per io iteration, then the periodic jobs
 IO_DF_MAX = 200  # DF datagrams parsed per io iteration (the reader's rate limit bounds the rest)
 SERVICE_STALE_S = 2.0  # local s: an io loop silent this long gets no service watchdog ping
-
-
-@dataclass(frozen=True)
-class AppConfig:
-    mavlink_url: str
-    sensor_host: str = "127.0.0.1"
-    sensor_port: int = 14600  # 0: pick a free port (see OnboardApp.sensor_port)
-    baud: int = 57600
-    target_system: int | None = None  # None: the first autopilot heard
-    auto_launch: bool = False  # the demo's "by itself": GUIDED, arm, take off, start
-    seed: int = 0
-    runlog_path: str | None = None
-    tlog_path: str | None = None
-    link_timeout_s: float = 3.0  # local seconds without autopilot heartbeats -> link lost
-    # system ids whose commands and parameter writes are obeyed (reads are answered to anyone)
-    gcs_sysids: tuple[int, ...] = (255,)
-    signing_key_path: str | None = None  # MAVLink 2 signing key file (onboard/app/signing.py)
-    # with a key: the autopilot's own packets taken unsigned (one that cannot sign: PX4 v1.16);
-    # everyone else's must still be signed (docs/SAFETY.md)
-    autopilot_unsigned: bool = False
-    history: int = 600  # tick records kept in memory (app.ticks, ~3 kB each); the run log keeps all
-    watchdog_s: float = 3.0  # autopilot s a tick may run (or the io loop stall) before a report
-    # autopilot s between returns of freed heap memory to the OS (glibc malloc_trim, by the idle
-    # worker); 0: never. A tick's planning allocates tens of MB for a moment; without this the
-    # allocator keeps the largest such peak resident for good (see docs/SAFETY.md, long flights)
-    trim_memory_s: float = 60.0
-    # DF senders accepted (onboard/app/df_input.py); empty: the first peer whose datagram is valid
-    df_sources: tuple[Source, ...] = ()
-    df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
-    # PX4's event metadata (its build's etc/extras/all_events.json.xz): its EVENTs said in words
-    px4_events_path: str | None = None
-    kraken: bool = False  # also read a KrakenSDR's DoA output at the scenario's kraken.url (kraken.py)
-    # SCHED_FIFO priority of the io thread, the worker one below (onboard/app/realtime.py); 0: normal
-    rt_priority: int = 0
 
 
 class OnboardApp:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Callable
 from onboard.app.counters import Counters
 
 if TYPE_CHECKING:
-    from onboard.app.app import AppConfig
+    from onboard.app.app_config import AppConfig
     from onboard.app.mavlink_connection import Link
     from onboard.app.params import ParamTable
 

@@ -14,7 +14,7 @@ from onboard.app.plan_limits import PlanLimits
 from onboard.core import tracking
 from onboard.core.guidance import GuidanceWorkspace
 from onboard.core.monitor import MonitorSetup, initial_state
-from onboard.core.planning import CandidateGrid
+from onboard.core.planning_inputs import CandidateGrid
 from onboard.core.tracking import ParticleSet
 
 

@@ -77,7 +77,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from onboard.app.app import AppConfig, OnboardApp
+    from onboard.app.app_config import AppConfig
+    from onboard.app.app import OnboardApp
     from onboard.app.px4_events import EventMetadataError
     from onboard.app.signing import KeyFileError
     from onboard.config import ConfigError

@@ -10,7 +10,7 @@ A tick t runs the paper's filter and planner in their order, from the beliefs he
   4. predict each belief to t+1 with its guidance (eq. (9a)): the particles' controls come
      from the configured particle steering (``steering``: the plan's first control, the free law
      where it is exact, reference plans when configured), noise Q;
-  5. plan the next UAV position s_(t+1) from ``plan_from`` (a ``planning.UavState``) with the
+  5. plan the next UAV position s_(t+1) from ``plan_from`` (a ``planning_inputs.UavState``) with the
      configured planner (``planners``: the paper's greedy rule by pseudo-updating those
      predictions, the lookahead, or a baseline).
 """
@@ -26,7 +26,8 @@ from onboard.core import intent_tick, tracking
 from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
-from onboard.core.planning import PlanningResult, UavState
+from onboard.core.planning import PlanningResult
+from onboard.core.planning_inputs import UavState
 from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
                                    SideMode, SideSteering, TargetTick)
 
@@ -108,7 +109,7 @@ def tick(setup: MonitorSetup, state: MonitorState, scans: Sequence[Scan], rng: n
          timer: Callable[[], float] = time.perf_counter, planner_rng: np.random.Generator | None = None
          ) -> tuple[MonitorState, TickResult]:
     """Run one tick (the module's steps 1-5). ``plan_from``: where the planner starts from, the
-    UAV where it is or will be at the next tick (``planning.UavState``: its position, ENU m; its
+    UAV where it is or will be at the next tick (``planning_inputs.UavState``: its position, ENU m; its
     planar velocity, for the vehicle motion; the plan's planar acceleration, for a continuous one,
     ``planning.jerk_max_mps3`` > 0); None skips the UAV planning (e.g. fixed sensors).
     ``planner_rng``: the planner's own random stream (the random baseline draws from it; default

@@ -12,7 +12,7 @@ from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance import FreeLaw, GuidanceParams, free_law
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import CandidateGrid, LookaheadParams, UavMotion
+from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,9 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from onboard.core.information import information_reduction_factor
-from onboard.core.planning import (Area, CandidateGrid, LookaheadParams, Moves, PlanningResult, RouteScoring, UavMotion,
-                                   UavState, candidate_positions, choose_lookahead, choose_next_position)
+from onboard.core.planning import (Area, Moves, PlanningResult, RouteScoring, candidate_positions, choose_lookahead,
+                                   choose_next_position)
+from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion, UavState
 
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel

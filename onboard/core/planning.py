@@ -3,11 +3,12 @@ bearings (eq. (11)) and the argmin of summed traces (eq. (12)); beyond the paper
 between ticks and the non-myopic route planner (its route geometry: onboard/core/routes.py).
 
 What a planner is asked travels as frozen requests: ``UavState`` (where the UAV plans from),
-``Moves`` (how and where it may move) and, for the lookahead, ``RouteScoring``.
+``Moves`` (how and where it may move) and, for the lookahead, ``RouteScoring``; the pieces the
+route geometry shares (the grid, ``UavState``, ``UavMotion``, ``LookaheadParams``) are in
+onboard/core/planning_inputs.py.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,24 +17,11 @@ from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
-from onboard.core.routes import (blocking_2d, fly_routes, inside_2d, planar_norms, route_polylines, route_waypoints,
-                                 sample_routes)
-from onboard.core.setpoint import ramp_displacement, ramp_velocity
+from onboard.core.planning_inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion, UavState
+from onboard.core.routes import blocking_2d, fly_routes, inside_2d, route_polylines, route_waypoints, sample_routes
 from onboard.core.tracking import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
-
-
-@dataclass(frozen=True)
-class CandidateGrid:
-    step_m: float  # Delta_r
-    n_radial: int  # N_r
-    n_heading: int  # N_theta
-    altitude_m: float  # h
-
-    @classmethod
-    def from_config(cls, u) -> "CandidateGrid":
-        return cls(u.step_m, u.n_radial, u.n_heading, u.altitude_m)
 
 
 def candidate_positions(center: np.ndarray, grid: CandidateGrid) -> np.ndarray:
@@ -118,17 +106,6 @@ class Area:
         return admissible(candidates, start, self.minimum, self.maximum, self.obstacles)
 
 
-@dataclass(frozen=True, eq=False)
-class UavState:
-    """Where the UAV plans from: its position (ENU m; the planners read x and y), its planar
-    velocity there (ENU m/s; None: at rest) and the plan's planar acceleration there (ENU m/s^2,
-    a continuous acceleration's; None: 0)."""
-
-    position: np.ndarray
-    velocity: np.ndarray | None = None
-    acceleration: np.ndarray | None = None
-
-
 def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, uav: UavState, moves: Moves,
                          sigma_rad: float, objective: str = "trace", dt: float = 1.0) -> PlanningResult:
     """Eq. (12) over the admissible next positions around ``uav.position``: the paper's S_(t+1)
@@ -147,51 +124,6 @@ def choose_next_position(particles: np.ndarray, log_weights: np.ndarray, uav: Ua
 
 
 # --------------------------------------------------------------------------- beyond the paper
-
-
-@dataclass(frozen=True)
-class UavMotion:
-    """How the UAV moves between ticks.
-
-    ``jump``: the paper's model, any point of the polar grid S_(t+1) is reached in one tick.
-    ``vehicle``: a multicopter with a speed and an acceleration limit (double integrator;
-    ArduCopter's WPNAV_SPEED and WPNAV_ACCEL defaults, the scenario's, reproduce the measured 5.6 s
-    for a 20 m step from hover); the next positions are those reached in one tick under a
-    constant acceleration of N_r magnitudes (a_max k / N_r) in N_theta directions, or none.
-    ``jerk_max_mps3`` > 0: the acceleration is continuous instead, changing linearly over each
-    tick from where the last tick left it to the one asked for, by at most jerk_max_mps3 times
-    the tick (onboard/core/setpoint.py: what ArduCopter's jerk-limited GUIDED follows).
-    """
-
-    kind: str  # jump | vehicle
-    speed_max_mps: float  # vehicle only
-    accel_max_mps2: float  # vehicle only
-    jerk_max_mps3: float  # vehicle only; 0: the acceleration steps at each tick
-
-    @classmethod
-    def from_config(cls, planning) -> "UavMotion":
-        """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
-        return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2, planning.jerk_max_mps3)
-
-    def step(self, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_new: np.ndarray, dt: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Continuous acceleration (``jerk_max_mps3`` > 0): one tick from position, velocity and
-        acceleration ``a`` (C, 2) asking for the acceleration ``a_new`` (|a_new| <= a_max): it
-        ramps to it over the tick, the change capped at jerk_max_mps3 dt, the end speed at
-        speed_max_mps (the end acceleration then what gives that speed). Returns (p, v, a) at
-        the tick's end."""
-        dj = a_new - a
-        n = planar_norms(dj)
-        a_end = a + dj * np.minimum(1.0, self.jerk_max_mps3 * dt / np.maximum(n, 1e-12))
-        v_new = ramp_velocity(v, a, a_end, dt)
-        sp = planar_norms(v_new)
-        v_new = v_new * np.minimum(1.0, self.speed_max_mps / np.maximum(sp, 1e-12))
-        a_end = 2.0 * (v_new - v) / dt - a
-        disp = ramp_displacement(v, a, a_end, dt)
-        return p + disp, v_new, a_end
-
-
-JUMP = UavMotion("jump", math.inf, math.inf, 0.0)  # the paper's motion: no speed or acceleration limit applies
 
 
 @dataclass(frozen=True, eq=False)
@@ -283,32 +215,6 @@ def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
     last = np.minimum(np.arange(H)[None, :], n_ok[:, None] - 1)  # -1: the start
     held = ext[np.arange(C)[:, None], last + 1]
     return alive[:, 0].copy(), held
-
-
-@dataclass(frozen=True)
-class LookaheadParams:
-    """The route planner's knobs (docs/PLANNING.md argues each value).
-
-    ranges_m x n_headings: waypoints on a polar grid around the UAV; the targets' predicted
-    positions (and their centroid) half-way and at the end of the horizon are waypoints too.
-    Each route flies the shortest obstacle-free polyline to its waypoint at the motion's speed
-    limit, then circles (left or right) through it with radius loiter_radius_m: a route always
-    keeps moving, so the line of sight keeps turning. A route's score is the sum over the
-    horizon and the targets of tr P_pos, position only and undiscounted (docs/PLANNING.md says
-    why).
-    """
-
-    ranges_m: tuple[float, ...]  # m
-    n_headings: int
-    loiter_radius_m: float
-    corner_clearance_m: float
-    spacing_m: float  # arc-length resolution of the sampled routes, m
-
-    @classmethod
-    def from_config(cls, c) -> "LookaheadParams":
-        """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
-        the defaults, units and ranges)."""
-        return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)
 
 
 @dataclass(frozen=True, eq=False)

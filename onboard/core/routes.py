@@ -4,20 +4,10 @@ around the polygons, the routes sampled along them and a circle at their end, an
 positions flying them."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from onboard.core.obstacles import Obstacles, polygons_crossed
-
-if TYPE_CHECKING:
-    from onboard.core.planning import CandidateGrid, LookaheadParams, UavMotion, UavState
-
-
-def planar_norms(xy: np.ndarray) -> np.ndarray:
-    """|xy| of planar vectors (C, 2) as (C, 1): np.linalg.norm's values (sqrt(x x + y y)) without
-    its generic path, which costs more than the arithmetic in the route planner's loops."""
-    return np.sqrt(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1])[:, None]
+from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion, UavState, planar_norms
 
 
 def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:

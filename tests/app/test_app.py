@@ -12,7 +12,8 @@ from onboard.app.mavlink2 import mavlink
 from sim.autopilot import BootTimeline, MockAutopilot, Mode
 
 from onboard.app import datagram as dg
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.contract import Reason, State
 from onboard.app.params import SPECS
 from onboard.config import load_scenario

@@ -11,7 +11,8 @@ from onboard.app.mavlink2 import mavlink, mavutil
 
 from tests.support.app_helpers import wait_for
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, profile_for
 from onboard.app.clock import ManualClock
 from onboard.config import load_scenario

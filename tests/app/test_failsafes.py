@@ -30,7 +30,8 @@ from sim.priority import app_config_priority, vehicle_threads
 from tests.support.mavlink_gcs import Gcs
 from tests.support.app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, wait_for
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.policy import with_policy

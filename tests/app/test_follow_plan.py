@@ -15,7 +15,8 @@ from sim.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.setpoint import plan_setpoint

@@ -27,7 +27,8 @@ from sim.autopilot import BootTimeline, MockAutopilot
 
 from tests.support.app_helpers import ScriptedDf, wait_autopilot_s, wait_for
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.app.pose import Frame
 from onboard.config import load_scenario

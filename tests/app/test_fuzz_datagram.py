@@ -20,7 +20,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from onboard.app import datagram as dg
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.config import load_scenario
 from onboard.policy import with_policy

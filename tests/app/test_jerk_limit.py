@@ -13,7 +13,7 @@ import pytest
 from onboard.app.mavlink2 import mavlink
 
 from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, arducopter_jerk_xy
-from onboard.app.app import AppConfig
+from onboard.app.app_config import AppConfig
 from onboard.app.autopilot_side import AutopilotSide
 from onboard.app.context import AppContext
 from onboard.app.counters import Counters

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from onboard.app import kraken_line as kl
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.kraken_fetch import DocumentPoller, FileSource, HttpSource
 from onboard.app.pose import PoseSample

@@ -13,7 +13,8 @@ import pytest
 from tests.support.app_helpers import wait_for
 
 from onboard.app import datagram as dg
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.contract import OVERRUN_STAGES, STAT_FIELDS
 from onboard.app.overrun import StageTimer, core_stages, overrun_stage, stage_code
 from onboard.config import load_scenario

@@ -14,7 +14,8 @@ from onboard.app.mavlink2 import mavlink, mavutil
 
 from tests.support.app_helpers import wait_for
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.px4_events import EventMetadata, EventMetadataError, decode_event
 from onboard.config import load_scenario
 from onboard.policy import with_policy

@@ -17,7 +17,8 @@ from onboard.app.mavlink2 import mavlink, mavutil
 from sim.autopilot import BootTimeline, MockAutopilot
 
 from onboard.app import signing
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 

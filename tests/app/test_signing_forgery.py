@@ -31,7 +31,8 @@ from tests.support.app_helpers import wait_for
 
 from groundstation.gcs_link import GcsLink
 from onboard.app import signing
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 

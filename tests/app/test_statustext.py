@@ -10,7 +10,8 @@ from onboard.app.mavlink2 import mavlink
 from sim.autopilot import BootTimeline, MockAutopilot
 
 from groundstation.gcs_link import GcsLink
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.statustext import CHUNK, Reassembler, chunks, send_statustext
 from onboard.config import load_scenario
 from onboard.policy import with_policy

@@ -75,7 +75,8 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 
 # --------------------------------------------------------------------------- beyond the paper
 
-from onboard.core.planning import JUMP, UavState, choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning import choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning_inputs import JUMP, UavState  # noqa: E402
 
 
 def test_vehicle_reachable_set_respects_speed_and_acceleration():

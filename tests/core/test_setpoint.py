@@ -5,7 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from onboard.core.planning import UavState, choose_lookahead, choose_next_position
+from onboard.core.planning import choose_lookahead, choose_next_position
+from onboard.core.planning_inputs import UavState
 from onboard.core.setpoint import plan_setpoint
 from sim.guided import enu, fly_plan
 from sim.multicopter import VehicleState, advance_input

@@ -215,8 +215,8 @@ def test_speed_limits_on_position_targets(speed):
 
 @pytest.mark.timeout(20)
 def test_velocity_commands_are_not_capped_at_wpnav_speed():
-    """As ArduCopter (the SITL flew 10.08 m/s for a 12 m/s command at WPNAV_SPEED 400: python
-    bench/sitl_response.py --limits stock --param WPNAV_SPEED=400 --cases top): a velocity command
+    """As ArduCopter (the SITL flew 10.08 m/s for a 12 m/s command at WPNAV_SPEED 400: python -m
+    bench.sitl_response --limits stock --param WPNAV_SPEED=400 --cases top): a velocity command
     is flown up to the airframe's top speed; the climb rate is capped."""
     limits = VehicleLimits(speed_xy=4.0)
     state = HOVER

@@ -11,7 +11,8 @@ from typing import Callable
 
 import numpy as np
 
-from onboard.app.app import AppConfig, OnboardApp
+from onboard.app.app_config import AppConfig
+from onboard.app.app import OnboardApp
 from onboard.app.clock import ManualClock
 from onboard.app.pose import PoseSample
 from onboard.config import load_scenario, override
