@@ -72,9 +72,10 @@ def flight(tmp_path_factory):
     rec: dict = {"out": out}
     counter = LinkCounter(compid=APP_COMPID)
     # DISARM_DELAY 0: the take-off's pmon gcs, started at nice 19 on a loaded machine, came 13
-    # autopilot s after the arm (speedup 3), past the 10 s ArduCopter disarms an idle copter after
-    cfg = MissionConfig(speedup=3.0, params={**RECOMMENDED_PARAMS, "DISARM_DELAY": 0}, feed_duration_s=600, seed=5, link_proxy=True,
-                        app_args=("--advise",))
+    # autopilot s after the arm at speedup 3, past the 10 s ArduCopter disarms an idle copter after
+    # speedup 2: at 3 a loaded machine's overruns skipped scans (counted; the test allows them)
+    cfg = MissionConfig(speedup=2.0, params={**RECOMMENDED_PARAMS, "DISARM_DELAY": 0}, feed_duration_s=600,
+                        seed=5, link_proxy=True, app_args=("--advise",))
     with Mission(cfg, out, link_tap=counter.feed) as m:
         rec["m"] = m
         m.fast_boot()
@@ -138,9 +139,13 @@ def test_estimates_and_a_plan_from_the_vehicle_every_tick_while_advising(flight)
     ticks = [t for t in flight["ticks"] if flight["t_auto"] + 2.0 <= t["t"] <= flight["t_start"] - 1.0]
     assert len(ticks) >= ADVISE_S * 0.9, len(ticks)
     assert all(t["state"] == 5 for t in ticks)
+    # a tick (estimates, PMON_TGT, a plan) every scan, or the scan counted skipped by an overrun
+    # (the app's way under load, any state: docs/MAVLINK.md "The 1 Hz loop"): none lost unsaid
     gaps = np.diff([t["t"] for t in ticks])
-    assert gaps.max() < 1.5, gaps.max()  # a tick (estimates, PMON_TGT) every second
-    print(f"advisory: {len(ticks)} ticks in AUTO, the longest gap {gaps.max():.2f} s, each planned from the vehicle")
+    skipped = [t["skipped_before"] for t in ticks[1:]]
+    assert np.allclose(gaps, 1.0 + np.array(skipped)), list(zip(gaps, skipped))
+    print(f"advisory: {len(ticks)} ticks in AUTO, {sum(skipped)} scans skipped by overruns, each tick planned "
+          f"from the vehicle")
     assert all(t["next"] is not None and t["plan_from"] == t["uav_enu"] and not t["sent"] for t in ticks)
 
 
