@@ -31,6 +31,8 @@ COMMANDS = """commands:
   takeoff ALT [--wait]        take off to ALT m above home (--wait: until there; --timeout
                               bounds the time without climbing)
   start | pause | resume | stop | launch     the onboard app's monitoring
+  advise                      the onboard app to advisory: it plans and shows its next waypoint,
+                              commands nothing (start hands the vehicle over to it)
   hold                        stop and hold position: ArduCopter BRAKE, PX4 Hold (the app sees a pilot override)
   mode NAME                   a flight mode in the autopilot's names, e.g. LOITER (ArduCopter), POSCTL,
                               AUTO.LOITER or HOLD (PX4): a pilot's mode switch
@@ -121,6 +123,7 @@ def _flight_commands(add) -> None:
                    help="return when at ALT; fails when the climb makes no progress for --timeout s")
     for name in ("start", "pause", "resume", "stop", "launch"):
         add(name, f"onboard app: {name}")
+    add("advise", "onboard app: advisory (plan and publish the next waypoint, command nothing)")
     add("hold", "stop and hold position (ArduCopter BRAKE, PX4 Hold)")
     m = add("mode", "set a flight mode by the autopilot's name for it (ArduCopter: LOITER, BRAKE, ...; "
             "PX4: POSCTL, AUTO.LOITER or HOLD, ...)")

@@ -122,6 +122,7 @@ def _app_status(state: str, st: P.AppStatus, params: dict | None) -> dict:
             "kraken": None if st.kraken is None else dict(zip(("frames", "rejected", "gated"), st.kraken)),
             "uav_enu_m": list(st.uav_enu) if st.uav_enu else None,
             "next_enu_m": list(st.next_enu) if st.next_enu else None,
+            "advice_enu_m": list(st.advice_enu) if st.advice_enu else None,
             "params": params}
 
 
@@ -136,7 +137,7 @@ def _app_lines(state: str, st: P.AppStatus, params: dict | None) -> list[str]:
         f"setpoints refused {st.setpoints_refused}",
         *([] if st.kraken is None else [
             f"  KrakenSDR {st.kraken[0]} frames, {st.kraken[1]} rejected, {st.kraken[2]} gated"]),
-        f"  UAV ENU   {_enu(st.uav_enu)}   next {_enu(st.next_enu)}",
+        f"  UAV ENU   {_enu(st.uav_enu)}   next {_enu(st.next_enu)}   advised {_enu(st.advice_enu)}",
     ]
     if st.launch_phase:
         lines.append(f"  launch    {st.launch_phase}")
@@ -189,7 +190,8 @@ def _vehicle_context(gl: GcsLink) -> str:
 
 
 def app_action(gl: GcsLink, action: str) -> Outcome:
-    want = {"start": "monitoring", "resume": "monitoring", "pause": "paused", "stop": "idle"}.get(action)
+    want = {"start": "monitoring", "resume": "monitoring", "pause": "paused", "stop": "idle",
+            "advise": "advisory"}.get(action)
     done = (lambda: gl.v.app_state == want) if want else None
     ack = gl.command(P.APP_COMPID, P.APP_COMMAND, P.ACTIONS[action], done=done, name=action)
     out = _ack_outcome(action, ack, "onboard app")

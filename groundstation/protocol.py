@@ -132,6 +132,9 @@ class AppStatus:
     kraken: tuple[int, int, int] | None = None
     overruns: int = 0  # ticks over their budget (PMON_BUDGET)
     overrun_stage: str | None = None  # the stage the newest overran in (C.OVERRUN_STAGES); None: none yet
+    # the newest tick's planned next point (advisory's advice; while monitoring, what is flown);
+    # None: that tick planned nothing, or an app older than the field
+    advice_enu: tuple[float, float, float] | None = None
 
     @staticmethod
     def from_msg(msg) -> "AppStatus":
@@ -164,7 +167,14 @@ class AppStatus:
                          _int(d["ticks_skipped"]), _int(d["ticks_late"]), _int(d["setpoints_refused"]),
                          _num(d["latency_ms"]), uav if all(math.isfinite(v) for v in uav) else None,
                          tuple(warnings), LAUNCH_PHASES[phase] if 0 <= phase < len(LAUNCH_PHASES) else None,
-                         limits, _kraken(d), _int(d.get("overruns", 0.0)), _stage(d.get("overrun_stage", 0.0)))
+                         limits, _kraken(d), _int(d.get("overruns", 0.0)), _stage(d.get("overrun_stage", 0.0)),
+                         _point(d, C.ADVICE_FIELDS))
+
+
+def _point(d: dict, names: tuple[str, ...]) -> tuple[float, float, float] | None:
+    """Three fields as an ENU point; None when one is not finite (NaN: none)."""
+    p = tuple(d.get(k, math.nan) for k in names)
+    return p if all(math.isfinite(v) for v in p) else None
 
 
 def _stage(x: float) -> str | None:

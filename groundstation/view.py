@@ -124,6 +124,10 @@ class ViewState:
         return {"mode": mode or (None if d[12] < 0 else f"mode {int(d[12])}"), "armed": bool(d[13]),
                 "from": "app"}  # the app's copy of the autopilot's heartbeat (a link to the companion)
 
+    def _point(self, p) -> dict | None:
+        return None if p is None else {"enu": [_num(c, 2) for c in p],
+                                       "lonlat": lonlat(self.origin, p[:2]).round(7)[0].tolist()}
+
     def snapshot(self) -> dict:
         self.seq += 1
         st, v = self.stat, self.gl.v
@@ -160,9 +164,9 @@ class ViewState:
             "blocked": [blocks_uav(ob, h, self.sc.uav.obstacle_margin_m) for ob in self.sc.obstacles],
             "uav": None if uav is None else {"enu": [_num(c, 2) for c in uav],
                                              "lonlat": lonlat(self.origin, uav[:2]).round(7)[0].tolist()},
-            "setpoint": None if st is None or st.next_enu is None else {
-                "enu": [_num(c, 2) for c in st.next_enu],
-                "lonlat": lonlat(self.origin, st.next_enu[:2]).round(7)[0].tolist()},
+            "setpoint": self._point(None if st is None else st.next_enu),
+            # the plan's next point (advisory: the advised waypoint, nothing is sent)
+            "advice": self._point(None if st is None else st.advice_enu),
             "trail": [list(p) for p in self.trail],
             "targets": targets,
             "texts": list(self.texts),

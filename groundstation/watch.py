@@ -35,6 +35,8 @@ def snapshot(gl: GcsLink) -> dict:
         "mode": v.mode_name, "armed": v.armed,
         "uav_enu_m": list(st.uav_enu) if st and st.uav_enu else None,
         "next_enu_m": list(st.next_enu) if st and st.next_enu else None,
+        # the plan's next point: in advisory the advised waypoint (nothing is sent)
+        "advice_enu_m": list(st.advice_enu) if st and st.advice_enu else None,
         "targets": [{"name": e.name, "x_m": e.x, "y_m": e.y, "vx_mps": e.vx, "vy_mps": e.vy,
                      "sigma_x_m": e.sigma_x, "sigma_y_m": e.sigma_y,
                      "since_detection_s": since(e), "tick_time_s": e.tick_time_s, "doing": e.mode_text(goals)}
@@ -49,7 +51,7 @@ def table(snap: dict, n: int):
                     f"({_f(snap['tick_rate_hz'], '.2f')} Hz); vehicle {snap['mode']}"
                     f"{' armed' if snap['armed'] else ' disarmed'}",
               caption=f"UAV {_enu(snap['uav_enu_m'])}   next waypoint {_enu(snap['next_enu_m'])}   "
-                      f"update {n}")
+                      f"advised {_enu(snap.get('advice_enu_m'))}   update {n}")
     for col in ("target", "E m", "N m", "vE m/s", "vN m/s", "1σ E m", "1σ N m", "last DF", "doing"):
         t.add_column(col, justify="right")
     for tg in snap["targets"]:
@@ -92,7 +94,8 @@ class _Updates:
                 hist.append(Estimate(e.tick_time_s, e.x, e.y, e.sigma_x, e.sigma_y, e.cov_xy))
 
     def draw(self, snap: dict, png: str, scenario) -> None:
-        nxt = tuple(snap["next_enu_m"][:2]) if snap["next_enu_m"] else None
+        p = snap["next_enu_m"] or snap.get("advice_enu_m")  # advisory: the advised waypoint
+        nxt = tuple(p[:2]) if p else None
         draw(Flight(tuple(self.uav_path), {k: list(h) for k, h in self.tracks.items()}, {}, nxt, "live"),
              png, title=f"pmon watch: t={_f(snap['tick_time_s'])} s, app {snap['app_state']}",
              scenario=scenario)

@@ -97,16 +97,18 @@ class GcsCall:
 
 class Mission:
     """The rig (sim/rig.py: SITL, app, feed, five autopilot ports) and an observer for one flight;
-    ``out`` keeps every log."""
+    ``out`` keeps every log; ``link_tap``: hears every byte the app sends its autopilot (with
+    ``link_proxy``, Rig's)."""
 
-    def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None):
+    def __init__(self, cfg: MissionConfig, out: Path, binary: Path | None = None,
+                 link_tap: Callable[[bytes], None] | None = None):
         self.cfg = cfg
         self.out = Path(out).resolve()  # the firmware runs in a directory of its own: no relative paths
         self.rig = Rig(RigConfig(scenario=cfg.scenario, seed=cfg.seed, autopilot_seed=1, autopilot=cfg.autopilot,
                                  binary=str(binary) if binary else None, speedup=cfg.speedup, params=cfg.params,
                                  ports=5, auto_launch=cfg.auto_launch, app_args=cfg.app_args,
                                  link_proxy=cfg.link_proxy, feed_duration_s=cfg.feed_duration_s
-                                 ).records_in(self.out))
+                                 ).records_in(self.out), link_tap=link_tap)
         self.sc = self.rig.sc
         o = self.sc.origin
         self.frame = Frame(o.lat_deg, o.lon_deg, o.alt_m)

@@ -99,10 +99,12 @@ class Rig:
     ``ap``: ``MockAutopilot`` (in process), ``MockProcess`` or ``ArduPilotSitl``; ``app``:
     ``OnboardApp`` (in process) or a ``Proc``; ``feed``: a ``Proc`` once started. ``on_tick(rec)``
     hears every tick record and ``on_setpoint(t, msg)`` every SET_POSITION_TARGET_LOCAL_NED the
-    mock receives (its own clock, s) before it handles it: in process only."""
+    mock receives (its own clock, s) before it handles it: in process only. ``link_tap(data)``, with
+    ``link_proxy`` on a TCP link, hears every byte the app sends towards its autopilot."""
 
     def __init__(self, cfg: RigConfig = RigConfig(), on_tick: Callable[[dict], None] | None = None,
-                 on_setpoint: Callable[[float, object], None] | None = None):
+                 on_setpoint: Callable[[float, object], None] | None = None,
+                 link_tap: Callable[[bytes], None] | None = None):
         from onboard.config import load_scenario
         from onboard.policy import POLICIES
         from sim.ardupilot import home_of
@@ -131,6 +133,7 @@ class Rig:
         o = self.sc.origin
         self.home = home_of(self.sc) if cfg.home == "start" else (o.lat_deg, o.lon_deg, o.alt_m, 0.0)
         self.on_tick = on_tick
+        self.link_tap = link_tap  # with link_proxy (TCP): hears every byte the app sends its autopilot
         self.app = None
         self.feed = None
         self.proxy = None
@@ -199,7 +202,7 @@ class Rig:
             url = self.proxy.url
         elif cfg.link_proxy:
             from sim.tcp_proxy import TcpProxy
-            self.proxy = TcpProxy(("127.0.0.1", self.port(APP_PORT)))
+            self.proxy = TcpProxy(("127.0.0.1", self.port(APP_PORT)), tap=self.link_tap)
             url = f"tcp:127.0.0.1:{self.proxy.port}"
         if cfg.in_process:
             from onboard.app.app_config import AppConfig

@@ -7,6 +7,7 @@ import select
 import socket
 import threading
 import time
+from typing import Callable
 
 
 class TcpProxy:
@@ -14,8 +15,9 @@ class TcpProxy:
     ``cut(s)`` drops the connection and refuses new ones for s wall seconds (a radio or cable
     outage), then relays again with a new upstream connection."""
 
-    def __init__(self, upstream: tuple[str, int]):
+    def __init__(self, upstream: tuple[str, int], tap: Callable[[bytes], None] | None = None):
         self.upstream = upstream
+        self.tap = tap  # called with every chunk relayed towards the upstream (sim/link_count.py)
         self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._lsock.bind(("127.0.0.1", 0))
@@ -73,6 +75,8 @@ class TcpProxy:
                     data = s.recv(65536)
                     if not data:
                         raise OSError("closed")
+                    if s is pair[0] and self.tap is not None:
+                        self.tap(data)
                     (pair[1] if s is pair[0] else pair[0]).sendall(data)
             except (OSError, ValueError):  # either side closed (or cut() closed both)
                 with self._lock:

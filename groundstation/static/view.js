@@ -112,7 +112,7 @@
       li.innerHTML = `<span class="box" style="background:${c}"></span>`;
       li.append(name);
       return li;
-    }), ...["UAV ▲, trail, setpoint ✕", "marker: estimate; filled 1σ, outline 3σ; line: recent track"].map((s) => {
+    }), ...["UAV ▲, trail, setpoint ✕, advised waypoint ◇ (not sent)", "marker: estimate; filled 1σ, outline 3σ; line: recent track"].map((s) => {
       const li = document.createElement("li");
       li.textContent = s;
       return li;
@@ -152,6 +152,13 @@
                      "stroke-dasharray": `${px(2)} ${px(2)}` }, g);
         el("path", { id: "setpoint", d: `M${X(se) - d},${Y(sn) - d} l${2 * d},${2 * d} m0,${-2 * d} l${-2 * d},${2 * d}`,
                      class: "setpoint", "stroke-width": px(2.5) }, g);
+      }
+      if (snap.advice && !snap.setpoint) {  // advisory (or a pilot flying): the plan's next point, not sent
+        const [ae, an] = snap.advice.enu, d = px(7);
+        el("line", { x1: X(e), y1: Y(n), x2: X(ae), y2: Y(an), class: "advice", "stroke-width": px(1),
+                     "stroke-dasharray": `${px(4)} ${px(3)}` }, g);
+        el("path", { id: "advice", d: `M${X(ae)},${Y(an) - d} l${d},${d} l${-d},${d} l${-d},${-d} z`,
+                     class: "advice", "stroke-width": px(2) }, g);
       }
       el("path", { id: "uav", d: `M${X(e)},${Y(n) - px(10)} l${px(7)},${px(16)} h${-px(14)} z`, class: "uav",
                    "stroke-width": px(1.5) }, g);
@@ -194,7 +201,7 @@
     });
     $("targets").tBodies[0].replaceChildren(...rows.flat());
     $("uav").textContent = snap.uav
-      ? `UAV ${ll(snap.uav.lonlat)} · ${f(snap.uav.enu[2], 1)} m up · next ${snap.setpoint ? ll(snap.setpoint.lonlat) : "—"} · h ${f(snap.altitude_m, 0)} m`
+      ? `UAV ${ll(snap.uav.lonlat)} · ${f(snap.uav.enu[2], 1)} m up · next ${snap.setpoint ? ll(snap.setpoint.lonlat) : "—"}${snap.advice && !snap.setpoint ? ` · advised ${ll(snap.advice.lonlat)}` : ""} · h ${f(snap.altitude_m, 0)} m`
       : "UAV: no position yet";
     $("texts").replaceChildren(...snap.texts.slice().reverse().map((m) => {
       const li = document.createElement("li");

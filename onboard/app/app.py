@@ -37,7 +37,8 @@ With ``rt_priority`` N the io thread runs at SCHED_FIFO N and the worker at N - 
 under systemd the worker's loop feeds the service watchdog (sd_notify.py, ``_service_beat``).
 
 Tracking runs whenever scans arrive (every state): the filters stay in step with the targets
-while the vehicle takes off or a pilot flies; planning and setpoints only in ``monitoring``.
+while the vehicle takes off or a pilot flies; planning whenever the vehicle flies, from where it
+is (PMON_STAT's advice: what ``advisory`` publishes), setpoints only in ``monitoring``.
 """
 from __future__ import annotations
 
@@ -57,7 +58,7 @@ from onboard.app.autopilot_side import AutopilotSide
 from onboard.app.clock import AutopilotClock
 from onboard.app.contain import Contained
 from onboard.app.context import AppContext
-from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
+from onboard.app.contract import ADVICE_FIELDS, KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
 from onboard.app.counters import Counters
 from onboard.app.df_input import DfInput
 from onboard.app.df_scans import DfScans
@@ -218,6 +219,7 @@ class OnboardApp:
             **(self.kraken.status() if self.kraken is not None else dict.fromkeys(KRAKEN_STAT_FIELDS, math.nan)),
             "jerk_limit_mps3": _nan(v.jerk_limit_mps3), "jerk_plan_mps3": lim.plan[2],
             "overruns": c.get("overruns", 0), "overrun_stage": stage_code(self.worker.last_overrun),
+            **dict(zip(ADVICE_FIELDS, tk.get("next") or (math.nan,) * 3)),
         }
 
     # ------------------------------------------------------------------ lifecycle

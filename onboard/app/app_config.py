@@ -40,3 +40,4 @@ class AppConfig:
     kraken: bool = False  # also read a KrakenSDR's DoA output at the scenario's kraken.url (kraken.py)
     # SCHED_FIFO priority of the io thread, the worker one below (onboard/app/realtime.py); 0: normal
     rt_priority: int = 0
+    advise: bool = False  # start in advisory (pmon run --advise): plan and publish, command nothing

@@ -20,6 +20,7 @@ class State(IntEnum):
     PAUSED = 2
     PILOT_OVERRIDE = 3
     FAULT = 4
+    ADVISORY = 5  # tracks, plans and publishes its next waypoint; never commands the vehicle
 
 
 class Action(IntEnum):
@@ -28,6 +29,7 @@ class Action(IntEnum):
     RESUME = 3
     STOP = 4
     LAUNCH = 5  # GUIDED, arm, take off to h, then START
+    ADVISE = 6  # to advisory: plan and publish, command nothing (from monitoring: as pause)
 
 
 class Reason(IntEnum):
@@ -63,6 +65,7 @@ STATUS = {  # HEARTBEAT.system_status per app state
     State.PAUSED: mavlink.MAV_STATE_STANDBY,
     State.PILOT_OVERRIDE: mavlink.MAV_STATE_STANDBY,
     State.FAULT: mavlink.MAV_STATE_CRITICAL,
+    State.ADVISORY: mavlink.MAV_STATE_STANDBY,
 }
 
 TGT_FIELDS = ("x_east_m", "y_north_m", "z_up_m", "vx_mps", "vy_mps", "vz_mps", "sigma_x_m",
@@ -77,7 +80,10 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
                "sum_trace", "ticks_late", "setpoints_refused", "warnings", "speed_limit_mps",
                "speed_plan_mps", "accel_limit_mps2", "accel_plan_mps2", "launch_phase",
                "kraken_frames", "kraken_rejected", "kraken_gated", "jerk_limit_mps3", "jerk_plan_mps3",
-               "overruns", "overrun_stage")
+               "overruns", "overrun_stage", "advice_e_m", "advice_n_m", "advice_u_m")
+# "advice_*": the newest tick's planned next point, planned from where the vehicle was (in any
+# state while it flies; advisory publishes it and sends nothing); NaN: that tick planned nothing
+ADVICE_FIELDS = ("advice_e_m", "advice_n_m", "advice_u_m")
 # a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
 # empty (confidence, power, overdrive); NaN without one
 KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")

@@ -49,6 +49,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--auto-launch", action="store_true",
                    help="by itself: arm, take off to h, the mission mode (ArduCopter GUIDED, PX4 OFFBOARD), "
                    "start monitoring (SITL/demo only)")
+    p.add_argument("--advise", action="store_true",
+                   help="start in advisory: track, plan from where the vehicle is and publish the next "
+                   "waypoint while a pilot or a mission flies; nothing is commanded until `pmon gcs start` "
+                   "(docs/OPERATING.md, Advisory)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="initial PMON_* parameter; repeatable")
     p.add_argument("--runlog", type=OUT_FILE, help="JSONL run log, one line per tick")
@@ -91,6 +95,10 @@ def run(args) -> int:
         print("pmon run: --autopilot-unsigned needs --signing-key (without a key nothing is signed)",
               file=sys.stderr)
         return 2
+    if args.advise and args.auto_launch:
+        print("pmon run: --advise and --auto-launch exclude each other (advisory commands nothing)",
+              file=sys.stderr)
+        return 2
     sc = _scenario(args)
     if sc is None:
         return 2
@@ -98,7 +106,7 @@ def run(args) -> int:
                     args.seed, args.runlog, args.tlog, gcs_sysids=gcs, signing_key_path=args.signing_key,
                     df_sources=args.df_from, df_rate_hz=args.df_rate, px4_events_path=args.px4_events,
                     autopilot_unsigned=args.autopilot_unsigned, kraken=args.kraken is not None,
-                    rt_priority=sc.app.rt_priority)
+                    rt_priority=sc.app.rt_priority, advise=args.advise)
     process = _process_scheduling(args.cpu_affinity, sc.app.rt_priority > 0)
     try:
         app = OnboardApp(cfg, sc)

@@ -1,11 +1,15 @@
 """The app's state as commanded (docs/MAVLINK.md): idle, monitoring, paused, pilot override,
-fault; the commands that move it (start, pause, resume, stop, launch, each acknowledged with a
-reason when refused); what the autopilot's news does to it (a mode someone else set, a link
+fault, advisory; the commands that move it (start, pause, resume, stop, launch, advise, each
+acknowledged with a reason when refused); what the autopilot's news does to it (a mode someone else set, a link
 loss, a reboot, a moved origin); and the launch sequence's actions (onboard/app/launch.py).
 
 Only ``monitoring`` sends setpoints, and only while the autopilot is in the mode the app put it
 in (the profile's mission mode: GUIDED, OFFBOARD); any other mode set by someone else -> pilot
-override, at once. Leaving ``monitoring`` drops the setpoint and bumps ``generation``: results of
+override, at once. ``advisory`` (``pmon run --advise``, the advise action) tracks and plans
+from where the vehicle is while a pilot or a mission flies it, publishes the plan's next point,
+and commands nothing: no setpoint, no mode, no arming; a mode change is not its business. It
+hands over to ``monitoring`` by start (or resume), through the same checks and mode entry as
+any start. Leaving ``monitoring`` drops the setpoint and bumps ``generation``: results of
 ticks already running are not sent; where the mission mode needs the stream to hold the vehicle
 (the profile's ``release_mode``: PX4's OFFBOARD), the app hands it to that mode (Hold) instead.
 
@@ -66,7 +70,7 @@ class StateMachine:
         self.scans = scans
         self.params = ctx.params
         self.auto_launch = ctx.cfg.auto_launch
-        self.state = State.IDLE
+        self.state = State.ADVISORY if ctx.cfg.advise else State.IDLE
         self.generation = 0  # bumped when setpoints must stop; results of older ticks are dropped
         self.entry: ModeEntry | None = None  # entering the mission mode after start/resume
         self.release_until = -math.inf  # autopilot s: asking for the release mode until then
@@ -109,7 +113,8 @@ class StateMachine:
         p1 = msg.param1
         action = int(p1) if math.isfinite(p1) and p1 == int(p1) else -1
         handler = {Action.START: self.start, Action.PAUSE: self.pause, Action.RESUME: self.resume,
-                   Action.STOP: self.stop, Action.LAUNCH: self.begin_launch}.get(action)
+                   Action.STOP: self.stop, Action.LAUNCH: self.begin_launch,
+                   Action.ADVISE: self.advise}.get(action)
         if handler is None:
             self._refuse(msg, mavlink.MAV_RESULT_DENIED, Reason.UNKNOWN_ACTION, f"action {p1:g}")
             return
@@ -212,9 +217,25 @@ class StateMachine:
         self.say("stopped")
         return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
 
+    def advise(self) -> tuple[int, Reason]:
+        """To advisory from any state: nothing is commanded from now on (from monitoring the
+        setpoints stop as on pause: PX4's OFFBOARD is handed to Hold, the stream's release).
+        Refused while a launch runs: that flies the vehicle, stop it first."""
+        if self.state == State.ADVISORY:
+            return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.launch is not None:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.BUSY
+        was = self.state
+        self.set_state(State.ADVISORY)
+        self.say("advisory: tracking and planning, the vehicle is not commanded"
+                 + (" (setpoints stopped)" if was == State.MONITORING else ""))
+        return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+
     def begin_launch(self) -> tuple[int, Reason]:
         if self.launch is not None or self.state == State.MONITORING:
             return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE
+        if self.state == State.ADVISORY:  # someone else flies it: stop first, then launch
+            return mavlink.MAV_RESULT_DENIED, Reason.WRONG_STATE
         v = self.autopilot.vehicle
         if v.sysid is None or self.autopilot.link_lost:
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, Reason.NO_AUTOPILOT

@@ -42,6 +42,12 @@ def test_bad_arguments_exit_nonzero(capsys):
     assert main_rc(capsys, "fly")[0] == 2
 
 
+def test_advise_with_auto_launch_is_refused_in_one_line(capsys):
+    rc, _, err = main_rc(capsys, "run", "--advise", "--auto-launch", "--mavlink", "udpin:127.0.0.1:0")
+    assert rc == 2 and err.strip() == ("pmon run: --advise and --auto-launch exclude each other "
+                                       "(advisory commands nothing)"), err
+
+
 def test_the_flight_program_loads_no_simulator_ground_station_or_lab_packages():
     """``pmon run`` (the companion computer's program) imports onboard/ and its runtime
     dependencies only: a flight install has none of these."""

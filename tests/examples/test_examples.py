@@ -64,6 +64,15 @@ def test_read_pmon_stat_from_the_mock_rig():
     assert len(out) == 3 and all(line.startswith("PMON_STAT state ") for line in out), out
 
 
+@pytest.mark.sitl
+def test_advise_and_hand_over_on_the_mock_rig():
+    out = run("advise_and_hand_over.py", "--count", "3", timeout=200).splitlines()
+    assert out[0] == "advise: accepted by the onboard app; app advisory", out
+    advised = [line for line in out if line.startswith("advisory: ")]
+    assert len(advised) == 3 and all("advised waypoint (" in a and a.endswith("setpoint none") for a in advised), out
+    assert out[-1] == "start: accepted by the onboard app; app monitoring", out
+
+
 @pytest.mark.slow
 def test_evaluate_10_trials():
     out = run("evaluate_10_trials.py", "--duration", "4", "--particles", "100", timeout=280).splitlines()

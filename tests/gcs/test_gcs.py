@@ -172,6 +172,26 @@ def test_status_says_the_planned_jerk_and_the_autopilots_where_it_has_one():
     assert limits(jerk_limit_mps3=0.0, jerk_plan_mps3=math.nan) == "planned at 9 m/s, 2.5 m/s^2 (autopilot 12 m/s, 3 m/s^2)"
 
 
+def test_the_advised_waypoint_is_read_from_pmon_stat_and_none_when_nan():
+    """PMON_STAT 33-35: the advised waypoint; NaN (no plan), or one field not finite: none."""
+    import math
+
+    from onboard.app.contract import ADVICE_FIELDS, STAT_FIELDS
+    from onboard.app.mavlink_connection import mavlink
+
+    def advice(*values):
+        d = dict.fromkeys(STAT_FIELDS, 0.0)
+        d.update(zip(ADVICE_FIELDS, values), state=5.0, next_e_m=math.nan, next_n_m=math.nan, next_u_m=math.nan)
+        data = [d[f] for f in STAT_FIELDS] + [0.0] * (58 - len(STAT_FIELDS))
+        st = P.AppStatus.from_msg(mavlink.MAVLink_debug_float_array_message(0, b"PMON_STAT", 0, data))
+        assert st.state == "advisory" and st.next_enu is None
+        return st.advice_enu
+
+    assert advice(120.5, -3.0, 40.0) == (120.5, -3.0, 40.0)
+    assert advice(math.nan, math.nan, math.nan) is None
+    assert advice(120.5, math.inf, 40.0) is None
+
+
 # ----------------------------------------------------------------------------- against a vehicle
 @pytest.fixture(scope="module")
 def stack():
