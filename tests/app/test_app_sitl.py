@@ -33,7 +33,7 @@ from onboard.core.obstacles import Obstacles
 from sim.rig import GCS_PORT, Rig, RigConfig
 import json
 
-pytestmark = pytest.mark.sitl
+pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
 # 1.5x: the app's tick must fit 0.9 s of autopilot time = 600 ms local. At 4x (225 ms) it did
 # not, under load, every run; at 3x (300 ms) a 2-core VM twice as slow missed it by 60 ms

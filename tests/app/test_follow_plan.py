@@ -23,7 +23,7 @@ from onboard.core.setpoint import plan_setpoint
 from onboard.policy import POLICIES
 from sim.procedure import follow_errors_m
 
-pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(240)]
 SPEEDUP = 2.0
 MONITORING_TICKS = 50
 

@@ -59,6 +59,7 @@ def _ticked(app: OnboardApp) -> list[float]:
 
 
 # ----------------------------------------------------------------------------- a flight under floods
+@pytest.mark.slow
 @pytest.mark.sitl
 @pytest.mark.timeout(300)
 def test_flight_under_overflow_then_foreign_flood_misses_no_tick_and_uses_every_scan():

@@ -22,7 +22,7 @@ from onboard.config import load_scenario
 from sim.multicopter import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES
 
-pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(240)]
 SPEEDUP = 2.0
 REACH_S = 30.0  # autopilot s to be within AT_H_M of a new h
 AT_H_M = 1.0

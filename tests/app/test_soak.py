@@ -7,7 +7,7 @@ import pytest
 
 from tests.support.processes import run_json
 
-pytestmark = [pytest.mark.sitl, pytest.mark.timeout(150)]
+pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(150)]
 
 
 def test_short_soak_keeps_the_fence_raises_nothing_and_stays_bounded():

@@ -13,7 +13,7 @@ from sim.stack import SitlStack
 from groundstation.cli import main
 from tests.support.mavlink_gcs import QUICK_BOOT_S
 
-pytestmark = pytest.mark.sitl
+pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

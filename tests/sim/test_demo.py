@@ -21,6 +21,7 @@ def _children_gone(out: Path) -> bool:
         and "pmon run: stopped" in logs[1].read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_demo_flies_scores_and_cleans_up(tmp_path):
     out = tmp_path / "d"
@@ -99,6 +100,7 @@ def _child(pid: int, module: str) -> int | None:
     return None
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_a_launch_the_app_aborts_ends_the_demo_with_its_reason(tmp_path):
     """The autopilot's link lost before the vehicle flew (the mock autopilot stopped 4.5 s, past
@@ -132,6 +134,7 @@ def test_a_launch_the_app_aborts_ends_the_demo_with_its_reason(tmp_path):
     assert _children_gone(out)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
     """pmon demo --gcs PORT: the mock streams to a ground station listening on that port (its

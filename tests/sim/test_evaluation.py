@@ -73,6 +73,7 @@ def tiny_serial(tiny):
     return ev.run_trials(tiny, workers=1, progress=False)
 
 
+@pytest.mark.slow
 def test_harness_is_deterministic_for_a_seed_and_across_workers(tiny, tiny_serial):
     assert _same(tiny_serial, ev.run_trials(tiny, workers=1, progress=False))
     assert _same(tiny_serial, ev.run_trials(tiny, workers=2, progress=False))
@@ -122,6 +123,7 @@ def test_dask_cluster_gives_the_same_trials(tiny, tiny_serial):
     assert _same(tiny_serial, got)
 
 
+@pytest.mark.slow
 def test_short_evaluation_every_filter_keeps_every_target_and_fixed_beats_hover(quick):
     cfg = ev.make_config(quick, 4, 7, ev.DEFAULT_METHODS, duration_s=20, particles=1000)
     trials = ev.run_trials(cfg, workers=2, progress=False)
@@ -201,6 +203,7 @@ def test_new_planners_run_in_the_evaluation_within_their_motion_limits(quick):
         s.methods["greedy_vehicle"].vs_jump[1][0], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     """``flight`` is onboard/policy.py's flight default (with the side-aware filter), planned with the
     autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe flies; ``NAME@demo`` flies a
@@ -276,6 +279,7 @@ def test_the_evaluation_plans_with_the_autopilots_jerk_as_the_app_does(monkeypat
     assert ev._setup_for(cfg, cfg.methods[0])[0].motion.jerk_max_mps3 == 0.0  # steps stay steps
 
 
+@pytest.mark.slow
 def test_the_ceiling_is_a_bound_only_method_below_every_flown_path_at_its_limits(tmp_path):
     """``ceiling``: no filter runs (RMSE, NEES NaN; no RMSE rows), its path is a vehicle's at the
     flight default's limits from the trial's start, its bound is the evaluation's PCRB of that

@@ -53,6 +53,7 @@ def _fly(tmp_path, df: str, duration: float, **cfg) -> tuple[SitlStack, list, li
     return st, ticks, scans
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     st, ticks, scans = _fly(tmp_path, "kraken", 30.0)
@@ -97,6 +98,7 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     assert np.isfinite(means).all() and (np.abs(means[:, :, :2] - 500.0) < 1000.0).all()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_pmon_demo_df_kraken_flies_on_the_simulated_krakensdr(tmp_path):
     import subprocess
