@@ -36,24 +36,27 @@ def firmware_poses(path: str) -> tuple:
     from groundstation.poses import read
 
     log = read(path, Frame(*rec.ORIGIN))
-    if log.utc.unix_time(0.0) is None:
-        raise SystemExit(f"{path}: no UTC in it")
     flying = [s for s in log.samples if s.pos[2] > 10.0 and s.yaw is not None]
+    if log.utc.unix_time(0.0) is None:  # PX4's SIH writes no UTC: the recording stamped from a boot time
+        return path, flying, None
     return path, flying, log.utc.unix_time
 
 
 def one(folder: Path, seed: int, bearings: str, overrides: dict, firmware: tuple | None = None) -> list[dict]:
     """One recording written in ``folder`` and located (its bearings drawn along ``firmware``'s
     poses when given, else a simulated lawnmower's): per emitter, error, NEES, ranges."""
+    boot = None  # the Unix time of the autopilot's boot, for a log without UTC
     if firmware is None:
         r = rec.write_recording(folder, seed)
         log_path = r["tlog"]
     else:
         log_path, poses, unix_of = firmware
-        r = rec.write_recording(folder, seed, poses=poses, unix_of=unix_of)
+        boot = rec.UNIX_AT_BOOT if unix_of is None else None
+        r = rec.write_recording(folder, seed, poses=poses, unix_of=unix_of or (lambda t: rec.UNIX_AT_BOOT + t))
     sc = with_policy(load_scenario(str(r["scenario"]), overrides), DEFAULT)
     src = r["mydata"] if bearings == "kraken" else r["datagrams"]
-    found, log = locate(Request(str(src), str(log_path), sc, seed=seed))
+    found, log = locate(Request(str(src), str(log_path), sc, seed=seed,
+                                unix_at_boot=boot))
     xy = np.array([s.pos[:2] for s in log.samples])
     out = []
     for j, truth in enumerate(r["truth_m"]):

@@ -187,6 +187,9 @@ def parser():
     ap.add_argument("--format", default=",".join(FORMATS), help=f"outputs, comma-separated (default {','.join(FORMATS)})")
     ap.add_argument("--time-offset", type=float, default=0.0, metavar="S",
                     help="seconds added to every bearing's time (a DF clock off the autopilot's; default 0)")
+    ap.add_argument("--unix-at-boot", type=float, metavar="S",
+                    help="Unix time of the autopilot's boot, for a pose log without UTC (PX4's SIH simulator "
+                    "writes none) and KrakenSDR's Unix-stamped bearings")
     ap.add_argument("--pose-format", choices=("tlog", "bin", "ulg"), help="the pose log's format (default: from its bytes)")
     ap.add_argument("--seed", type=int, default=1, help="the filter's random seed (default 1)")
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object")
@@ -201,6 +204,7 @@ class Request:
     time_offset_s: float = 0.0
     pose_format: str | None = None
     seed: int = 1
+    unix_at_boot: float | None = None  # the log holds no UTC: the Unix time of the autopilot's boot
 
 
 def locate(req: Request) -> tuple[Located, object]:
@@ -210,7 +214,14 @@ def locate(req: Request) -> tuple[Located, object]:
     sc = req.scenario
     log = poses.read(req.poses,
                      Frame(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m), req.pose_format)
+    said = []
+    if req.unix_at_boot is not None:
+        if log.utc.autopilot_time(0.0) is None:
+            log.utc.observe(int(round(req.unix_at_boot * 1e6)), 0)
+        else:
+            said.append(f"{log.path}: holds its own UTC: --unix-at-boot not used")
     aligned = locate_align.align(req.bearings, sc, log, req.time_offset_s)
+    aligned.notes[:0] = said
     return run_filter(sc, aligned, log, req.seed), log
 
 
@@ -224,13 +235,15 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     formats = tuple(x.strip() for x in args.format.split(",") if x.strip())
     bad = [x for x in formats if x not in FORMATS]
-    if bad or not math.isfinite(args.time_offset):
-        why = f"--format: {bad[0]!r} is none of {', '.join(FORMATS)}" if bad else "--time-offset must be finite"
+    if bad or not math.isfinite(args.time_offset) or not math.isfinite(args.unix_at_boot or 0.0):
+        why = (f"--format: {bad[0]!r} is none of {', '.join(FORMATS)}" if bad
+               else "--time-offset and --unix-at-boot must be finite")
         print(f"pmon locate: {why}", file=sys.stderr)
         return 2
     try:
         sc = with_policy(load_scenario(args.scenario, parse_overrides(args.set)), DEFAULT)
-        found, log = locate(Request(args.bearings, args.poses, sc, args.time_offset, args.pose_format, args.seed))
+        found, log = locate(Request(args.bearings, args.poses, sc, args.time_offset, args.pose_format, args.seed,
+                                        args.unix_at_boot))
         base = args.out or os.path.splitext(args.bearings)[0] + ".locate"
         written = write_outputs(found, sc, log, base, formats)
     except (ConfigError, PoseError, AlignError) as exc:

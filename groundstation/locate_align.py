@@ -138,7 +138,7 @@ def align_kraken(path: str, sc, log, time_offset_s: float = 0.0) -> Aligned:
     frames = kraken_frames(path)
     if log.utc.autopilot_time(0.0) is None:
         raise AlignError(f"{log.path}: no UTC in this {log.kind} (SYSTEM_TIME, GPS week/ms, time_utc_usec): "
-                         "KrakenSDR's Unix stamps cannot be put on its timeline")
+                         "KrakenSDR's Unix stamps cannot be put on its timeline (--unix-at-boot)")
     out, clock, said = Aligned(), ManualClock(None), {}
     time_map = _TimeMap(log.utc, time_offset_s)
     source = KrakenSource(sc.kraken, tuple(t.name for t in sc.targets), clock, log.history(), time_map, out.add,
