@@ -58,6 +58,13 @@ def test_track_recording_follows_the_recorded_targets():
     assert numbers(out[-1])[-1] < 80  # final RMSE, m (recorded: 40.6 m at seed 1)
 
 
+def test_locate_emitters_finds_both_within_15_m():
+    out = run("locate_emitters.py", timeout=200).splitlines()
+    assert "KrakenSDR frames" in out[0] and "poses from tlog" in out[0], out
+    errors = [numbers(line)[-1] for line in out if line.startswith(("T1:", "T2:"))]
+    assert len(errors) == 2 and all(0 <= e <= 15.0 for e in errors), out
+
+
 @pytest.mark.sitl
 def test_read_pmon_stat_from_the_mock_rig():
     out = run("read_pmon_stat.py", "--count", "3", "--timeout", "60", timeout=150).splitlines()
