@@ -27,6 +27,7 @@ from onboard.app.params import SPECS, ParamTable
 from onboard.app.replay_record import VERSION, outputs
 from onboard.config import ConfigError, override, parse_overrides, parse_scenario
 from onboard.core import monitor
+from onboard.files import FileRefused, open_regular
 from onboard.core.clock_stops import SearchClock
 from onboard.core.monitor import Scan, UavState
 
@@ -47,29 +48,39 @@ def read_runlog(path: str) -> Runlog:
     """The run log at ``path``; RunlogError naming the line that is not a replayable tick."""
     ticks, lines = [], []
     try:
-        with open(path, encoding="utf-8") as f:
+        with open_regular(path, text=True) as f:
             for n, line in enumerate(f, 1):
                 if not line.strip():
                     continue
-                try:
-                    rec = json.loads(line)
-                except json.JSONDecodeError as exc:
-                    raise RunlogError(f"{path}:{n}: not a JSON record ({exc.msg} at column {exc.colno})") from None
+                rec = _record(line, f"{path}:{n}")
                 why = _not_a_tick(rec, first=not ticks)
                 if why:
                     raise RunlogError(f"{path}:{n}: {why}")
                 ticks.append(rec)
                 lines.append(n)
+    except FileRefused as exc:
+        raise RunlogError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise RunlogError(f"{path}: cannot read: {exc}") from None
     if not ticks:
         raise RunlogError(f"{path}: no tick records")
     run = ticks[0]["replay"]["run"]
+    where = f"{path}:{lines[0]}"
     try:
-        scenario = parse_scenario(run["scenario"], f"{path}:{lines[0]}")
+        return Runlog(int(run["seed"]), parse_scenario(run["scenario"], where), tuple(ticks), tuple(lines))
     except ConfigError as exc:
-        raise RunlogError(f"{path}:{lines[0]}: the recorded scenario: {exc}") from None
-    return Runlog(int(run["seed"]), scenario, tuple(ticks), tuple(lines))
+        raise RunlogError(f"{where}: the recorded scenario: {exc}") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise RunlogError(f"{where}: the run's seed or scenario: {type(exc).__name__}: {exc}") from None
+
+
+def _record(line: str, where: str):
+    try:
+        return json.loads(line)
+    except json.JSONDecodeError as exc:
+        raise RunlogError(f"{where}: not a JSON record ({exc.msg} at column {exc.colno})") from None
+    except (ValueError, RecursionError) as exc:  # an integer of too many digits, nesting too deep
+        raise RunlogError(f"{where}: not a JSON record ({str(exc)[:80] or type(exc).__name__})") from None
 
 
 _NEEDED = ("rng", "scans", "plan_from", "n_radial", "guidance_s", "deadlines", "stops", "out")
@@ -86,6 +97,8 @@ def _not_a_tick(rec, first: bool) -> str | None:
         missing += [k for k in ("run", "setup") if k not in rp]
     if missing:
         return f"'replay' lacks {', '.join(missing)} (truncated or edited?)"
+    if first and not isinstance(rp["run"], dict):
+        return "'replay' 'run' is not a mapping"
     if first and rp["run"].get("version") != VERSION:
         return f"replay version {rp['run'].get('version')!r}, this pmon reads {VERSION}"
     return None
@@ -114,8 +127,11 @@ class Replay:
         self.limits = SimpleNamespace(planner=None)
         self.core = MonitorCore(scenario, self.params, self.limits, np.random.default_rng(log.seed))
 
-    def ticks(self):
+    def ticks(self, at: list[int] | None = None):
+        """Each tick replayed, in order; ``at[0]``: the index of the one being replayed."""
         for i, rec in enumerate(self.log.ticks):
+            if at is not None:
+                at[0] = i
             yield self.tick(i, rec)
 
     def tick(self, i: int, rec: dict) -> Replayed:
@@ -209,9 +225,10 @@ def run(args) -> int:
     except (RunlogError, ConfigError) as exc:
         print(f"pmon replay: {exc}", file=sys.stderr)
         return 2
-    out = []
+    out: list[Replayed] = []
+    at = [0]  # the tick being replayed
     try:
-        for r in rp.ticks():
+        for r in rp.ticks(at):
             if not changes:
                 why = first_difference(r)
                 if why:
@@ -223,10 +240,10 @@ def run(args) -> int:
                 if not args.quiet:
                     est, sp = shifts(r)
                     print(f"tick {r.index:4d} t={r.t:9.3f}: estimate shift {est:8.3f} m, setpoint shift {sp:8.3f} m")
-    except (KeyError, TypeError, ValueError, IndexError) as exc:  # a record whose values do not fit the run
-        n = len(out) if changes else None
-        print(f"pmon replay: {args.runlog}: cannot replay a record ({type(exc).__name__}: {exc})"
-              + ("" if n is None else f" after {n} ticks"), file=sys.stderr)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, RecursionError) as exc:
+        # a record whose values do not fit the run (edited, or of another scenario)
+        print(f"pmon replay: {args.runlog}:{log.lines[at[0]]}: cannot replay this tick's record "
+              f"({type(exc).__name__}: {str(exc)[:120]})", file=sys.stderr)
         return 2
     if not changes:
         stopped = sum(len(t["replay"]["stops"]) for t in log.ticks)

@@ -118,6 +118,8 @@ def test_an_edited_budget_is_found_at_its_tick(flight, tmp_path):
     (lambda lines: lines[:2] + [json.dumps({"t": 1.0}) + "\n"] + lines[3:], 3),  # an older pmon's record
     (lambda lines: [json.dumps({**json.loads(lines[0]), "replay": {
         k: v for k, v in json.loads(lines[0])["replay"].items() if k != "run"}}) + "\n"] + lines[1:], 1),
+    (lambda lines: lines[:4] + [json.dumps({**json.loads(lines[4]), "replay": {
+        **json.loads(lines[4])["replay"], "scans": 7}}) + "\n"] + lines[5:], 5),  # values that do not fit
 ])
 def test_a_damaged_run_log_is_refused_in_one_line_naming_the_line(flight, tmp_path, damage, where):
     lines = open(flight).readlines()
