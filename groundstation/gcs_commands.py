@@ -11,6 +11,7 @@ from groundstation.errors import FAILED, TIMEOUT, GcsError
 from groundstation.gcs_link import Ack, GcsLink, _same
 from onboard.app.mavlink_connection import mavlink
 
+PARAMS_MIN_S = 1.0  # a status's parameter list gets at least this (the app answers in well under it)
 STAT_WAIT_S = 2.5  # the app publishes PMON_STAT at 1 Hz: a status waits at most this for it
 
 
@@ -27,11 +28,12 @@ def _fmt(x, spec=".1f", none="-"):
 # ----------------------------------------------------------------------------- status
 def status(gl: GcsLink, with_params: bool = True) -> Outcome:
     v = gl.v
+    t0 = time.monotonic()
     app_heard, app_beating = _wait_for_status(gl)
     params = None
     if app_heard and with_params:
-        try:
-            params = gl.params_list()
+        try:  # --timeout bounds the whole status: the parameters get what the waits left (>= 1 s)
+            params = gl.params_list(max(PARAMS_MIN_S, t0 + gl.timeout - time.monotonic()))
         except GcsError:
             params = None
     link = _link_status(gl)

@@ -378,8 +378,10 @@ class GcsLink:
         return Ack(result, reason, attempts, time.monotonic() - t0, tuple(self.texts_since(t0, comp)))
 
     # ----------------------------------------------------------------- app parameters
-    def params_list(self) -> dict[str, float]:
-        """PARAM_REQUEST_LIST to the app; missing indices are asked for one by one."""
+    def params_list(self, timeout: float | None = None) -> dict[str, float]:
+        """PARAM_REQUEST_LIST to the app; missing indices are asked for one by one; waits at most
+        ``timeout`` s (default: the link's)."""
+        timeout = self.timeout if timeout is None else timeout
         got: dict[int, tuple[str, float]] = {}
         count = [None]
 
@@ -389,7 +391,7 @@ class GcsLink:
                 count[0] = msg.param_count
         self.on_message(listen)
         try:
-            deadline = time.monotonic() + self.timeout
+            deadline = time.monotonic() + timeout
             self.send(self.link.mav.param_request_list_encode(self.v.sysid, P.APP_COMPID))
             while time.monotonic() < deadline:
                 if self.wait_for(lambda: count[0] is not None and len(got) >= count[0],
@@ -404,7 +406,7 @@ class GcsLink:
                                 self.v.sysid, P.APP_COMPID, b"", i))
         finally:
             self._listeners.remove(listen)
-        raise GcsError(f"params: the onboard app did not answer within {self.timeout:g} s "
+        raise GcsError(f"params: the onboard app did not answer within {timeout:g} s "
                        f"({len(got)} of {count[0] or '?'} parameters){self._signing_hint()}", TIMEOUT)
 
     def param_exchange(self, name: str, value: float | None = None) -> float:

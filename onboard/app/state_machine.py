@@ -271,11 +271,15 @@ class StateMachine:
 
     def on_link_lost(self) -> None:
         """Stop commanding at once, keep estimating; fly again only when told."""
+        # what stopped is said only where something was flowing: not in advisory, idle or paused
+        stopped = ["setpoints stopped"] if self.state == State.MONITORING else []
+        if self.launch is not None:
+            stopped.append("launch aborted")
         if self.state in (State.MONITORING, State.PAUSED):
             self.set_state(State.FAULT)
-        aborted = ", launch aborted" if self.launch is not None else ""
         self.launch = None
-        self.say(f"autopilot link lost: setpoints stopped{aborted}, estimating", mavlink.MAV_SEVERITY_CRITICAL)
+        said = ": " + ", ".join(stopped) if stopped else ""
+        self.say(f"autopilot link lost{said}, estimating", mavlink.MAV_SEVERITY_CRITICAL)
 
     def on_link_back(self, lost_s: float) -> None:
         # said now: "link lost" could reach no one while the link was down
