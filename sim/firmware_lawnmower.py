@@ -99,13 +99,14 @@ def _px4_goto(link: Link, e: float, n: float) -> None:
                                    -1, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, lon, alt)
 
 
-def _survey(link: Link, goto) -> None:
-    for e, n in corners():
+def _survey(link: Link, goto, cfg: rec.RecordingConfig) -> None:
+    for e, n in corners(cfg):
         link.until(lambda: link.near(e, n), f"the corner ({e:.0f}, {n:.0f})", lambda: goto(link, e, n), 2.0)
 
 
-def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 400.0) -> Path:
-    """The lawnmower on ArduCopter's SITL; the DataFlash log it wrote."""
+def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 400.0,
+                  cfg: rec.RecordingConfig = rec.RecordingConfig()) -> Path:
+    """The lawnmower of ``cfg`` on ArduCopter's SITL; the DataFlash log it wrote."""
     from sim.ardupilot import ArduPilotSitl, find_binary
 
     params = {"LOG_BACKEND_TYPE": 1, "LOG_DISARMED": 0, "WPNAV_SPEED": 600}
@@ -126,7 +127,7 @@ def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 4
                 link.pump(0.5)
             link.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, ALT_M)
         link.until(lambda: link.enu[2] > ALT_M - 2.0, "the take-off", arm_and_take_off, 2.0)
-        _survey(link, _ardupilot_goto)
+        _survey(link, _ardupilot_goto, cfg)
         link.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 9)  # LAND
         link.until(lambda: not link.armed, "landing and disarming")
         link.conn.close()
@@ -136,8 +137,9 @@ def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 4
     return max(logs, key=lambda p: p.stat().st_size)
 
 
-def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0) -> Path:
-    """The lawnmower on PX4's SIH SITL; the ULog it wrote."""
+def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0,
+            cfg: rec.RecordingConfig = rec.RecordingConfig()) -> Path:
+    """The lawnmower of ``cfg`` on PX4's SIH SITL; the ULog it wrote."""
     from sim.px4 import Px4Sitl, find_sitl
 
     with Px4Sitl(find_sitl(), home=rec.ORIGIN, speed=speed, workdir=Path(workdir)) as sitl:
@@ -147,7 +149,7 @@ def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0) ->
         link.until(lambda: link.armed, "arming", lambda: link.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 1.0)
         link.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, rec.ORIGIN[2] + ALT_M)
         link.until(lambda: link.enu[2] > ALT_M - 3.0, "the take-off")
-        _survey(link, _px4_goto)
+        _survey(link, _px4_goto, cfg)
         link.command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
         link.until(lambda: not link.armed, "landing and disarming")
         link.conn.close()
