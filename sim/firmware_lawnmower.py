@@ -159,13 +159,27 @@ def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0,
     return max(logs, key=lambda p: p.stat().st_size)
 
 
-def main(argv=None) -> int:
-    """``python -m sim.firmware_lawnmower ardupilot|px4 DIR``: fly it, print the log's path."""
-    import sys
+SHORT = rec.RecordingConfig(box_m=(220.0, 100.0, 640.0, 200.0))  # the three northern legs, 300-525 m away
 
-    args = sys.argv[1:] if argv is None else argv
-    fly = fly_ardupilot if args[0] == "ardupilot" else fly_px4
-    print(fly(Path(args[1])))
+
+def main(argv=None) -> int:
+    """``python -m sim.firmware_lawnmower ardupilot|px4 DIR [--short] [--speed X]``: fly it (the
+    whole lawnmower, or ``SHORT``: its three northern legs, as the firmware tests do; ``--speed``:
+    ArduPilot's speedup, default 5, or PX4's speed factor, default 4), print the log's path."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m sim.firmware_lawnmower",
+                                 description="Fly the lawnmower on a firmware's SITL; print its log's path.")
+    ap.add_argument("firmware", choices=("ardupilot", "px4"))
+    ap.add_argument("dir", type=Path)
+    ap.add_argument("--short", action="store_true", help="only the three northern legs")
+    ap.add_argument("--speed", type=float, help="simulated s per wall s")
+    args = ap.parse_args(argv)
+    cfg = SHORT if args.short else rec.RecordingConfig()
+    if args.firmware == "ardupilot":
+        print(fly_ardupilot(args.dir, args.speed or 5.0, cfg=cfg))
+    else:
+        print(fly_px4(args.dir, args.speed or 4.0, cfg=cfg))
     return 0
 
 

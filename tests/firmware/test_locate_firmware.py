@@ -21,8 +21,8 @@ from sim import ardupilot, px4
 from sim import firmware_lawnmower as fl
 from sim import locate_recording as rec
 
-SHORT = rec.RecordingConfig(box_m=(220.0, 100.0, 640.0, 200.0))  # three legs, 300-525 m from the emitters
-RECORDINGS = 3  # drawn along the one flight, besides the command's own
+SHORT = fl.SHORT  # the three northern legs, 300-525 m from the emitters
+RECORDINGS = 2  # drawn along the one flight, besides the command's own
 NEES_P = 1e-3  # the mean NEES checked against its two-sided band at this false-alarm rate
 
 
