@@ -8,8 +8,12 @@ POSES: the flight's MAVLink tlog, ArduPilot DataFlash log (.bin) or PX4 ULog (.u
 bearings are put on the log's timeline (groundstation/locate_align.py), the scenario's filter is
 run over them one tick per second exactly as the app's tick runs it (``onboard.core.monitor.tick``:
 the motion modes, stationary and unknown goal included, with the scenario's priors; no UAV
-planning), and the estimates go out with their covariance ellipses as BASE.csv (every tick,
-every target), BASE.geojson and BASE.kml (the ground station's export), BASE.png (its plot).
+planning). Each target's final estimate is, for one that stood still (its stationary mode held
+the majority), its position fused over the whole recording (groundstation/locate_fuse.py: the
+exact posterior of a target that never moved, which the filter, built to follow a target that
+may move, is not), else the filter's last tick. The estimates go out with their covariance
+ellipses as BASE.csv (every tick, every target, then the final ones), BASE.geojson and BASE.kml
+(the ground station's export), BASE.png (its plot).
 What could not be aligned is said in one line each; a malformed or misaligned recording is one
 line naming the file and the line or the time (exit 2). docs/LOCATE.md.
 """
@@ -28,14 +32,15 @@ from onboard.app.pose import Frame
 
 FORMATS = ("csv", "geojson", "kml", "png")
 CHI2_95_2DOF = 5.991464547107979  # the 95 % ellipse of a 2-D Gaussian: chi-square(2) quantile
-CSV_FIELDS = ("t_s", "unix_s", "target", "east_m", "north_m", "lat_deg", "lon_deg", "sigma_east_m",
+CSV_FIELDS = ("t_s", "unix_s", "target", "estimate", "east_m", "north_m", "lat_deg", "lon_deg", "sigma_east_m",
               "sigma_north_m", "cov_en_m2", "ellipse95_major_m", "ellipse95_minor_m", "ellipse95_azimuth_deg",
               "speed_mps", "p_stationary", "bearings")
 
 
 @dataclass
 class Located:
-    """What a run found: per tick, the means (M, 6) and covariances (M, 6, 6) of every target."""
+    """What a run found: per tick, the means (M, 6) and covariances (M, 6, 6) of every target; per
+    target, its final estimate (``finish``)."""
 
     times: list[int] = field(default_factory=list)  # autopilot s
     means: list[np.ndarray] = field(default_factory=list)
@@ -44,19 +49,22 @@ class Located:
     counts: list[list[int]] = field(default_factory=list)  # bearings per target at each tick
     uav: list[tuple[float, float]] = field(default_factory=list)  # the vehicle at each tick
     notes: list[str] = field(default_factory=list)
+    scans: list[list] = field(default_factory=list)  # per target, [(sensor_xy, bearings, clutter rate)]
+    reseeds: list[list[int]] = field(default_factory=list)  # per target, the ticks it was re-seeded at
+    final_means: np.ndarray | None = None  # (M, 6)
+    final_covs: np.ndarray | None = None  # (M, 6, 6)
+    final_kind: list[str] = field(default_factory=list)  # per target: FUSED or LAST_TICK
 
-    @property
-    def final_means(self) -> np.ndarray:
-        return self.means[-1]
 
-    @property
-    def final_covs(self) -> np.ndarray:
-        return self.covs[-1]
+FUSED = "stationary, fused over the recording"
+LAST_TICK = "the filter's last tick"
+STATIONARY_MAJORITY = 0.5  # a target whose stationary mode held this much, averaged over the ticks, stood still
 
 
 def run_filter(sc, aligned, log, seed: int = 1) -> Located:
     """The scenario's filter over the aligned scans, one tick per whole second from the first
-    bearing's to the last's (a second without one is a prediction alone, as the app's tick)."""
+    bearing's to the last's (a second without one is a prediction alone, as the app's tick); then
+    each target's final estimate (``finish``)."""
     from onboard.app.pairing import scans_for_tick
     from onboard.core.monitor import MonitorSetup, initial_state, tick
 
@@ -64,7 +72,8 @@ def run_filter(sc, aligned, log, seed: int = 1) -> Located:
     rng = np.random.default_rng(seed)
     state = initial_state(setup, rng)
     poses = log.history()
-    out = Located(notes=list(aligned.notes))
+    out = Located(notes=list(aligned.notes), scans=[[] for _ in range(setup.n_targets)],
+                  reseeds=[[] for _ in range(setup.n_targets)])
     first, last = min(aligned.slots), max(aligned.slots)
     unpaired = 0
     for t in range(first, last + 1):
@@ -77,12 +86,41 @@ def run_filter(sc, aligned, log, seed: int = 1) -> Located:
         out.covs.append(res.covs.copy())
         out.p_stationary.append(_stationary(setup, res))
         out.counts.append([len(held[ch].bearings) if ch in held else 0 for ch in range(setup.n_targets)])
+        for j in range(setup.n_targets):
+            out.scans[j] += [(np.asarray(s.sensor_position, float)[:2], s.bearings[j],
+                              None if s.clutter_rates is None else s.clutter_rates[j])
+                             for s in scans if np.asarray(s.bearings[j]).size]
+            if res.reseeded is not None and res.reseeded[j]:
+                out.reseeds[j].append(t)
         pos = poses.at(float(t))
         if pos is not None:
             out.uav.append((float(pos[0]), float(pos[1])))
     if unpaired:
         out.notes.append(f"{unpaired} scan(s) without a vehicle position at their time: not used")
+    finish(out, setup, sc)
     return out
+
+
+def finish(found: Located, setup, sc) -> None:
+    """Each target's final estimate: for one that stood still (its stationary mode held the
+    majority over the ticks; without modes, the scenario's ``stationary``), its position fused
+    over every scan of the recording (groundstation/locate_fuse.py); else the last tick's."""
+    from groundstation.locate_fuse import fuse
+
+    found.final_means, found.final_covs = found.means[-1].copy(), found.covs[-1].copy()
+    found.final_kind = []
+    for j, target in enumerate(sc.targets):
+        ps = stationary_share(found, j)
+        still = ps >= STATIONARY_MAJORITY if ps is not None else bool(target.stationary)
+        if not still or not found.scans[j]:
+            found.final_kind.append(LAST_TICK)
+            continue
+        f = fuse(found.scans[j], setup.initial_means[j][:2], setup.initial_cov[:2, :2], setup.sensor)
+        m, c = np.zeros(6), np.zeros((6, 6))
+        m[:2], m[2] = f.mean_m, found.means[-1][j][2]
+        c[:2, :2] = f.cov_m2
+        found.final_means[j], found.final_covs[j] = m, c
+        found.final_kind.append(FUSED)
 
 
 def _stationary(setup, res) -> list[float | None]:
@@ -102,36 +140,58 @@ def ellipse95(cov2: np.ndarray) -> tuple[float, float, float]:
     return k * math.sqrt(vals[1]), k * math.sqrt(vals[0]), math.degrees(math.atan2(major[0], major[1])) % 180.0
 
 
+def _row(frame: Frame, when: tuple[int, float | None], name: str, kind: str, m: np.ndarray, c: np.ndarray,
+         ps: float | None, n: int) -> dict:
+    """One row of the table; ``when``: (autopilot s, Unix s or None)."""
+    t, unix = when
+    lat, lon, _ = frame.geodetic_from_enu(m[:3])
+    a, b, az = ellipse95(c[:2, :2])
+    return {"t_s": t, "unix_s": "" if unix is None else f"{unix:.3f}", "target": name, "estimate": kind,
+            "east_m": f"{m[0]:.2f}", "north_m": f"{m[1]:.2f}", "lat_deg": f"{lat:.7f}", "lon_deg": f"{lon:.7f}",
+            "sigma_east_m": f"{math.sqrt(max(c[0, 0], 0)):.3f}", "sigma_north_m": f"{math.sqrt(max(c[1, 1], 0)):.3f}",
+            "cov_en_m2": f"{c[0, 1]:.4f}", "ellipse95_major_m": f"{a:.2f}", "ellipse95_minor_m": f"{b:.2f}",
+            "ellipse95_azimuth_deg": f"{az:.1f}", "speed_mps": f"{math.hypot(m[3], m[4]):.2f}",
+            "p_stationary": "" if ps is None else f"{ps:.3f}", "bearings": n}
+
+
+def stationary_share(found: Located, j: int) -> float | None:
+    """Target j's stationary-mode probability averaged over the ticks (None without modes)."""
+    ps = [p[j] for p in found.p_stationary if p[j] is not None]
+    return float(np.mean(ps)) if ps else None
+
+
 def rows(found: Located, sc, log) -> list[dict]:
-    """The table: one row per tick and target."""
+    """The table: one row per tick and target (``estimate`` "tick"), then each target's final
+    estimate (``estimate`` "final", at the last tick's time; its bearings: the scans it used)."""
     frame = Frame(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m)
     out = []
     for t, means, covs, ps, ns in zip(found.times, found.means, found.covs, found.p_stationary, found.counts):
         unix = log.utc.unix_time(float(t))
-        for j, target in enumerate(sc.targets):
-            m, c = means[j], covs[j]
-            lat, lon, _ = frame.geodetic_from_enu(m[:3])
-            a, b, az = ellipse95(c[:2, :2])
-            out.append({"t_s": t, "unix_s": "" if unix is None else f"{unix:.3f}", "target": target.name,
-                        "east_m": f"{m[0]:.2f}", "north_m": f"{m[1]:.2f}", "lat_deg": f"{lat:.7f}",
-                        "lon_deg": f"{lon:.7f}", "sigma_east_m": f"{math.sqrt(max(c[0, 0], 0)):.2f}",
-                        "sigma_north_m": f"{math.sqrt(max(c[1, 1], 0)):.2f}", "cov_en_m2": f"{c[0, 1]:.3f}",
-                        "ellipse95_major_m": f"{a:.2f}", "ellipse95_minor_m": f"{b:.2f}",
-                        "ellipse95_azimuth_deg": f"{az:.1f}", "speed_mps": f"{math.hypot(m[3], m[4]):.2f}",
-                        "p_stationary": "" if ps[j] is None else f"{ps[j]:.3f}", "bearings": ns[j]})
+        out += [_row(frame, (t, unix), target.name, "tick", means[j], covs[j], ps[j], ns[j])
+                for j, target in enumerate(sc.targets)]
+    t = found.times[-1]
+    for j, target in enumerate(sc.targets):
+        n = len(found.scans[j]) if found.final_kind[j] == FUSED else found.counts[-1][j]
+        out.append(_row(frame, (t, log.utc.unix_time(float(t))), target.name, "final", found.final_means[j],
+                        found.final_covs[j], stationary_share(found, j), n))
     return out
 
 
 def flight(found: Located, source: str):
-    """The run as the ground station's ``Flight`` (groundstation/plot.py), for its plot and export."""
+    """The run as the ground station's ``Flight`` (groundstation/plot.py), for its plot and export:
+    each target's track, its last point the final estimate."""
     from groundstation.plot import Estimate, Flight
+
+    def est(t, m, c):
+        return Estimate(float(t), float(m[0]), float(m[1]), math.sqrt(max(c[0, 0], 0)), math.sqrt(max(c[1, 1], 0)),
+                        float(c[0, 1]))
 
     tracks = {}
     for t, means, covs in zip(found.times, found.means, found.covs):
         for j in range(len(means)):
-            m, c = means[j], covs[j]
-            tracks.setdefault(j, []).append(Estimate(float(t), float(m[0]), float(m[1]), math.sqrt(max(c[0, 0], 0)),
-                                                     math.sqrt(max(c[1, 1], 0)), float(c[0, 1])))
+            tracks.setdefault(j, []).append(est(t, means[j], covs[j]))
+    for j, track in tracks.items():
+        track[-1] = est(found.times[-1], found.final_means[j], found.final_covs[j])
     return Flight(tuple(found.uav), tracks, {}, None, source)
 
 
@@ -158,18 +218,24 @@ def write_outputs(found: Located, sc, log, base: str, formats=FORMATS) -> list[s
 
 
 def summary(found: Located, sc) -> list[str]:
-    """One line per target: its final estimate, 95 % ellipse, stationary probability."""
+    """One line per target: its final estimate, 95 % ellipse, what it is (``finish``), its
+    stationary probability averaged over the ticks, and the filter's re-seeds."""
     frame = Frame(sc.origin.lat_deg, sc.origin.lon_deg, sc.origin.alt_m)
     out = []
     for j, target in enumerate(sc.targets):
         m, c = found.final_means[j], found.final_covs[j]
         lat, lon, _ = frame.geodetic_from_enu(m[:3])
         a, b, az = ellipse95(c[:2, :2])
-        ps = found.p_stationary[-1][j]
-        n = sum(k[j] > 0 for k in found.counts)
+        ps = stationary_share(found, j)
+        n = len(found.scans[j])
+        seeds = found.reseeds[j]
+        apart = float(np.hypot(*(found.means[-1][j][:2] - m[:2])))
         out.append(f"{target.name}: {lat:.6f}, {lon:.6f} (E {m[0]:.1f} m, N {m[1]:.1f} m), 95 % ellipse "
-                   f"{a:.1f} x {b:.1f} m at {az:.0f} deg, {n} scans with bearings"
-                   + ("" if ps is None else f", stationary {ps:.2f}"))
+                   f"{a:.1f} x {b:.1f} m at {az:.0f} deg, {found.final_kind[j]}, {n} scans with bearings"
+                   + ("" if ps is None else f", stationary {ps:.2f}")
+                   + (f"; the filter's last tick {apart:.1f} m from it" if found.final_kind[j] == FUSED else "")
+                   + (f"; the filter re-seeded at autopilot t {', '.join(map(str, seeds[-3:]))} s"
+                      f"{f' ({len(seeds)} times)' if len(seeds) > 3 else ''}" if seeds else ""))
     return out
 
 
@@ -257,7 +323,8 @@ def main(argv=None) -> int:
     if args.json:
         print(json.dumps({"targets": [{"name": t.name, "east_m": float(found.final_means[j][0]),
                                        "north_m": float(found.final_means[j][1]),
-                                       "cov_en_m2": found.final_covs[j][:2, :2].tolist()}
+                                       "cov_en_m2": found.final_covs[j][:2, :2].tolist(),
+                                       "final": found.final_kind[j], "reseeded_at_s": found.reseeds[j]}
                                       for j, t in enumerate(sc.targets)],
                           "ticks": len(found.times), "notes": found.notes, "files": written}))
         return 0

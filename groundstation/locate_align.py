@@ -87,25 +87,17 @@ def kind_of(path: str) -> str:
     raise AlignError(f"{path}: empty: no bearings")
 
 
-def kraken_frames(path: str) -> list[tuple[int, list[tuple[int, kl.KrakenLine]]]]:
-    """[(time stamp ms, [(line number, line), ...])]: consecutive lines of one stamp one frame."""
-    frames: list = []
+def kraken_frames(path: str) -> list[tuple[int, list[kl.RecordedLine]]]:
+    """The recording's frames (``kraken_line.recording_frames``), in time order."""
     with open_regular(path, MAX_BYTES) as f:
-        for n, raw in enumerate(f, 1):
-            raw = raw.rstrip(b"\r\n")
-            if not raw.strip():
-                continue
-            try:
-                line = kl.parse_line(raw)
-            except kl.LineError as exc:
-                raise AlignError(f"{path}:{n}: {exc}") from None
-            if frames and frames[-1][0] == line.epoch_ms:
-                frames[-1][1].append((n, line))
-                continue
-            if frames and line.epoch_ms < frames[-1][0]:
-                raise AlignError(f"{path}:{n}: time goes back {(frames[-1][0] - line.epoch_ms) / 1000:.3f} s "
-                                 "(a recording is in time order)")
-            frames.append((line.epoch_ms, [(n, line)]))
+        try:
+            frames = kl.recording_frames(f)
+        except kl.RecordingError as exc:
+            raise AlignError(f"{path}:{exc.number}: {exc.error}") from None
+    for (before, _), (epoch, lines) in zip(frames, frames[1:]):
+        if epoch < before:
+            raise AlignError(f"{path}:{lines[0].number}: time goes back {(before - epoch) / 1000:.3f} s "
+                             "(a recording is in time order)")
     if not frames:
         raise AlignError(f"{path}: no KrakenSDR line in it")
     return frames
@@ -149,13 +141,13 @@ def align_kraken(path: str, sc, log, time_offset_s: float = 0.0) -> Aligned:
     gaps = log.gaps()
     for _epoch, lines in frames:
         out.frames += 1
-        t = time_map.autopilot_time(lines[0][1].measured_unix_s)
+        t = time_map.autopilot_time(lines[0].line.measured_unix_s)
         where = _where(t, log, gaps)
         if where is not None:
-            misses[where].add(lines[0][0], t)
+            misses[where].add(lines[0].number, t)
             continue
         clock.t = t
-        source.offer("doa", kl.ParsedDocument(tuple(ln for _, ln in lines)))
+        source.offer("doa", kl.ParsedDocument(tuple(r.line for r in lines)))
         source.tick(t)
         out.used += 1
     source.tick(math.inf)

@@ -99,13 +99,14 @@ def _px4_goto(link: Link, e: float, n: float) -> None:
                                    -1, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, lon, alt)
 
 
-def _survey(link: Link, goto) -> None:
-    for e, n in corners():
+def _survey(link: Link, goto, cfg: rec.RecordingConfig) -> None:
+    for e, n in corners(cfg):
         link.until(lambda: link.near(e, n), f"the corner ({e:.0f}, {n:.0f})", lambda: goto(link, e, n), 2.0)
 
 
-def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 400.0) -> Path:
-    """The lawnmower on ArduCopter's SITL; the DataFlash log it wrote."""
+def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 400.0,
+                  cfg: rec.RecordingConfig = rec.RecordingConfig()) -> Path:
+    """The lawnmower of ``cfg`` on ArduCopter's SITL; the DataFlash log it wrote."""
     from sim.ardupilot import ArduPilotSitl, find_binary
 
     params = {"LOG_BACKEND_TYPE": 1, "LOG_DISARMED": 0, "WPNAV_SPEED": 600}
@@ -126,7 +127,7 @@ def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 4
                 link.pump(0.5)
             link.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, ALT_M)
         link.until(lambda: link.enu[2] > ALT_M - 2.0, "the take-off", arm_and_take_off, 2.0)
-        _survey(link, _ardupilot_goto)
+        _survey(link, _ardupilot_goto, cfg)
         link.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 9)  # LAND
         link.until(lambda: not link.armed, "landing and disarming")
         link.conn.close()
@@ -136,8 +137,9 @@ def fly_ardupilot(workdir: Path, speedup: float = 5.0, wall_timeout_s: float = 4
     return max(logs, key=lambda p: p.stat().st_size)
 
 
-def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0) -> Path:
-    """The lawnmower on PX4's SIH SITL; the ULog it wrote."""
+def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0,
+            cfg: rec.RecordingConfig = rec.RecordingConfig()) -> Path:
+    """The lawnmower of ``cfg`` on PX4's SIH SITL; the ULog it wrote."""
     from sim.px4 import Px4Sitl, find_sitl
 
     with Px4Sitl(find_sitl(), home=rec.ORIGIN, speed=speed, workdir=Path(workdir)) as sitl:
@@ -147,7 +149,7 @@ def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0) ->
         link.until(lambda: link.armed, "arming", lambda: link.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1), 1.0)
         link.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, rec.ORIGIN[2] + ALT_M)
         link.until(lambda: link.enu[2] > ALT_M - 3.0, "the take-off")
-        _survey(link, _px4_goto)
+        _survey(link, _px4_goto, cfg)
         link.command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
         link.until(lambda: not link.armed, "landing and disarming")
         link.conn.close()
@@ -157,13 +159,27 @@ def fly_px4(workdir: Path, speed: float = 4.0, wall_timeout_s: float = 400.0) ->
     return max(logs, key=lambda p: p.stat().st_size)
 
 
-def main(argv=None) -> int:
-    """``python -m sim.firmware_lawnmower ardupilot|px4 DIR``: fly it, print the log's path."""
-    import sys
+SHORT = rec.RecordingConfig(box_m=(220.0, 100.0, 640.0, 200.0))  # the three northern legs, 300-525 m away
 
-    args = sys.argv[1:] if argv is None else argv
-    fly = fly_ardupilot if args[0] == "ardupilot" else fly_px4
-    print(fly(Path(args[1])))
+
+def main(argv=None) -> int:
+    """``python -m sim.firmware_lawnmower ardupilot|px4 DIR [--short] [--speed X]``: fly it (the
+    whole lawnmower, or ``SHORT``: its three northern legs, as the firmware tests do; ``--speed``:
+    ArduPilot's speedup, default 5, or PX4's speed factor, default 4), print the log's path."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m sim.firmware_lawnmower",
+                                 description="Fly the lawnmower on a firmware's SITL; print its log's path.")
+    ap.add_argument("firmware", choices=("ardupilot", "px4"))
+    ap.add_argument("dir", type=Path)
+    ap.add_argument("--short", action="store_true", help="only the three northern legs")
+    ap.add_argument("--speed", type=float, help="simulated s per wall s")
+    args = ap.parse_args(argv)
+    cfg = SHORT if args.short else rec.RecordingConfig()
+    if args.firmware == "ardupilot":
+        print(fly_ardupilot(args.dir, args.speed or 5.0, cfg=cfg))
+    else:
+        print(fly_px4(args.dir, args.speed or 4.0, cfg=cfg))
     return 0
 
 

@@ -374,22 +374,12 @@ def read_frames(path: str | os.PathLike) -> list[tuple[int, list[str]]]:
     from onboard.app import kraken_line as kl
     from onboard.files import open_regular
 
-    frames: list[tuple[int, list[str]]] = []
     with open_regular(path, 512 * 1024 * 1024) as f:
-        for n, raw in enumerate(f, 1):
-            raw = raw.rstrip(b"\r\n")
-            if not raw.strip():
-                continue
-            try:
-                line = kl.parse_line(raw)
-            except kl.LineError as exc:
-                raise ValueError(f"{os.fspath(path)}:{n}: {exc}") from None
-            text = raw.decode("utf-8").rstrip() + " \n"
-            if frames and frames[-1][0] == line.epoch_ms:
-                frames[-1][1].append(text)
-            else:
-                frames.append((line.epoch_ms, [text]))
-    return frames
+        try:
+            frames = kl.recording_frames(f)
+        except kl.RecordingError as exc:
+            raise ValueError(f"{os.fspath(path)}:{exc.number}: {exc.error}") from None
+    return [(epoch, [r.raw.decode("utf-8").rstrip() + " \n" for r in lines]) for epoch, lines in frames]
 
 
 def replay_frames(frames, writer: KrakenWriter, unix_now, stop: threading.Event, speedup: float = 1.0,

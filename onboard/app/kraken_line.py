@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from typing import Iterable
 
 import numpy as np
 
@@ -188,6 +189,44 @@ def parse_line(raw: bytes) -> KrakenLine:
     return KrakenLine(epoch, doa, conf, power, int(round(freq)), array, latency, station, lat, lon, heading,
                       spectrum)
 
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedLine:
+    number: int  # the line's number in its recording, from 1
+    raw: bytes  # as written, without its newline
+    line: KrakenLine
+
+
+class RecordingError(ValueError):
+    """A recording's bad line: its ``number`` and the ``LineError``."""
+
+    def __init__(self, number: int, error: LineError):
+        super().__init__(f"{number}: {error}")
+        self.number = number
+        self.error = error
+
+
+def recording_frames(raws: Iterable[bytes]) -> list[tuple[int, list[RecordedLine]]]:
+    """The frames of a KrakenSDR recording (its data recording ``mydata.csv``, or ``DOA_value.html``
+    documents one after another), given its lines (bytes, newline or not): [(time stamp ms,
+    [RecordedLine, ...])] in file order, consecutive lines of one stamp one frame; blank lines
+    skipped. Every line is checked by ``parse_line``; the first bad one raises ``RecordingError``."""
+    frames: list[tuple[int, list[RecordedLine]]] = []
+    for n, raw in enumerate(raws, 1):
+        raw = raw.rstrip(b"\r\n")
+        if not raw.strip():
+            continue
+        try:
+            line = parse_line(raw)
+        except LineError as exc:
+            raise RecordingError(n, exc) from None
+        rec = RecordedLine(n, raw, line)
+        if frames and frames[-1][0] == line.epoch_ms:
+            frames[-1][1].append(rec)
+        else:
+            frames.append((line.epoch_ms, [rec]))
+    return frames
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,11 +25,11 @@ def recording(tmp_path_factory):
     return rec.write_recording(folder, seed=7)
 
 
-def _final(csv_path) -> dict:
+def _final(csv_path) -> tuple[dict, list]:
+    """Each target's final row, and the rows of every tick."""
     with open(csv_path) as f:
         rows = list(csv.DictReader(f))
-    last = max(int(r["t_s"]) for r in rows)
-    return {r["target"]: r for r in rows if int(r["t_s"]) == last}, rows
+    return {r["target"]: r for r in rows if r["estimate"] == "final"}, [r for r in rows if r["estimate"] == "tick"]
 
 
 def _run(args, capsys) -> tuple[int, str, str]:
@@ -57,7 +57,7 @@ def test_locates_both_emitters_within_15_m_and_writes_every_output(recording, be
         assert 0 < float(r["ellipse95_minor_m"]) <= float(r["ellipse95_major_m"]) < 100
         lat, lon, _ = Frame(*rec.ORIGIN).geodetic_from_enu([float(r["east_m"]), float(r["north_m"]), 0.0])
         assert float(r["lat_deg"]) == pytest.approx(lat, abs=1e-6) and float(r["lon_deg"]) == pytest.approx(lon, abs=1e-6)
-    assert "T1: " in out and "T2: " in out and "stationary" in out
+    assert "T1: " in out and "T2: " in out and "stationary, fused over the recording" in out
     sc = load_scenario(str(recording["scenario"]))
     doc = assert_geojson_in_area(base.with_suffix(".geojson"), sc)
     kinds = {f["properties"].get("kind") for f in doc["features"]}
@@ -173,3 +173,33 @@ def test_a_scenario_without_the_recordings_vfos_is_said(recording, tmp_path, cap
     assert any("unknown_vfo: 433200000 Hz is no target's VFO" in ln for ln in out.splitlines()), out
     code, out, err = _run([tmp_path / "m.csv", recording["tlog"], "--format", "kml,svg"], capsys)
     assert code == 2 and "'svg'" in err
+
+
+def test_a_reseed_on_the_last_ticks_keeps_the_converged_estimate_and_is_said(recording, tmp_path, capsys):
+    """T1's last six scans 30 degrees off: the filter, surprised, re-seeds its belief at the end;
+    the final estimate is still the recording's (the stationary hypothesis fused over it, where
+    those bearings are clutter), and the re-seed is said."""
+    from onboard.core.bearings import bearing, wrap
+
+    lines = open(recording["datagrams"]).read().splitlines()
+    last = max(json.loads(x)["t"] for x in lines)
+    poses = {round(p.t, 1): p.pos[:2] for p in rec.lawnmower(rec.RecordingConfig(), np.random.default_rng(7))}
+    bad = []
+    for x in lines:
+        d = json.loads(x)
+        if d["ch"] == 0 and d["t"] > last - 6:
+            b = bearing(np.asarray(recording["truth_m"][0])[None, :], poses[round(d["t"], 1)])[0]
+            d["bearings_rad"] = [float(wrap(b + np.radians(30.0)))]
+        bad.append(json.dumps(d))
+    src = tmp_path / "late.jsonl"
+    src.write_text("\n".join(bad) + "\n")
+    code, out, err = _run([src, recording["tlog"], "--scenario", recording["scenario"], "--out", tmp_path / "o",
+                           "--format", "csv", "--json"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    t1 = doc["targets"][0]
+    assert t1["reseeded_at_s"] and t1["reseeded_at_s"][-1] >= last - 6, t1
+    assert t1["final"] == "stationary, fused over the recording"
+    assert np.hypot(t1["east_m"] - recording["truth_m"][0][0], t1["north_m"] - recording["truth_m"][0][1]) <= 15.0
+    e = np.array([t1["east_m"], t1["north_m"]]) - recording["truth_m"][0]
+    assert e @ np.linalg.solve(t1["cov_en_m2"], e) < 13.8  # chi-square(2)'s 99.9 % quantile
