@@ -69,6 +69,17 @@ class MonitorCore:
             self.workspace = GuidanceWorkspace()
         return type(self.state)(tuple(beliefs), plans, self.state.step)
 
+    @property
+    def version(self) -> tuple | int:
+        """The version of the setup built last (the parameters' and the planner limits')."""
+        return self._version
+
+    def tick_setup(self) -> MonitorSetup:
+        """(Under the lock) ``build_setup``, with the candidate grid within reach."""
+        setup = self.build_setup()
+        grid = self.grid_within_reach()
+        return setup if grid.n_radial == setup.grid.n_radial else replace(setup, grid=grid)
+
     def grid_within_reach(self) -> CandidateGrid:
         """The candidate grid without the rings the vehicle cannot fly in one tick (PMON_REACH)."""
         g = self.setup.grid
