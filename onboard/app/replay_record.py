@@ -40,8 +40,8 @@ class ReplayRecorder:
             out["run"] = {"version": VERSION, "seed": self.seed, "scenario": scenario_tree(core.base_scenario)}
         if core.version != self._version:
             self._version = core.version
-            out["setup"] = {"params": {n: core.params[n] for n in core.params.names()},
-                            "planner": None if core.limits.planner is None else list(core.limits.planner)}
+            values, planner = core.built_from
+            out["setup"] = {"params": dict(values), "planner": None if planner is None else list(planner)}
         out.update(rng=rng_state, scans=[scan_fields(s) for s in scans],
                    plan_from=None if plan_from is None else {
                        "p": _floats(plan_from.position), "v": _floats(plan_from.velocity),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import time
+import types
 
 import pytest
 
@@ -21,8 +22,11 @@ SCANS = 24.0  # s of scans the feed sends
 
 def _fly(out, seed: int):
     run = out / "run.jsonl"
+    # the first scan at the mission altitude: a scan while the vehicle is still on the ground
+    # (armed, the take-off not yet reported) gets a tick without a plan, on a fast machine only
     st = SitlStack(speedup=2.0, ready_s=QUICK_BOOT_S, seed=seed, auto_launch=True, feed_duration_s=SCANS,
-                   runlog_path=str(run), truth_path=str(out / "truth.jsonl"), out_dir=str(out / "rig"))
+                   feed_start="altitude", runlog_path=str(run), truth_path=str(out / "truth.jsonl"),
+                   out_dir=str(out / "rig"))
     st.start()
     try:
         assert st.wait_ready()
@@ -55,26 +59,59 @@ def test_a_mock_flight_replays_bit_for_bit(flight):
     assert all(t["replay"]["out"]["next"] is not None for t in ticks)  # a setpoint every tick
 
 
+def _plans(ticks):
+    """Per tick, each target's (guidance status, QP solves, lateral margin: 5 the first search's
+    plan, 0 the search without the margin, None a fallback)."""
+    return [list(zip(t["replay"]["out"]["plans"], t["replay"]["out"]["qp_solves"], t["replay"]["out"]["margins"]))
+            for t in ticks]
+
+
+def _changed_by_a_budget(plans, n: int, cap: int) -> tuple[int | None, list[int]]:
+    """With ``max_qp_solves`` at ``n`` instead of the flight's ``cap``: (the first tick a plan
+    must change at, None: none; the ticks before it a plan may change at). A plan of the search
+    with the margin changes when that search spent more than n, or n and ended by itself (then the
+    budget ends it); above the cap, when the budget ended a search. A plan of the search without
+    the margin, or a fallback after both, may change when the two searches spent n or more
+    together: either may have reached n (the run log holds their sum)."""
+    def must(s, q, m):
+        return s == "budget" if n > cap else bool(m) and (q > n or (q == n and s == "optimal"))
+
+    first = next((i for i, ps in enumerate(plans) if any(must(*p) for p in ps)), None)
+    may = [i for i, ps in enumerate(plans[:first]) if any(not m and q >= min(n, cap) for s, q, m in ps)]
+    return first, may
+
+
+def _first_changed(out: str) -> int | None:
+    last = out.splitlines()[-1]
+    return None if "no estimate or setpoint changed" in last else int(last.split("first changed at tick ")[1].split()[0])
+
+
 @pytest.mark.timeout(300)
 def test_a_smaller_qp_budget_changes_the_first_tick_whose_solve_reached_it(flight):
     """guidance.max_qp_solves at N, the most QP solves a search that ended by itself spent: the
-    first tick changed is the first whose search spent N and ended by itself, or more and was not
-    stopped by the clock at N (or one with the search without the margin: two searches, either
-    can reach N)."""
+    first tick changed is the first whose search spent N and ended by itself, or more (or one
+    whose searches together spent N or more: either can have reached N). The flight's own budget
+    changes nothing; one above every count changes only a tick whose search the budget ended."""
     ticks = _ticks(flight)
-    plans = [list(zip(t["replay"]["out"]["plans"], t["replay"]["out"]["qp_solves"], t["replay"]["out"]["margins"]))
-             for t in ticks]
+    plans = _plans(ticks)
+    cap = ticks[0]["replay"]["run"]["scenario"]["guidance"]["max_qp_solves"]
     n = max(q for ps in plans for s, q, m in ps if s == "optimal" and m)
-    assert n >= 2
-    first = next(i for i, ps in enumerate(plans)
-                 if any(m and (q > n or (q == n and s == "optimal")) for s, q, m in ps))
-    retried = [i for i, ps in enumerate(plans[:first]) if any(m == 0.0 and q >= n for s, q, m in ps)]
+    assert 2 <= n <= cap
+    first, may = _changed_by_a_budget(plans, n, cap)
+    assert first is not None
     rc, out, err = replay(flight, "--set", f"guidance.max_qp_solves={n}", "--quiet")
     assert (rc, err) == (0, "")
-    changed = int(out.split("first changed at tick ")[1].split()[0])
-    assert changed in retried + [first] and ": guidance:" in out, (first, retried, out)
-    rc, out, err = replay(flight, "--set", "guidance.max_qp_solves=1000")  # above every count: no change
-    assert rc == 0 and "no estimate or setpoint changed" in out.splitlines()[-1], out
+    assert _first_changed(out) in may + [first] and ": guidance:" in out, (first, may, out)
+    rc, out, err = replay(flight, "--set", f"guidance.max_qp_solves={cap}")  # the flight's own: no change
+    assert (rc, err) == (0, "") and _first_changed(out) is None, out
+    first, may = _changed_by_a_budget(plans, 1000, cap)
+    rc, out, err = replay(flight, "--set", "guidance.max_qp_solves=1000", "--quiet")
+    assert (rc, err) == (0, "")
+    changed = _first_changed(out)
+    if first is None and not may:  # no search reached the flight's budget: nothing to change
+        assert changed is None, out
+    else:
+        assert changed in may + [first], (first, may, out)
 
 
 @pytest.mark.timeout(300)
@@ -139,3 +176,34 @@ def test_a_missing_or_empty_run_log_is_refused_in_one_line(tmp_path):
         assert rc == 2 and len(err.strip().splitlines()) == 1 and why in err, err
     rc, _, err = replay(tmp_path / "none.jsonl", "--set", "nonsense")
     assert rc == 2 and "--set" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_parameter_set_during_a_tick_is_recorded_for_the_tick_it_reaches():
+    """The setup a tick's record holds is the one the tick ran with: a PMON parameter set (or
+    the autopilot's limits read) while the core ticks, outside the app lock, reaches the next
+    tick, and the replay record says so there."""
+    import numpy as np
+
+    from onboard.app.monitor_core import MonitorCore
+    from onboard.app.params import ParamTable
+    from onboard.app.replay_record import ReplayRecorder
+    from onboard.config import load_scenario
+    from onboard.core import monitor
+    from onboard.core.clock_stops import SearchClock
+
+    sc = load_scenario("paper")
+    params = ParamTable.from_scenario(sc)
+    assert params.set("PMON_PARTICLES", 100) is None  # a quick tick
+    limits = types.SimpleNamespace(planner=None)
+    core = MonitorCore(sc, params, limits, np.random.default_rng(3))
+    rec = ReplayRecorder(core, 3)
+    altitudes = []
+    for k in range(2):
+        setup, clock = core.tick_setup(), SearchClock()
+        core.state, res = monitor.tick(setup, core.state, [], core.rng, timer=clock)
+        if k == 0:  # mid-tick: the new altitude and limits are the next tick's
+            assert params.set("PMON_ALT", params["PMON_ALT"] + 5.0) is None
+            limits.planner = (9.0, 3.0, 0.0)
+        fields = rec.fields(setup, [], None, {}, clock, res)
+        altitudes.append((fields["setup"]["params"]["PMON_ALT"], fields["setup"]["planner"]))
+    assert altitudes == [(sc.uav.altitude_m, None), (sc.uav.altitude_m + 5.0, [9.0, 3.0, 0.0])]
