@@ -9,8 +9,10 @@ import json
 import time
 import types
 
+import numpy as np
 import pytest
 
+from onboard.core.bearings import bearing, wrap
 from sim.stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S
@@ -121,9 +123,13 @@ def test_an_edited_input_is_found_at_its_tick_and_stage(flight, tmp_path):
     scan_ticks = [i for i, t in enumerate(ticks) if i >= k and t["replay"]["scans"]]
     k = scan_ticks[0]
     edited = json.loads(json.dumps(ticks))
-    b = edited[k]["replay"]["scans"][0]["b"]
-    ch = next(c for c, x in enumerate(b) if x)
-    b[ch][0] += 1e-9  # one bearing, a nanoradian
+    scan = edited[k]["replay"]["scans"][0]
+    # the bearing nearest a target's estimate: one far from every particle (clutter) has a
+    # likelihood term that is 0.0 in floating point, and a nanoradian changes nothing there
+    to_estimates = bearing(np.array(ticks[k]["replay"]["out"]["means"])[:, :2], np.array(scan["p"][:2]))
+    ch, i = min(((c, i) for c, bs in enumerate(scan["b"]) for i in range(len(bs))),
+                key=lambda ci: abs(wrap(scan["b"][ci[0]][ci[1]] - to_estimates[ci[0]])))
+    scan["b"][ch][i] += 1e-9  # one bearing, a nanoradian
     rc, out, _ = replay(_write(tmp_path / "bearing.jsonl", edited))
     assert rc == 1 and f"diverged at tick {k} " in out and ": estimate: means differ" in out, out
     edited = json.loads(json.dumps(ticks))
@@ -182,8 +188,6 @@ def test_a_parameter_set_during_a_tick_is_recorded_for_the_tick_it_reaches():
     """The setup a tick's record holds is the one the tick ran with: a PMON parameter set (or
     the autopilot's limits read) while the core ticks, outside the app lock, reaches the next
     tick, and the replay record says so there."""
-    import numpy as np
-
     from onboard.app.monitor_core import MonitorCore
     from onboard.app.params import ParamTable
     from onboard.app.replay_record import ReplayRecorder
