@@ -3,6 +3,8 @@
     pmon run ...                 the onboard app: the companion computer's program
     pmon check-config [FILE]     validate a scenario (default: the built-in paper scenario), with
                                  --set KEY=VALUE changes; names each experimental setting changed
+    pmon replay RUNLOG           re-run a flight's run log through the core, to the same decisions
+                                 (onboard/app/replay.py); --set KEY=VALUE: what-if
     pmon VERB ...                a verb another package declares in the entry-point group
                                  ``pmon.verbs`` (pyproject.toml): the simulator's demo, simulate,
                                  eval and feed (sim/verbs.py), the ground station's gcs
@@ -21,7 +23,7 @@ import sys
 from onboard.argcheck import OneLineParser, Version
 
 VERBS = "pmon.verbs"  # the entry-point group: NAME = "module:main [extra]", main(argv) -> exit code
-OWN = ("run", "check-config")
+OWN = ("run", "check-config", "replay")
 
 
 def _check(args) -> int:
@@ -151,6 +153,11 @@ def parser(verbs: dict) -> OneLineParser:
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a scenario value before the checks (VALUE read as YAML; repeatable), as pmon eval's")
     c.set_defaults(func=_check)
+    from onboard.app import replay as replay_mod
+    rp = sub.add_parser("replay", help="re-run a flight's run log through the core, to the same decisions",
+                        description="Re-run a run log through the core: bit for bit, or with --set changes.")
+    replay_mod.add_arguments(rp)
+    rp.set_defaults(func=replay_mod.run)
     for name, ep in sorted(verbs.items()):
         doc = (ep.load().__doc__ or "").strip().split("\n")[0]
         sub.add_parser(name, help=doc, add_help=False)

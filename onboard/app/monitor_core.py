@@ -30,6 +30,9 @@ class MonitorCore:
         self.state = None  # onboard.core.monitor.MonitorState
         self.workspace = GuidanceWorkspace()
         self._version: tuple | int = -1
+        # the parameters' values and the planner's limits the setup was built from (the run log's
+        # replay record: a set arriving during a tick is not what that tick's setup holds)
+        self.built_from: tuple[dict[str, float], tuple | None] = ({}, None)
         self._last_good: list[tuple[np.ndarray, np.ndarray] | None] = [None] * self.n_targets
         self.build_setup()
 
@@ -37,12 +40,14 @@ class MonitorCore:
         """(Re)build the setup if the parameters or the planner's limits changed since; the
         beliefs carry over (resampled to a new particle count), warm starts only while the
         guidance settings stay."""
-        version = (self.params.version, self.limits.planner)
+        planner = self.limits.planner
+        version = (self.params.version, planner)
         if self._version == version:
             return self.setup
+        values = {n: self.params[n] for n in self.params.names()}
         sc = self.params.apply(self.base_scenario)
-        if sc.planning.motion == "vehicle" and self.limits.planner is not None:
-            speed, accel, jerk = self.limits.planner
+        if sc.planning.motion == "vehicle" and planner is not None:
+            speed, accel, jerk = planner
             sc = replace(sc, planning=replace(sc.planning, speed_max_mps=speed, accel_max_mps2=accel,
                                               jerk_max_mps3=jerk))
         old = self.setup
@@ -53,6 +58,7 @@ class MonitorCore:
         else:
             self.state = self._carried_over(old)
         self._version = version
+        self.built_from = (values, planner)
         return self.setup
 
     def _carried_over(self, old: MonitorSetup | None):
@@ -68,6 +74,17 @@ class MonitorCore:
             plans = (None,) * self.n_targets  # warm starts of another horizon do not fit
             self.workspace = GuidanceWorkspace()
         return type(self.state)(tuple(beliefs), plans, self.state.step)
+
+    @property
+    def version(self) -> tuple | int:
+        """The version of the setup built last (the parameters' and the planner limits')."""
+        return self._version
+
+    def tick_setup(self) -> MonitorSetup:
+        """(Under the lock) ``build_setup``, with the candidate grid within reach."""
+        setup = self.build_setup()
+        grid = self.grid_within_reach()
+        return setup if grid.n_radial == setup.grid.n_radial else replace(setup, grid=grid)
 
     def grid_within_reach(self) -> CandidateGrid:
         """The candidate grid without the rings the vehicle cannot fly in one tick (PMON_REACH)."""

@@ -31,10 +31,12 @@ from onboard.app.mavlink_connection import mavlink
 from onboard.app.monitor_core import MonitorCore
 from onboard.app.overrun import StageTimer, core_stages, describe, overrun_stage
 from onboard.app.pairing import scans_for_tick
+from onboard.app.replay_record import ReplayRecorder
 from onboard.app.setpoint_stream import PlannedSegment
 from onboard.app.tick_log import TickLog, record, target_values
 from onboard.app.tick_schedule import PLAN_RESERVE_S, TickJob
 from onboard.core import intent_tick, monitor
+from onboard.core.clock_stops import SearchClock
 from onboard.core.monitor import MonitorSetup, Scan, UavState
 
 # ArduCopter's GUID_TIMEOUT default (s): a target older than this it no longer carries on
@@ -91,6 +93,7 @@ class TickWorker:
         self.log = log
         self.counters = ctx.counters
         self.tick = tick
+        self.recorder = ReplayRecorder(core, ctx.cfg.seed)  # the run log's replay fields
         self.busy = False  # a job handed over and not finished
         self.running: TickJob | None = None  # the job being ticked (the watchdog reads it)
         self._job: TickJob | None = None
@@ -158,10 +161,12 @@ class TickWorker:
         scans = self._scans(job, snap)
         setup = self._with_guidance_time(snap.setup, job)
         timer = StageTimer()
+        clock = SearchClock(timer)  # the guidance's deadlines, and where they stopped it (the replay's)
+        rng_state = self.core.rng.bit_generator.state
         t_core = self.mono()
         plan_from = None if snap.centre is None else UavState(snap.centre, snap.velocity, snap.acceleration)
         self.core.state, res = self.tick(setup, self.core.state, scans, self.core.rng, plan_from=plan_from,
-                                         workspace=self.core.workspace, timer=timer)
+                                         workspace=self.core.workspace, timer=clock)
         t_core_end = self.mono()
         reseeded = self.core.reseed_collapsed(setup, res)
         stages = core_stages(res.timings_s, timer.marks)
@@ -173,15 +178,12 @@ class TickWorker:
             overrun = self._overrun(job, sent, stages, ap_start)
             self._count(job, snap, sent)
             rec = self._record(job, snap, res, sent, reseeded, stage_ms={k: round(v * 1e3, 2) for k, v in stages.items()},
-                               overrun=overrun)
+                               overrun=overrun, replay=self.recorder.fields(setup, scans, plan_from, rng_state, clock, res))
         self.log.notify(rec, self.lock)
 
     def _snapshot(self, job: TickJob) -> Snapshot:
         with self.lock:
-            setup = self.core.build_setup()
-            grid = self.core.grid_within_reach()
-            if grid.n_radial != setup.grid.n_radial:
-                setup = replace(setup, grid=grid)
+            setup = self.core.tick_setup()
             planning = self.machine.commanding()
             now = self.clock.now() or job.t
             poses, v = self.autopilot.poses, self.autopilot.vehicle

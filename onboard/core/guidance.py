@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from onboard.core.clock_stops import deadline_of
 from onboard.core.dynamics import MotionModel, predict_mean
 from onboard.core.guidance_faces import NO_FACE, in_class, winding
 from onboard.core.guidance_laws import FreeLaw, LocalLaw, free_law
@@ -83,17 +84,17 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     """
     t_start = timer()
     nearby = () if nearby is None else (nearby,) if isinstance(nearby, Plan) else tuple(nearby)
-    request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides)
+    deadline = deadline_of(timer, params.max_solve_time_s)
+    request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides,
+                              deadline)
     plan = _search(request, params.obstacle_margin_m, with_feedback, nearby, explore, ahead)
-    left = None if params.max_solve_time_s is None else t_start + params.max_solve_time_s - timer()
     if (plan.feasible or not explore or not len(obstacles) or params.obstacle_margin_m <= 0.0
-            or (left is not None and left <= 0)):
+            or (deadline is not None and deadline.passed(plan.qp_solves))):
         return plan
     # noise has carried the target so close to an obstacle, or so fast toward it, that no control
     # keeps the margin: it keeps clear of the obstacle itself (the margin stays vertical, which
     # keeps ground targets level with the obstacles' bases)
-    retry = _search(replace(request, params=replace(params, max_solve_time_s=left)), 0.0, with_feedback, nearby, True,
-                    ahead)
+    retry = _search(replace(request, solves_before=plan.qp_solves), 0.0, with_feedback, nearby, True, ahead)
     return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
 
 

@@ -14,8 +14,8 @@ phase, run in this order by ``run``:
 3. ``refine`` (used by the phases): solve, re-pick faces by clearance, until the assignment
    repeats.
 
-Every phase spends from one budget, ``max_qp_solves`` QP solves (and ``max_solve_time_s`` when
-set), and keeps the cheapest feasible plan that lies in the asked-for class of sides.
+Every phase spends from one budget, ``max_qp_solves`` QP solves (and the solve's deadline,
+``max_solve_time_s``, when set: onboard/core/clock_stops.py), and keeps the cheapest feasible plan that lies in the asked-for class of sides.
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Callable, Iterator
 
 import numpy as np
 
+from onboard.core.clock_stops import Deadline
 from onboard.core.dynamics import MotionModel, predict_mean
 from onboard.core.guidance_faces import (FEAS_TOL_M, NO_FACE, face_geometry, in_class, shift_switches,
                                          timed_path, winding, _opposite)
@@ -61,6 +62,8 @@ class GuidanceRequest:
     timer: Callable[[], float] = time.perf_counter
     sides: np.ndarray | None = None
     strict_sides: bool = False
+    deadline: Deadline | None = None  # the solve's time limit (None: none)
+    solves_before: int = 0  # QP solves the solve spent before this search (its deadline counts them)
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,12 +115,12 @@ class FaceSearch:
         # first working set of the QP: last tick's active rows shifted, then each solve's own
         self.hint = (previous.active.shifted(T) if previous is not None and previous.active is not None
                      and previous.faces.shape == (T - 1, K) else None)
-        self.deadline = None if params.max_solve_time_s is None else self.t_start + params.max_solve_time_s
+        self.deadline, self.solves_before = request.deadline, request.solves_before
 
     # ------------------------------------------------------------------ the budget
 
     def timed_out(self) -> bool:
-        return self.deadline is not None and self.timer() >= self.deadline
+        return self.deadline is not None and self.deadline.passed(self.solves_before + self.solves)
 
     def budget_left(self) -> bool:
         return self.solves < self.params.max_qp_solves and not self.timed_out()

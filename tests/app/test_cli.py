@@ -67,7 +67,7 @@ def test_version_and_every_verb_listed():
     assert res.returncode == 0 and res.stdout.strip() == f"pmon {version('passive-monitor')}"
     res = run("--help")
     assert res.returncode == 0
-    for verb in ("run", "check-config", "demo", "simulate", "eval", "feed", "gcs"):
+    for verb in ("run", "check-config", "replay", "demo", "simulate", "eval", "feed", "gcs"):
         assert f"\n    {verb}" in res.stdout, res.stdout
     assert run("demo", "--help").stdout.startswith("usage: pmon demo ")
 

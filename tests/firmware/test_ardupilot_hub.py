@@ -52,3 +52,12 @@ def test_hub_draws_every_target_every_tick_without_triggering_avoidance(stock_fl
         assert row["ticks"] >= 10 and row["adsb"] == row["ticks"], (name, row)  # one per target per tick
     assert hub["max_error_m"] is not None and hub["max_error_m"] <= 1.0
     assert hub["hub_summary"]["estimates_refused"] == {}
+
+
+@pytest.mark.timeout(900)
+def test_the_flight_replays_to_the_same_decisions_bit_for_bit(stock_flight):
+    """``pmon replay`` of the flight's run log (docs/MAVLINK.md "Replay"): every estimate and setpoint
+    again, with the guidance's clock stops replayed as counts and PMON_ALT's set in flight."""
+    from tests.support.replay_check import assert_replays_bit_for_bit
+    ticks = assert_replays_bit_for_bit(stock_flight["m"].out / "run.jsonl", 40)
+    assert sum("setup" in t["replay"] for t in ticks) >= 2  # the set parameter was replayed too

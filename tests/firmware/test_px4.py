@@ -262,6 +262,15 @@ def launched(tmp_path_factory):
     yield rec
 
 
+@pytest.mark.timeout(900)
+def test_the_flight_replays_to_the_same_decisions_bit_for_bit(launched):
+    """``pmon replay`` of the flight's run log (docs/MAVLINK.md "Replay"): every estimate and setpoint
+    again, the guidance's clock stops replayed as counts."""
+    from tests.support.replay_check import assert_replays_bit_for_bit
+    ticks = assert_replays_bit_for_bit(launched["m"].out / "run.jsonl", MONITOR_S)
+    assert sum(t["planned"] for t in ticks) >= MONITOR_S / 2
+
+
 def test_launch_from_boot_flies_without_a_retry(launched):
     """One ``launch`` from PX4's boot: armed in Hold, the take-off AMSL, PX4's own switch back
     to Hold, then setpoints streaming before OFFBOARD was asked for."""

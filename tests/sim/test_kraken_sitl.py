@@ -18,6 +18,7 @@ from onboard.core.bearings import wrap
 from sim.stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S
+from tests.support.replay_check import assert_replays_bit_for_bit
 
 pytestmark = pytest.mark.sitl
 
@@ -72,6 +73,8 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     skipped = sum(tk["skipped_before"] for tk in ticks if scans[0]["t"] < tk["t"] <= scans[-1]["t"] + 1)
     assert len(missing) == skipped <= 3, (missing, skipped, dict(st.app.counters.items()))
     assert st.app.counters.get("io_errors", 0) == 0 and st.app.counters.get("tick_errors", 0) == 0
+    # the run log replays to the same decisions, the KrakenSDR input's scans included (pmon replay)
+    assert_replays_bit_for_bit(tmp_path / "run_kraken.jsonl", 25)
     # each scan's sets: the spectrum's peaks, at most one per lobe the KrakenSDR drew (lobes that
     # merge, or more than peak_floor_db under the strongest, are not peaks), at least the strongest
     drawn = np.array([[len(b) for b in s["bearings"]] for s in scans if s["t"] in by_t])
