@@ -3,7 +3,7 @@ traffic: measured on ArduCopter SITL (4.4.0-dev, ../shared/ardupilot) with the r
 
     python -m bench.adsb_route [--avoidance on|off] [--monitor 60] [--inject 20] [--speedup 2]
 
-One flight (sim.procedure.Mission: SITL, ``pmon run``, ``pmon feed live``, ``pmon gcs launch``):
+One flight (sim.stack.procedure.Mission: SITL, ``pmon run``, ``pmon feed live``, ``pmon gcs launch``):
 
 B. the hub route: ``pmon gcs hub`` on the vehicle's SERIAL6 serves a pymavlink ground station
    for --monitor autopilot s of monitoring; the client checks one ADSB_VEHICLE per target per
@@ -26,9 +26,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-from sim.ardupilot import skip_reason
-from sim.procedure import Mission, MissionConfig
-from sim.hub_route import AVOIDANCE, Recorder, hub_route, mode_changes
+from sim.firmware.ardupilot import skip_reason
+from sim.stack.procedure import Mission, MissionConfig
+from sim.stack.hub_route import AVOIDANCE, Recorder, hub_route, mode_changes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -60,7 +60,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
     none). Returns the figures (the JSON line)."""
     from groundstation import adsb as A
     from groundstation.estimates import check
-    from onboard.app.pose import Frame
+    from onboard.app.autopilot.pose import Frame
 
     cfg = MissionConfig(speedup=speedup, params=params, feed_duration_s=monitor_s + inject_s + 150)
     res: dict = {"avoidance": "on" if params else "off", "params": params, "speedup": speedup}
@@ -86,7 +86,7 @@ def fly(params: dict, monitor_s: float, inject_s: float, speedup: float, out: Pa
                 for t, j, x, y, sx, sy in m.observer.estimates:
                     latest[j] = (x, y, sx, sy)
             for j, (x, y, sx, sy) in latest.items():
-                from sim.gcs_fake_vehicle import target_values
+                from sim.stack.gcs_fake_vehicle import target_values
 
                 class _T:  # the app's estimate as PMON_TGT carries it
                     array_id = j

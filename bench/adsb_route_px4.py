@@ -155,7 +155,7 @@ def _hub_route(comp: Watch, n: int, wd: Path, home, frame, seconds: float) -> di
     import re
 
     from groundstation import adsb as A
-    from sim.gcs_fake_vehicle import free_udp_port, target_values
+    from sim.stack.gcs_fake_vehicle import free_udp_port, target_values
 
     port = free_udp_port()
     paper = (ROOT / "onboard" / "data" / "paper.yaml").read_text()  # the mission at PX4's home
@@ -211,7 +211,7 @@ def _autopilot_route(comp: Watch, payload: Watch, frame, seconds: float) -> dict
     """A: the targets' ADSB_VEHICLE into PX4 on the companion link at 1 Hz."""
     from groundstation import adsb as A
     from groundstation.estimates import check
-    from sim.gcs_fake_vehicle import target_values
+    from sim.stack.gcs_fake_vehicle import target_values
 
     def estimate(j, x, y):
         class T:
@@ -249,7 +249,7 @@ def main() -> int:
     if not run_sih.is_file():
         print(f"no PX4 SITL: set {PX4_ENV} to run-sih.sh")
         return 2
-    from onboard.app.pose import Frame
+    from onboard.app.autopilot.pose import Frame
 
     n = args.instance
     wd = Path(tempfile.mkdtemp(prefix="pmon-px4-"))

@@ -7,7 +7,7 @@ where the copter flew, the firmware's crashes.
                               [--monitor 100] [--speedup 2] [--policy flight|paper] [--seed 1] [--out DIR]
                               [--rt-priority N]
 
-The flight is tests/firmware/test_ardupilot.py's flight A (sim.procedure.fly_launch_procedure): `pmon gcs
+The flight is tests/firmware/test_ardupilot.py's flight A (sim.stack.procedure.fly_launch_procedure): `pmon gcs
 launch` as the autopilot boots, --monitor s of monitoring, a pilot's takeovers each followed by
 `pmon gcs resume`: ArduCopter's LOITER and BRAKE; on PX4 (tests/firmware/test_px4.py's flight A) Hold and
 POSCTL, with a pilot's sticks live from the start of monitoring (PX4 takes POSCTL only with
@@ -25,10 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim.ardupilot import skip_reason
-from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, figures, fly_launch_procedure
-from sim.px4 import RECOMMENDED_PARAMS as PX4_RECOMMENDED
-from sim.px4 import skip_reason as px4_skip_reason
+from sim.firmware.ardupilot import skip_reason
+from sim.stack.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, figures, fly_launch_procedure
+from sim.firmware.px4 import RECOMMENDED_PARAMS as PX4_RECOMMENDED
+from sim.firmware.px4 import skip_reason as px4_skip_reason
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,7 +12,7 @@ evaluation's PCRB, beside the flight default's PCRB and RMSE on the same trial.
 Common options: --seed 2024, --cache DIR (the trials, bench/ceiling_cache.py fills it: the
 evaluation's truth, gains, start and flight@stock run, as ``pmon eval paper --seed 2024 --methods
 flight@stock``), --out DIR (each stage's per-trial results, so a stage resumes where it
-stopped). ``run``: ``sim.ceiling_search.search`` per trial (quick: 6 pursuit starts + the flight
+stopped). ``run``: ``sim.evaluation.ceiling_search.search`` per trial (quick: 6 pursuit starts + the flight
 path; all: 12 + the flight path, 3 refined). ``check``: on the same trials, the search from all
 starts and the cross-entropy method from rest (two seeds, then refined by the SQP): the spread
 says how near the minimum is to the global one. ``hop``: basin hopping from the run's paths (perturbed restarts). ``aggregate``: one majorise-minimise round of the N-trial bound
@@ -29,21 +29,21 @@ import os
 import time
 from pathlib import Path
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
-from sim.numerics import PINNED  # no numpy import
+from sim.evaluation.numerics import PINNED  # no numpy import
 
-for _k, _v in PINNED.items():  # the evaluation's kernels (sim/numerics.py), set before numpy loads
+for _k, _v in PINNED.items():  # the evaluation's kernels (sim/evaluation/numerics.py), set before numpy loads
     os.environ.setdefault(_k, _v)
 
 import numpy as np
 
 from bench.ceiling_cache import (DEFAULT_CACHE, FLIGHT, _setup, fill_cache, label,
                                  load_trial)
-from sim import ceiling as ce
-from sim import ceiling_search as cs
+from sim.evaluation import ceiling as ce
+from sim.evaluation import ceiling_search as cs
 
 DEFAULT_OUT = "/tmp/ceiling/out"
 

@@ -4,7 +4,7 @@ the flight default's flown path, PCRB and error, one ``.npz`` per trial.
     python -m bench.ceiling_cache --trials 100 [--seed 2024] [--cache /tmp/ceiling_cache]
                                   [--methods flight@stock] [--workers 1]
 
-Each trial is ``sim.evaluation.run_trial`` (``pmon eval paper --seed 2024 --methods ...``, trial
+Each trial is ``sim.evaluation.trials.run_trial`` (``pmon eval paper --seed 2024 --methods ...``, trial
 i) in a spawned worker with one BLAS thread and the pinned kernels, as ``pmon eval`` runs it, so
 the truths and the methods' figures are those of the evaluation to the last digit. Trials
 already in the cache are skipped; each is written as soon as it is done. Last line: JSON.
@@ -21,8 +21,8 @@ import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.monitor import MonitorSetup
-from sim import evaluation as ev
-from sim.numerics import pin_kernels
+from sim.evaluation import trials as ev
+from sim.evaluation.numerics import pin_kernels
 
 DEFAULT_CACHE = "/tmp/ceiling/cache"
 FLIGHT = "flight_at_stock"

@@ -21,8 +21,8 @@ from onboard.core.information import information_reduction_factor, kalman_pseudo
 from onboard.core.planners import PLANNERS, Area, Planner, PlanningInputs
 from onboard.core.planning import PlanningResult
 from onboard.core.tracking import logsumexp
-from sim import evaluation as ev
-from sim.methods import PAPER
+from sim.evaluation import trials as ev
+from sim.evaluation.methods import PAPER
 
 NAME = "myopic9"
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.ceiling_cache import FLIGHT, ROOT, _setup, label, load_trial
-from sim import ceiling as ce
+from sim.evaluation import ceiling as ce
 
 W0 = 10  # the evaluation's window starts at tick 10
 PHASES = ((10, 30), (30, 60), (60, 100))

@@ -3,7 +3,7 @@
     python -m bench.consistency [SCENARIO] [--methods orbit,fixed3,greedy_l8,hover] [--trials 20 | --trial-ids 6,62]
                                 [--set tracking.regularise_bandwidth=0 ...] [--out DIR]
 
-Runs the evaluation's trials (``sim.evaluation.run_trials``, the flight code) with the same
+Runs the evaluation's trials (``sim.evaluation.trials.run_trials``, the flight code) with the same
 trials and seeds as ``pmon eval`` (seed 2024), on every core by default, and prints per method: ANEES
 (the mean NEES over trials, targets and the window, as ``pmon eval`` reports it), the median of
 the per-(trial, target) window-mean NEES (the bulk: 2 for a consistent filter, below for a
@@ -28,8 +28,8 @@ import numpy as np
 
 from bench import add_set_option, set_overrides
 from onboard.config import load_scenario
-from sim import evaluation as ev
-from sim.metrics import error_split
+from sim.evaluation import trials as ev
+from sim.evaluation.metrics import error_split
 
 
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,

@@ -1,4 +1,4 @@
-"""`pmon demo`'s speed-up choice (sim/demo.py ``measure_tick_s``, ``choose_speedup``) idle and
+"""`pmon demo`'s speed-up choice (sim/stack/demo.py ``measure_tick_s``, ``choose_speedup``) idle and
 beside N busy processes at normal priority: the tick's CPU time (what the demo measures) and its
 wall time (what it measured before), each a median of ``--repeat`` measurements, and the
 speed-up each would choose.
@@ -21,7 +21,7 @@ BUSY = "while True: pass"
 
 
 def _measure(sc, clock, repeat: int) -> list[float]:
-    from sim.demo import measure_tick_s
+    from sim.stack.demo import measure_tick_s
 
     return [measure_tick_s(sc, clock=clock) for _ in range(repeat)]
 
@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from onboard.config import load_scenario
     from onboard.policy import with_policy
-    from sim.demo import choose_speedup
+    from sim.stack.demo import choose_speedup
 
     sc = with_policy(load_scenario("paper"), "flight")
     out = {"busy": args.busy, "repeat": args.repeat, "cpus": os.cpu_count()}

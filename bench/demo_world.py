@@ -4,10 +4,10 @@
                                [--variants eval,demo_limits,launch,demo] [--runs DIR_PATTERN]
                                [--starts 0] [--replay-draws 10] [--replay-guidance-s S] [--set KEY=VALUE ...]
 
-The demo's truth is the feed's (sim/live_feed.py: ``TruthWorld`` drawn from the first stream of
+The demo's truth is the feed's (sim/stack/live_feed.py: ``TruthWorld`` drawn from the first stream of
 ``SeedSequence(N).spawn(2)``), which ``simulate_truth`` reproduces to the last digit; its UAV
-starts at the scenario's s_0 (sim/rig.py: home = the UAV's start). On that world this runs the
-evaluation's closed loop of the flight default (sim/evaluation.py ``run_method``: the core tick,
+starts at the scenario's s_0 (sim/stack/rig.py: home = the UAV's start). On that world this runs the
+evaluation's closed loop of the flight default (sim/evaluation/trials.py ``run_method``: the core tick,
 the vehicle model flying the app's setpoints) in variants that add the demo's differences one at
 a time:
 
@@ -24,7 +24,7 @@ world (the same draws for every variant: repeat r uses the evaluation's streams 
 the method ``flight``), so the world's difficulty is told from a draw's luck. ``--starts S``
 also runs ``eval`` from S of the evaluation's random UAV starts (seed 2024's trials 0..S-1, one
 repeat each): whether s_0 is a hard start. ``--runs DIR_PATTERN`` (e.g. '/tmp/before_s{seed}')
-scores the demo runs in those directories (sim/demo.py ``score``) and replays each one's
+scores the demo runs in those directories (sim/stack/demo.py ``score``) and replays each one's
 recorded bearings, from where the demo's UAV was, through the core tick (tracking only,
 ``--replay-draws`` draws of the filter; ``--replay-guidance-s``: with the app's wall-time limit on
 each guidance call): the filter on the demo's own data, to tell the app from the path.
@@ -44,9 +44,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from sim.workers import one_blas_thread
+from sim.evaluation.workers import one_blas_thread
 
-# before numpy loads BLAS: the side-aware filter amplifies last-bit differences (sim/evaluation.py
+# before numpy loads BLAS: the side-aware filter amplifies last-bit differences (sim/evaluation/trials.py
 # run_trials), so only one thread gives the same figures in this process as in the workers
 one_blas_thread()
 
@@ -54,13 +54,13 @@ import numpy as np
 
 from bench import add_set_option, set_label, set_overrides
 from onboard.config import load_scenario
-from onboard.core.guidance import GuidanceWorkspace
+from onboard.core.guidance.predictor import GuidanceWorkspace
 from onboard.core.monitor import Scan, UavState, initial_state, tick
-from sim import evaluation as ev
-from sim.guided import enu, fly_plan, ned
-from sim.multicopter import VehicleState
-from sim.sensors import df_scan
-from sim.truth import simulate_truth
+from sim.evaluation import trials as ev
+from sim.mock.guided import enu, fly_plan, ned
+from sim.mock.multicopter import VehicleState
+from sim.truth.sensors import df_scan
+from sim.truth.world import simulate_truth
 
 VARIANTS = {  # name -> (autopilot parameters, launch)
     "eval": ("stock", False),
@@ -74,14 +74,14 @@ EVAL_SEED = 2024  # pmon eval paper's seed: its UAV starts for --starts
 
 @functools.lru_cache(maxsize=8)
 def demo_truth(sc, seed: int, n_scans: int) -> tuple[np.ndarray, np.ndarray]:
-    """The truth (K, M, 6) and closed-loop gains of ``pmon feed live --seed N`` (sim/live_feed.py):
+    """The truth (K, M, 6) and closed-loop gains of ``pmon feed live --seed N`` (sim/stack/live_feed.py):
     its truth world is drawn from the first of ``SeedSequence(seed).spawn(2)``."""
     truth_seq, _ = np.random.SeedSequence(seed).spawn(2)
     return simulate_truth(sc, n_scans - 1, np.random.default_rng(truth_seq), with_gains=True)
 
 
 def wall_stops(truth: np.ndarray) -> list[tuple[int, str]]:
-    """(scan k, target) where the truth held a target at an obstacle with zero velocity (sim/truth.py:
+    """(scan k, target) where the truth held a target at an obstacle with zero velocity (sim/truth/world.py:
     every noise draw and the noise-free step entered it)."""
     K, M = truth.shape[:2]
     return [(k, f"T{j + 1}") for k in range(1, K) for j in range(M) if not np.any(truth[k, j, 3:6])]
@@ -92,7 +92,7 @@ def fly(cfg: ev.EvalConfig, method: ev.Method, repeat: int, truth: np.ndarray, s
     """The horizontal errors (K, M) of ``method`` flown on ``truth`` from ``start`` with the
     streams of trial ``repeat`` of the method ``flight``; the first ``launch`` scans from the
     start, tracking only (the demo's launch), planned and flown from scan ``launch`` on.
-    ``launch`` 0 is ``sim.evaluation.run_method`` tick for tick (test: --check)."""
+    ``launch`` 0 is ``sim.evaluation.trials.run_method`` tick for tick (test: --check)."""
     setup, df, limits = ev._setup_for(cfg, method)
     ss = np.random.SeedSequence(cfg.seed, spawn_key=(repeat, 2, ev._method_key("flight")))
     sensor_rng, filter_rng, policy_rng = (np.random.default_rng(s) for s in ss.spawn(3))
@@ -125,7 +125,7 @@ def replay(sc, run_dir: Path, draws: int = 5, guidance_s: float | None = None) -
     """The demo run's recorded bearings, each from where its UAV was (truth.jsonl), through the
     core tick of the flight policy, tracking only: errors (K, M) per draw of the filter.
     ``guidance_s``: each guidance call's wall-time limit (the app's: PMON_GUID_S / speedup / M,
-    onboard/app/worker.py; None: none, as the evaluation)."""
+    onboard/app/tick/worker.py; None: none, as the evaluation)."""
     from onboard.core.monitor import MonitorSetup
     from onboard.policy import with_policy
 
@@ -195,7 +195,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="--runs: each guidance call's wall-time limit, s (the app's PMON_GUID_S / speedup / "
                          "targets; default none, as the evaluation)")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--check", action="store_true", help="only check fly() against sim.evaluation.run_method")
+    ap.add_argument("--check", action="store_true", help="only check fly() against sim.evaluation.trials.run_method")
     add_set_option(ap)
     return ap
 
@@ -244,7 +244,7 @@ def _run_jobs(run, jobs: list, workers: int) -> dict:
     if workers > 1 and jobs:
         import multiprocessing as mp
 
-        from sim.workers import worker_pool
+        from sim.evaluation.workers import worker_pool
         with worker_pool(mp.get_context("spawn"), workers) as pool:
             for i, (job, err, wall) in enumerate(pool.imap_unordered(run, jobs), 1):
                 results[job] = err
@@ -277,7 +277,7 @@ def _variant_rows(results: dict, v: str, seeds: list[int], repeats: int, w0: int
 
 def _demo_runs(sc, args, seeds: list[int], w0: int, out: dict) -> None:
     """--runs: each seed's demo run scored, and its bearings replayed (tracking only), into ``out``."""
-    from sim.demo import score
+    from sim.stack.demo import score
     for s in seeds:
         d = Path(args.runs.format(seed=s))
         if not (d / "run.jsonl").exists():

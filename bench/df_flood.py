@@ -136,7 +136,7 @@ def flood(phases: list[dict], speedup: float, seed: int = 1, warm_ticks: int = 3
     process; returns the figures (see the module doc)."""
     from bench import latency
     from onboard.app.contract import State
-    from onboard.app.df_input import Source
+    from onboard.app.df.udp_input import Source
 
     tb = TracebackCounter()
     logging.getLogger("pmon").addHandler(tb)

@@ -16,7 +16,7 @@ import json
 import sys
 import time
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -25,10 +25,10 @@ import numpy as np
 
 from bench import add_set_option, set_overrides
 from onboard.config import load_scenario
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace
+from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace
 from onboard.core.monitor import MonitorSetup
-from sim import evaluation as ev
-from sim.truth import simulate_truth
+from sim.evaluation import trials as ev
+from sim.truth.world import simulate_truth
 
 
 def trial_times(trial: int, methods: list[str], overrides: dict | None = None) -> dict:

@@ -31,7 +31,7 @@ import numpy as np
 from bench import add_set_option, set_label, set_overrides
 from bench.consistency import figures
 from onboard.config import ConfigError, load_scenario, parse_overrides
-from sim import evaluation as ev
+from sim.evaluation import trials as ev
 
 BASE = "flight"
 

@@ -3,7 +3,7 @@
 
     python -m bench.follow_ticks DIR [--ticks] [--step 3.0]
 
-For each monitoring tick that ``sim.procedure.follow_errors_m`` scores: the distance from the
+For each monitoring tick that ``sim.stack.procedure.follow_errors_m`` scores: the distance from the
 planned point to the vehicle at the next scan, split along and across the planned velocity; the
 plan's start after the scan (segment t0 minus the scan's time); its velocity change over the
 tick; and the step of its acceleration from the last segment's end (0 with a continuous
@@ -33,7 +33,7 @@ def _state(seg: dict, at: float):
 
 
 def ticks(recs: list[dict]) -> list[dict]:
-    """One row per scored tick (the pairs sim.procedure.follow_errors_m takes)."""
+    """One row per scored tick (the pairs sim.stack.procedure.follow_errors_m takes)."""
     rows, last = [], None
     for a, b in zip(recs, recs[1:]):
         seg = a.get("segment")

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from groundstation.cli import main
 

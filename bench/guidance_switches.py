@@ -15,7 +15,7 @@ the commit its figures are of: the truth depends on the guidance).
 """
 from __future__ import annotations
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -26,10 +26,10 @@ from dataclasses import replace
 import numpy as np
 
 from onboard.config import load_scenario
-from onboard.core.guidance import GuidanceWorkspace, plan_guidance, winding
-from onboard.core.guidance_search import FaceSearch, GuidanceRequest
-from sim import evaluation as ev
-from sim.truth import TruthWorld
+from onboard.core.guidance.predictor import GuidanceWorkspace, plan_guidance, winding
+from onboard.core.guidance.search import FaceSearch, GuidanceRequest
+from sim.evaluation import trials as ev
+from sim.truth.world import TruthWorld
 
 
 def describe(name: str, plan) -> str:

@@ -2,7 +2,7 @@
 
     python -m bench.guidance_vs_miqp [--instances 100] [--horizon 10] [--seed 11]
 
-Each instance: 1-3 rotated cuboids, a start and a goal 120-180 m ahead behind them (sim/miqp_reference.py
+Each instance: 1-3 rotated cuboids, a start and a goal 120-180 m ahead behind them (sim/evaluation/miqp_reference.py
 ``random_instance``), the paper's weights and limits, horizon T. Ours runs cold (no previous plan,
 as on a target's first tick). The exact solve gets 60 s. Prints a line per instance and, last,
 one JSON line: ``instances`` (compared: the exact solver found a solution), ``within_1pct_fraction``,
@@ -17,10 +17,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from sim.miqp_reference import random_instance, solve_p1_exact
+from sim.evaluation.miqp_reference import random_instance, solve_p1_exact
 from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import GuidanceParams, GuidanceWorkspace, plan_guidance
+from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, plan_guidance
 
 
 def main() -> None:

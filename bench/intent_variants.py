@@ -2,7 +2,7 @@
 
     python -m bench.intent_variants KIND TRIALS [NAME=VALUE,...] [--set KEY=VALUE ...]
 
-Runs ``pmon eval``'s trials (seed 2024, method flight@stock, truth ``KIND`` of sim/truth_kinds.py,
+Runs ``pmon eval``'s trials (seed 2024, method flight@stock, truth ``KIND`` of sim/truth/kinds.py,
 ``KIND+told`` for a told filter) in this process, one after the other, with module constants of
 onboard/core changed first (``MIN_MODE_SHARE=0.02`` for onboard/core/intent.py,
 ``intent_tick.PLAN_MODES=1`` for another module), and prints one line: the RMSE, ANEES, the
@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     add_set_option(ap, "tracking.intent_switch_prob=0.01")
     args = ap.parse_args(argv)
     from onboard.config import load_scenario
-    from sim import evaluation as ev
+    from sim.evaluation import trials as ev
 
     for kv in filter(None, args.constants.split(",")):
         key, _, value = kv.partition("=")

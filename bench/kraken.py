@@ -8,12 +8,12 @@ path lose anything against the datagram feed?
 
 ``core``: the paper's scenario and method (the greedy one-step rule, jump moves, as ``pmon eval``'s
 greedy_l1), 100 s per trial, each trial's truth and UAV start shared by every arm. Per tick the
-DF model's scan (p_D 0.95, sigma 1 deg, Poisson(1) clutter: sim/sensors.py) is written by the
-simulated KrakenSDR (sim/kraken.py: the target's lobe, each clutter bearing a multipath lobe of
+DF model's scan (p_D 0.95, sigma 1 deg, Poisson(1) clutter: sim/truth/sensors.py) is written by the
+simulated KrakenSDR (sim/stack/kraken.py: the target's lobe, each clutter bearing a multipath lobe of
 -10..+3 dB against the direct path, a smooth floor 25 dB down, its main DoA the argmax on its
 1-degree grid) as its "Kraken App" line, read back by the app's own KrakenSource
-(onboard/app/kraken.py: parse, heading, measurement set) and paired with the vehicle's pose
-(onboard/app/pairing.py) into the tick:
+(onboard/app/kraken/source.py: parse, heading, measurement set) and paired with the vehicle's pose
+(onboard/app/df/pairing.py) into the tick:
 
 * ``main``: the main DoA alone, the filter's clutter rate the scenario's (Lambda = 1);
 * ``peaks``: the spectrum's peaks as the set, the filter's Lambda = 1 (the default settings);
@@ -27,7 +27,7 @@ paired per-trial differences measure the processing. Printed: each arm's RMSE (`
 rmse_mean_m: the time-averaged, target-averaged eps_t over t >= 10 s), the paired per-trial
 difference from ``main`` with its 95 % t-interval, and how many trials each arm did no worse.
 
-``stack``: the whole stack on loopback, stood up by sim/rig.py (mock ArduCopter and the app,
+``stack``: the whole stack on loopback, stood up by sim/stack/rig.py (mock ArduCopter and the app,
 launching itself, in this process; the feed, ``pmon feed live``, a process of its own), 100 s missions, once with the datagram feed and once with the simulated
 KrakenSDR, the same seed (the same truth and DF draws), with ``sensor.clutter_rate: 0`` for both
 (the spectrum has only the target's peak: ``--multipath off``, the default here; the datagrams
@@ -75,14 +75,14 @@ def _kraken_cfg(sc, arm: str):
 def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial: int,
             df_clutter: float | None = None) -> np.ndarray:
     """(K, M) position errors of one arm on one trial's truth."""
-    from onboard.app.clock import ManualClock, UtcMap
-    from onboard.app.kraken import KrakenSource
-    from onboard.app.pairing import scans_for_tick
-    from onboard.app.pose import PoseHistory, PoseSample
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.app.autopilot.clock import ManualClock, UtcMap
+    from onboard.app.kraken.source import KrakenSource
+    from onboard.app.df.pairing import scans_for_tick
+    from onboard.app.autopilot.pose import PoseHistory, PoseSample
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
-    from sim.kraken import KrakenModel, frame_lines
-    from sim.sensors import DirectionFinder, df_scan_labelled
+    from sim.stack.kraken import KrakenModel, frame_lines
+    from sim.truth.sensors import DirectionFinder, df_scan_labelled
 
     setup = MonitorSetup.from_scenario(sc)  # the filter: the scenario's sensor (Lambda = 1)
     df = DirectionFinder(sc.sensor.sigma_rad, sc.sensor.p_detect, sc.sensor.clutter_rate if df_clutter is None else df_clutter)
@@ -129,9 +129,9 @@ def run_arm(sc, arm: str, truth: np.ndarray, start: np.ndarray, seed: int, trial
 
 def run_trial(args_tuple) -> dict:
     sc_path, overrides, seed, trial, arms, n_ticks, df_clutter = args_tuple
-    from sim import evaluation as ev
-    from sim.metrics import seeded_rng
-    from sim.truth import simulate_truth
+    from sim.evaluation import trials as ev
+    from sim.evaluation.metrics import seeded_rng
+    from sim.truth.world import simulate_truth
 
     sc = with_policy(load_scenario(sc_path, overrides), "paper")  # the paper's method and filter
     cfg = ev.make_config(sc, 1, seed, ("greedy_l1",), duration_s=n_ticks * sc.dynamics.dt_s)
@@ -143,7 +143,7 @@ def run_trial(args_tuple) -> dict:
 
 
 def core(args) -> dict:
-    from sim.metrics import t_interval
+    from sim.evaluation.metrics import t_interval
 
     arms = tuple(a for a in args.arms.split(",") if a)
     bad = [a for a in arms if a.partition(":")[0] not in ARMS or (":" in a and a.startswith(("main", "native")))]
@@ -173,7 +173,7 @@ def core(args) -> dict:
     lam = "1 (the scenario's)" if args.df_clutter is None else f"{args.df_clutter:g} (the filter's: 1)"
     from bench import set_label
     print(f"paper scenario{set_label(args)}, greedy rule, {args.trials} trials x {n_ticks} s, seed {args.seed}; "
-          f"multipath Poisson({lam}), -10..+3 dB (sim/kraken.py KrakenModel); wall {wall:.0f} s")
+          f"multipath Poisson({lam}), -10..+3 dB (sim/stack/kraken.py KrakenModel); wall {wall:.0f} s")
     print(f"{'arm':16s} {'RMSE m':>7s} {'minus main, per trial (95 % CI)':>34s} {'trials no worse':>16s}")
     out = {"trials": args.trials, "seed": args.seed, "ticks": n_ticks, "df_clutter": args.df_clutter,
            "rmse_m": {}, "minus_main_m": {},
@@ -193,15 +193,15 @@ def core(args) -> dict:
 
 # ----------------------------------------------------------------------------- stack
 def stack_run(df: str, seed: int, duration: float, speedup: float, multipath: bool, overrides: dict) -> dict:
-    """One mission on sim/rig.py: the mock ArduCopter and the app (launching itself) in this
+    """One mission on sim/stack/rig.py: the mock ArduCopter and the app (launching itself) in this
     process, the feed a process of its own (``pmon feed live``: its truth world must not hold this
     process's GIL while the app reads and ticks), sending datagrams or serving KrakenSDR's output."""
     import tempfile
 
     import yaml
 
-    from sim.demo import DEMO_READY_S
-    from sim.rig import Rig, RigConfig
+    from sim.stack.demo import DEMO_READY_S
+    from sim.stack.rig import Rig, RigConfig
 
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:

@@ -32,9 +32,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim.demo import DEMO_READY_S
-from sim.rig import Rig, RigConfig
-from sim.tick_account import TickAccount, scan_times
+from sim.stack.demo import DEMO_READY_S
+from sim.stack.rig import Rig, RigConfig
+from sim.stack.tick_account import TickAccount, scan_times
 
 ROOT = Path(__file__).resolve().parents[1]
 

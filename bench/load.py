@@ -127,7 +127,7 @@ def procedure(args) -> int:
             while proc.poll() is None:
                 if args.rt_priority > 0:
                     for pid, a in _descendants().items():
-                        vehicle = any(x.endswith((b"arducopter", b"px4")) for x in a[:1]) or b"sim.feed" in a
+                        vehicle = any(x.endswith((b"arducopter", b"px4")) for x in a[:1]) or b"sim.stack.feed" in a
                         if vehicle and pid not in boosted:
                             boosted.add(pid)
                             subprocess.run(["chrt", "-a", "-f", "-p", str(args.rt_priority + 1), str(pid)],
@@ -189,7 +189,7 @@ def main() -> int:
     def on_app(app):
         if args.rt_priority > 0 and state["fifo_problems"] is None:
             state["fifo_problems"] = _vehicle_side_fifo(
-                app, next((p for p, a in _descendants().items() if b"sim.feed" in a), None), args.rt_priority + 1)
+                app, next((p for p, a in _descendants().items() if b"sim.stack.feed" in a), None), args.rt_priority + 1)
 
     def after(app):
         state["records"] = list(app.ticks)

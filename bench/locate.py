@@ -3,7 +3,7 @@
     python -m bench.locate [--recordings 20] [--seed 2024] [--bearings kraken|datagram]
                            [--poses LOG] [--set KEY=VALUE ...]
 
-Each recording (sim/locate_recording.py) is a hand-flown lawnmower over two stationary emitters,
+Each recording (sim/stack/locate_recording.py) is a hand-flown lawnmower over two stationary emitters,
 its bearings KrakenSDR's data recording (``mydata.csv``; or the same bearings as datagrams), its
 poses a tlog; with ``--poses LOG`` (a firmware's DataFlash .bin or PX4 ULog, or a tlog) the
 vehicle's poses and UTC are that log's and each recording's bearings are drawn along them. The
@@ -25,10 +25,10 @@ from scipy.stats import chi2
 
 from bench import add_set_option, set_overrides
 from groundstation.locate import Request, locate, stationary_share
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 from onboard.config import load_scenario
 from onboard.policy import DEFAULT, with_policy
-from sim import locate_recording as rec
+from sim.stack import locate_recording as rec
 
 
 def firmware_poses(path: str) -> tuple:

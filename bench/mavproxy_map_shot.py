@@ -30,7 +30,7 @@ def main() -> int:
     if shutil.which("Xvfb") is None:
         print("no Xvfb (Debian: apt-get install xvfb)")
         return 2
-    from sim.hub_rig import FRAME, Rig
+    from sim.stack.hub_rig import FRAME, Rig
 
     xvfb = subprocess.Popen(["Xvfb", args.display, "-screen", "0", "1280x800x24", "-nolisten", "tcp"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

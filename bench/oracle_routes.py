@@ -23,7 +23,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from onboard.core import planners as _planners
-from sim import evaluation as _ev
+from sim.evaluation import trials as _ev
 
 _NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run
 TO_THE_END = "PMON_ORACLE_TO_THE_END"  # environment: inherited by the spawned workers

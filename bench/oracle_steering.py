@@ -5,7 +5,7 @@
 Runs ``bench/consistency.py``'s figures on the same trials as ``pmon eval``, with one change in
 the filter's prediction: every particle of target j at tick k is moved with the TRUE target's
 guidance linearised at the TRUE state, u_true + K_true (x_i - x_true) (clipped to the input box),
-K_true the closed-loop gain the PCRB uses (``sim.truth.closed_loop_gain``). No filter can do
+K_true the closed-loop gain the PCRB uses (``sim.truth.world.closed_loop_gain``). No filter can do
 this (it uses the truth); it measures how much of the gap between the filter and the posterior
 Cramer-Rao bound is the filter not knowing the targets' policy (docs/TRACKING.md, plan steering).
 The trial loop and the filter are the evaluation's own; the oracle is patched in here only.
@@ -18,8 +18,8 @@ import sys
 import numpy as np
 
 from onboard.core import steering as _steering
-from sim import evaluation as _ev
-from sim import truth as _truth
+from sim.evaluation import trials as _ev
+from sim.truth import world as _truth
 
 _NOW = {"tick": 0, "target": 0}  # which prediction the filter is making (ticks run in order)
 _TRUE: dict[str, np.ndarray] = {}  # the current trial's true states, controls and gains

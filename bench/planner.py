@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import os
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -37,12 +37,12 @@ import time
 import numpy as np
 
 from bench import add_set_option, set_label, set_overrides
-from sim.closed_loop import tick_timings
+from sim.evaluation.closed_loop import tick_timings
 from onboard.config import load_scenario, override
 from onboard.core.monitor import MonitorSetup
 from onboard.policy import vehicle_motion, with_policy
-from sim.numerics import numerics_description
-from sim.multicopter import VehicleLimits
+from sim.evaluation.numerics import numerics_description
+from sim.mock.multicopter import VehicleLimits
 
 CASES = ("greedy/jump", "lookahead/jump", "greedy/vehicle", "lookahead/vehicle", "flight", "flight~free",
          "flight~sides", "flight~nointent")

@@ -1,4 +1,4 @@
-"""PX4 SITL as sim/px4.py runs it: the simulated / wall time ratio at each speed factor, what the
+"""PX4 SITL as sim/firmware/px4.py runs it: the simulated / wall time ratio at each speed factor, what the
 relay to the host's loopback costs (its CPU, PX4's), and a TIMESYNC round trip through the relay
 against a client inside PX4's namespace (a fresh PX4 for each: PX4 keeps the first peer of a link).
 
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from onboard.app.mavlink2 import mavutil
-from sim.px4 import Px4Sitl, find_sitl, links_of, skip_reason
+from sim.firmware.px4 import Px4Sitl, find_sitl, links_of, skip_reason
 
 
 def _cpu_s(pid: int) -> float:

@@ -26,7 +26,7 @@ score ratio (the EKF is conservative close in, docs/PLANNING.md). Last line: JSO
 """
 from __future__ import annotations
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -39,7 +39,7 @@ from scipy import stats
 from bench import add_set_option, set_label, set_overrides
 from onboard.config import load_scenario, override
 from onboard.core.monitor import MonitorSetup
-from sim.route_score import compare_routes, snapshots
+from sim.evaluation.route_score import compare_routes, snapshots
 from onboard.policy import with_policy
 
 

@@ -41,8 +41,8 @@ from onboard.core.information import PLANAR, planar_model
 from onboard.core.planning import Moves, _first_step
 from onboard.core.routes import blocking_2d
 from onboard.core.tracking import logsumexp
-from sim.ceiling import clearance, kinematics
-from sim.route_score import score
+from sim.evaluation.ceiling import clearance, kinematics
+from sim.evaluation.route_score import score
 
 # environment: the spawned workers import this module and read their settings from it
 ITER, BLOCK, LOG, PER_TARGET = "PMON_REFINE_ITERATIONS", "PMON_REFINE_BLOCK", "PMON_REFINE_LOG", "PMON_PER_TARGET"

@@ -1,5 +1,5 @@
 """How the real ArduCopter SITL follows GUIDED setpoints (PX4's SITL, OFFBOARD ones), and how
-sim/multicopter.py does on the same ones.
+sim/mock/multicopter.py does on the same ones.
 
     python -m bench.sitl_response [--limits stock,demo] [--cases top,step20,step100,ramp,route90,route70]
                                   [--speedup 4] [--param NAME=VALUE ...] [--save FILE.json.gz]
@@ -7,7 +7,7 @@ sim/multicopter.py does on the same ones.
     python -m bench.sitl_response --replay tests/data/sitl_response.json.gz   # the model, no SITL
     python -m bench.sitl_response --fit tests/data/sitl_response.json.gz      # its airframe terms
 
-Boots ArduPilot's own SITL firmware (sim/ardupilot.py; set PMON_ARDUPILOT_SITL) once per set of
+Boots ArduPilot's own SITL firmware (sim/firmware/ardupilot.py; set PMON_ARDUPILOT_SITL) once per set of
 limits, takes off in GUIDED to 20 m and flies each case from a settled hover where the last one
 ended (its coordinates are relative to that point, local NED, metres):
 
@@ -29,7 +29,7 @@ ended (its coordinates are relative to that point, local NED, metres):
   (v[k+1] - v[k]) / T as acceleration (the firmware integrates it to p[k+1], v[k+1]); what the
   app sends, computed by the same function (onboard.core.setpoint.plan_setpoint).
 
-PX4 (``--autopilot px4``: PX4 v1.16 SITL, SIH quad, sim/px4.py; set PMON_PX4_SITL): armed in
+PX4 (``--autopilot px4``: PX4 v1.16 SITL, SIH quad, sim/firmware/px4.py; set PMON_PX4_SITL): armed in
 Hold, NAV_TAKEOFF to 20 m (AMSL), then OFFBOARD entered the way PX4 requires (setpoints first).
 PX4 holds a setpoint as sent and leaves OFFBOARD 1 s after the last, so every setpoint is sent
 again at 10 Hz of PX4's clock as the app does (PMON_SP_HZ): a fixed one as it was, a route's as
@@ -37,10 +37,10 @@ the plan's state at that moment. Limits: its stock parameters (``stock``); WPNAV
 WPNAV_ACCEL read as MPC_XY_VEL_MAX / MPC_ACC_HOR. The routes are flown three ways: ``pos`` (the
 next point, resent), ``posvel`` (the plan's position and velocity at the moment of sending) and
 ``pva`` (and its acceleration: what the app sends). ``--replay`` of a PX4 flight holds each
-setpoint until the next, as PX4 does (sim.guided.fly_timeline(offboard=True)).
+setpoint until the next, as PX4 does (sim.mock.guided.fly_timeline(offboard=True)).
 
 Limits: ``stock`` is what the binary boots with (copter.parm over the firmware's defaults: read
-back and printed), ``demo`` is sim/multicopter.py's DEMO_VEHICLE_PARAMS. The copter's
+back and printed), ``demo`` is sim/mock/multicopter.py's DEMO_VEHICLE_PARAMS. The copter's
 LOCAL_POSITION_NED is recorded at ~40 Hz (50 Hz asked) on the firmware's clock (time_boot_ms);
 a setpoint's time is the firmware time of the last message received when it was sent.
 
@@ -49,11 +49,11 @@ the plan puts it at, when the next 1-s setpoint is due (median, p95, max over th
 steps, the time to come within 1 m, the overshoot and the peak speed. Last line: JSON of these.
 ``--save`` writes the traces (10 Hz, horizontal) and every setpoint sent: the reference data of
 tests/sim/test_vehicle.py. ``--replay`` gives a saved flight's setpoints to the model
-(sim.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
+(sim.mock.guided.fly_timeline at the firmware's 400 Hz) and prints its RMS position error on each
 trace and its distance at the next tick beside the SITL's.
 
-Its parts: sim/sitl_response_flight.py (the MAVLink client and a trace), sim/sitl_response_cases.py
-(the cases and their figures), sim/sitl_response_model.py (the model on a saved flight, its fit).
+Its parts: sim/firmware/response_flight.py (the MAVLink client and a trace), sim/firmware/response_cases.py
+(the cases and their figures), sim/firmware/response_model.py (the model on a saved flight, its fit).
 """
 from __future__ import annotations
 
@@ -67,15 +67,15 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.multicopter import DEMO_VEHICLE_PARAMS
-from sim import px4 as px4_sitl
-from sim.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason
+from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
+from sim.firmware import px4 as px4_sitl
+from sim.firmware.ardupilot import ArduPilotSitl, SitlError, find_binary, param_item, skip_reason
 
-from sim.sitl_response_cases import (
+from sim.firmware.response_cases import (
     distance_at_ticks, fly_ramp, fly_route, fly_step, fly_top, planner_route, stats, step_figures, top_speed,
 )
-from sim.sitl_response_flight import HOME, FlightError, SitlFlight, Trace
-from sim.sitl_response_model import fit_airframe, in_envelope, limits_for, load, replay
+from sim.firmware.response_flight import HOME, FlightError, SitlFlight, Trace
+from sim.firmware.response_model import fit_airframe, in_envelope, limits_for, load, replay
 
 READ_PARAMS = ("WPNAV_SPEED", "WPNAV_ACCEL", "WPNAV_SPEED_UP", "WPNAV_SPEED_DN", "PSC_JERK_XY",
                "PSC_POSXY_P", "PSC_VELXY_P", "PSC_VELXY_I", "PSC_VELXY_D", "ATC_ACCEL_R_MAX",
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--save", help="write the traces here (gzipped JSON)")
     ap.add_argument("--replay", metavar="FILE", help="fly nothing: the model's RMS error (m) on each "
                     "trace of a saved flight, and its distance at the next tick beside the SITL's")
-    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.multicopter's lean_tc and drag to "
+    ap.add_argument("--fit", metavar="FILE", help="fly nothing: fit sim.mock.multicopter's lean_tc and drag to "
                     "a saved flight's in-envelope traces (a few minutes)")
     args = ap.parse_args(argv)
     if args.replay or args.fit:

@@ -20,8 +20,8 @@ import xml.etree.ElementTree as ET
 warnings.simplefilter("ignore")
 import pytak
 
-from sim.hub_rig import FRAME, TARGETS, Rig
-from sim.cot import SIGMA, one_sigma_radius_m, split_xml
+from sim.stack.hub_rig import FRAME, TARGETS, Rig
+from sim.stack.cot import SIGMA, one_sigma_radius_m, split_xml
 
 ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 ap.add_argument("--port", type=int, required=True, help="the TAK server's TCP CoT port on 127.0.0.1")

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from bench import add_set_option, set_label, set_overrides
-from sim.closed_loop import tick_timings
+from sim.evaluation.closed_loop import tick_timings
 from onboard.config import load_scenario
 from onboard.core.monitor import MonitorSetup
 from onboard.core.obstacles import Obstacles

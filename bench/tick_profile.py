@@ -10,7 +10,7 @@ guidance's searches (``plan_guidance``, ``FaceSearch.explore``) and the steering
 """
 from __future__ import annotations
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -22,11 +22,11 @@ import time
 from pathlib import Path
 
 from bench import add_set_option, set_overrides
-from sim.closed_loop import tick_timings
+from sim.evaluation.closed_loop import tick_timings
 from bench.planner import CASES, setup_for
 from onboard.config import load_scenario
 
-WATCH = {"plan_guidance": "guidance.py", "explore": "guidance_search.py", "side_modes": "steering.py",
+WATCH = {"plan_guidance": "guidance/predictor.py", "explore": "guidance/search.py", "side_modes": "steering.py",
          "tick": "monitor.py"}
 
 

@@ -10,7 +10,7 @@ the target-steps by plan status, the (trial, target) pairs whose plan's P1 cost 
 times the step before's (and above 2e5), the steps planned without the obstacle margin (``margin_m`` 0:
 noise had carried the target too close to an obstacle, or too fast toward it, to keep it), the
 (trial, target) pairs with at least one fallback, the wall stops (a target held at an obstacle
-with zero velocity for a step: sim/truth.py) and one JSON line; ``--per-trial CSV`` (a ``pmon
+with zero velocity for a step: sim/truth/world.py) and one JSON line; ``--per-trial CSV`` (a ``pmon
 eval`` run of the same trials): per method, its error on the trials with a wall stop and on the
 others. ``--show 82:3``: also the
 times (the plan made at t) at which trial 82's T3 had a plan other than ``optimal``; with
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 
-from sim.workers import one_blas_thread  # no numpy import
+from sim.evaluation.workers import one_blas_thread  # no numpy import
 
 one_blas_thread()  # before numpy loads: one core's figures
 
@@ -36,10 +36,10 @@ import numpy as np
 
 from bench import add_set_option, set_label, set_overrides
 from onboard.config import load_scenario
-from sim import evaluation as ev
-from sim.truth import TruthWorld
-from sim.truth_plans import JUMP, JUMP_FLOOR, trial_statuses
-from onboard.core.guidance import winding
+from sim.evaluation import trials as ev
+from sim.truth.world import TruthWorld
+from sim.evaluation.truth_plans import JUMP, JUMP_FLOOR, trial_statuses
+from onboard.core.guidance.predictor import winding
 
 
 def _depth(obstacles, xy: np.ndarray) -> float:

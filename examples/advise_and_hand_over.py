@@ -7,7 +7,7 @@ PMON_STAT (``AppStatus.advice_enu``; docs/MAVLINK.md). The app is put in advisor
 monitoring: its setpoints stop, the vehicle holds; while it advises, PMON_STAT has no setpoint
 and an advised waypoint planned each tick from where the vehicle is. Then ``start`` takes GUIDED
 again and the setpoints flow. Without ``--connect`` the script stands up the mock rig itself
-(``sim.rig``: the mock ArduCopter, the app and the DF feed, each a process on 127.0.0.1,
+(``sim.stack.rig``: the mock ArduCopter, the app and the DF feed, each a process on 127.0.0.1,
 launching on their own) and uses its ground-station port. (``pmon run --advise`` starts the app
 in advisory instead, for a flight a pilot or a mission flies from the start.)
 
@@ -32,7 +32,7 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         url = args.connect
         if url is None:
-            from sim.rig import Rig, RigConfig
+            from sim.stack.rig import Rig, RigConfig
             rig = stack.enter_context(Rig(RigConfig(speedup=2.0, ready_s=4.0, auto_launch=True)))
             url = rig.gcs_url
         gl = stack.enter_context(GcsLink(url, timeout=10.0))

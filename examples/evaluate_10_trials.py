@@ -1,4 +1,4 @@
-"""A 10-trial evaluation: the simulator's Monte Carlo API (``sim.evaluation``), as ``pmon eval``.
+"""A 10-trial evaluation: the simulator's Monte Carlo API (``sim.evaluation.trials``), as ``pmon eval``.
 
 Shows how to run methods over the same random trials and read their error: ``make_config``
 (validated; a bad name or value is a one-line ValueError), ``run_trials`` (local worker
@@ -13,7 +13,7 @@ Run (10 trials of 10 s, 200 particles, both methods: 68 s on one core of a loade
 import argparse
 
 from onboard.config import load_scenario
-from sim import evaluation as ev
+from sim.evaluation import trials as ev
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Locate two emitters from a recording: a simulated KrakenSDR ``mydata.csv`` and the flight's tlog.
 
 Shows ``pmon locate``'s API (docs/LOCATE.md): a lawnmower flown 300-605 m from two stationary
-emitters is written as KrakenSDR records it and as a tlog (``sim.locate_recording``), then read,
+emitters is written as KrakenSDR records it and as a tlog (``sim.stack.locate_recording``), then read,
 aligned and tracked by the app's own filter (``groundstation.locate.locate``); each emitter's
 final estimate, its 95 % ellipse and its error against the truth are printed. The same from a
 shell: ``pmon locate DIR/mydata.csv DIR/flight.tlog --scenario DIR/scenario.yaml``.
@@ -17,7 +17,7 @@ import numpy as np
 from groundstation.locate import Request, ellipse95, locate
 from onboard.config import load_scenario
 from onboard.policy import DEFAULT, with_policy
-from sim.locate_recording import write_recording
+from sim.stack.locate_recording import write_recording
 
 
 def main() -> None:

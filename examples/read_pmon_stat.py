@@ -3,7 +3,7 @@
 Shows the ground station's link (``groundstation.gcs_link.GcsLink``): connect to a vehicle, ask
 the autopilot for nothing, listen. The onboard app publishes PMON_STAT (a DEBUG_FLOAT_ARRAY, its
 fields in docs/MAVLINK.md) once a second; ``AppStatus.from_msg`` decodes it. Without ``--connect``
-the script stands up the mock rig itself (``sim.rig``: the mock ArduCopter, the app and the DF
+the script stands up the mock rig itself (``sim.stack.rig``: the mock ArduCopter, the app and the DF
 feed, each a process on 127.0.0.1, launching on their own) and reads it from its ground-station port.
 
 Run:
@@ -26,7 +26,7 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         url = args.connect
         if url is None:
-            from sim.rig import Rig, RigConfig
+            from sim.stack.rig import Rig, RigConfig
             rig = stack.enter_context(Rig(RigConfig(speedup=2.0, ready_s=4.0, auto_launch=True)))
             url = rig.gcs_url
         gl = stack.enter_context(GcsLink(url, timeout=args.timeout))

@@ -1,9 +1,9 @@
 """Send one setpoint to ArduCopter SITL: the MAVLink the onboard app sends, once, by hand.
 
-Shows the autopilot edge: ArduPilot's own SITL firmware (``sim.ardupilot.ArduPilotSitl``, on
+Shows the autopilot edge: ArduPilot's own SITL firmware (``sim.firmware.ardupilot.ArduPilotSitl``, on
 127.0.0.1, booted at the paper scenario's UAV start), the ground station's link and commands
 (GUIDED, arm once the pre-arm checks pass, take off), then one SET_POSITION_TARGET_LOCAL_NED
-built as the app builds it (``onboard.app.setpoint_stream.message``: NED metres at the
+built as the app builds it (``onboard.app.autopilot.setpoint_stream.message``: NED metres at the
 autopilot's origin, position only), and the copter flying to it (LOCAL_POSITION_NED).
 
 Needs an ArduCopter SITL build: ``$PMON_ARDUPILOT_SITL`` (or ../shared/ardupilot/arducopter).
@@ -16,9 +16,9 @@ import math
 from groundstation.gcs_commands import arm, takeoff
 from groundstation.gcs_link import GcsLink
 from onboard.app.mavlink_connection import mavlink
-from onboard.app.setpoint_stream import message
+from onboard.app.autopilot.setpoint_stream import message
 from onboard.config import load_scenario
-from sim.ardupilot import ArduPilotSitl, find_binary, home_of, skip_reason
+from sim.firmware.ardupilot import ArduPilotSitl, find_binary, home_of, skip_reason
 
 
 def main() -> None:

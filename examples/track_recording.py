@@ -2,7 +2,7 @@
 
 Shows the tracking half of a tick without a vehicle: each scan of a truth JSONL (what
 ``pmon feed live`` and ``pmon demo`` record, docs/DATAGRAM.md; read and checked by
-``sim.feed.read_recording``) updates every target's belief from where the UAV was, with the
+``sim.stack.feed.read_recording``) updates every target's belief from where the UAV was, with the
 paper's filter (``--policy paper``); the estimates are compared with the recorded truth. ``examples/data/paper_seed7_20s.jsonl`` is 20
 scans of ``pmon demo --duration 20 --seed 7`` (the UAV climbing from its start, then
 monitoring). The same file can be sent to a running app: ``pmon feed replay FILE --to HOST:PORT``.
@@ -20,7 +20,7 @@ import numpy as np
 from onboard.config import load_scenario
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.policy import with_policy
-from sim.feed import read_recording
+from sim.stack.feed import read_recording
 
 HERE = Path(__file__).parent
 

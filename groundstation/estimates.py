@@ -68,7 +68,7 @@ def radius_1sigma_m(sigma_x: float, sigma_y: float, cov_xy: float) -> float | No
 
 def check(msg, frame) -> tuple[OutputEstimate | None, str | None]:
     """(estimate, None) or (None, reason) for one PMON_TGT DEBUG_FLOAT_ARRAY; ``frame`` is the
-    mission's ``onboard.app.pose.Frame`` (its geodetic origin). ``reason`` "not yet detected"
+    mission's ``onboard.app.autopilot.pose.Frame`` (its geodetic origin). ``reason`` "not yet detected"
     is not a fault: the estimate is the prior until its channel's first scan."""
     if msg.get_srcComponent() != P.APP_COMPID:
         return None, "not from the onboard app's component"

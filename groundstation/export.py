@@ -5,7 +5,7 @@ Features: the area, goal regions and obstacles of the scenario; the UAV path; pe
 estimated track, the true track (when a truth JSONL is given) and its 1-sigma and 3-sigma
 ellipses at chosen tick times; the last estimate of each target as a point. The mission ENU
 frame is turned into WGS 84 longitude, latitude at the scenario's origin with pymap3d (as the
-onboard app does, onboard/app/pose.py). GeoJSON: positions [lon, lat], exterior rings
+onboard app does, onboard/app/autopilot/pose.py). GeoJSON: positions [lon, lat], exterior rings
 counter-clockwise (the right-hand rule), no ``crs`` member; colours as simplestyle properties
 (stroke, fill), which geojson.io draws.
 """

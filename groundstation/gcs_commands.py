@@ -283,10 +283,10 @@ CLIMB_PROGRESS_M = 0.5  # --wait: the take-off fails when the height gains less 
 
 def takeoff(gl: GcsLink, alt: float, wait: bool) -> Outcome:
     """MAV_CMD_NAV_TAKEOFF to ``alt`` m above home, in the form every firmware accepts
-    (onboard/app/autopilot_profiles.py). ``wait``: until at ``alt`` and reported in the air; a
+    (onboard/app/autopilot/profiles.py). ``wait``: until at ``alt`` and reported in the air; a
     climb takes as long as it takes, so --timeout bounds the time without progress (less
     than CLIMB_PROGRESS_M gained), not the whole climb."""
-    from onboard.app.pose import heading_from_global_position_int
+    from onboard.app.autopilot.pose import heading_from_global_position_int
 
     v = gl.v
     gl.stream(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 4.0)

@@ -23,7 +23,7 @@ from groundstation import protocol as P
 from groundstation.errors import FAILED, TIMEOUT, GcsError
 from groundstation.ports import in_use_hint, silent_link_hint
 from onboard.app.mavlink_connection import Link, mavlink
-from onboard.app.statustext import Reassembler
+from onboard.app.gcs.statustext import Reassembler
 
 RETRY_S = 0.4  # resend an unacknowledged command after this long (loopback answers in ms)
 GRACE_S = 0.3  # after a refusal, how long to wait for the STATUSTEXT that says why
@@ -88,8 +88,8 @@ class Vehicle:
 
     @property
     def profile(self):
-        """The autopilot's profile (onboard/app/autopilot_profiles.py), by its HEARTBEAT."""
-        from onboard.app.autopilot_profiles import UNKNOWN, profile_for
+        """The autopilot's profile (onboard/app/autopilot/profiles.py), by its HEARTBEAT."""
+        from onboard.app.autopilot.profiles import UNKNOWN, profile_for
         hb = self.get("HEARTBEAT")
         return UNKNOWN if hb is None else profile_for(hb.autopilot)
 
@@ -147,7 +147,7 @@ class GcsLink:
         self._seq: int | None = None  # the autopilot's last packet sequence number
         self.autopilot_packets = 0
         self.autopilot_lost = 0
-        self._statustexts = Reassembler()  # MAVLink 2 STATUSTEXT chunks (onboard/app/statustext.py)
+        self._statustexts = Reassembler()  # MAVLink 2 STATUSTEXT chunks (onboard/app/gcs/statustext.py)
 
     def packet_loss_pct(self) -> float:
         """Packets lost from the autopilot component, by its sequence numbers. (Components it

@@ -238,7 +238,7 @@ class Hub:
     def __init__(self, gl: HubLink, sc, cfg: HubConfig, signing_key: bytes | None = None):
         """``signing_key``: the link's (``--signing-key``): the hub's own messages are signed with
         it and sent only to clients that have sent a packet signed with it."""
-        from onboard.app.pose import Frame
+        from onboard.app.autopilot.pose import Frame
         self.gl, self.sc, self.cfg = gl, sc, cfg
         self.signing_key = signing_key
         o = sc.origin

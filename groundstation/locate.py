@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 
 FORMATS = ("csv", "geojson", "kml", "png")
 CHI2_95_2DOF = 5.991464547107979  # the 95 % ellipse of a 2-D Gaussian: chi-square(2) quantile
@@ -65,7 +65,7 @@ def run_filter(sc, aligned, log, seed: int = 1) -> Located:
     """The scenario's filter over the aligned scans, one tick per whole second from the first
     bearing's to the last's (a second without one is a prediction alone, as the app's tick); then
     each target's final estimate (``finish``)."""
-    from onboard.app.pairing import scans_for_tick
+    from onboard.app.df.pairing import scans_for_tick
     from onboard.core.monitor import MonitorSetup, initial_state, tick
 
     setup = MonitorSetup.from_scenario(sc)

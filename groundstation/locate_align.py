@@ -3,15 +3,15 @@
 Two recordings are read, each line checked as the app checks it live:
 
 * **KrakenSDR's** "Kraken App" lines (its data recording ``mydata.csv``, or ``DOA_value.html``
-  documents one after another; onboard/app/kraken_line.py): consecutive lines of one time stamp
-  are one frame. The frames go through the app's own ``KrakenSource`` (onboard/app/kraken.py):
+  documents one after another; onboard/app/kraken/line.py): consecutive lines of one time stamp
+  are one frame. The frames go through the app's own ``KrakenSource`` (onboard/app/kraken/source.py):
   each VFO's line is its target's, the frame dated at the middle of its acquisition (``epoch -
   latency / 2``, KrakenSDR's own latency field) and put on the autopilot's timeline through the
   UTC the pose log holds, its spectrum's peaks turned into bearings with the vehicle's heading at
   that time and the array's ``kraken.mount_offset_deg``, each frame in the slot of its nearest
   whole second.
 * **DF datagrams** (docs/DATAGRAM.md) one JSON object per line, as ``pmon feed replay`` takes
-  them, or the feed's truth JSONL (sim/feed.py: ``bearings`` per channel): already bearings, on
+  them, or the feed's truth JSONL (sim/stack/feed.py: ``bearings`` per channel): already bearings, on
   the autopilot's timeline (``t``).
 
 ``time_offset_s`` is added to every bearing's time (a DF clock that is off the autopilot's).
@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.app import datagram as dg
-from onboard.app import kraken_line as kl
-from onboard.app.clock import ManualClock
-from onboard.app.kraken import KrakenScan, KrakenSource
+from onboard.app.df import datagram as dg
+from onboard.app.kraken import line as kl
+from onboard.app.autopilot.clock import ManualClock
+from onboard.app.kraken.source import KrakenScan, KrakenSource
 from onboard.files import open_regular
 
 MAX_BYTES = 2 * 1024 ** 3  # a day of KrakenSDR lines at one per second and VFO, four VFOs: ~1 GB
@@ -88,7 +88,7 @@ def kind_of(path: str) -> str:
 
 
 def kraken_frames(path: str) -> list[tuple[int, list[kl.RecordedLine]]]:
-    """The recording's frames (``kraken_line.recording_frames``), in time order."""
+    """The recording's frames (``onboard.app.kraken.line.recording_frames``), in time order."""
     with open_regular(path, MAX_BYTES) as f:
         try:
             frames = kl.recording_frames(f)
@@ -177,7 +177,7 @@ def _finish(out: Aligned, path: str, log, misses: dict, refused: list[str]) -> N
 
 def _datagrams(path: str, n_channels: int):
     """(line number, Datagram) of every datagram in a datagram or truth JSONL, each checked by
-    the app's parser (onboard/app/datagram.py)."""
+    the app's parser (onboard/app/df/datagram.py)."""
     with open_regular(path, MAX_BYTES) as f:
         for n, raw in enumerate(f, 1):
             if not raw.strip():

@@ -4,7 +4,7 @@ ArduPilot DataFlash log (.bin) or a PX4 ULog (.ulg), read with the well-kept rea
 
 Every format gives the same ``PoseLog``: samples on the autopilot's own timeline (seconds since
 its boot: ``time_boot_ms``, DataFlash's ``TimeUS``, ULog's ``timestamp``), in the ENU mission
-frame (``onboard.app.pose.Frame`` at the scenario's origin), with the heading; and the map from
+frame (``onboard.app.autopilot.pose.Frame`` at the scenario's origin), with the heading; and the map from
 Unix time to that timeline the log itself holds (its UTC: SYSTEM_TIME, the GPS's week and
 milliseconds, ULog's ``time_utc_usec``), the app's ``UtcMap``. A file that is none of these, or
 holds no position, is a ``PoseError``: one line naming the file and what is missing.
@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.app.clock import UtcMap
-from onboard.app.pose import Frame, PoseHistory, PoseSample, valid_global_position_int
+from onboard.app.autopilot.clock import UtcMap
+from onboard.app.autopilot.pose import Frame, PoseHistory, PoseSample, valid_global_position_int
 from onboard.core.bearings import wrap
 
 GPS_EPOCH_UNIX_S = 315964800  # 1980-01-06, the GPS week's origin, in Unix s

@@ -8,8 +8,8 @@ import math
 from dataclasses import dataclass
 
 from onboard.app import contract as C
-from onboard.app.autopilot_profiles import ARDUPILOT, PX4
-from onboard.app.launch import PHASES
+from onboard.app.autopilot.profiles import ARDUPILOT, PX4
+from onboard.app.autopilot.launch import PHASES
 from onboard.app.mavlink_connection import mavlink
 
 GCS_SYSID = 255
@@ -102,7 +102,7 @@ class TargetEstimate:
 
 
 WARN_SPEED, WARN_ACCEL = C.WARN_SPEED, C.WARN_ACCEL  # PMON_STAT "warnings" bits
-# the launch sequence's phases (onboard/app/launch.py) in words, by PMON_STAT launch_phase
+# the launch sequence's phases (onboard/app/autopilot/launch.py) in words, by PMON_STAT launch_phase
 _PHASE_WORDS = {"ready": "waiting for the autopilot to be ready", "mode": "switching to the launch mode",
                 "arm": "arming", "takeoff": "taking off", "climb": "climbing", "start": "starting"}
 LAUNCH_PHASES = tuple(_PHASE_WORDS[p] for p in PHASES)

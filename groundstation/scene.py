@@ -1,7 +1,7 @@
 """The scene as every picture of a mission draws it: one colour per target, the area, the goal
 regions and the obstacles, dark where the UAV cannot overfly them.
 
-One palette and one geometry for the evaluation figures (sim/figures.py), ``pmon demo``'s
+One palette and one geometry for the evaluation figures (sim/evaluation/figures.py), ``pmon demo``'s
 flight.png, ``pmon gcs plot`` / ``watch --png`` (groundstation/plot.py), the live page
 (groundstation/view.py sends these colours and footprints to the browser) and the GeoJSON /
 KML export (groundstation/export.py). Mission ENU frame, metres; matplotlib only inside the

@@ -1,8 +1,8 @@
 """Command-line arguments checked at the edge: one line naming what is wrong, exit 2.
 
 ``OneLineParser`` is argparse with its usage dump replaced by one line (``prog: error: ...``),
-so every refusal of every program (pmon and its subcommands, python -m sim.autopilot,
-python -m sim.stack) is a single line on stderr, exit 2. The ``type=`` converters below raise
+so every refusal of every program (pmon and its subcommands, python -m sim.mock.autopilot,
+python -m sim.stack.sitl_stack) is a single line on stderr, exit 2. The ``type=`` converters below raise
 argparse.ArgumentTypeError with the reason; ``check_*`` functions return the value or raise
 ValueError with a message naming the option, for values checked after parsing.
 

@@ -8,7 +8,7 @@ and so checked as a file is).
   docs/TRACKING.md, 'Intent' (measurements: docs/LOG.md).
 - ``paper``: the overlay that reproduces the paper's method bit for bit: the one-step greedy rule
   on the jump model with the paper's filter (what ``pmon eval paper`` evaluates as greedy_l1; the
-  evaluation's paper methods start from it, sim/methods.py).
+  evaluation's paper methods start from it, sim/evaluation/methods.py).
 
 The vehicle's speed, acceleration and jerk limits are the autopilot's own, read by the app at
 connection (WPNAV_SPEED / WPNAV_ACCEL / PSC_JERK_XY on ArduPilot; PX4's OFFBOARD shapes no jerk),

@@ -430,7 +430,7 @@ class KrakenVfo:
 
 @dataclass(frozen=True)
 class Kraken:
-    """A KrakenSDR's DoA output as the DF (``pmon run --kraken``; onboard/app/kraken.py;
+    """A KrakenSDR's DoA output as the DF (``pmon run --kraken``; onboard/app/kraken/source.py;
     docs/KRAKENSDR.md argues each value)."""
 
     vfos: tuple[KrakenVfo, ...] = records(KrakenVfo, 0, 64, "each target's emitter: a VFO of KrakenSDR tuned "

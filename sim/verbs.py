@@ -31,7 +31,7 @@ def _config_errors(run, args) -> int:
 
 def demo(argv: list[str] | None = None) -> int:
     """mock autopilot (or ArduPilot SITL) + DF feed + app on loopback, paper scenario, scored"""
-    from sim import demo as d
+    from sim.stack import demo as d
 
     p = _parser("demo", demo)
     d.add_arguments(p)
@@ -69,7 +69,7 @@ def evaluate(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a scenario value for this run (VALUE read as YAML; repeatable), "
                         "e.g. --set planning.speed_max_mps=15")
-    from sim.truth_kinds import TRUTH_KINDS
+    from sim.truth.kinds import TRUTH_KINDS
     p.add_argument("--truth", choices=TRUTH_KINDS, default="nominal",
                    help="how the true targets move (default nominal: as the scenario says; docs/RESULTS.md)")
     p.add_argument("--told", action="store_true", help="with --truth candidate_goal or stationary: the filter is "
@@ -78,22 +78,22 @@ def evaluate(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--worlds", default=None, metavar="FAMILY:N[,FAMILY:N...]",
                    help="instead of SCENARIO: N generated worlds of each family (town, open, crowd, corridor, "
-                        "mixed; sim/worlds.py), one trial each, the methods paired per world; a table per "
+                        "mixed; sim/truth/worlds.py), one trial each, the methods paired per world; a table per "
                         "family and pooled (docs/SCENARIO.md 'Generated worlds')")
     args = p.parse_args(argv)
     args._parser, args._argv = p, ["eval", *argv]
     if args.worlds is not None:
-        from sim.world_eval import run_cli
+        from sim.evaluation.across_worlds import run_cli
         return _config_errors(run_cli, args)
     return _config_errors(_eval, args)
 
 
 def worlds(argv: list[str] | None = None) -> int:
     """generated missions: N scenario files of a world family (town, open, crowd, corridor, mixed)"""
-    from sim.worlds import FAMILIES
+    from sim.truth.worlds import FAMILIES
 
     p = _parser("worlds", worlds)
-    p.add_argument("family", choices=FAMILIES, help="the family (sim/worlds.py; docs/SCENARIO.md)")
+    p.add_argument("family", choices=FAMILIES, help="the family (sim/truth/worlds.py; docs/SCENARIO.md)")
     p.add_argument("--n", type=integer(1, 100_000), default=10, help="worlds to write (default 10)")
     p.add_argument("--seed", type=SEED, default=2024, help="the family's seed (default 2024, as pmon eval's)")
     p.add_argument("--out", default="worlds", type=OUT_DIR, help="output directory (default worlds)")
@@ -102,13 +102,13 @@ def worlds(argv: list[str] | None = None) -> int:
 
 def feed(argv: list[str] | None = None) -> int:
     """simulated DF feed: live truth world, or replay a file (pmon feed --help)"""
-    from sim.feed import main
+    from sim.stack.feed import main
     return main(argv)
 
 
 def _worlds(args) -> int:
     from onboard.config import load_scenario
-    from sim.worlds import write_worlds
+    from sim.truth.worlds import write_worlds
 
     for path in write_worlds(args.family, args.n, args.seed, args.out):
         sc = load_scenario(path)  # read back as a user's file is: the validator's word on it
@@ -125,10 +125,10 @@ def _simulate(args) -> int:
     from rich.table import Table
 
     from onboard.config import load_scenario
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
-    from sim.sensors import DirectionFinder, df_scan
-    from sim.truth import TruthWorld
+    from sim.truth.sensors import DirectionFinder, df_scan
+    from sim.truth.world import TruthWorld
 
     sc = load_scenario(args.scenario)
     setup = MonitorSetup.from_scenario(sc)
@@ -171,7 +171,7 @@ def _eval(args) -> int:
     import time
 
     from onboard.config import load_scenario, parse_overrides
-    from sim import evaluation as ev
+    from sim.evaluation import trials as ev
 
     # Ctrl-C stops the evaluation (and its workers) even when started from a shell that ignores
     # SIGINT: a background job without job control inherits SIG_IGN (as pmon demo does)

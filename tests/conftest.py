@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from sim.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink is imported)
+from sim.mock.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 before pymavlink is imported)
 
 from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
@@ -14,11 +14,11 @@ from onboard.policy import with_policy
 
 # the pmon gcs programs the tests start keep normal priority (as before the program lowered itself):
 # at idle priority beside a loaded machine's work their start can take longer than a test waits.
-# The rig runs the operator's commands of a flight at idle by chrt (sim/procedure.py), and
+# The rig runs the operator's commands of a flight at idle by chrt (sim/stack/procedure.py), and
 # tests/app/test_realtime.py checks the program's own default with this variable unset.
 os.environ.setdefault("PMON_GCS_NO_IDLE", "1")
 
-# The suite's flights run at normal scheduling (PMON_SIM_RT_PRIORITY unset, sim/priority.py):
+# The suite's flights run at normal scheduling (PMON_SIM_RT_PRIORITY unset, sim/firmware/priority.py):
 # with the whole suite's flights at FIFO (40/41) the rehearsals of 2026-12-02 failed the
 # observers' races (the conformance boot's pre-fix positions, a PX4 flight's ticks; docs/LOG.md).
 # tests/firmware/test_under_load.py sets it for its own flights; PMON_SIM_RT_PRIORITY=40 in the

@@ -212,20 +212,20 @@ LONG_FUNCTIONS: dict[str, str] = {
 WIDE_SIGNATURES = {
     # ports of ArduPilot's AC_PosControl shaping functions: their argument lists are kept as the
     # C++ has them, so the port reads line by line against the reference
-    "sim/control_math.py:_shape_pos_vel_accel_xy": "AC_PosControl's shape_pos_vel_accel_xy: its arguments, "
+    "sim/mock/control_math.py:_shape_pos_vel_accel_xy": "AC_PosControl's shape_pos_vel_accel_xy: its arguments, "
                                                    "in its order",
-    "sim/control_math.py:_shape_z": "AC_PosControl's shape_pos_vel_accel for z: its arguments, in its order "
+    "sim/mock/control_math.py:_shape_z": "AC_PosControl's shape_pos_vel_accel for z: its arguments, in its order "
                                     "(the position as an error, the speed limits up and down)",
     # not yet grouped (issue 43): each its own change
-    "sim/autopilot.py:MockAutopilot.__init__": "the mock's options, each SITL's with its default (the class "
-                                               "docstring), keyword-called by sim/rig.py and two dozen tests",
-    "sim/eval_config.py:make_config": "`pmon eval`'s options, keyword-called by some thirty callers",
-    "sim/gcs_fake_vehicle.py:target_values": "PMON_TGT's fields with the tests' defaults, each varied by keyword",
-    "sim/truth.py:TruthWorld.__init__": "the truth world's parts, put together by TruthWorld.from_scenario",
-    "sim/ceiling_search.py:cross_entropy": "the cross-entropy method's tuning, each with its default",
-    "sim/route_score.py:particle_route_scores": "the beliefs, the routes and the motion and sensor models",
-    "sim/guided.py:fly_timeline": "a timeline of setpoints flown under the firmware's rate, timeout and limits",
-    "onboard/app/kraken.py:KrakenSource.__init__": "the KrakenSDR section, the autopilot's clock, poses and UTC "
+    "sim/mock/autopilot.py:MockAutopilot.__init__": "the mock's options, each SITL's with its default (the class "
+                                               "docstring), keyword-called by sim/stack/rig.py and two dozen tests",
+    "sim/evaluation/config.py:make_config": "`pmon eval`'s options, keyword-called by some thirty callers",
+    "sim/stack/gcs_fake_vehicle.py:target_values": "PMON_TGT's fields with the tests' defaults, each varied by keyword",
+    "sim/truth/world.py:TruthWorld.__init__": "the truth world's parts, put together by TruthWorld.from_scenario",
+    "sim/evaluation/ceiling_search.py:cross_entropy": "the cross-entropy method's tuning, each with its default",
+    "sim/evaluation/route_score.py:particle_route_scores": "the beliefs, the routes and the motion and sensor models",
+    "sim/mock/guided.py:fly_timeline": "a timeline of setpoints flown under the firmware's rate, timeout and limits",
+    "onboard/app/kraken/source.py:KrakenSource.__init__": "the KrakenSDR section, the autopilot's clock, poses and UTC "
                                                    "map, and the callbacks into the app; built by KrakenInput, "
                                                    "bench/kraken.py and the tests' hand-fed source",
     "bench/sitl_response.py:fly_limits": "one SITL flight's limits, cases and firmware, each a command-line option",
@@ -234,7 +234,7 @@ WIDE_SIGNATURES = {
     # onboard/core: intent.py and intent_tick.py are another change's; the calls they make stay as they are
     "onboard/core/intent.py:predict_aimed": "the aimed prediction's particles, aims, model and steering gains; "
                                             "intent.py is grouped in its own change",
-    "onboard/core/guidance.py:plan_guidance": "called by keyword from intent_tick.py (with_feedback='constrained' "
+    "onboard/core/guidance/predictor.py:plan_guidance": "called by keyword from intent_tick.py (with_feedback='constrained' "
                                               "too); it builds a GuidanceRequest, and takes one when that caller "
                                               "changes",
 }

@@ -1,22 +1,22 @@
 """The onboard app: the imperative shell around ``onboard.core.monitor.tick``, built from parts
 that own their state (each in its module):
 
-  autopilot side   autopilot_side.py   the autopilot it serves (and its profile), its vehicle
-                                       record, pose history, clock and origin; link health
-  router           dispatch.py         MAVLink in: message type -> handler, who is obeyed
-  state machine    state_machine.py    idle / monitoring / paused / pilot override / fault;
-                                       commands, launch sequence
-  parameters       param_server.py     PMON_* on the parameter protocol (params.py: the values)
-  DF scans         df_scans.py         datagrams into the scan buffer (df_input.py: the socket)
-  KrakenSDR        kraken.py           its DoA output into the scan buffer (optional: --kraken)
-  tick schedule    tick_schedule.py    which scan the worker ticks next
-  worker           worker.py           snapshot -> tick -> check -> send -> record
-  core             monitor_core.py     the core setup and state between ticks
-  setpoint stream  setpoint_stream.py  the adopted setpoint, re-sent, fenced as it goes out
-  plan limits      plan_limits.py      the planner's speed, acceleration, jerk against the autopilot's
-  publisher        publisher.py        HEARTBEAT, STATUSTEXT, PMON_STAT, PMON_TGT
-  tick log         tick_log.py         tick records, run log, listeners
-  watchdog         watchdog.py         a stuck loop or tick, reported
+  autopilot side   autopilot/side.py              the autopilot it serves (and its profile), its vehicle
+                                                  record, pose history, clock and origin; link health
+  router           gcs/dispatch.py                MAVLink in: message type -> handler, who is obeyed
+  state machine    state_machine.py               idle / monitoring / paused / pilot override / fault;
+                                                  commands, launch sequence
+  parameters       gcs/param_server.py            PMON_* on the parameter protocol (params.py: the values)
+  DF scans         df/scans.py                    datagrams into the scan buffer (df/udp_input.py: the socket)
+  KrakenSDR        kraken/source.py               its DoA output into the scan buffer (optional: --kraken)
+  tick schedule    tick/schedule.py               which scan the worker ticks next
+  worker           tick/worker.py                 snapshot -> tick -> check -> send -> record
+  core             tick/core_side.py              the core setup and state between ticks
+  setpoint stream  autopilot/setpoint_stream.py   the adopted setpoint, re-sent, fenced as it goes out
+  plan limits      autopilot/plan_limits.py       the planner's speed, acceleration, jerk against the autopilot's
+  publisher        gcs/publisher.py               HEARTBEAT, STATUSTEXT, PMON_STAT, PMON_TGT
+  tick log         tick/log.py                    tick records, run log, listeners
+  watchdog         tick/watchdog.py               a stuck loop or tick, reported
 
 This module wires them and runs the threads (all daemon; ``stop()`` joins them):
   io      MAVLink in, DF datagrams in (parsed), and every periodic job on the autopilot clock:
@@ -26,9 +26,9 @@ This module wires them and runs the threads (all daemon; ``stop()`` joins them):
           nothing a peer sends can skip the schedule; reads are bounded per iteration
           (``IO_MAVLINK_MAX``, ``IO_DF_MAX``).
   df      reads the DF port at line rate, drops foreign and rate-limited senders unparsed, and
-          queues the rest for the io thread (onboard/app/df_input.py).
+          queues the rest for the io thread (onboard/app/df/udp_input.py).
   kraken  (with a KrakenSDR) polls its output and queues each new document, parsed, for the io
-          thread (onboard/app/kraken_fetch.py).
+          thread (onboard/app/kraken/fetch.py).
   worker  one core tick at a time. A scan that becomes due while the worker is busy waits;
           when it frees, only the newest due scan is ticked and older ones are counted as
           skipped: an overrun is skipped, never queued.
@@ -51,36 +51,36 @@ from typing import Callable
 
 import numpy as np
 
-from onboard.app import datagram as dg
-from onboard.app import launch
+from onboard.app.df import datagram as dg
+from onboard.app.autopilot import launch
 from onboard.app.app_config import AppConfig
-from onboard.app.autopilot_side import AutopilotSide
-from onboard.app.clock import AutopilotClock
+from onboard.app.autopilot.side import AutopilotSide
+from onboard.app.autopilot.clock import AutopilotClock
 from onboard.app.contain import Contained
 from onboard.app.context import AppContext
 from onboard.app.contract import ADVICE_FIELDS, KRAKEN_STAT_FIELDS, STAT_FIELDS, TGT_FIELDS, Action, Reason, State
 from onboard.app.counters import Counters
-from onboard.app.df_input import DfInput
-from onboard.app.df_scans import DfScans
-from onboard.app.dispatch import Router
-from onboard.app.kraken import KrakenInput
+from onboard.app.df.udp_input import DfInput
+from onboard.app.df.scans import DfScans
+from onboard.app.gcs.dispatch import Router
+from onboard.app.kraken.source import KrakenInput
 from onboard.app.mavlink_connection import Link, mavlink
-from onboard.app.monitor_core import MonitorCore
-from onboard.app.param_server import ParamServer
+from onboard.app.tick.core_side import MonitorCore
+from onboard.app.gcs.param_server import ParamServer
 from onboard.app.params import SPECS, ParamTable
-from onboard.app.plan_limits import PlanLimits
-from onboard.app.pose import Frame
-from onboard.app.overrun import stage_code
-from onboard.app.publisher import Publisher
+from onboard.app.autopilot.plan_limits import PlanLimits
+from onboard.app.autopilot.pose import Frame
+from onboard.app.tick.overrun import stage_code
+from onboard.app.gcs.publisher import Publisher
 from onboard.app.realtime import Outcome, name_thread, set_fifo
 from onboard.app.sd_notify import Notifier
-from onboard.app.setpoint_stream import SetpointStream
+from onboard.app.autopilot.setpoint_stream import SetpointStream
 from onboard.app.state_machine import StateMachine
-from onboard.app.tick_log import TickLog
-from onboard.app.tick_schedule import TickSchedule
-from onboard.app.vehicle_state import Vehicle
-from onboard.app.watchdog import Health, Watchdog
-from onboard.app.worker import TickWorker
+from onboard.app.tick.log import TickLog
+from onboard.app.tick.schedule import TickSchedule
+from onboard.app.autopilot.vehicle import Vehicle
+from onboard.app.tick.watchdog import Health, Watchdog
+from onboard.app.tick.worker import TickWorker
 from onboard.core import monitor
 
 log = logging.getLogger("pmon.app")
@@ -102,7 +102,7 @@ class OnboardApp:
         self.clock = clock if clock is not None else AutopilotClock(monotonic)
         self.events_meta = None
         if cfg.px4_events_path is not None:
-            from onboard.app.px4_events import EventMetadata
+            from onboard.app.autopilot.px4_events import EventMetadata
             self.events_meta = EventMetadata.load(cfg.px4_events_path)  # EventMetadataError: refuse to start
         self.link = link or _open_link(cfg)
         self.params = ParamTable.from_scenario(scenario)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from onboard.app.df_input import DEFAULT_RATE_HZ, Source
+from onboard.app.df.udp_input import DEFAULT_RATE_HZ, Source
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class AppConfig:
     # worker); 0: never. A tick's planning allocates tens of MB for a moment; without this the
     # allocator keeps the largest such peak resident for good (see docs/SAFETY.md, long flights)
     trim_memory_s: float = 60.0
-    # DF senders accepted (onboard/app/df_input.py); empty: the first peer whose datagram is valid
+    # DF senders accepted (onboard/app/df/udp_input.py); empty: the first peer whose datagram is valid
     df_sources: tuple[Source, ...] = ()
     df_rate_hz: float = DEFAULT_RATE_HZ  # datagrams/s per accepted DF sender; the excess is dropped
     # PX4's event metadata (its build's etc/extras/all_events.json.xz): its EVENTs said in words

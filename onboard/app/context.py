@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 class AppContext:
     cfg: AppConfig
     link: Link
-    clock: object  # the autopilot's clock (onboard/app/clock.py): ``now()``, autopilot s or None
+    clock: object  # the autopilot's clock (onboard/app/autopilot/clock.py): ``now()``, autopilot s or None
     mono: Callable[[], float]  # local s
     params: ParamTable
     counters: Counters

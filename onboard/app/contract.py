@@ -84,10 +84,10 @@ STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m
 # "advice_*": the newest tick's planned next point, planned from where the vehicle was (in any
 # state while it flies; advisory publishes it and sends nothing); NaN: that tick planned nothing
 ADVICE_FIELDS = ("advice_e_m", "advice_n_m", "advice_u_m")
-# a KrakenSDR input's (onboard/app/kraken.py): frames used, lines and frames refused, sets gated
+# a KrakenSDR input's (onboard/app/kraken/source.py): frames used, lines and frames refused, sets gated
 # empty (confidence, power, overdrive); NaN without one
 KRAKEN_STAT_FIELDS = ("kraken_frames", "kraken_rejected", "kraken_gated")
-# a tick's stages in order (onboard/app/overrun.py); PMON_STAT "overrun_stage" is 1 + the index of
+# a tick's stages in order (onboard/app/tick/overrun.py); PMON_STAT "overrun_stage" is 1 + the index of
 # the stage the newest overrun passed its budget in, 0 before any
 OVERRUN_STAGES = ("wait", "update", "guidance", "prediction", "planning", "send")
 # PMON_STAT "warnings" bits: conditions that hold now (docs/MAVLINK.md)

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from onboard.app.monitor_core import MonitorCore
+from onboard.app.tick.core_side import MonitorCore
 from onboard.app.params import SPECS, ParamTable
 from onboard.app.replay_record import VERSION, outputs
 from onboard.config import ConfigError, override, parse_overrides, parse_scenario

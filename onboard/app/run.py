@@ -7,7 +7,7 @@ import signal
 import sys
 import threading
 
-from onboard.app.df_input import DEFAULT_RATE_HZ, parse_sources
+from onboard.app.df.udp_input import DEFAULT_RATE_HZ, parse_sources
 from onboard.app.realtime import parse_cpus
 from onboard.argcheck import (
     HOST_PORT_BIND,
@@ -83,7 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from onboard.app.app_config import AppConfig
     from onboard.app.app import OnboardApp
-    from onboard.app.px4_events import EventMetadataError
+    from onboard.app.autopilot.px4_events import EventMetadataError
     from onboard.app.signing import KeyFileError
     from onboard.config import ConfigError
 

@@ -1,6 +1,6 @@
 """MAVLink 2 message signing for pmon links: one key file, one way to apply it.
 
-Shared by the onboard app (onboard/app/mavlink_connection.py), the mock autopilot (sim/autopilot.py) and the
+Shared by the onboard app (onboard/app/mavlink_connection.py), the mock autopilot (sim/mock/autopilot.py) and the
 ground station (``from onboard.app.signing import load_key, apply``; no numpy or core import).
 
 Key file: the 32-byte secret as 64 hexadecimal characters (one line; ``make_key_file`` writes

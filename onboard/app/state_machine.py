@@ -1,7 +1,7 @@
 """The app's state as commanded (docs/MAVLINK.md): idle, monitoring, paused, pilot override,
 fault, advisory; the commands that move it (start, pause, resume, stop, launch, advise, each
 acknowledged with a reason when refused); what the autopilot's news does to it (a mode someone else set, a link
-loss, a reboot, a moved origin); and the launch sequence's actions (onboard/app/launch.py).
+loss, a reboot, a moved origin); and the launch sequence's actions (onboard/app/autopilot/launch.py).
 
 Only ``monitoring`` sends setpoints, and only while the autopilot is in the mode the app put it
 in (the profile's mission mode: GUIDED, OFFBOARD); any other mode set by someone else -> pilot
@@ -28,10 +28,10 @@ import logging
 import math
 from dataclasses import dataclass
 
-from onboard.app import launch
+from onboard.app.autopilot import launch
 from onboard.app.context import AppContext
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
-from onboard.app.dispatch import ack
+from onboard.app.gcs.dispatch import ack
 from onboard.app.mavlink_connection import mavlink
 
 log = logging.getLogger("pmon.app")
@@ -242,7 +242,7 @@ class StateMachine:
         if v.armed and v.flying():
             return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
         # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
-        # checks itself (onboard/app/launch.py), so the operator never has to try again
+        # checks itself (onboard/app/autopilot/launch.py), so the operator never has to try again
         p = v.profile
         self.launch = launch.Launch(target_up_m=self.params.settings.uav.altitude_m, launch_mode=p.launch_mode)
         then = "" if p.mission_mode == p.launch_mode else f", {p.mission_mode}"
@@ -345,7 +345,7 @@ class StateMachine:
             can_start=result == mavlink.MAV_RESULT_ACCEPTED, start_blocker=blocker)
 
     def _launch_step(self, now: float) -> None:
-        """Advance the launch sequence (onboard/app/launch.py) and carry out its actions."""
+        """Advance the launch sequence (onboard/app/autopilot/launch.py) and carry out its actions."""
         if self.launch is None:
             return
         self.launch, actions = launch.step(self.launch, self._launch_view(), now)

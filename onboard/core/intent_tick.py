@@ -24,7 +24,7 @@ import numpy as np
 from onboard.core import intent as im
 from onboard.core import tracking
 from onboard.core.dynamics import PLANAR
-from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.steering import AHEAD_STEPS, TargetTick
 
 MIN_MODE_SHARE = 1e-3  # a goal mode holding less of a target's weight gets no plan of its own this tick

@@ -22,8 +22,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.core import intent_tick, tracking
-from onboard.core.guidance import GuidanceWorkspace, Plan, plan_guidance
+from onboard.core import intent_tick
+from onboard.core import tracking
+from onboard.core.guidance.predictor import GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
 from onboard.core.planning import PlanningResult

@@ -10,7 +10,7 @@ import numpy as np
 from onboard.core import intent as intent_mod
 from onboard.core import tracking
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance import FreeLaw, GuidanceParams, free_law
+from onboard.core.guidance.predictor import FreeLaw, GuidanceParams, free_law
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
 

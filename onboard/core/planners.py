@@ -25,7 +25,7 @@ from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMoti
 
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel
-    from onboard.core.guidance import Plan
+    from onboard.core.guidance.predictor import Plan
     from onboard.core.monitor_setup import MonitorSetup
     from onboard.core.tracking import ParticleSet
 

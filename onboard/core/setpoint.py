@@ -12,7 +12,7 @@ target on by itself between messages (pos += vel dt + acc dt^2 / 2, vel += acc d
 target is at p_(k+1) with v_(k+1) when the next tick's setpoint is due: the copter flies through
 the planned points at speed instead of braking to each one (a position-only setpoint). Measured
 on ArduCopter SITL: 0.5-0.7 m from the planned point at the next tick, against 16-27 m with the
-position only (bench/sitl_response.py, sim/guided.py).
+position only (bench/sitl_response.py, sim/mock/guided.py).
 
 With a continuous acceleration (the vehicle motion's ``jerk_max_mps3`` > 0,
 onboard/core/planning.py) the plan's acceleration is ``a_k`` at the tick, where the previous

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from onboard.core.dynamics import PLANAR
-from onboard.core.guidance import LocalLaw, Plan, in_class, winding
+from onboard.core.guidance.predictor import LocalLaw, Plan, in_class, winding
 from onboard.core.tracking import ParticleSet
 
 if TYPE_CHECKING:

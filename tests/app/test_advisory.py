@@ -1,7 +1,7 @@
 """Advisory (``pmon run --advise``, the advise action) over loopback with the mock autopilot: the
 app tracks and plans from where the vehicle is while someone else flies it, publishes the plan's
 next point, and nothing it sends the autopilot is a command, counted on the link by a relay
-(sim/link_count.py), not by the app. Refusals; the hand-over to monitoring by one start, through
+(sim/stack/link_count.py), not by the app. Refusals; the hand-over to monitoring by one start, through
 the mode entry (GUIDED asked, setpoints flow); monitoring back to advisory. The same on
 ArduCopter's own firmware flying an AUTO mission: tests/firmware/test_ardupilot_advisory.py."""
 from __future__ import annotations
@@ -18,11 +18,11 @@ from onboard.app.contract import ADVICE_FIELDS, STAT_FIELDS, Action, Reason, Sta
 from onboard.app.mavlink2 import mavlink
 from onboard.config import load_scenario
 from onboard.policy import POLICIES
-from sim.autopilot import BootTimeline, MockAutopilot, Mode
-from sim.link_count import LinkCounter
-from sim.multicopter import DEMO_VEHICLE_PARAMS
-from sim.priority import app_config_priority, vehicle_threads
-from sim.tcp_proxy import TcpProxy
+from sim.mock.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.stack.link_count import LinkCounter
+from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
+from sim.firmware.priority import app_config_priority, vehicle_threads
+from sim.stack.tcp_proxy import TcpProxy
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 from tests.support.mavlink_gcs import Gcs

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.mock.autopilot import BootTimeline, MockAutopilot, Mode
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
 from onboard.app.contract import Reason, State

@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.autopilot import Mode
+from sim.mock.autopilot import Mode
 
 from tests.support.mavlink_gcs import Gcs
 
 from onboard.app.contract import State
 from onboard.core.obstacles import Obstacles
-from sim.rig import GCS_PORT, Rig, RigConfig
+from sim.stack.rig import GCS_PORT, Rig, RigConfig
 import json
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]

@@ -1,4 +1,4 @@
-"""The autopilot seam (onboard/app/autopilot_profiles.py): what differs between firmwares comes
+"""The autopilot seam (onboard/app/autopilot/profiles.py): what differs between firmwares comes
 from the profile HEARTBEAT.autopilot picks, and the app uses the profile it picked."""
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from tests.support.app_helpers import wait_for
 
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, profile_for
-from onboard.app.clock import ManualClock
+from onboard.app.autopilot.profiles import ARDUPILOT, PX4, UNKNOWN, profile_for
+from onboard.app.autopilot.clock import ManualClock
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 

@@ -112,7 +112,7 @@ def test_the_ground_station_help_says_what_applies(capsys):
 
 def test_a_programs_help_says_what_it_is_in_whole_sentences():
     """argparse's description was the docstring's first line: cut mid-sentence where it wraps."""
-    for argv in (["-m", "sim.stack"], ["-m", "sim.autopilot"], ["-m", "bench.latency"]):
+    for argv in (["-m", "sim.stack.sitl_stack"], ["-m", "sim.mock.autopilot"], ["-m", "bench.latency"]):
         out = subprocess.run([sys.executable, *argv, "--help"], capture_output=True, text=True, timeout=60,
                              cwd=Path(__file__).resolve().parents[2]).stdout
         description = out.split("\n\n")[1]

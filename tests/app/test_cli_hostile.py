@@ -1,7 +1,7 @@
 """Hostile command lines and scenario files (issue 23, part 5): each is refused with exit 2 and
 one line on stderr, no traceback, no hang. Every case runs through its program's entry point
-(``main(argv)`` of onboard.cli, sim.stack, sim.autopilot: what ``pmon``, ``python -m sim.stack``
-and ``python -m sim.autopilot`` call), in this process with its file descriptors captured: a
+(``main(argv)`` of onboard.cli, sim.stack.sitl_stack, sim.mock.autopilot: what ``pmon``, ``python -m sim.stack.sitl_stack``
+and ``python -m sim.mock.autopilot`` call), in this process with its file descriptors captured: a
 Python start-up per case (numpy, scipy: ~1.5 s each) made this file 79 s of the suite. A few
 cases, one of each program and kind, also run as the real program in a subprocess, bounded by
 60 s. A hang fails either test (pytest-timeout, or the subprocess's bound). The first cases are
@@ -55,8 +55,8 @@ def cases(f: dict[str, str]) -> list[tuple[list[str], str]]:
     expected on stderr)."""
     pmon = ["-m", "onboard.cli"]
     run = pmon + ["run", "--mavlink", "udpin:127.0.0.1:0", "--df", "127.0.0.1:0"]
-    stack = ["-m", "sim.stack"]
-    mock = ["-m", "sim.autopilot", "--tcp", "127.0.0.1:0"]
+    stack = ["-m", "sim.stack.sitl_stack"]
+    mock = ["-m", "sim.mock.autopilot", "--tcp", "127.0.0.1:0"]
     return [
         # issue 23's list
         (pmon + ["check-config", f["bigint.yaml"]], "dynamics.dt_s: must be in [0.1, 10] s, got 1000000... (401 digits)"),
@@ -174,7 +174,7 @@ def test_every_hostile_case_exits_2_with_one_line_and_no_traceback(tmp_path, cap
 def test_as_real_programs_a_few_cases_exit_2_with_one_line_and_no_traceback(tmp_path):
     every = cases(files(tmp_path))
     todo = [next(c for c in every if w in c[1]) for w in AS_PROGRAMS]
-    assert {argv[1] for argv, _ in todo} == {"onboard.cli", "sim.stack", "sim.autopilot"}
+    assert {argv[1] for argv, _ in todo} == {"onboard.cli", "sim.stack.sitl_stack", "sim.mock.autopilot"}
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     failures: list = []
     batch = [(subprocess.Popen([sys.executable, *argv], cwd=tmp_path, env=env, stdin=subprocess.DEVNULL,

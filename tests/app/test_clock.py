@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from onboard.app.clock import AutopilotClock
+from onboard.app.autopilot.clock import AutopilotClock
 
 
 class Fake:
@@ -117,7 +117,7 @@ def test_the_feed_sees_a_reboot_that_came_before_it_went_to_sleep():
     import threading
     import time
 
-    from sim.feed import _sleep_until
+    from sim.stack.feed import _sleep_until
 
     class Rebooted:
         resets = 1  # the caller last saw 0

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 
 
 def raw(**kw):

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.autopilot import BootTimeline, MockAutopilot
-from sim.priority import app_config_priority, vehicle_threads
+from sim.mock.autopilot import BootTimeline, MockAutopilot
+from sim.firmware.priority import app_config_priority, vehicle_threads
 
 from tests.support.mavlink_gcs import Gcs
 from tests.support.app_helpers import FaultyTick, ScriptedDf, wait_autopilot_s, wait_for
@@ -36,7 +36,7 @@ from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 from onboard.core.tracking import ParticleSet
-from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -58,7 +58,7 @@ def flight():
         orig(link, msg)
     ap._on_set_position_target_local_ned = spy
     ap.start()
-    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/firmware/priority.py)
     app = df = gcs = None
     tick = FaultyTick()  # the core tick the worker calls: faults are injected through it
     try:

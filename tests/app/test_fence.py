@@ -11,9 +11,9 @@ import pytest
 
 from onboard.app.mavlink2 import mavlink
 
-from onboard.app.fence import Fence, outgoing_violation, violation
+from onboard.app.autopilot.fence import Fence, outgoing_violation, violation
 from onboard.app.params import ParamTable
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 from onboard.core.monitor import MonitorSetup
 
 POSITION_ONLY = 3576

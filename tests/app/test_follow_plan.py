@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot
-from sim.priority import app_config_priority, vehicle_threads
+from sim.mock.autopilot import BootTimeline, MockAutopilot
+from sim.firmware.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 
@@ -21,7 +21,7 @@ from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.core.setpoint import plan_setpoint
 from onboard.policy import POLICIES
-from sim.procedure import follow_errors_m
+from sim.stack.procedure import follow_errors_m
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(240)]
 SPEEDUP = 2.0
@@ -35,7 +35,7 @@ def ticks():
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=3,
                        endpoints=["tcpin:127.0.0.1:0"], max_lag_s=0.1, boot=BootTimeline.scaled(3.0))
     ap.start()
-    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/firmware/priority.py)
     app = df = None
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,

@@ -23,18 +23,18 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink2 import mavlink, mavutil
-from sim.autopilot import BootTimeline, MockAutopilot
+from sim.mock.autopilot import BootTimeline, MockAutopilot
 
 from tests.support.app_helpers import ScriptedDf, wait_autopilot_s, wait_for
 
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
 from onboard.app.contract import State
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 from onboard.core.obstacles import Obstacles
-from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 

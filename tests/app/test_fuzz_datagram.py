@@ -19,10 +19,10 @@ import time
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.clock import ManualClock
+from onboard.app.autopilot.clock import ManualClock
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 
@@ -188,7 +188,7 @@ def test_running_app_uses_every_good_scan_through_a_flood_of_bad_ones():
     # nothing listens there: the app runs without an autopilot (no pose: scans are dropped
     # before the core; what is checked here is the input path and the tick loop)
     # the flood comes from the DF's own address, faster than the per-source rate limit lets
-    # through (df_input.py; tests/app/test_hostile_df.py shows it): lifted here, so that every bad
+    # through (onboard/app/df/udp_input.py; tests/app/test_hostile_df.py shows it): lifted here, so that every bad
     # datagram reaches the parser, which is what this test is about
     app = OnboardApp(AppConfig("udpin:127.0.0.1:0", sensor_port=0, df_rate_hz=1e9), sc, clock=clock).start()
     rng = random.Random(3)

@@ -25,11 +25,11 @@ from onboard.app.mavlink2 import mavlink, mavutil
 from tests.support.app_helpers import wait_for
 from tests.support.processes import run_json
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.clock import ManualClock
-from onboard.app.df_input import Source, parse_sources
+from onboard.app.autopilot.clock import ManualClock
+from onboard.app.df.udp_input import Source, parse_sources
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 

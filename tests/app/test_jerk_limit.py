@@ -1,7 +1,7 @@
 """The planner's jerk is the autopilot's own (ArduCopter's PSC_JERK_XY, capped as the firmware
 caps it), read at connection with WPNAV_SPEED / WPNAV_ACCEL, capped by the scenario's
 planning.jerk_max_mps3 (0 there: the acceleration steps, whatever the autopilot); PX4's OFFBOARD
-shapes no jerk (onboard/app/autopilot_profiles.py). A value that is no limit is said and not used."""
+shapes no jerk (onboard/app/autopilot/profiles.py). A value that is no limit is said and not used."""
 from __future__ import annotations
 
 import math
@@ -12,16 +12,16 @@ import pytest
 
 from onboard.app.mavlink2 import mavlink
 
-from onboard.app.autopilot_profiles import ARDUPILOT, PX4, UNKNOWN, arducopter_jerk_xy
+from onboard.app.autopilot.profiles import ARDUPILOT, PX4, UNKNOWN, arducopter_jerk_xy
 from onboard.app.app_config import AppConfig
-from onboard.app.autopilot_side import AutopilotSide
+from onboard.app.autopilot.side import AutopilotSide
 from onboard.app.context import AppContext
 from onboard.app.counters import Counters
-from onboard.app.plan_limits import PlanLimits
-from onboard.app.vehicle_state import Vehicle
+from onboard.app.autopilot.plan_limits import PlanLimits
+from onboard.app.autopilot.vehicle import Vehicle
 from onboard.config import load_scenario
 from onboard.policy import vehicle_motion, with_policy
-from sim.multicopter import limits_from_params
+from sim.mock.multicopter import limits_from_params
 
 STOCK = {"WPNAV_SPEED": 1000.0, "WPNAV_ACCEL": 250.0, "PSC_JERK_XY": 5.0, "ATC_ACCEL_R_MAX": 110000.0,
          "ATC_ACCEL_P_MAX": 110000.0}

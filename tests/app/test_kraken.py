@@ -17,16 +17,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from onboard.app import kraken_line as kl
-from onboard.app.kraken_line import KrakenLine
-from onboard.app.clock import ManualClock, UtcMap
-from onboard.app.datagram import ScanBuffer
-from onboard.app.kraken import KrakenSource
-from onboard.app.pose import PoseHistory, PoseSample
+from onboard.app.kraken import line as kl
+from onboard.app.kraken.line import KrakenLine
+from onboard.app.autopilot.clock import ManualClock, UtcMap
+from onboard.app.df.datagram import ScanBuffer
+from onboard.app.kraken.source import KrakenSource
+from onboard.app.autopilot.pose import PoseHistory, PoseSample
 from onboard.config import load_scenario
 from onboard.core import doa
 from onboard.core.bearings import bearing, wrap
-from sim.kraken import KrakenModel, format_line, frame_lines, plot_db, render_spectrum
+from sim.stack.kraken import KrakenModel, format_line, frame_lines, plot_db, render_spectrum
 
 SC = load_scenario("paper")
 FREQS = {j: v.freq_hz for j, v in enumerate(SC.kraken.vfos)}
@@ -295,7 +295,7 @@ def test_gates_empty_the_set():
     rig.src.offer("doa", _doc(rig, 100.0, [[0.1]] * 4))
     assert rig.src.gated["power"] == 4
     # status.json flags the frame: ADC overdrive, or the DAQ out of sync
-    from sim.kraken import status_json
+    from sim.stack.kraken import status_json
     for flags in ({"overdrive": True}, {"daq_ok": False}):
         rig = Rig()
         rig.src.offer("status", status_json(rig.epoch(100.0), **flags).encode())
@@ -340,7 +340,7 @@ def test_the_autopilots_utc_maps_unix_time_and_a_stray_message_moves_nothing():
 
 
 def test_host_time_maps_through_this_computers_clock_at_the_autopilots_rate():
-    from onboard.app.clock import HostTime
+    from onboard.app.autopilot.clock import HostTime
 
     class Clock:
         rate = 4.0  # a SITL at 4x
@@ -450,8 +450,8 @@ def test_pmon_stat_carries_the_krakensdr_counts_to_the_ground_station():
     from groundstation import protocol as P
     from onboard.app.contract import KRAKEN_STAT_FIELDS, STAT_FIELDS, State
     from onboard.app.mavlink_connection import mavlink
-    from onboard.app.publisher import Publisher
-    from onboard.app.vehicle_state import Vehicle
+    from onboard.app.gcs.publisher import Publisher
+    from onboard.app.autopilot.vehicle import Vehicle
 
     class Wire:
         mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)

@@ -9,9 +9,9 @@ import time
 import pytest
 import yaml
 
-from onboard.app import kraken_line as kl
-from onboard.app.clock import ManualClock
-from onboard.app.kraken_fetch import DocumentPoller, FetchError, HttpSource
+from onboard.app.kraken import line as kl
+from onboard.app.autopilot.clock import ManualClock
+from onboard.app.kraken.fetch import DocumentPoller, FetchError, HttpSource
 from onboard.cli import main
 from onboard.config import ConfigError, override
 from tests.support.app_helpers import wait_for

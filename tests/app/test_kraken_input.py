@@ -20,16 +20,16 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 import pytest
 
-from onboard.app import kraken_line as kl
+from onboard.app.kraken import line as kl
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.clock import ManualClock
-from onboard.app.kraken_fetch import DocumentPoller, FileSource, HttpSource
-from onboard.app.pose import PoseSample
+from onboard.app.autopilot.clock import ManualClock
+from onboard.app.kraken.fetch import DocumentPoller, FileSource, HttpSource
+from onboard.app.autopilot.pose import PoseSample
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 from onboard.core.bearings import bearing, wrap
-from sim.kraken import KrakenWriter, status_json
+from sim.stack.kraken import KrakenWriter, status_json
 from tests.support.kraken_rig import M, UAV, YAW
 from tests.support.kraken_rig import epoch as _epoch
 from tests.support.kraken_rig import frame as _frame
@@ -145,7 +145,7 @@ def test_http_failures_are_counted_and_recovered_from(tmp_path):
         assert "refused" in poller.last_error["doa"]
         # the server back on the same port: read again, nothing queued twice
         from functools import partial
-        from sim.kraken import _QuietHandler
+        from sim.stack.kraken import _QuietHandler
         srv = ThreadingHTTPServer(("127.0.0.1", port), partial(_QuietHandler, directory=str(w.folder)))
         threading.Thread(target=srv.serve_forever, daemon=True).start()
         try:
@@ -416,7 +416,7 @@ def test_10000_hostile_lines_between_good_frames_cost_nothing(tmp_path):
 def test_a_recording_replayed_as_krakensdr_reaches_the_app(tmp_path):
     """``pmon feed replay FILE --df kraken``: a recording of "Kraken App" lines written back as
     KrakenSDR's output, stamps moved to now; the app (time_source: host) ticks each frame."""
-    from sim.kraken import read_frames, replay_frames
+    from sim.stack.kraken import read_frames, replay_frames
 
     rec = tmp_path / "mydata.csv"
     rec.write_text("".join(_frame(10.0 + k, [[0.2 + 0.1 * j] for j in range(M)], k) for k in range(5)))

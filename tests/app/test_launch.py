@@ -1,11 +1,11 @@
-"""The launch sequence (onboard/app/launch.py) on plain values: what it asks the autopilot for,
+"""The launch sequence (onboard/app/autopilot/launch.py) on plain values: what it asks the autopilot for,
 when, and what it says, through a boot like ArduCopter's (tests/firmware/test_ardupilot.py flies it on the
 real firmware)."""
 from __future__ import annotations
 
 from dataclasses import replace
 
-from onboard.app import launch as L
+from onboard.app.autopilot import launch as L
 
 H = 40.0
 GROUND = L.VehicleView(position=True, in_launch_mode=False, armed=False, up_m=0.1, home_up_m=0.0, prearm_ok=True)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.autopilot import BootTimeline, MockAutopilot, Mode
-from sim.priority import app_config_priority, vehicle_threads
+from sim.mock.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.firmware.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
 from tests.support.mavlink_gcs import Gcs
@@ -19,7 +19,7 @@ from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
-from sim.multicopter import DEMO_VEHICLE_PARAMS
+from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
 from onboard.policy import POLICIES
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(240)]
@@ -50,7 +50,7 @@ def flight():
         orig(link, msg)
     ap._on_set_position_target_local_ned = spy
     ap.start()
-    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/priority.py)
+    vehicle_threads(ap._thread)  # scheduled as a flight is (sim/firmware/priority.py)
     app = df = gcs = None
     try:
         app = OnboardApp(AppConfig(f"tcp:127.0.0.1:{ap.port('tcpin', 0)}", sensor_port=0,

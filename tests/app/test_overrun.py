@@ -1,4 +1,4 @@
-"""A tick over its budget says which stage it overran in (onboard/app/overrun.py): in the tick's
+"""A tick over its budget says which stage it overran in (onboard/app/tick/overrun.py): in the tick's
 record (the run log), in PMON_STAT and in one STATUSTEXT line; a real app (no autopilot: scans are
 ticked without a pose), its core's stages slowed one at a time."""
 from __future__ import annotations
@@ -12,11 +12,11 @@ import pytest
 
 from tests.support.app_helpers import wait_for
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
 from onboard.app.contract import OVERRUN_STAGES, STAT_FIELDS
-from onboard.app.overrun import StageTimer, core_stages, overrun_stage, stage_code
+from onboard.app.tick.overrun import StageTimer, core_stages, overrun_stage, stage_code
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 from onboard.core import monitor

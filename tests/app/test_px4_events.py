@@ -1,4 +1,4 @@
-"""PX4's events (EVENT, message 410) in words (onboard/app/px4_events.py): frames recorded from
+"""PX4's events (EVENT, message 410) in words (onboard/app/autopilot/px4_events.py): frames recorded from
 PX4 v1.16 SITL's offboard link (tests/data/px4_events.json), its build's metadata where it is
 (../shared/px4/etc/extras/all_events.json.xz), and the app saying why PX4 refuses to arm."""
 from __future__ import annotations
@@ -16,10 +16,10 @@ from tests.support.app_helpers import wait_for
 
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.px4_events import EventMetadata, EventMetadataError, decode_event
+from onboard.app.autopilot.px4_events import EventMetadata, EventMetadataError, decode_event
 from onboard.config import load_scenario
 from onboard.policy import with_policy
-from sim.px4 import find_sitl
+from sim.firmware.px4 import find_sitl
 
 FRAMES = json.loads((Path(__file__).resolve().parents[1] / "data" / "px4_events.json").read_text())["events"]
 HOLD = (4 << 16) | (3 << 24)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from onboard.core.bearings import bearing, wrap
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S
 from tests.support.replay_check import assert_replays_bit_for_bit, replay
@@ -200,7 +200,7 @@ def test_a_parameter_set_during_a_tick_is_recorded_for_the_tick_it_reaches():
     """The setup a tick's record holds is the one the tick ran with: a PMON parameter set (or
     the autopilot's limits read) while the core ticks, outside the app lock, reaches the next
     tick, and the replay record says so there."""
-    from onboard.app.monitor_core import MonitorCore
+    from onboard.app.tick.core_side import MonitorCore
     from onboard.app.params import ParamTable
     from onboard.app.replay_record import ReplayRecorder
     from onboard.config import load_scenario

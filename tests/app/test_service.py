@@ -21,10 +21,10 @@ import pytest
 
 from tests.support.app_helpers import FaultyTick, wait_for
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.clock import ManualClock
+from onboard.app.autopilot.clock import ManualClock
 from onboard.app.sd_notify import Notifier
 from onboard.config import load_scenario
 from onboard.policy import with_policy

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from onboard.app.mavlink2 import mavlink, mavutil
-from sim.autopilot import BootTimeline, MockAutopilot
+from sim.mock.autopilot import BootTimeline, MockAutopilot
 
 from onboard.app import signing
 from onboard.app.app_config import AppConfig

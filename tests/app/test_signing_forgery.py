@@ -25,7 +25,7 @@ import time
 import pytest
 
 from onboard.app.mavlink2 import mavlink, mavutil
-from sim.autopilot import MockAutopilot
+from sim.mock.autopilot import MockAutopilot
 
 from tests.support.app_helpers import wait_for
 

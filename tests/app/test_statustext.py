@@ -7,12 +7,12 @@ import time
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.autopilot import BootTimeline, MockAutopilot
+from sim.mock.autopilot import BootTimeline, MockAutopilot
 
 from groundstation.gcs_link import GcsLink
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.statustext import CHUNK, Reassembler, chunks, send_statustext
+from onboard.app.gcs.statustext import CHUNK, Reassembler, chunks, send_statustext
 from onboard.config import load_scenario
 from onboard.policy import with_policy
 
@@ -109,12 +109,12 @@ def test_send_statustext_encodes_mavlink2_extension_fields():
 
 
 def test_the_conformance_view_reads_the_apps_chunked_texts_whole(tmp_path):
-    """sim.app_tlog.app_view (tests/firmware/test_conformance.py) took each chunk of a long text as a
+    """sim.stack.app_tlog.app_view (tests/firmware/test_conformance.py) took each chunk of a long text as a
     text of its own: 'ifted' of 'T2 guidance failed 3 ticks: previous plan shifted' failed the
     comparison with ArduPilot's SITL (measured)."""
     import struct
 
-    from sim.app_tlog import app_view
+    from sim.stack.app_tlog import app_view
 
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
     text = "PMON: T2 guidance failed 3 ticks: previous plan shifted (x)"

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from onboard.config import load_scenario
 from onboard.core.clock_stops import Deadline, SearchClock
-from onboard.core.guidance import plan_guidance
+from onboard.core.guidance.predictor import plan_guidance
 from onboard.core.monitor import MonitorSetup
 
 

@@ -348,7 +348,7 @@ def test_the_example_file_states_the_geometry_the_papers_values_and_what_differs
 def test_the_cores_parameter_classes_have_no_defaults_of_their_own():
     """They take every value from the scenario (from_config / from_scenario): a default in one
     of them could disagree with the declaration (control_mix was 0.1 there, 0.0 here)."""
-    from onboard.core.guidance import GuidanceParams
+    from onboard.core.guidance.predictor import GuidanceParams
     from onboard.core.monitor import MonitorSetup, PlanSteering
     from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
     from onboard.core.tracking import SensorModel

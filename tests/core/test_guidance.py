@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from onboard.core.guidance import GuidanceParams, Plan, plan_guidance, winding
+from onboard.core.guidance.predictor import GuidanceParams, Plan, plan_guidance, winding
 from onboard.core.obstacles import Obstacles
-from sim.miqp_reference import random_instance
+from sim.evaluation.miqp_reference import random_instance
 
 from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
 
@@ -71,7 +71,7 @@ def test_cost_matches_exact_miqp_on_small_instances():
     """The same problem as an exact MIQP (SCIP): never infeasible where it found a solution, never
     cheaper (same constraints), within 1 % on most instances (bench/guidance_vs_miqp.py measures
     the fraction on 100)."""
-    from sim.miqp_reference import solve_p1_exact
+    from sim.evaluation.miqp_reference import solve_p1_exact
     rng = np.random.default_rng(3)
     params = GuidanceParams.from_config(Guidance(horizon=10, obstacle_margin_m=5.0))
     ratios = []
@@ -95,8 +95,8 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
     the QP's sensitivity with the active set held: it equals central differences of the QP's
     solution for the plan's own face assignment, and zero-gain directions are those the
     constraints pin."""
-    from onboard.core.guidance import GuidanceWorkspace
-    from onboard.core.guidance_faces import face_geometry
+    from onboard.core.guidance.predictor import GuidanceWorkspace
+    from onboard.core.guidance.faces import face_geometry
     from onboard.core.dynamics import predict_mean
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
@@ -146,7 +146,7 @@ def test_free_law_is_the_guidance_wherever_it_says_so(paper, model):
     """FreeLaw.is_optimal marks states whose unconstrained optimum is P1's optimum: there the
     guidance (solved in full, with the obstacles) commands exactly FreeLaw.controls. It recognises
     most states whose plan has no active row, and the free gain pulls deviations back."""
-    from onboard.core.guidance import free_law
+    from onboard.core.guidance.predictor import free_law
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
     law = free_law(model, params)
@@ -182,7 +182,7 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     """The free steering: a particle whose own plan is the free optimum gets its control;
     the others get the plan's u, and only they can draw the random control of the mixture."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance_qp import ActiveRows
+    from onboard.core.guidance.qp import ActiveRows
     from onboard.core.monitor import MonitorSetup
     from onboard.core.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5))
@@ -205,7 +205,7 @@ def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
     """Plan.law (u_0 + gain (x - start), with_feedback=True): at its start it is the plan's
     control, and from a start a little off, in most directions (one can cross a kink where a
     speed-polygon row switches), it moves the control as the guidance itself does."""
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
     ws = GuidanceWorkspace()
@@ -234,8 +234,8 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     takes the control of the nearest reference law (clipped to the input box) if within
     plan_trust_sigma of it; the others keep the plan's control (or the mixture's random one)."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import LocalLaw
-    from onboard.core.guidance_qp import ActiveRows
+    from onboard.core.guidance.predictor import LocalLaw
+    from onboard.core.guidance.qp import ActiveRows
     from onboard.core.monitor import MonitorSetup
     from onboard.core.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.0, plan_steering=True,
@@ -273,7 +273,7 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     points within +-plan_spread_sigma standard deviations along the cloud's major position axis,
     each a feasible plan of its own; the metric is the inverse position covariance."""
     from dataclasses import replace as dc_replace
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, replanner
     from onboard.core.steering import TargetTick, reference_laws
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_references=2,
@@ -382,7 +382,7 @@ def test_winding_is_the_side_a_plan_rounds_an_obstacle_and_sides_hold_it(paper, 
     box (winding > 0, the box on the path's left), on the east clockwise; ``sides`` with
     ``strict_sides`` makes P1 plan the best path round the side asked for, and the unrestricted
     plan is the cheaper one. Without ``strict_sides`` holding back (winding 0) is allowed."""
-    from onboard.core.guidance import in_class, winding
+    from onboard.core.guidance.predictor import in_class, winding
     setup = _one_box(paper)
     x = np.array([-20.0, 300.0, 0.0, 0.0, -10.0, 0.0])  # a little west of the box's axis
     goal = setup.goals[0]
@@ -410,7 +410,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     own particles and steering them by its own law."""
     from dataclasses import replace as dc_replace
     from onboard.core import tracking
-    from onboard.core.guidance import GuidanceWorkspace, winding
+    from onboard.core.guidance.predictor import GuidanceWorkspace, winding
     from onboard.core.monitor import replanner
     from onboard.core.steering import TargetTick, particle_controls, side_modes
     setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
@@ -465,7 +465,7 @@ def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
     from the state it predicted, with its second control as the law's reference and that
     control's gain (``ahead``), which is the law of the plan P1 makes from there while the active
     set holds (the principle of optimality); two shifts use both ``ahead`` laws, a third has none."""
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     params = GuidanceParams.from_config(paper.guidance)
     obs = Obstacles.from_boxes(paper.obstacles)
     ws = GuidanceWorkspace()
@@ -500,8 +500,9 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
     plans (modes, births, references) spend at most the tick's budget and a bounded overshoot."""
     import time
     from dataclasses import replace as dc_replace
-    from onboard.core import monitor, steering
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core import monitor
+    from onboard.core import steering
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, particle_steering, tick
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_sides=True))
     setup = MonitorSetup.from_scenario(sc)

@@ -16,7 +16,7 @@ from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.monitor_setup import target_intents
 from onboard.core.obstacles import Obstacles
 from onboard.policy import with_policy
-from sim.sensors import DirectionFinder, df_scan
+from sim.truth.sensors import DirectionFinder, df_scan
 
 PARAMS = im.IntentParams(0.02, 1.0, 16.0, 0.5)
 

@@ -147,7 +147,7 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
     each other); the EKF's route 0.2 % and 4.6 % above the particles' best."""
     from scipy import stats
 
-    from sim.route_score import compare_routes, snapshots
+    from sim.evaluation.route_score import compare_routes, snapshots
     from onboard.config import load_scenario
     from onboard.core.monitor import MonitorSetup
     from onboard.policy import with_policy
@@ -211,7 +211,7 @@ def test_a_planners_draws_never_shift_the_filters(paper):
     """The random baseline draws from ``planner_rng``: with the same scans, the filter's beliefs
     after each tick are those of the hover baseline from the same streams, and its moves are
     admissible candidates of S_(t+1); drawing from the filter's own stream instead changes them."""
-    from onboard.core.guidance import GuidanceWorkspace
+    from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 
     def run(planner, separate):
@@ -242,7 +242,7 @@ def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
     route score: its forward pass must equal ``_route_traces`` on the same route. Its adjoint
     gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
     only; elsewhere it must point where central differences do (four targets 130-460 m out)."""
-    from sim.route_score import score
+    from sim.evaluation.route_score import score
     from onboard.core.information import PLANAR, planar_model
     from onboard.core.planning import _route_traces
 

@@ -8,8 +8,8 @@ import pytest
 from onboard.core.planning import choose_lookahead, choose_next_position
 from onboard.core.planning_inputs import UavState
 from onboard.core.setpoint import plan_setpoint
-from sim.guided import enu, fly_plan
-from sim.multicopter import VehicleState, advance_input
+from sim.mock.guided import enu, fly_plan
+from sim.mock.multicopter import VehicleState, advance_input
 from tests.support.planning_cases import SCORING, VEHICLE, moves, still_targets as _still_targets
 
 
@@ -91,7 +91,7 @@ def test_a_continuous_acceleration_starts_where_the_last_plan_left_it_and_ends_o
 def test_a_copter_with_a_jerk_limit_flies_plans_that_reverse_their_acceleration():
     """The tail of bench/ardupilot.py's distance from the plan: a plan that turns one way and then
     the other steps its acceleration by up to 2 a_max = 5 m/s^2 at a tick, which ArduCopter's
-    shaper (PSC_JERK_XY 5 m/s^3, sim.guided's model of it) takes a second to follow: 1.7-1.8 m
+    shaper (PSC_JERK_XY 5 m/s^3, sim.mock.guided's model of it) takes a second to follow: 1.7-1.8 m
     off the planned point at the next tick. With the acceleration ramped (jerk_max_mps3) the
     same copter is within 0.4 m once the first tick is flown."""
     def misses(motion):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.ardupilot import skip_reason
+from sim.firmware.ardupilot import skip_reason
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"

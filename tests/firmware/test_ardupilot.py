@@ -1,7 +1,7 @@
 """The documented procedure (docs/SITL.md) against ArduPilot's own firmware: ArduCopter SITL
 (4.4.0-dev, ../shared/ardupilot or $PMON_ARDUPILOT_SITL), with the real programs (``pmon run``,
 ``pmon feed live``, ``pmon gcs``) as processes, accelerated with SITL's --speedup, each flight
-on a SITL instance of its own (sim/procedure.py). Nothing here knows the firmware is a SITL.
+on a SITL instance of its own (sim/stack/procedure.py). Nothing here knows the firmware is a SITL.
 
 Two flights, each checked by several tests:
 
@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 from onboard.app.mavlink_connection import mavlink
-from sim.ardupilot import skip_reason
-from sim.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
-from sim.tick_account import TickAccount
+from sim.firmware.ardupilot import skip_reason
+from sim.stack.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
+from sim.stack.tick_account import TickAccount
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -59,7 +59,7 @@ def _view(m: Mission, out):
 
 
 def _expected(rec: dict) -> dict:
-    """A tick record as sim.tick_account.TickAccount matches the autopilot's targets to it."""
+    """A tick record as sim.stack.tick_account.TickAccount matches the autopilot's targets to it."""
     e, n, u = rec["next"]
     return {"t": rec["t"], "e": e, "n": n, "u": u, "segment": rec.get("segment")}
 
@@ -290,8 +290,8 @@ def test_autopilot_restart_is_survived_and_the_app_flies_again_only_when_told(fl
 
 def test_stop_keeps_the_firmware_log_it_printed(tmp_path):
     """issue 30: stop() deleted the temporary working directory with the arducopter.log that
-    ``python -m sim.ardupilot`` had printed, so a failed flight lost it."""
-    from sim.ardupilot import ArduPilotSitl, find_binary
+    ``python -m sim.firmware.ardupilot`` had printed, so a failed flight lost it."""
+    from sim.firmware.ardupilot import ArduPilotSitl, find_binary
 
     sitl = ArduPilotSitl(find_binary(), (35.145, 33.411, 160.0, 0.0), speedup=1).start()
     log = sitl.workdir / "arducopter.log"
@@ -315,7 +315,7 @@ def test_a_crash_at_boot_is_reported_and_booted_once_more(tmp_path, capfd):
     """A CI run lost flight A to 'arducopter exited with -6 at boot' with nothing to say why: the
     firmware crashed (SIGABRT) before its ports opened. One crash at boot is written to the log,
     said on stderr and booted again; the second boot is the real firmware, which must come up."""
-    from sim.ardupilot import ArduPilotSitl, find_binary
+    from sim.firmware.ardupilot import ArduPilotSitl, find_binary
 
     marker = tmp_path / "crashed-once"
     w = _wrapper(tmp_path, f'if [ ! -e {marker} ]; then touch {marker}; echo "PANIC: test crash"; '
@@ -339,7 +339,7 @@ def test_a_crash_at_boot_is_reported_and_booted_once_more(tmp_path, capfd):
      r"exited with 1 at boot \(bind failed on port 5960", 0),
 ], ids=["crashes-twice", "exit-status"])
 def test_a_boot_that_fails_raises_with_the_firmwares_last_words(tmp_path, script, error, crashes):
-    from sim.ardupilot import ArduPilotSitl, SitlError
+    from sim.firmware.ardupilot import ArduPilotSitl, SitlError
 
     sitl = ArduPilotSitl(_wrapper(tmp_path, script), (35.145, 33.411, 160.0, 0.0), speedup=1, workdir=tmp_path / "w")
     with pytest.raises(SitlError, match=error):

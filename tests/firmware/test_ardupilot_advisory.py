@@ -1,7 +1,7 @@
 """Advisory (issue 48) against ArduPilot's own firmware: ArduCopter SITL flies a waypoint mission
 in AUTO, uploaded as a ground station does, while ``pmon run --advise`` tracks, plans from
 where the copter is and publishes the next waypoint. What the app sends its autopilot is counted
-on the link, by a relay between the two (sim/link_count.py, its kinds): not one command reaches
+on the link, by a relay between the two (sim/stack/link_count.py, its kinds): not one command reaches
 the firmware while advising. ``pmon gcs watch --json`` and the live view show the advised
 waypoint; one ``pmon gcs start`` hands over: GUIDED entered, the app's setpoints flow.
 The mock's version, with the refusals: tests/app/test_advisory.py."""
@@ -18,10 +18,10 @@ import pytest
 
 from onboard.app.contract import APP_COMPID
 from onboard.app.mavlink_connection import mavlink
-from sim.ardupilot import skip_reason
-from sim.link_count import LinkCounter
-from sim.mission_upload import upload
-from sim.procedure import BOOT_FAST_UNTIL_S, RECOMMENDED_PARAMS, Mission, MissionConfig
+from sim.firmware.ardupilot import skip_reason
+from sim.stack.link_count import LinkCounter
+from sim.stack.mission_upload import upload
+from sim.stack.procedure import BOOT_FAST_UNTIL_S, RECOMMENDED_PARAMS, Mission, MissionConfig
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl, pytest.mark.timeout(900),
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]

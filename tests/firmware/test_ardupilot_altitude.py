@@ -1,5 +1,5 @@
 """The mission altitude h on ArduPilot's own firmware (issue 29, item 6), with the real programs
-as docs/SITL.md flies them (sim/procedure.py; ArduCopter SITL, stock parameters and ADS-B avoidance on): the flight
+as docs/SITL.md flies them (sim/stack/procedure.py; ArduCopter SITL, stock parameters and ADS-B avoidance on): the flight
 policy's setpoints carry h, so ``pmon gcs params set PMON_ALT 60`` flies the copter to 60 m,
 and after a pilot's takeover (LOITER: with no stick input ArduCopter sinks in it) and the
 operator's resume the copter climbs back to h. Before, the setpoints carried the copter's own
@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.ardupilot import skip_reason
+from sim.firmware.ardupilot import skip_reason
 
 from tests.support.stock_flight import AT_H_M, REACH_S
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from sim.ardupilot import ArduPilotSitl, find_binary, skip_reason
+from sim.firmware.ardupilot import ArduPilotSitl, find_binary, skip_reason
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -21,7 +21,7 @@ LONG = "PMON: arming refused: PreArm: Need Position Estimate (EKF not ready, GPS
 def test_statustext_chunks_pass_arducopters_routing_whole():
     from groundstation.gcs_link import GcsLink
     from onboard.app.mavlink_connection import Link
-    from onboard.app.statustext import send_statustext
+    from onboard.app.gcs.statustext import send_statustext
 
     with ArduPilotSitl(find_binary(), (35.145, 33.411, 160.0), speedup=1.0) as sitl:
         app = Link(sitl.url(0), source_system=1, source_component=191)

@@ -1,7 +1,7 @@
 """The mock autopilot against ArduPilot's own firmware, as the onboard app sees them: the same
 procedure (``pmon run --auto-launch`` from the autopilot's boot, ``pmon feed live``, a stretch of
-monitoring), flown once against each (sim/procedure.py), and what the app received compared
-message by message (``sim.app_tlog.app_view``): the answer to every command it sent, the rates
+monitoring), flown once against each (sim/stack/procedure.py), and what the app received compared
+message by message (``sim.stack.app_tlog.app_view``): the answer to every command it sent, the rates
 of what it asked for, what came unasked, the boot (no fix, EKF origin, pre-arm, arming), the
 take-off's landed states, the modes, and what the app itself said. A mock that passed where the
 firmware fails, or the other way round, fails here.
@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import pytest
 
-from sim.ardupilot import skip_reason
-from sim.app_tlog import app_view
-from sim.procedure import Mission, MissionConfig
+from sim.firmware.ardupilot import skip_reason
+from sim.stack.app_tlog import app_view
+from sim.stack.procedure import Mission, MissionConfig
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]

@@ -6,7 +6,7 @@ tests/sim/test_kraken_sitl.py.
 Every run's app.log ends with "KrakenSDR unreachable: ... Connection reset by peer" and status.json
 refused: the feed closes its server once its last frame was read, before the app is stopped (not
 a failure). "Frames written but not read" is one: the feed, descheduled, once wrote two frames
-back to back, and the app lost the first (sim/kraken.py ``MIN_SHOWN_S`` now holds the second;
+back to back, and the app lost the first (sim/stack/kraken.py ``MIN_SHOWN_S`` now holds the second;
 tests/sim/test_kraken_feed_behind.py)."""
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import re
 
 import pytest
 
-from sim.ardupilot import skip_reason
+from sim.firmware.ardupilot import skip_reason
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]

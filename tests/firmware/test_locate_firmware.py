@@ -1,8 +1,8 @@
 """``pmon locate`` on the firmware's own logs: a lawnmower flown by ArduCopter's SITL (its
 DataFlash .bin) and by PX4's SIH SITL (its ULog), read by the well-kept readers
 (groundstation/poses.py); a simulated KrakenSDR recording drawn along the flown poses, stamped
-with the log's own UTC (sim/locate_recording.py); both emitters located within 15 m at 300-525 m
-and the ellipses consistent (NEES). The flights (sim/firmware_lawnmower.py) are the lawnmower's
+with the log's own UTC (sim/stack/locate_recording.py); both emitters located within 15 m at 300-525 m
+and the ellipses consistent (NEES). The flights (sim/stack/lawnmower.py) are the lawnmower's
 three northern legs (``SHORT``), fast: their logs are what is tested, not the survey's length."""
 from __future__ import annotations
 
@@ -14,12 +14,13 @@ from scipy.stats import chi2
 
 from groundstation.locate import Request, locate, main
 from groundstation.poses import read
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 from onboard.config import load_scenario
 from onboard.policy import DEFAULT, with_policy
-from sim import ardupilot, px4
-from sim import firmware_lawnmower as fl
-from sim import locate_recording as rec
+from sim.firmware import ardupilot
+from sim.firmware import px4
+from sim.stack import lawnmower as fl
+from sim.stack import locate_recording as rec
 
 SHORT = fl.SHORT  # the three northern legs, 300-525 m from the emitters
 RECORDINGS = 2  # drawn along the one flight, besides the command's own

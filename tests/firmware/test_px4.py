@@ -1,5 +1,5 @@
 """PX4's own firmware in the loop: PX4 v1.16.0 SITL (SIH quadrotor, ../shared/px4 or
-$PMON_PX4_SITL) run by sim/px4.py, flying docs/SITL.md's procedure with the real programs
+$PMON_PX4_SITL) run by sim/firmware/px4.py, flying docs/SITL.md's procedure with the real programs
 (``pmon run``, ``pmon feed live``, ``pmon gcs``), as tests/firmware/test_ardupilot.py flies ArduCopter's.
 
 - the driver: PX4 in a network namespace of its own, reachable on 127.0.0.1 only, two
@@ -26,8 +26,8 @@ import time
 import pytest
 
 from onboard.app.mavlink2 import mavutil
-from sim.px4 import Px4Sitl, find_sitl, links_of, skip_reason
-from sim.procedure import Mission, MissionConfig, fly_launch_procedure
+from sim.firmware.px4 import Px4Sitl, find_sitl, links_of, skip_reason
+from sim.stack.procedure import Mission, MissionConfig, fly_launch_procedure
 
 pytestmark = [pytest.mark.px4, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
@@ -306,7 +306,7 @@ def test_launch_from_boot_flies_without_a_retry(launched):
             first[key] = t
     assert first["arm"] < first["takeoff"] < first["setpoint"] < first["offboard"], first
     assert first["offboard"] - first["setpoint"] >= 1.0, first
-    from sim.px4 import home_of
+    from sim.firmware.px4 import home_of
     home_amsl = home_of(m.sc)[2]  # where the driver put PX4's home
     assert first["takeoff_alt"] == pytest.approx(home_amsl + 40.0, abs=2.0), first
     assert m.sitl.boots == 1 and m.autopilot_crashes() == 0

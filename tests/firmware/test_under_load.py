@@ -1,6 +1,6 @@
 """The 1 Hz loop beside a busy machine (issue 46): ``pmon demo`` on each real firmware (and on the
 KrakenSDR path) with two busy processes at normal priority on the same cores, scheduled as
-docs/DEPLOY.md tells an integrator (PMON_SIM_RT_PRIORITY=40, sim/priority.py: the app at
+docs/DEPLOY.md tells an integrator (PMON_SIM_RT_PRIORITY=40, sim/firmware/priority.py: the app at
 --rt-priority 40, the simulated vehicle at FIFO 41). Every scan is ticked (none skipped) and at most 1 % of the
 monitoring ticks hold their setpoint late. Marker ``load``, which the default run deselects (four minutes of flights): ``python -m pytest
 -m load -s`` (``-s`` prints each flight's counts). They need the machine to themselves: beside
@@ -19,11 +19,11 @@ from pathlib import Path
 
 import pytest
 
-from sim.priority import ENV, fifo_permitted
+from sim.firmware.priority import ENV, fifo_permitted
 
 REPO = Path(__file__).resolve().parents[2]
 BUSY = 2
-RT_PRIORITY = 40  # docs/DEPLOY.md's: the app at 40/39, the simulated vehicle at 41 (sim/priority.py)
+RT_PRIORITY = 40  # docs/DEPLOY.md's: the app at 40/39, the simulated vehicle at 41 (sim/firmware/priority.py)
 SPEEDUP = 2  # the procedure benches' (bench/load.py): half a second of wall time per tick
 pytestmark = [pytest.mark.load, pytest.mark.sitl,
               pytest.mark.skipif(not fifo_permitted(RT_PRIORITY + 1),
@@ -64,7 +64,7 @@ def _holds(rep: dict, counts: dict) -> None:
 @pytest.mark.ardupilot
 @pytest.mark.timeout(540)
 def test_ardupilot_flight_beside_two_busy_processes_ticks_every_scan(tmp_path):
-    from sim.ardupilot import skip_reason
+    from sim.firmware.ardupilot import skip_reason
     if skip_reason():
         pytest.skip(skip_reason())
     _holds(*_fly(tmp_path / "d", "ardupilot"))
@@ -73,7 +73,7 @@ def test_ardupilot_flight_beside_two_busy_processes_ticks_every_scan(tmp_path):
 @pytest.mark.px4
 @pytest.mark.timeout(540)
 def test_px4_flight_beside_two_busy_processes_ticks_every_scan(tmp_path):
-    from sim.px4 import skip_reason
+    from sim.firmware.px4 import skip_reason
     if skip_reason():
         pytest.skip(skip_reason())
     _holds(*_fly(tmp_path / "d", "px4"))
@@ -82,7 +82,7 @@ def test_px4_flight_beside_two_busy_processes_ticks_every_scan(tmp_path):
 @pytest.mark.ardupilot
 @pytest.mark.timeout(540)
 def test_krakensdr_path_beside_two_busy_processes_uses_every_frame(tmp_path):
-    from sim.ardupilot import skip_reason
+    from sim.firmware.ardupilot import skip_reason
     if skip_reason():
         pytest.skip(skip_reason())
     rep, counts = _fly(tmp_path / "d", "ardupilot", "kraken")

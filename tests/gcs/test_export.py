@@ -102,7 +102,7 @@ def test_the_flight_picture_draws_the_scene_in_the_palette_with_the_legend_besid
     from matplotlib.colors import to_hex
     from matplotlib.patches import Polygon
 
-    import sim.figures as figs
+    import sim.evaluation.figures as figs
     fig, ax = figure(_flight(), scenario=paper)
     fig.canvas.draw()
     r = fig.canvas.get_renderer()

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from groundstation import protocol as P
 from groundstation.cli import main
@@ -100,8 +100,8 @@ def test_what_the_app_publishes_is_what_the_ground_station_decodes():
 
     from onboard.app.contract import STAT_FIELDS, TGT_FIELDS, State
     from onboard.app.mavlink_connection import mavlink
-    from onboard.app.publisher import Publisher
-    from onboard.app.vehicle_state import Vehicle
+    from onboard.app.gcs.publisher import Publisher
+    from onboard.app.autopilot.vehicle import Vehicle
 
     class Wire:  # a link that keeps what it sends
         mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)

@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from sim.autopilot import BootTimeline, MockAutopilot
+from sim.mock.autopilot import BootTimeline, MockAutopilot
 
 from groundstation import gcs_commands as C
 from groundstation.cli import main

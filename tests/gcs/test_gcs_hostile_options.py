@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from sim.gcs_fake_vehicle import FakeVehicle, free_udp_port
+from sim.stack.gcs_fake_vehicle import FakeVehicle, free_udp_port
 from groundstation.cli import main
 
 pytestmark = pytest.mark.timeout(60)

@@ -1,6 +1,6 @@
 """``pmon gcs hub`` on loopback: one vehicle link shared by ground stations, the targets as
 ADSB_VEHICLE to them (never to the vehicle), hostile PMON_TGT refused and counted. The vehicle
-is a pymavlink peer sending what the app and an autopilot send (sim/gcs_fake_vehicle.py);
+is a pymavlink peer sending what the app and an autopilot send (sim/stack/gcs_fake_vehicle.py);
 the clients are pymavlink connections as QGroundControl's and MAVProxy's parsers see them."""
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from sim.gcs_fake_vehicle import Client, target_values
+from sim.stack.gcs_fake_vehicle import Client, target_values
 from groundstation import adsb as A
 from groundstation.estimates import radius_1sigma_m
 from onboard.app.mavlink_connection import mavlink
-from sim.hub_rig import FRAME, TARGETS, Rig
+from sim.stack.hub_rig import FRAME, TARGETS, Rig
 
 
 @pytest.fixture
@@ -249,7 +249,7 @@ def test_the_hub_stops_on_sigint_even_started_with_sigint_ignored():
     import subprocess
     import sys
 
-    from sim.gcs_fake_vehicle import FakeVehicle, free_udp_port
+    from sim.stack.gcs_fake_vehicle import FakeVehicle, free_udp_port
 
     vport, sport = free_udp_port(), free_udp_port()
     veh = FakeVehicle(vport)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests.support.processes import LineReader, stop_process
-from sim.hub_rig import FRAME, TARGETS, Rig
+from sim.stack.hub_rig import FRAME, TARGETS, Rig
 
 pytestmark = pytest.mark.sitl
 

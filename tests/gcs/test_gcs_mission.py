@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from groundstation.cli import main
 from tests.support.mavlink_gcs import QUICK_BOOT_S

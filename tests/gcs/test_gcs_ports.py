@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from sim.gcs_fake_vehicle import free_udp_port
+from sim.stack.gcs_fake_vehicle import free_udp_port
 from groundstation.errors import GcsError
 from groundstation.gcs_link import GcsLink
 from onboard.app.mavlink_connection import mavlink

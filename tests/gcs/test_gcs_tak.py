@@ -16,9 +16,9 @@ import pytest
 pytest.importorskip("pytak", reason="pytak is in the gcs extra")
 takproto = pytest.importorskip("takproto", reason="takproto is in the gcs extra")
 
-from sim.gcs_fake_vehicle import free_udp_port  # noqa: E402
-from sim.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
-from sim.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
+from sim.stack.gcs_fake_vehicle import free_udp_port  # noqa: E402
+from sim.stack.hub_rig import FRAME, TARGETS, Rig  # noqa: E402
+from sim.stack.cot import SIGMA, one_sigma_radius_m, split_xml  # noqa: E402
 
 
 def parse_time(text: str) -> dt.datetime:

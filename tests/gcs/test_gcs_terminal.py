@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from onboard.app.mavlink2 import mavlink
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S, Gcs
 

@@ -1,5 +1,5 @@
 """``pmon locate``: a simulated KrakenSDR recording (and its datagrams) of a lawnmower over two
-stationary emitters, poses in a tlog (sim/locate_recording.py), located by the app's own filter;
+stationary emitters, poses in a tlog (sim/stack/locate_recording.py), located by the app's own filter;
 the outputs read back; the mounting offset and the time alignment shown to matter; malformed and
 misaligned recordings refused in one line naming the file and the line or time. The firmware's
 own logs (DataFlash, ULog): tests/firmware/test_locate_firmware.py."""
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from groundstation.locate import main
-from onboard.app.pose import Frame
+from onboard.app.autopilot.pose import Frame
 from onboard.config import load_scenario
-from sim import locate_recording as rec
+from sim.stack import locate_recording as rec
 from tests.support.geojson_check import assert_geojson_in_area
 
 

@@ -10,7 +10,7 @@ import os
 
 import pytest
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from groundstation.cli import main
 from onboard.app import signing

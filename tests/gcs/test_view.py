@@ -14,7 +14,7 @@ import urllib.request
 import numpy as np
 import pytest
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from groundstation import gcs_commands as C
 from groundstation.cli import main

@@ -9,8 +9,8 @@ import time
 import pytest
 
 from onboard.app.mavlink2 import mavlink, mavutil
-from sim.autopilot import BootTimeline, MockAutopilot, Mode
-from sim.mock_links import Endpoint
+from sim.mock.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.mock.links import Endpoint
 
 pytestmark = pytest.mark.sitl
 
@@ -497,7 +497,7 @@ def test_ports_are_freed_and_endpoints_validated():
 
 
 # --------------------------------------------------------------------------- as strict as ArduCopter
-# Each of these was measured on ArduCopter 4.4 SITL (../shared/ardupilot; sim.autopilot.BootTimeline)
+# Each of these was measured on ArduCopter 4.4 SITL (../shared/ardupilot; sim.mock.autopilot.BootTimeline)
 # and is what tests/firmware/test_ardupilot.py's real firmware does; tests/firmware/test_conformance.py compares the
 # two as the app sees them.
 

@@ -1,7 +1,7 @@
 """Real MAVLink clients against the mock autopilot: MAVProxy and MAVSDK (native, asyncio).
 
 MAVProxy runs as a separate process, connected to the mock started as a process with
-`python -m sim.autopilot`; a pymavlink client on the mock's UDP port flies the vehicle
+`python -m sim.mock.autopilot`; a pymavlink client on the mock's UDP port flies the vehicle
 while MAVProxy reports mode, arming and position on its stdout. MAVSDK connects the way
 a ground station would (udpin) and flies arm -> takeoff -> goto_location itself.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from onboard.app.mavlink2 import mavlink, mavutil
-from sim.autopilot import BootTimeline, MockAutopilot, Mode
+from sim.mock.autopilot import BootTimeline, MockAutopilot, Mode
 
 from tests.support.processes import LineReader, stop_process
 
@@ -43,7 +43,7 @@ def test_mavproxy_reports_mode_arming_and_position(tmp_path):
     cmd_port = free_port(socket.SOCK_DGRAM)
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
     mock = subprocess.Popen(
-        [sys.executable, "-m", "sim.autopilot", "--tcp", f"127.0.0.1:{tcp_port}",
+        [sys.executable, "-m", "sim.mock.autopilot", "--tcp", f"127.0.0.1:{tcp_port}",
          "--udp", f"127.0.0.1:{cmd_port}", "--speedup", "5", "--ready-after", "8",
          "--home=" + ",".join(str(v) for v in HOME)],  # '=': the value starts with '-'
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)

@@ -1,4 +1,4 @@
-"""The clairvoyant ceiling (sim/ceiling.py, sim/ceiling_search.py): its objective is the
+"""The clairvoyant ceiling (sim/evaluation/ceiling.py, sim/evaluation/ceiling_search.py): its objective is the
 evaluation's PCRB, its gradient is right, its paths keep the vehicle's rules, and its search
 never returns a path worse than one it was given."""
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pytest
 from onboard.config import load_scenario
 from onboard.core.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup
-from sim import ceiling as ce
-from sim import ceiling_search as cs
-from sim.evaluation import pcrb_position
+from sim.evaluation import ceiling as ce
+from sim.evaluation import ceiling_search as cs
+from sim.evaluation.trials import pcrb_position
 
 
 @pytest.fixture(scope="module")

@@ -35,7 +35,7 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
     assert "the first at autopilot t = " in said and "(its clock counts from boot)" in said, said[-1500:]
     assert " monitoring (" in said and "before, in the launch" in said and " scored (" in said
     assert "monitoring tick, wall-time median: core " in said and "ms to send)" in said
-    from sim.demo import SCALE
+    from sim.stack.demo import SCALE
     fixed3 = f"three fixed DFs (fixed3) {SCALE['fixed3'][3]} m"  # the scale quoted from the docs' run
     assert "scale (RMSE from 10 s, all targets" in said and fixed3 in said, said[-1500:]
     from matplotlib.image import imread
@@ -57,14 +57,14 @@ def test_demo_flies_scores_and_cleans_up(tmp_path):
 
 
 def test_the_demos_scale_is_what_the_docs_files_say():
-    """sim/demo.py quotes pmon eval's 100 missions: median and 10-90 % of the per-mission RMSE of
+    """sim/stack/demo.py quotes pmon eval's 100 missions: median and 10-90 % of the per-mission RMSE of
     each method, from the docs' per_trial.csv files. Fails when those files change and the demo
     still quotes the old figures."""
     import csv
 
     import numpy as np
 
-    from sim.demo import SCALE
+    from sim.stack.demo import SCALE
     for key, (_, path, method, med, lo, hi) in SCALE.items():
         with open(REPO / path) as f:
             r = [float(row["rmse_window_m"]) for row in csv.DictReader(f) if row["method"] == method]
@@ -113,7 +113,7 @@ def test_a_launch_the_app_aborts_ends_the_demo_with_its_reason(tmp_path):
     try:
         mock, deadline = None, time.monotonic() + 40
         while time.monotonic() < deadline:
-            mock = mock or _child(p.pid, "sim.autopilot")
+            mock = mock or _child(p.pid, "sim.mock.autopilot")
             log = out / "app.log"
             if mock and log.exists() and "PMON: launch" in log.read_text():
                 break  # the launch has begun, the vehicle is not flying yet
@@ -165,7 +165,7 @@ def test_demo_streams_to_a_ground_station_with_gcs(tmp_path):
 def test_the_auto_speedup_keeps_the_measured_tick_within_a_fifth_of_an_autopilot_second():
     """pmon demo --speedup auto: the tick measured (wall s) times the speedup stays <= 0.2
     autopilot s above 1x, in steps of 0.5 between 1x and 8x; a loaded machine flies at 1x."""
-    from sim.demo import choose_speedup
+    from sim.stack.demo import choose_speedup
 
     for tick_s in np.geomspace(0.005, 2.0, 200):
         s = choose_speedup(float(tick_s))

@@ -1,4 +1,4 @@
-"""sim.metrics.error_split (bench/consistency.py reports it): the window error along and across
+"""sim.evaluation.metrics.error_split (bench/consistency.py reports it): the window error along and across
 each target's line of sight, near an obstacle and free, on hand-made trials where the answer is
 known."""
 from types import SimpleNamespace
@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim.metrics import NEAR_M, error_split
+from sim.evaluation.metrics import NEAR_M, error_split
 
 
 def _trial(truth, est, uav):

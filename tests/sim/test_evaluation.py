@@ -17,7 +17,7 @@ import scipy
 from scipy import stats
 
 from onboard.config import Box, ConfigError, Target, override
-from sim import evaluation as ev
+from sim.evaluation import trials as ev
 
 
 @pytest.fixture(scope="module")
@@ -109,11 +109,11 @@ def test_all_methods_share_the_truth_and_the_uav_start(tiny_serial, tiny):
 
 def test_dask_cluster_gives_the_same_trials(tiny, tiny_serial):
     """A worker process started as docs/RESULTS.md says (one BLAS thread, the pinned kernels of
-    sim/numerics.py in its environment) over TCP on loopback, the comms a remote scheduler uses."""
+    sim/evaluation/numerics.py in its environment) over TCP on loopback, the comms a remote scheduler uses."""
     distributed = pytest.importorskip("distributed")
     import dask
 
-    from sim.numerics import PINNED, can_pin
+    from sim.evaluation.numerics import PINNED, can_pin
     env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", **(PINNED if can_pin() else {})}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": env}), \
             distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp://",
@@ -363,10 +363,10 @@ def test_a_planner_a_bench_registers_is_the_one_its_method_flies(quick):
 
 
 def test_workers_load_the_avx2_kernels_where_the_cpu_has_them():
-    """sim.numerics: OpenBLAS's and numpy's AVX-512 kernels round differently from their AVX2
+    """sim.evaluation.numerics: OpenBLAS's and numpy's AVX-512 kernels round differently from their AVX2
     ones, so the evaluation's workers load the AVX2 ones on every x86-64 that has them (a
     variable the user set stays); a process started with them has no AVX-512 dispatch."""
-    from sim import numerics
+    from sim.evaluation import numerics
 
     env: dict = {}
     if not numerics.pin_kernels(env):
@@ -400,7 +400,7 @@ def test_docs_results_trial_0_reproduces_here(tmp_path):
     current code's truths). Trial 0 is one that the AVX-512 kernels give otherwise (fixed3 7.6431
     m against 7.6033, measured on this VM's EPYC with OPENBLAS_CORETYPE=SkylakeX and
     NPY_DISABLE_CPU_FEATURES empty)."""
-    from sim import numerics
+    from sim.evaluation import numerics
 
     if not (numerics.can_pin() and _pinned_packages()):
         pytest.skip("needs the packages of constraints.txt on an x86-64 with AVX2 and FMA")
@@ -462,7 +462,7 @@ def test_pmon_eval_writes_csv_table_figures_and_a_json_line(tmp_path):
     assert "| greedy_l1 |" in md
     # the figures depend on the numerical stack to the last bit: a reader must be able to match it
     assert f"numpy {np.__version__}, scipy {scipy.__version__}" in md
-    from sim.numerics import can_pin
+    from sim.evaluation.numerics import can_pin
     assert ("kernels pinned to AVX2" in md) == can_pin()
 
 

@@ -4,8 +4,8 @@ import socket
 
 import pytest
 
-from onboard.app import datagram as dg
-from sim.feed import read_recording, replay
+from onboard.app.df import datagram as dg
+from sim.stack.feed import read_recording, replay
 
 
 @pytest.mark.timeout(30)
@@ -40,8 +40,8 @@ def test_the_live_feeds_start_waits_for_the_arming_or_the_mission_altitude():
     mission; --start armed scans from the ground; now as soon as a position is known."""
     import numpy as np
 
-    from onboard.app.pose import PoseSample
-    from sim.live_feed import LiveFeedConfig, ready_to_scan
+    from onboard.app.autopilot.pose import PoseSample
+    from sim.stack.live_feed import LiveFeedConfig, ready_to_scan
 
     def at(up):
         return PoseSample(10.0, np.array([150.0, 200.0, up]), np.zeros(3), None)

@@ -11,10 +11,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from onboard.app.kraken_fetch import DocumentPoller
+from onboard.app.kraken.fetch import DocumentPoller
 from onboard.config import load_scenario
-from sim.kraken import MIN_SHOWN_S, KrakenFeed, KrakenWriter
-from sim.live_feed import LiveFeedConfig
+from sim.stack.kraken import MIN_SHOWN_S, KrakenFeed, KrakenWriter
+from sim.stack.live_feed import LiveFeedConfig
 
 
 class WallClock:

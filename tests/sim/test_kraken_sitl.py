@@ -15,7 +15,7 @@ import pytest
 
 from onboard.core.bearings import wrap
 
-from sim.stack import SitlStack
+from sim.stack.sitl_stack import SitlStack
 
 from tests.support.mavlink_gcs import QUICK_BOOT_S
 from tests.support.replay_check import assert_replays_bit_for_bit
@@ -66,7 +66,7 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
     assert {r: n for r, n in src.rejected.items() if n} == {}, src.last_error
     assert src.frames == src.scans // 4 == int(written.group(1)) == 30 and src.decimated == 0
     # each scan ticked with every target's set; on a starved machine a tick overrunning its
-    # budget skips the scans behind it (tick_schedule.py), counted by the tick that follows:
+    # budget skips the scans behind it (onboard/app/tick/schedule.py), counted by the tick that follows:
     # those only, and few (the CI machine skipped 2 of 30 at speedup 3, a loaded one 6)
     assert all(tk["channels"] == [0, 1, 2, 3] for tk in ticks if scans[0]["t"] <= tk["t"] <= scans[-1]["t"])
     missing = [s["t"] for s in scans if s["t"] not in by_t]

@@ -1,9 +1,9 @@
-"""The miss accounting (``sim.tick_account.TickAccount``: bench/latency.py, bench/soak.py and the
+"""The miss accounting (``sim.stack.tick_account.TickAccount``: bench/latency.py, bench/soak.py and the
 ArduPilot procedure), on a scripted mission: every kind of miss is counted once, and nothing that
 was on time is."""
 from __future__ import annotations
 
-from sim import tick_account as latency
+from sim.stack import tick_account as latency
 
 
 def rec(t, planned=True, sent=True, nxt=(10.0, 20.0, 40.0), arrived=None, skipped=0, channels=(0, 1)):

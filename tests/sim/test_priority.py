@@ -1,4 +1,4 @@
-"""The simulated flight's scheduling (sim/priority.py): with PMON_SIM_RT_PRIORITY=N the rig's app
+"""The simulated flight's scheduling (sim/firmware/priority.py): with PMON_SIM_RT_PRIORITY=N the rig's app
 runs at --rt-priority N and each process standing in for the vehicle's other computers at FIFO
 N + 1; unset, everything at normal scheduling; a bad value is refused naming the variable."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from sim.priority import ENV, app_priority, fifo_argv, fifo_permitted, vehicle_priority
+from sim.firmware.priority import ENV, app_priority, fifo_argv, fifo_permitted, vehicle_priority
 
 
 def _classes(pid: int) -> dict[str, tuple[int, int]]:
@@ -56,7 +56,7 @@ def test_a_program_started_at_fifo_keeps_it_in_the_threads_it_starts():
 @pytest.mark.sitl
 @pytest.mark.skipif(not fifo_permitted(41), reason="SCHED_FIFO is not permitted here")
 def test_the_rigs_app_and_vehicle_run_at_the_documented_priorities(monkeypatch, tmp_path):
-    from sim.rig import Rig, RigConfig
+    from sim.stack.rig import Rig, RigConfig
 
     monkeypatch.setenv(ENV, "40")
     with Rig(RigConfig(feed_start="now", out_dir=str(tmp_path))) as rig:

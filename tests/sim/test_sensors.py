@@ -11,7 +11,7 @@ import pytest
 from scipy import stats
 
 from onboard.core.bearings import bearing
-from sim.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
+from sim.truth.sensors import FIXED_SENSORS_M, DirectionFinder, df_scan, fixed_scans
 
 Z = 3.9  # two-sided normal quantile for ~1e-4
 ALPHA = 1e-4

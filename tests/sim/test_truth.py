@@ -8,7 +8,7 @@ from scipy import stats
 
 from onboard.config import Box
 from onboard.core.obstacles import Obstacles
-from sim.truth import Mismatch, TruthWorld, blocked, simulate_truth
+from sim.truth.world import Mismatch, TruthWorld, blocked, simulate_truth
 
 ALPHA = 1e-4
 
@@ -142,10 +142,10 @@ def test_recording_the_closed_loop_gains_changes_no_state(short):
 
 
 def test_a_wall_stop_is_counted_where_the_truth_holds_a_target(paper):
-    """sim.truth_plans finds the wall stops of pmon eval's truths (bench/truth_guidance.py: 15 in
+    """sim.evaluation.truth_plans finds the wall stops of pmon eval's truths (bench/truth_guidance.py: 15 in
     100 trials at seed 2024, docs/LOG.md): trial 86's T2 is the earliest, held at scan 9 at 0 m/s."""
-    from sim import evaluation as ev
-    from sim.truth_plans import trial_statuses
+    from sim.evaluation import trials as ev
+    from sim.evaluation.truth_plans import trial_statuses
 
     cfg = ev.make_config(paper, 100, 2024, ["hover"])
     world = TruthWorld.from_scenario(cfg.scenario, ev._rng(2024, 86, 0))

@@ -1,4 +1,4 @@
-"""The truths the model did not write (sim/truth_kinds.py): each kind does what its name says,
+"""The truths the model did not write (sim/truth/kinds.py): each kind does what its name says,
 starts where the nominal truth starts (paired trial by trial), and is refused where it cannot be."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from onboard.config import load_scenario
 from onboard.core.obstacles import Obstacles
-from sim.truth_kinds import TRUTH_KINDS, check_kind, draw_kind, filter_scenario, simulate_kind, truth_world
+from sim.truth.kinds import TRUTH_KINDS, check_kind, draw_kind, filter_scenario, simulate_kind, truth_world
 
 STEPS = 60
 

@@ -1,4 +1,4 @@
-"""sim.multicopter and sim.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
+"""sim.mock.multicopter and sim.mock.guided against ArduPilot's own SITL (ArduCopter 4.4.0-dev, the shared binary).
 
 The reference is tests/data/sitl_response.json.gz: what ``python -m bench.sitl_response --save
 tests/data/sitl_response.json.gz`` recorded on the real SITL, at ArduCopter's stock limits and
@@ -6,7 +6,7 @@ the demo's: a velocity command far above the airframe's top speed, 20 m and 100 
 steps, a 10 Hz position + velocity ramp, and planner-like routes at 90 % and 70 % of the top speed
 sent one setpoint a second four ways (position only; position + the velocity at that point;
 a ramp reaching the next point; the plan's position, velocity and acceleration). The model is
-given the same setpoints at the same firmware times (sim.sitl_response_model.replay, 400 Hz) and
+given the same setpoints at the same firmware times (sim.firmware.response_model.replay, 400 Hz) and
 must fly what the SITL flew.
 
 The demo's 90 % routes are left out of the bounds: they ask for 3 m/s^2 of turn at 9 m/s, which
@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.sitl_response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
-from sim.sitl_response_flight import MASK_POS, MASK_PVA
-from sim.sitl_response_model import in_envelope, limits_for, load, replay, rms_error
-from sim.copter import Copter, GuidedTarget, Mode
-from sim.control_math import sqrt_controller
-from sim.copter_params import Params
-from sim.guided import GuidedSetpoint, fly, fly_timeline
-from sim.multicopter import (
+from sim.firmware.response_cases import TICK_S, distance_at_ticks, planner_route, route_setpoint
+from sim.firmware.response_flight import MASK_POS, MASK_PVA
+from sim.firmware.response_model import in_envelope, limits_for, load, replay, rms_error
+from sim.mock.copter import Copter, GuidedTarget, Mode
+from sim.mock.control_math import sqrt_controller
+from sim.mock.copter_params import Params
+from sim.mock.guided import GuidedSetpoint, fly, fly_timeline
+from sim.mock.multicopter import (
     Setpoint,
     VehicleLimits,
     VehicleState,
@@ -124,7 +124,7 @@ def test_beyond_the_envelope_the_model_falls_behind_too_but_less(sitl):
 
 @pytest.mark.timeout(60)
 def test_the_mock_flies_the_recorded_setpoints_as_the_sitl(sitl):
-    """The mock autopilot's GUIDED (sim.autopilot.Copter at its 50 Hz) given the recorded routes'
+    """The mock autopilot's GUIDED (sim.mock.autopilot.Copter at its 50 Hz) given the recorded routes'
     setpoints: the position + velocity target moves on between messages, a new sub-mode restarts
     the controller."""
     for lab, name in (("stock", "route70_pva"), ("stock", "route70_pos"), ("demo", "route70_ramp")):
@@ -155,7 +155,7 @@ def test_the_mock_flies_the_recorded_setpoints_as_the_sitl(sitl):
 
 @pytest.mark.timeout(60)
 def test_fly_one_tick_and_its_rate(sitl):
-    """sim.guided.fly, the evaluation's step: one tick from a setpoint is fly_timeline's; the
+    """sim.mock.guided.fly, the evaluation's step: one tick from a setpoint is fly_timeline's; the
     firmware's 400 Hz and the mock's 50 Hz differ by under 0.15 m over a whole recorded route."""
     lab = "stock"
     tr = next(t for t in sitl[lab]["traces"] if t["name"] == "route70_pva")
@@ -288,9 +288,9 @@ def test_live_sitl_flies_a_short_route_as_the_model():
     as the plan's state (position, velocity, acceleration) each second; the model, given the
     same setpoints at the same firmware times, flies within RMS_MAX_M of it, and the copter is
     within 1.5 m of the plan's point when each next setpoint is due."""
-    from sim.sitl_response_cases import fly_route
-    from sim.sitl_response_flight import HOME, SitlFlight
-    from sim.ardupilot import ArduPilotSitl, find_binary, skip_reason
+    from sim.firmware.response_cases import fly_route
+    from sim.firmware.response_flight import HOME, SitlFlight
+    from sim.firmware.ardupilot import ArduPilotSitl, find_binary, skip_reason
 
     reason = skip_reason()
     if reason is not None:
@@ -328,7 +328,7 @@ def px4():
 
 @pytest.mark.timeout(120)
 def test_model_flies_each_recorded_px4_trace(px4):
-    """sim.multicopter with PX4's parameters (limits_from_params on its MPC_* names: its position
+    """sim.mock.multicopter with PX4's parameters (limits_from_params on its MPC_* names: its position
     controller, no kinematic shaping, SIH's linear drag) given the setpoints PX4 SITL was sent, each
     held until the next as PX4 does. ArduCopter's controller on the same setpoints misses by
     metres: the test fails on a model that is not PX4's."""
@@ -364,8 +364,8 @@ def test_distance_at_the_next_tick_as_px4_sitl(px4):
 def test_the_evaluations_flight_at_px4_flies_px4s_model():
     """``pmon eval --methods flight@px4``: the flown method's vehicle is PX4's (its parameters,
     controller and SIH airframe), planned at its MPC_XY_VEL_MAX / MPC_ACC_HOR capped as the app caps."""
-    from sim.evaluation import AUTOPILOTS, method_named
-    from sim.multicopter import PX4_SIH_AIRFRAME, limits_from_params
+    from sim.evaluation.trials import AUTOPILOTS, method_named
+    from sim.mock.multicopter import PX4_SIH_AIRFRAME, limits_from_params
 
     lim = limits_from_params(AUTOPILOTS["px4"])
     assert not lim.shaping and lim.drag_lin == PX4_SIH_AIRFRAME["drag_lin"] and lim.speed_xy == 12.0

@@ -1,4 +1,4 @@
-"""Generated worlds (sim/worlds.py) and the evaluation across them (sim/world_eval.py): a world is
+"""Generated worlds (sim/truth/worlds.py) and the evaluation across them (sim/evaluation/across_worlds.py): a world is
 the same for the same (family, seed, index) in any process, passes the scenario validator, reads
 back from its file as the same scenario, has its family's properties, and ``pmon eval --worlds``
 pairs the methods per world as ``pmon eval FILE`` runs that world."""
@@ -14,9 +14,9 @@ import pytest
 
 from onboard.config import Box, load_scenario, parse_scenario
 from onboard.core.obstacles import Obstacles
-from sim import evaluation as ev
-from sim import world_eval as we
-from sim import worlds as W
+from sim.evaluation import trials as ev
+from sim.evaluation import across_worlds as we
+from sim.truth import worlds as W
 
 N = 8  # worlds per family in the fast checks
 H = 40.0  # uav.altitude_m's default, what the generator measures heights against
@@ -35,7 +35,7 @@ def tall(sc):
 
 
 def test_a_world_is_its_family_seed_and_index_in_any_process():
-    code = ("from sim.worlds import world_yaml, FAMILIES; "
+    code = ("from sim.truth.worlds import world_yaml, FAMILIES; "
             "print('\\n'.join(world_yaml(f, 5, 3) for f in FAMILIES))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          env={"PYTHONHASHSEED": "123", **__import__("os").environ})
@@ -142,7 +142,7 @@ def test_a_worlds_spec_is_checked():
 
 @pytest.mark.slow
 def test_every_familys_targets_reach_their_goals_in_a_mission():
-    from sim.truth import simulate_truth
+    from sim.truth.world import simulate_truth
 
     for family in W.FAMILIES:
         for i in range(2):

@@ -10,9 +10,9 @@ import time
 
 import numpy as np
 
-from sim.autopilot import MockAutopilot
+from sim.mock.autopilot import MockAutopilot
 
-from onboard.app import datagram as dg
+from onboard.app.df import datagram as dg
 from onboard.core import monitor
 
 

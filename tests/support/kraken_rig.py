@@ -13,11 +13,11 @@ import numpy as np
 
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
-from onboard.app.clock import ManualClock
-from onboard.app.pose import PoseSample
+from onboard.app.autopilot.clock import ManualClock
+from onboard.app.autopilot.pose import PoseSample
 from onboard.config import load_scenario, override
 from onboard.policy import with_policy
-from sim.kraken import KrakenModel, frame_lines
+from sim.stack.kraken import KrakenModel, frame_lines
 
 UNIX0 = 1_700_000_000.0
 M = 4

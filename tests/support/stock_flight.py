@@ -10,9 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from onboard.app.mavlink2 import mavlink
-from sim.hub_route import AVOIDANCE, Recorder, hub_route
-from sim.app_tlog import GUIDED
-from sim.procedure import Mission, MissionConfig
+from sim.stack.hub_route import AVOIDANCE, Recorder, hub_route
+from sim.stack.app_tlog import GUIDED
+from sim.stack.procedure import Mission, MissionConfig
 
 from tests.support.mavlink_gcs import Gcs
 

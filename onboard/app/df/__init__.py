@@ -1,0 +1,1 @@
+"""The direction finder's datagrams in: the wire format, the socket, the scan buffer, scans paired with poses."""

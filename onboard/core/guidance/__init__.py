@@ -1,0 +1,1 @@
+"""The guidance predictor: Problem P1 solved without a mixed-integer solver."""

@@ -1,0 +1,1 @@
+"""The Monte Carlo evaluation (pmon eval): trials, methods, metrics, bounds, reports, figures."""

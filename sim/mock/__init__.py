@@ -1,0 +1,1 @@
+"""The mock autopilot: a strict ArduCopter stand-in (its boot, streams, commands, defects) and the vehicle models it flies."""
