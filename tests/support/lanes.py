@@ -2,8 +2,9 @@
 (no paths given) is split between this process, the flights lane (every test that flies or
 times anything, one at a time at normal priority), and a second pytest process started here with
 the same arguments, the compute lane (the pure tests tests/conftest.py lists), which lowers itself
-to nice 19 so that it only takes CPU the flights lane leaves idle. Given paths, ``--collect-only``,
-``--lf``/``--ff``/``--sw``, or ``PMON_TEST_LANES=0``, the run stays in one process."""
+to nice 19 (and SCHED_IDLE) so that it only takes CPU the flights lane leaves idle. Given paths,
+``--collect-only``, ``--lf``/``--ff``/``--sw``, or ``PMON_TEST_LANES=0``, the run stays in one
+process."""
 from __future__ import annotations
 
 import os
@@ -56,6 +57,13 @@ def become_compute() -> None:
     its session's share; a lane in a session of its own at nice 19 would yield to every other
     session on the machine too, and wait out other work's load."""
     os.nice(COMPUTE_NICE - os.nice(0))
+    # and SCHED_IDLE where the kernel has it (no privilege needed): a waking flight preempts it at
+    # once, also when the flights lane itself runs niced (nice 10 beside nice 19 is not enough)
+    if hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:
+            pass
 
 
 def _die_with_parent() -> None:  # the compute lane ends when the flights lane's process does
