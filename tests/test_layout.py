@@ -369,3 +369,55 @@ def test_no_setting_is_read_by_its_pmon_name_outside_the_parameter_table():
     found = [f"{p.relative_to(ROOT)}:{line}: {name}" for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))
              if p not in edge for line, name in pmon_reads(p, set(PARAMS), any_string=pkg != "bench")]
     assert not found, "read by PMON name outside the parameter table (use params.settings):\n" + "\n".join(found)
+
+
+def _conftest_set(name: str) -> frozenset:
+    """A frozenset({...}) of literals assigned in tests/conftest.py (read, not imported)."""
+    tree = ast.parse((TESTS / "conftest.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and [t.id for t in node.targets if isinstance(t, ast.Name)] == [name]:
+            return frozenset(ast.literal_eval(node.value.args[0]))
+    raise AssertionError(f"tests/conftest.py has no {name}")
+
+
+# what a compute-lane test must not do: wait on a clock, a thread, a socket or another process
+_FLIGHT_NAMES = {"sleep", "socket", "threading", "Thread", "subprocess", "Popen", "MockAutopilot", "wait_for",
+                 "distributed"}
+_CLOCK_CALLS = {"monotonic", "time", "perf_counter"}
+
+
+def _flies(fn: ast.FunctionDef) -> list[str]:
+    names = [n.id if isinstance(n, ast.Name) else n.attr for n in ast.walk(fn)
+             if isinstance(n, (ast.Name, ast.Attribute))]
+    calls = [n.func.attr for n in ast.walk(fn) if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)
+             and isinstance(n.func.value, ast.Name) and n.func.value.id == "time"]
+    return sorted({n for n in names if n in _FLIGHT_NAMES} | {f"time.{c}()" for c in calls if c in _CLOCK_CALLS})
+
+
+def test_the_compute_lanes_tests_exist_and_wait_on_nothing():
+    """tests/conftest.py's compute lane (tests/support/lanes.py) names existing modules and tests,
+    and none of its test functions sleeps, reads a clock, or starts a thread, socket or process
+    (those are the flights lane's: COMPUTE_MODULES_FLIGHTS)."""
+    modules, flights = _conftest_set("COMPUTE_MODULES"), _conftest_set("COMPUTE_MODULES_FLIGHTS")
+    assert not [m for m in modules if not (ROOT / m).is_file()], "COMPUTE_MODULES names a missing file"
+    bad = []
+    for m in sorted(modules):
+        fns = [n for n in ast.parse((ROOT / m).read_text()).body if isinstance(n, ast.FunctionDef)]
+        tests = {n.name: n for n in fns if n.name.startswith("test_")}
+        helpers = {n.name for n in fns if not n.name.startswith("test_") and _flies(n)}  # one call deep
+        for name, fn in tests.items():
+            uses = _flies(fn) + sorted(helpers & {n.id for n in ast.walk(fn) if isinstance(n, ast.Name)})
+            if f"{m}::{name}" not in flights and uses:
+                bad.append(f"{m}::{name} uses {', '.join(uses)}")
+        bad += [f"{f}: no such test in a compute module" for f in flights
+                if f.split("::")[0] == m and f.split("::")[1] not in tests]
+    bad += [f"{f}: its module is not in COMPUTE_MODULES" for f in flights if f.split("::")[0] not in modules]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_lanes_exit_code_is_the_worse_lanes_and_a_lane_without_tests_fails_none():
+    from tests.support.lanes import merged_exit
+
+    assert merged_exit(0, 0) == 0 and merged_exit(0, 1) == 1 and merged_exit(1, 0) == 1
+    assert merged_exit(5, 0) == 0 and merged_exit(0, 5) == 0 and merged_exit(5, 5) == 5
+    assert merged_exit(2, 1) == 2 and merged_exit(5, 1) == 1
