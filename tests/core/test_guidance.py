@@ -5,7 +5,7 @@ from onboard.core.guidance.predictor import GuidanceParams, Plan, plan_guidance,
 from onboard.core.obstacles import Obstacles
 from sim.evaluation.miqp_reference import random_instance
 
-from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
+from onboard.settings.sections import Guidance  # noqa: E402  (the declared defaults)
 
 PARAMS = GuidanceParams.from_config(Guidance(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16))
 
@@ -171,7 +171,7 @@ def test_free_law_is_the_guidance_wherever_it_says_so(paper, model):
         free_plans += plan.unconstrained
     assert 10 < ok.sum() and ok.sum() >= 0.9 * free_plans
     # a small wall between an arriving target and its goal: the free path would cross it
-    from onboard.config import Box
+    from onboard.settings.sections import Box
     wall = Obstacles.from_boxes([Box("wall", (goal[0], goal[1] + 30.0, 10.0), (30.0, 6.0, 20.0), 0.0)])
     x = np.r_[goal[:2] + [0.0, 60.0], 0, 0, 0, 0][None]
     assert law.is_optimal(x, goal, Obstacles.empty())[0] and not law.is_optimal(x, goal, wall)[0]
@@ -369,7 +369,7 @@ def test_target_that_cannot_keep_the_margin_keeps_clear_of_the_obstacle(paper, m
 def _one_box(paper, **tracking):
     """The paper's setup with one 100 m box at the origin and T2's goal 300 m south of it."""
     from dataclasses import replace as dc_replace
-    from onboard.config import Box
+    from onboard.settings.sections import Box
     from onboard.core.monitor import MonitorSetup
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, **tracking))
     obs = Obstacles.from_boxes([Box("B", (0.0, 0.0, 25.0), (100.0, 100.0, 50.0))])
