@@ -314,10 +314,10 @@ def _settings(sc: Scenario) -> None:
     if pl.planner == "lookahead" and pl.lookahead_steps > g.horizon:
         raise ConfigError(f"planning.lookahead_steps: must be <= guidance.horizon ({g.horizon}) with the "
                           f"lookahead planner, got {pl.lookahead_steps}: it follows the guidance plans")
-    lo, h, hi = (value_of(sc, k) for k in ("app.fence_min_m", "uav.altitude_m", "app.fence_max_m"))
-    if not lo <= h <= hi:
+    lo, altitude_m, hi = (value_of(sc, k) for k in ("app.fence_min_m", "uav.altitude_m", "app.fence_max_m"))
+    if not lo <= altitude_m <= hi:
         raise ConfigError(f"uav.altitude_m: must be within the geofence band app.fence_min_m.."
-                          f"app.fence_max_m = {lo:g}..{hi:g} m, got {h:g}")
+                          f"app.fence_max_m = {lo:g}..{hi:g} m, got {altitude_m:g}")
 
 
 def _kraken(sc: Scenario) -> None:

@@ -24,7 +24,7 @@ class CandidateGrid:
     step_m: float  # Delta_r
     n_radial: int  # N_r
     n_heading: int  # N_theta
-    altitude_m: float  # h
+    altitude_m: float  # h, the mission altitude: m above the mission origin, ENU up
 
     @classmethod
     def from_config(cls, u) -> "CandidateGrid":
