@@ -73,9 +73,9 @@ def shapes(flight: Flight, sc, at: tuple[float, ...] | None = None, every_s: flo
     out = [Shape("Polygon", area_outline(sc.area), {"kind": "area", "name": f"area ({sc.name})"}, "#555555")]
     for g in sc.goals:
         out.append(Shape("Polygon", footprint(g), {"kind": "goal", "name": f"goal {g.name}"}, GOAL_COLOUR))
-    h = sc.uav.altitude_m
+    altitude_m = sc.uav.altitude_m
     for ob in sc.obstacles:
-        dark = blocks_uav(ob, h, sc.uav.obstacle_margin_m)
+        dark = blocks_uav(ob, altitude_m, sc.uav.obstacle_margin_m)
         top = ob.center_m[2] + ob.size_m[2] / 2
         out.append(Shape("Polygon", footprint(ob), {"kind": "obstacle", "name": ob.name, "top_m": top,
                                                     "blocks_uav": dark},

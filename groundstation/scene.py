@@ -79,7 +79,7 @@ def draw_scene(ax, sc, altitude_m: float | None = None, labels: bool = True) -> 
     ``altitude_m``, default the scenario's), with names; limits the axes to the area."""
     from matplotlib.patches import Polygon
 
-    h = sc.uav.altitude_m if altitude_m is None else altitude_m
+    altitude_m = sc.uav.altitude_m if altitude_m is None else altitude_m
     ax.add_patch(Polygon(area_outline(sc.area), closed=True, fill=False, edgecolor="0.3", lw=1.0, zorder=1))
     for g in sc.goals:
         ax.add_patch(Polygon(footprint(g), closed=True, facecolor=GOAL_COLOUR, alpha=0.25,
@@ -88,7 +88,7 @@ def draw_scene(ax, sc, altitude_m: float | None = None, labels: bool = True) -> 
             ax.annotate(f"goal {g.name}", g.center_m[:2], ha="center", va="center", fontsize=8,
                         color=GOAL_COLOUR, zorder=2)
     for ob in sc.obstacles:
-        dark = blocks_uav(ob, h, sc.uav.obstacle_margin_m)
+        dark = blocks_uav(ob, altitude_m, sc.uav.obstacle_margin_m)
         ax.add_patch(Polygon(footprint(ob), closed=True, facecolor=BLOCKING_COLOUR if dark else OVERFLOWN_COLOUR,
                              edgecolor="0.2", lw=0.8, zorder=1))
         if labels:
@@ -107,11 +107,11 @@ def scene_legend_handles(sc, altitude_m: float | None = None) -> list:
     """Legend entries of the scene itself (goal, the two kinds of obstacle present)."""
     from matplotlib.patches import Patch
 
-    h = sc.uav.altitude_m if altitude_m is None else altitude_m
-    kinds = {blocks_uav(ob, h, sc.uav.obstacle_margin_m) for ob in sc.obstacles}
+    altitude_m = sc.uav.altitude_m if altitude_m is None else altitude_m
+    kinds = {blocks_uav(ob, altitude_m, sc.uav.obstacle_margin_m) for ob in sc.obstacles}
     out = [Patch(facecolor=GOAL_COLOUR, alpha=0.25, edgecolor=GOAL_COLOUR, label="goal region")] if sc.goals else []
     if True in kinds:
-        out.append(Patch(facecolor=BLOCKING_COLOUR, edgecolor="0.2", label=f"obstacle above h = {h:g} m"))
+        out.append(Patch(facecolor=BLOCKING_COLOUR, edgecolor="0.2", label=f"obstacle above h = {altitude_m:g} m"))
     if False in kinds:
         out.append(Patch(facecolor=OVERFLOWN_COLOUR, edgecolor="0.2", label="obstacle the UAV overflies"))
     return out

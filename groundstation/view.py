@@ -131,9 +131,9 @@ class ViewState:
     def snapshot(self) -> dict:
         self.seq += 1
         st, v = self.stat, self.gl.v
-        h = self.sc.uav.altitude_m
+        altitude_m = self.sc.uav.altitude_m
         if st is not None and st.next_enu is not None:
-            h = st.next_enu[2]  # the app's setpoints are at h (PMON_ALT, settable in flight)
+            altitude_m = st.next_enu[2]  # the app's setpoints are at the mission altitude (PMON_ALT, settable in flight)
         uav = st.uav_enu if st else None
         targets = []
         for j, e in sorted(v.targets.items()):
@@ -160,8 +160,8 @@ class ViewState:
             "app_silent_s": None if st is None else round(time.monotonic() - self.stat_at, 1),
             "vehicle": self._vehicle(),
             "link": self.gl.url,
-            "altitude_m": h,
-            "blocked": [blocks_uav(ob, h, self.sc.uav.obstacle_margin_m) for ob in self.sc.obstacles],
+            "altitude_m": altitude_m,
+            "blocked": [blocks_uav(ob, altitude_m, self.sc.uav.obstacle_margin_m) for ob in self.sc.obstacles],
             "uav": None if uav is None else {"enu": [_num(c, 2) for c in uav],
                                              "lonlat": lonlat(self.origin, uav[:2]).round(7)[0].tolist()},
             "setpoint": self._point(None if st is None else st.next_enu),

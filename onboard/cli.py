@@ -45,7 +45,7 @@ def _check(args) -> int:
 def experimental_lines(sc) -> list[str]:
     """One line per experimental setting the file or ``--set`` holds at other than its default:
     a research knob, not an error (docs/SETTINGS.md "Experimental settings")."""
-    from onboard.settings import experimental_changes
+    from onboard.settings.sections import experimental_changes
 
     return [f"{key}: experimental, {value} here (default {default}): a research knob, unsupported in flight"
             for key, value, default in experimental_changes(sc)]

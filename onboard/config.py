@@ -1,7 +1,7 @@
 """Scenario configuration: YAML in, typed, validated, immutable objects out.
 
 What a scenario holds, with each setting's default, unit, range and doc, is declared once in
-onboard/settings.py; this module reads a file or a tree against that declaration, checks what
+onboard/settings/sections.py; this module reads a file or a tree against that declaration, checks what
 involves several settings (``CHECKS``), and applies ``KEY=VALUE`` changes (``override``: the one
 way a scenario is changed, used by ``--set``, the flight policies, the evaluation's methods and
 the PMON_* parameters, so a change gets the same checks as a file).
@@ -32,27 +32,9 @@ import numpy as np
 import yaml
 
 from onboard.files import FileRefused, read_regular
-from onboard.settings import (  # noqa: F401  (re-exported: the scenario's types live in onboard.settings)
-    App,
-    Area,
-    Box,
-    ConfigError,
-    Dynamics,
-    Guidance,
-    Kraken,
-    KrakenVfo,
-    Lookahead,
-    Mission,
-    Origin,
-    Planning,
-    Scenario,
-    Sensor,
-    Setting,
-    Target,
-    Tracking,
-    Uav,
-)
-from onboard.settings import LOCATION_CHARS, LOCATION_STARTS, TEXT_CHARS, value_of
+from onboard.settings import ConfigError
+from onboard.settings.declare import LOCATION_CHARS, LOCATION_STARTS, TEXT_CHARS, Setting
+from onboard.settings.sections import Scenario, value_of
 
 BUILTIN_SCENARIOS = ("paper",)
 MAX_FILE_BYTES = 1_000_000
@@ -332,10 +314,10 @@ def _settings(sc: Scenario) -> None:
     if pl.planner == "lookahead" and pl.lookahead_steps > g.horizon:
         raise ConfigError(f"planning.lookahead_steps: must be <= guidance.horizon ({g.horizon}) with the "
                           f"lookahead planner, got {pl.lookahead_steps}: it follows the guidance plans")
-    lo, h, hi = (value_of(sc, k) for k in ("app.fence_min_m", "uav.altitude_m", "app.fence_max_m"))
-    if not lo <= h <= hi:
+    lo, altitude_m, hi = (value_of(sc, k) for k in ("app.fence_min_m", "uav.altitude_m", "app.fence_max_m"))
+    if not lo <= altitude_m <= hi:
         raise ConfigError(f"uav.altitude_m: must be within the geofence band app.fence_min_m.."
-                          f"app.fence_max_m = {lo:g}..{hi:g} m, got {h:g}")
+                          f"app.fence_max_m = {lo:g}..{hi:g} m, got {altitude_m:g}")
 
 
 def _kraken(sc: Scenario) -> None:

@@ -1,5 +1,5 @@
 """Flight policies: how the app decides where to fly, as changes of a scenario's settings
-(keys and values as onboard/settings.py declares them, applied by ``onboard.config.override``
+(keys and values as onboard/settings/sections.py declares them, applied by ``onboard.config.override``
 and so checked as a file is).
 
 - ``flight`` (the default of ``pmon run`` and ``pmon demo``): no changes. The declared defaults

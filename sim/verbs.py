@@ -60,7 +60,7 @@ def evaluate(argv: list[str] | None = None) -> int:
                         "method takes its autopilot as @stock or @demo: docs/RESULTS.md)")
     p.add_argument("--out", default="eval_out", type=OUT_DIR, help="output directory (default eval_out)")
     p.add_argument("--duration", type=float, default=None, help="mission seconds (default: the scenario's)")
-    from onboard.settings import SETTINGS
+    from onboard.settings.sections import SETTINGS
     particles = SETTINGS["tracking.particles"]  # its range declared once (docs/SETTINGS.md)
     p.add_argument("--particles", type=integer(int(particles.lo), int(particles.hi)), default=None,
                    help="particles per target, i.e. --set tracking.particles=N (default: the scenario's)")

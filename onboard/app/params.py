@@ -1,6 +1,6 @@
 """The app's settings as MAVLink parameters (component 191), and how they map onto a scenario.
 
-Each PMON_* parameter is a scenario setting declared in onboard/settings.py (``param=``): its
+Each PMON_* parameter is a scenario setting declared in onboard/settings/sections.py (``param=``): its
 range, integer-ness and meaning come from there, its value at start from the scenario
 (``defaults_from_scenario``), and a set is checked as a file is: the range first (one line
 naming the parameter and the range), then the whole scenario with the new value
@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from onboard.settings import PARAMS, SETTINGS, value_of
+from onboard.settings.sections import PARAMS, SETTINGS, value_of
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class ParamSpec:
     hi: float
     integer: bool
     doc: str  # meaning and unit
-    key: str  # the scenario setting it sets (onboard/settings.py)
+    key: str  # the scenario setting it sets (onboard/settings/sections.py)
 
 
 def _spec(name: str, key: str) -> ParamSpec:

@@ -244,7 +244,7 @@ class StateMachine:
         # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
         # checks itself (onboard/app/autopilot/launch.py), so the operator never has to try again
         p = v.profile
-        self.launch = launch.Launch(target_up_m=self.params.settings.uav.altitude_m, launch_mode=p.launch_mode)
+        self.launch = launch.Launch(altitude_m=self.params.settings.uav.altitude_m, launch_mode=p.launch_mode)
         then = "" if p.mission_mode == p.launch_mode else f", {p.mission_mode}"
         self.say(f"launch: {p.launch_mode}, arm, take off{then}")
         return mavlink.MAV_RESULT_ACCEPTED, Reason.NONE

@@ -24,7 +24,7 @@ import numpy as np
 
 from onboard.core import intent_tick
 from onboard.core import tracking
-from onboard.core.guidance.predictor import GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
 from onboard.core.planning import PlanningResult
@@ -203,7 +203,7 @@ def _guidance(setup: MonitorSetup, state: MonitorState, means: np.ndarray, works
         modes = state.steering[j] if sides and state.steering else ()
         out.append(plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
                                  previous=state.plans[j], workspace=workspace, timer=timer,
-                                 with_feedback="constrained" if setup.plan_steering is not None else False,
+                                 with_feedback=Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE,
                                  nearby=tuple(m.plan.shifted() for m in modes), ahead=AHEAD_STEPS if sides else 0))
     return tuple(out)
 
@@ -241,6 +241,6 @@ def replanner(setup: MonitorSetup, goal: np.ndarray, workspace: GuidanceWorkspac
                nearby: Plan | None = None, explore: bool = True, budget: int | None = None) -> Plan:
         p = params if budget is None else replace(params, max_qp_solves=min(budget, params.max_qp_solves))
         return plan_guidance(setup.model, p, setup.obstacles, x, goal, previous=previous, workspace=workspace,
-                             timer=timer, with_feedback=True, sides=sides, strict_sides=strict, nearby=nearby,
+                             timer=timer, with_feedback=Feedback.ALWAYS, sides=sides, strict_sides=strict, nearby=nearby,
                              explore=explore, ahead=ahead)
     return replan

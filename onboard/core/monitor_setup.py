@@ -39,7 +39,7 @@ class PlanSteering:
 
     @classmethod
     def from_config(cls, tr) -> "PlanSteering | None":
-        """From the scenario's ``tracking.plan_*`` (onboard/settings.py declares the defaults)."""
+        """From the scenario's ``tracking.plan_*`` (onboard/settings/sections.py declares the defaults)."""
         if not tr.plan_steering:
             return None
         return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
@@ -49,7 +49,7 @@ class PlanSteering:
 @dataclass(frozen=True, eq=False)
 class MonitorSetup:
     """Everything static about a mission, built once from a scenario (``from_scenario``: every
-    value from it; onboard/settings.py declares the defaults, so none here)."""
+    value from it; onboard/settings/sections.py declares the defaults, so none here)."""
 
     model: MotionModel
     sensor: tracking.SensorModel

@@ -187,8 +187,8 @@ def motion_sequences(position: np.ndarray, velocity: np.ndarray, grid: Candidate
                 p = p + 0.5 * (v + v_new) * dt
                 v = v_new
                 paths[:, i], vel[:, i] = p, v
-    alt = np.full(paths.shape[:2] + (1,), grid.altitude_m)
-    return np.concatenate([paths, alt], axis=2), vel
+    altitudes = np.full(paths.shape[:2] + (1,), grid.altitude_m)
+    return np.concatenate([paths, altitudes], axis=2), vel
 
 
 def _admissible_paths(paths: np.ndarray, start: np.ndarray, area_min, area_max,
@@ -255,21 +255,21 @@ def choose_lookahead(particles: np.ndarray, log_weights: np.ndarray, target_path
     H = target_paths.shape[1]
     model, area, motion = scoring.model, moves.area, moves.motion
     dt = model.dt_s
-    alt = moves.grid.altitude_m
+    altitude_m = moves.grid.altitude_m
     p0 = np.asarray(uav.position, float)[:2]
     v0 = np.zeros(2) if uav.velocity is None else np.asarray(uav.velocity, float)[:2]
     if motion.kind == "jump":
         v0 = np.zeros(2)
     routes = _routes(p0, target_paths, moves, scoring.params, dt)
     if not len(routes):  # e.g. the UAV is inside an inflated obstacle: the paper's rule decides
-        return choose_next_position(particles, log_weights, UavState(np.r_[p0, alt], v0, uav.acceleration), moves,
-                                    scoring.sigma_rad, "position_trace", dt)
+        return choose_next_position(particles, log_weights, UavState(np.r_[p0, altitude_m], v0, uav.acceleration),
+                                    moves, scoring.sigma_rad, "position_trace", dt)
     pos, vel = fly_routes(routes, UavState(p0, v0, uav.acceleration), motion, moves.grid, H, dt,
                           scoring.params.spacing_m)  # (C, H, 2)
     ok = _first_step(pos, vel, p0, moves, dt)
     # a route that would leave the area or cross an obstacle later is scored as stopping there
-    start3 = np.r_[p0, alt]
-    paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), alt)], axis=2)
+    start3 = np.r_[p0, altitude_m]
+    paths3 = np.concatenate([pos, np.full(pos.shape[:2] + (1,), altitude_m)], axis=2)
     _, paths3 = _admissible_paths(paths3, start3, area.minimum, area.maximum, area.obstacles)
     total = _route_traces(particles, log_weights, target_paths, paths3[..., :2], model, scoring.sigma_rad,
                           scoring.reduction)
@@ -306,8 +306,8 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, moves: Moves, 
     Vehicle: the first step admissible and the vehicle's braking path from there clear too."""
     C = len(pos)
     grid, motion, area = moves.grid, moves.motion, moves.area
-    alt = grid.altitude_m
-    start3 = np.r_[p0, alt]
+    altitude_m = grid.altitude_m
+    start3 = np.r_[p0, altitude_m]
     if motion.kind == "jump":
         grid_pts = candidate_positions(p0, grid)
         grid_ok = area.admissible(grid_pts, start3)
@@ -318,13 +318,13 @@ def _first_step(pos: np.ndarray, vel: np.ndarray, p0: np.ndarray, moves: Moves, 
         pos[:, 0] = grid_pts[snap, :2]
         vel[:, 0] = (pos[:, 0] - p0) / dt
         return ok
-    first = np.column_stack([pos[:, 0], np.full(C, alt)])
+    first = np.column_stack([pos[:, 0], np.full(C, altitude_m)])
     ok = area.admissible(first, start3)
     sp = np.linalg.norm(vel[:, 0], axis=1, keepdims=True)
     stop = pos[:, 0] + vel[:, 0] / np.maximum(sp, 1e-9) * sp ** 2 / (2 * motion.accel_max_mps2)
     if motion.jerk_max_mps3 > 0.0:  # the braking acceleration is ramped to: up to 2 a_max / jerk later
         stop = stop + vel[:, 0] * 2.0 * motion.accel_max_mps2 / motion.jerk_max_mps3
-    return ok & area.admissible(np.column_stack([stop, np.full(C, alt)]), first)
+    return ok & area.admissible(np.column_stack([stop, np.full(C, altitude_m)]), first)
 
 
 def _route_traces(particles: np.ndarray, log_weights: np.ndarray, target_paths: np.ndarray, pos: np.ndarray,

@@ -24,7 +24,7 @@ class CandidateGrid:
     step_m: float  # Delta_r
     n_radial: int  # N_r
     n_heading: int  # N_theta
-    altitude_m: float  # h
+    altitude_m: float  # h, the mission altitude: m above the mission origin, ENU up
 
     @classmethod
     def from_config(cls, u) -> "CandidateGrid":
@@ -63,7 +63,7 @@ class UavMotion:
 
     @classmethod
     def from_config(cls, planning) -> "UavMotion":
-        """From the scenario's ``planning`` (onboard/settings.py declares the defaults)."""
+        """From the scenario's ``planning`` (onboard/settings/sections.py declares the defaults)."""
         return cls(planning.motion, planning.speed_max_mps, planning.accel_max_mps2, planning.jerk_max_mps3)
 
     def step(self, p: np.ndarray, v: np.ndarray, a: np.ndarray, a_new: np.ndarray, dt: float
@@ -108,6 +108,6 @@ class LookaheadParams:
 
     @classmethod
     def from_config(cls, c) -> "LookaheadParams":
-        """From the scenario's ``planning.lookahead`` (onboard/settings.py ``Lookahead`` declares
+        """From the scenario's ``planning.lookahead`` (onboard/settings/sections.py ``Lookahead`` declares
         the defaults, units and ranges)."""
         return cls(tuple(c.ranges_m), c.n_headings, c.loiter_radius_m, c.corner_clearance_m, c.spacing_m)

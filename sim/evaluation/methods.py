@@ -10,7 +10,7 @@ from typing import Any
 from onboard.config import override
 from onboard.core.planners import PLANNERS
 from onboard.policy import POLICIES
-from onboard.settings import SETTINGS
+from onboard.settings.sections import SETTINGS
 from sim.mock.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS
 
 # the ArduCopter parameters a vehicle method's copter flies with (sim.mock.multicopter.limits_from_params):
@@ -109,7 +109,7 @@ for _m in (
     Method("greedy_vehicle", "single UAV, the paper's greedy rule with vehicle limits (as lookahead_vehicle), "
            "Lambda = 1", planner="greedy", clutter_rate=1.0, motion="vehicle", jump_twin="greedy_l1",
            scenario_overrides=PAPER),
-    Method("flight", "single UAV, the flight default (the declared defaults, onboard/settings.py: docs/PLANNING.md, "
+    Method("flight", "single UAV, the flight default (the declared defaults, onboard/settings/sections.py: docs/PLANNING.md, "
            "'What flies'), planning with the autopilot's WPNAV_SPEED / WPNAV_ACCEL capped by what the airframe "
            "flies, Lambda = 1", clutter_rate=1.0, motion="vehicle",
            scenario_overrides=FLIGHT, autopilot_limits=True),

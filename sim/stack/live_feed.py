@@ -357,16 +357,16 @@ class LiveFeed:
     def _wait_for_vehicle(self, tel) -> bool:
         """Until the clock and a position are known and the vehicle is as ``start`` asks
         (``ready_to_scan``); False if stopped first."""
-        h = self.sc.uav.altitude_m if self.cfg.altitude_m is None else self.cfg.altitude_m
+        altitude_m = self.sc.uav.altitude_m if self.cfg.altitude_m is None else self.cfg.altitude_m
         waiting_said = False
         while not self.stop_event.is_set():
             pose = tel.poses.latest()
-            if tel.clock.now() is not None and ready_to_scan(self.cfg.start, tel.armed, pose, h):
+            if tel.clock.now() is not None and ready_to_scan(self.cfg.start, tel.armed, pose, altitude_m):
                 break
             if not waiting_said and self.cfg.start != "now" and tel.sysid is not None:
                 waiting_said = True
-                self.log("feed: waiting for the vehicle to arm" + (f" and reach {h:g} m" if self.cfg.start == "altitude"
-                                                                    else "") + " (--start now: scan at once)")
+                reach = f" and reach {altitude_m:g} m" if self.cfg.start == "altitude" else ""
+                self.log(f"feed: waiting for the vehicle to arm{reach} (--start now: scan at once)")
             time.sleep(0.01)
         return not self.stop_event.is_set()
 

@@ -27,7 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import Feedback, GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.obstacles import Obstacles
 
 MISMATCH_KINDS = ("stop", "turn_back", "other_goal", "resume")
@@ -87,9 +87,9 @@ _FD_STEP = np.array([1.0, 1.0, 0.0, 0.1, 0.1, 0.0])
 def closed_loop_gain(model: MotionModel, guidance: GuidanceParams, obstacles: Obstacles, x: np.ndarray,
                      goal: np.ndarray, plan: Plan, workspace: GuidanceWorkspace | None = None) -> np.ndarray:
     """du_0/dx (3, 6) of the guidance policy at state x: the plan's own ``feedback`` when the
-    guidance provides one (``plan_guidance(..., with_feedback=True)``, the exact gain of the QP
-    with its active set held), else central finite differences of plan_guidance in the planar states
-    (warm-started from ``plan``, so the same face assignment is differentiated). A fallback plan
+    guidance provides one (``plan_guidance(..., with_feedback=Feedback.ALWAYS)``, the exact gain of
+    the QP with its active set held), else central finite differences of plan_guidance in the planar
+    states (warm-started from ``plan``, so the same face assignment is differentiated). A fallback plan
     has no feedback: zero gain. The closed-loop transition Jacobian is A + B du_0/dx."""
     if not plan.feasible:
         return np.zeros((3, 6))
@@ -214,7 +214,8 @@ class TruthWorld:
                 new[j] = x if self.behaviours[j] == "stationary" else self._wander(x)
                 continue
             plan = plan_guidance(self.model, self.guidance, self.obstacles, x, self._goals[j],
-                                 previous=self._plans[j], workspace=self._ws, with_feedback=self.record_gains)
+                                 previous=self._plans[j], workspace=self._ws,
+                                 with_feedback=Feedback.ALWAYS if self.record_gains else Feedback.NONE)
             self._plans[j] = plan
             if self.record_gains:
                 gains[j] = closed_loop_gain(self.model, self.guidance, self.obstacles, x, self._goals[j], plan,

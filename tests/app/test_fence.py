@@ -50,12 +50,12 @@ def test_plan_time_rules(world):
     assert violation(f, (400.0, 600.0, 40.0)) == "inside an obstacle"  # O1, 60 m tall
     assert violation(f, (400.0, 680.0, 40.0), centre=(400.0, 520.0, 40.0)) == "path crosses an obstacle"
     assert violation(f, (math.nan, 0.0, 40.0)) == "not a finite position"
-    assert violation(Fence.of(setup, params, at_h=False), (150.0, 200.0, 41.0)) is None
+    assert violation(Fence.of(setup, params, at_altitude=False), (150.0, 200.0, 41.0)) is None
 
 
 def test_the_message_as_sent_is_read_back_and_checked(world):
     setup, params, frame, ned_origin = world
-    f = Fence.of(setup, params, at_h=False)
+    f = Fence.of(setup, params, at_altitude=False)
     inside = np.array([150.0, 200.0, 40.0])
     assert outgoing_violation(message(frame, ned_origin, inside), frame, ned_origin, f) is None
     # on the area's edge: float32 fields move it by < 1 mm, still inside

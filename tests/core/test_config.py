@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from onboard import settings
 from onboard.config import ConfigError, load_scenario, override, parse_overrides, parse_scenario, scenario_tree
+from onboard.settings import declare, docs, sections
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -146,7 +146,7 @@ def test_lookahead_settings_reach_the_planner(raw):
     from onboard.core.planning_inputs import LookaheadParams
     data = copy.deepcopy(raw)
     data["planning"].pop("lookahead", None)
-    defaults = LookaheadParams.from_config(settings.Lookahead())
+    defaults = LookaheadParams.from_config(sections.Lookahead())
     assert MonitorSetup.from_scenario(parse_scenario(data)).lookahead == defaults
     data["planning"]["lookahead"] = {"loiter_radius_m": 15.0, "ranges_m": [50, 100]}
     got = MonitorSetup.from_scenario(parse_scenario(data)).lookahead
@@ -251,17 +251,17 @@ def _leaf_keys(tree, prefix=""):
 
 def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(paper):
     """The YAML keys the reader writes and accepts, the PMON_* parameters (names, ranges,
-    integer-ness) and docs/SETTINGS.md's table are those of onboard/settings.py: a setting added,
+    integer-ness) and docs/SETTINGS.md's table are those of onboard/settings/sections.py: a setting added,
     renamed, or re-ranged in one place and not the others fails here."""
     from onboard.app.params import BY_NAME, SPECS
     from onboard.policy import with_policy
-    declared = set(settings.SETTINGS)
+    declared = set(sections.SETTINGS)
     assert set(_leaf_keys(scenario_tree(paper))) == declared  # every setting, written back
     # the reader accepts these keys: each number, set to a bound (or, where that breaks a check
     # across settings, between them), is read into the object (on the paper's greedy rule, which
     # bounds no lookahead) ...
     greedy = with_policy(paper, "paper")
-    for key, s in settings.SETTINGS.items():
+    for key, s in sections.SETTINGS.items():
         if "[]" in key or s.kind not in ("number", "integer"):
             continue
         eps = 1 if s.kind == "integer" else 1e-3
@@ -272,7 +272,7 @@ def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(
             except ConfigError as exc:
                 assert not str(exc).startswith(key), exc  # refused across settings, never in range
                 continue
-            assert settings.value_of(changed, key) == pytest.approx(v), key
+            assert sections.value_of(changed, key) == pytest.approx(v), key
             break
         else:
             raise AssertionError(f"{key}: no value in its range was read")
@@ -280,14 +280,14 @@ def test_the_reader_the_parameters_and_the_docs_derive_from_the_one_declaration(
     with pytest.raises(ConfigError, match="sensor.sigma_rad: unknown key"):
         override(paper, {"sensor.sigma_rad": 0.1})
     # the PMON_* parameters: one per declared param=, its range and type the setting's
-    assert {s.name: s.key for s in SPECS} == settings.PARAMS
+    assert {s.name: s.key for s in SPECS} == sections.PARAMS
     for s in SPECS:
-        d = settings.SETTINGS[s.key]
+        d = sections.SETTINGS[s.key]
         assert (s.lo, s.hi, s.integer) == (d.lo, d.hi, d.kind == "integer") and not d.lo_open and not d.hi_open
         assert BY_NAME[s.name] is s and len(s.name) <= 16
     # the docs' table is the declaration's
     doc = (ROOT / "docs" / "SETTINGS.md").read_text(encoding="utf-8")
-    assert settings.docs_with_table(doc) == doc, "docs/SETTINGS.md is stale: python -m onboard.settings --write"
+    assert docs.docs_with_table(doc) == doc, "docs/SETTINGS.md is stale: python -m onboard.settings --write"
     for key in declared:
         assert f"| `{key}` |" in doc
 
@@ -296,13 +296,13 @@ def test_at_most_40_settings_are_not_experimental_and_no_experimental_one_flies_
     """What an operator or integrator sets stays short; the research knobs are experimental, apart
     in docs/SETTINGS.md and never a PMON_* parameter. A list of records (targets, goals,
     obstacles, kraken.vfos) is one setting: each item is one thing the mission states."""
-    outside = {key.split("[]")[0] for key, s in settings.SETTINGS.items() if not s.experimental}
+    outside = {key.split("[]")[0] for key, s in sections.SETTINGS.items() if not s.experimental}
     assert len(outside) <= 40, sorted(outside)
-    assert [key for key, s in settings.SETTINGS.items() if s.experimental and s.param] == []
-    assert all(not settings.SETTINGS[key].experimental for key in settings.PARAMS.values())
+    assert [key for key, s in sections.SETTINGS.items() if s.experimental and s.param] == []
+    assert all(not sections.SETTINGS[key].experimental for key in sections.PARAMS.values())
     doc = (ROOT / "docs" / "SETTINGS.md").read_text(encoding="utf-8")
-    apart = doc.partition(settings.EXPERIMENTAL_BEGIN)[2]
-    for key, s in settings.SETTINGS.items():
+    apart = doc.partition(docs.EXPERIMENTAL_BEGIN)[2]
+    for key, s in sections.SETTINGS.items():
         assert (f"| `{key}` |" in apart) == s.experimental, key
 
 
@@ -311,11 +311,11 @@ def test_experimental_changes_name_what_differs_from_the_default():
     named; a change is, with its value and default (the paper's policy changes some)."""
     from onboard.policy import with_policy
     file = load_scenario("paper")
-    assert settings.experimental_changes(file) == []
-    assert ("planning.motion", "jump", "vehicle") in settings.experimental_changes(with_policy(file, "paper"))
+    assert sections.experimental_changes(file) == []
+    assert ("planning.motion", "jump", "vehicle") in sections.experimental_changes(with_policy(file, "paper"))
     sc = override(file, {"tracking.regularise_bandwidth": 0.3, "sensor.p_detect": 0.9,
                           "planning.lookahead.ranges_m": [30.0, 80.0]})
-    assert settings.experimental_changes(sc) == [("tracking.regularise_bandwidth", "0.3", "0.2"),
+    assert sections.experimental_changes(sc) == [("tracking.regularise_bandwidth", "0.3", "0.2"),
                                                  ("planning.lookahead.ranges_m", "[30, 80]", "[30, 80, 160, 320]")]
 
 
@@ -330,19 +330,19 @@ def test_every_default_is_within_its_range():
     sc = parse_scenario(required)
     stated = parse_scenario(scenario_tree(sc))  # every default now stated, so checked
     assert stated == sc
-    assert sc.tracking == settings.Tracking() and sc.guidance == settings.Guidance()
+    assert sc.tracking == sections.Tracking() and sc.guidance == sections.Guidance()
 
 
 def test_the_example_file_states_the_geometry_the_papers_values_and_what_differs(raw):
     """config/paper.yaml: each setting it states is required (the mission's geometry), the
     paper's own value (declared paper=True), or differs from its default; nothing else."""
-    fields = {key: f for key, f, _ in settings.walk()}
+    fields = {key: f for key, f, _ in declare.walk(sections.Scenario)}
     for key in _leaf_keys(raw):
-        s, f = settings.SETTINGS[key], fields[key]
+        s, f = sections.SETTINGS[key], fields[key]
         if f.default is dataclasses.MISSING or s.paper or "[]" in key:
             continue
         sc = load_scenario("paper")
-        assert settings.value_of(sc, key) != f.default, f"{key} equals its default and is not the paper's"
+        assert sections.value_of(sc, key) != f.default, f"{key} equals its default and is not the paper's"
 
 
 def test_the_cores_parameter_classes_have_no_defaults_of_their_own():

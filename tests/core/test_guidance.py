@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from onboard.core.guidance.predictor import GuidanceParams, Plan, plan_guidance, winding
+from onboard.core.guidance.predictor import Feedback, GuidanceParams, Plan, plan_guidance, winding
 from onboard.core.obstacles import Obstacles
 from sim.evaluation.miqp_reference import random_instance
 
-from onboard.settings import Guidance  # noqa: E402  (the declared defaults)
+from onboard.settings.sections import Guidance  # noqa: E402  (the declared defaults)
 
 PARAMS = GuidanceParams.from_config(Guidance(horizon=25, obstacle_margin_m=5.0, max_qp_solves=16))
 
@@ -108,7 +108,7 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
         for _ in range(20):
             plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
             x = plan.means[0]
-        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True)
+        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS)
         assert plan.feedback is not None and plan.feedback.shape == (3, 6)
         qp = ws.qp(T, len(obs), model, params)
         z = np.concatenate([[x[2]], predict_mean(model, x, np.zeros((T, 3)))[:, 2]])
@@ -171,11 +171,29 @@ def test_free_law_is_the_guidance_wherever_it_says_so(paper, model):
         free_plans += plan.unconstrained
     assert 10 < ok.sum() and ok.sum() >= 0.9 * free_plans
     # a small wall between an arriving target and its goal: the free path would cross it
-    from onboard.config import Box
+    from onboard.settings.sections import Box
     wall = Obstacles.from_boxes([Box("wall", (goal[0], goal[1] + 30.0, 10.0), (30.0, 6.0, 20.0), 0.0)])
     x = np.r_[goal[:2] + [0.0, 60.0], 0, 0, 0, 0][None]
     assert law.is_optimal(x, goal, Obstacles.empty())[0] and not law.is_optimal(x, goal, wall)[0]
     assert plan_guidance(model, params, wall, x[0], goal).touches_obstacle
+
+
+def test_feedback_says_which_plans_get_their_law(paper, model):
+    """Feedback: NONE, no plan has a law; ALWAYS, every plan; CONSTRAINED, only a plan with an
+    active row (the free law describes the others). A value that is none of them is refused."""
+    from onboard.settings.sections import Box
+    params = GuidanceParams.from_config(paper.guidance)
+    goal = np.array(paper.goal_of(paper.targets[0]).center_m)
+    wall = Obstacles.from_boxes([Box("wall", (goal[0], goal[1] + 30.0, 10.0), (30.0, 6.0, 20.0), 0.0)])
+    at_goal, behind_wall = np.r_[goal[:2], 0, 0, 0, 0], np.r_[goal[:2] + [0.0, 60.0], 0, 0, 0, 0]
+    for x, obs, constrained in ((at_goal, Obstacles.empty(), False), (behind_wall, wall, True)):
+        plans = {f: plan_guidance(model, params, obs, x, goal, with_feedback=f) for f in Feedback}
+        assert plans[Feedback.NONE].unconstrained is not constrained
+        assert plans[Feedback.NONE].law is None and plans[Feedback.ALWAYS].law is not None
+        assert (plans[Feedback.CONSTRAINED].law is not None) is constrained
+    assert Feedback(False) is Feedback.NONE  # intent_tick.py's call, until it names the choice
+    with pytest.raises(ValueError, match="True is not a valid Feedback"):
+        plan_guidance(model, params, wall, behind_wall, goal, with_feedback=True)
 
 
 def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model, rng):
@@ -202,7 +220,7 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
 
 
 def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
-    """Plan.law (u_0 + gain (x - start), with_feedback=True): at its start it is the plan's
+    """Plan.law (u_0 + gain (x - start), Feedback.ALWAYS): at its start it is the plan's
     control, and from a start a little off, in most directions (one can cross a kink where a
     speed-polygon row switches), it moves the control as the guidance itself does."""
     from onboard.core.guidance.predictor import GuidanceWorkspace
@@ -216,7 +234,7 @@ def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
         plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
         x = plan.means[0]
     assert plan.touches_obstacle and plan.law is None  # only asked for
-    steered = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True)
+    steered = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS)
     assert steered.law is not None
     np.testing.assert_allclose(steered.law.controls(x[None])[0], steered.next_control, atol=1e-6)
     agree = 0
@@ -282,7 +300,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     ws = GuidanceWorkspace()
     goal = setup.goals[1]
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
-    plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws, with_feedback=True)
+    plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws,
+                         with_feedback=Feedback.ALWAYS)
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
     def target(setup, mean, plan, previous):  # reference_laws reads no particles
         return TargetTick(None, mean, cov, goal, plan, previous, replanner(setup, goal, ws, lambda: 0.0))
@@ -300,7 +319,7 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     # its way around the obstacles for fewer QP solves than when started from the mean's plan
     mean2 = plan.means[0]
     plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan, workspace=ws,
-                          with_feedback=True)
+                          with_feedback=Feedback.ALWAYS)
     _, _, own = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), refs)
     _, _, cold = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), ())
     pairs = [(a, b, c) for a, b, c in zip(refs, own, cold) if b is not None and c is not None]
@@ -369,7 +388,7 @@ def test_target_that_cannot_keep_the_margin_keeps_clear_of_the_obstacle(paper, m
 def _one_box(paper, **tracking):
     """The paper's setup with one 100 m box at the origin and T2's goal 300 m south of it."""
     from dataclasses import replace as dc_replace
-    from onboard.config import Box
+    from onboard.settings.sections import Box
     from onboard.core.monitor import MonitorSetup
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, **tracking))
     obs = Obstacles.from_boxes([Box("B", (0.0, 0.0, 25.0), (100.0, 100.0, 50.0))])
@@ -420,7 +439,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     cov = np.diag([400.0, 400.0, 1e-10, 1.0, 1.0, 1e-10])
     ps = tracking.initialise(mean, cov, 2000, rng)
     m, c = tracking.estimate(ps)
-    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=True)
+    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=Feedback.ALWAYS)
     laws, modes = side_modes(setup, TargetTick(ps, m, c, goal, plan, None, replanner(setup, goal, ws, lambda: 0.0)),
                              (), rng)
     labels = laws.labels
@@ -446,7 +465,7 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     nxt = tracking.predict(post, setup.model, u[0], rng)
     m2, c2 = tracking.estimate(nxt)
     plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan, workspace=ws,
-                          with_feedback=True)
+                          with_feedback=Feedback.ALWAYS)
     laws2, modes2 = side_modes(setup, TargetTick(nxt, m2, c2, goal, plan2, plan,
                                                  replanner(setup, goal, ws, lambda: 0.0)), modes, rng)
     assert len(modes2) == 2
@@ -476,14 +495,16 @@ def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
         for _ in range(12):  # every target is rounding an obstacle or cruising at its speed limit
             plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
             x = plan.means[0]
-        p = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=True, ahead=2)
+        p = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS,
+                          ahead=2)
         assert not p.unconstrained and len(p.ahead) == 2
         s = p.shifted()
         assert s.status == "shifted" and s.feasible and s.law is p.ahead[0] and s.ahead == p.ahead[1:]
         np.testing.assert_array_equal(s.law.u_ref, p.controls[1])
         np.testing.assert_array_equal(s.law.x_ref, p.means[0][[0, 1, 3, 4]])
         np.testing.assert_array_equal(s.faces[:-1], p.faces[1:])
-        fresh = plan_guidance(model, params, obs, p.means[0], goal, previous=p, workspace=ws, with_feedback=True)
+        fresh = plan_guidance(model, params, obs, p.means[0], goal, previous=p, workspace=ws,
+                              with_feedback=Feedback.ALWAYS)
         start = np.zeros(6)
         start[[0, 1, 3, 4]] = fresh.law.x_ref
         u = s.law.controls(start[None])[0]
@@ -511,7 +532,7 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
 
     def counting(*a, **k):
         p = plan(*a, **k)
-        if k.get("with_feedback") is True:  # the steering's own plans (replanner)
+        if k.get("with_feedback") is Feedback.ALWAYS:  # the steering's own plans (replanner)
             spent[-1] += p.qp_solves + (steering.LAW_COST if p.law is not None else 0)
         return p
     monkeypatch.setattr(monitor, "plan_guidance", counting)

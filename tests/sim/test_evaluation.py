@@ -16,7 +16,8 @@ import pytest
 import scipy
 from scipy import stats
 
-from onboard.config import Box, ConfigError, Target, override
+from onboard.config import ConfigError, override
+from onboard.settings.sections import Box, Target
 from sim.evaluation import trials as ev
 
 

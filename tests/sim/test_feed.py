@@ -45,12 +45,14 @@ def test_the_live_feeds_start_waits_for_the_arming_or_the_mission_altitude():
 
     def at(up):
         return PoseSample(10.0, np.array([150.0, 200.0, up]), np.zeros(3), None)
-    h = 40.0
-    assert not ready_to_scan("altitude", True, at(0.0), h) and ready_to_scan("armed", True, at(0.0), h)
-    assert not ready_to_scan("altitude", True, at(38.9), h)
-    assert ready_to_scan("altitude", True, at(39.1), h) and ready_to_scan("altitude", True, at(55.0), h)
-    assert not ready_to_scan("altitude", False, at(40.0), h) and not ready_to_scan("armed", False, at(40.0), h)
-    assert ready_to_scan("now", False, at(0.0), h)
-    assert not any(ready_to_scan(s, True, None, h) for s in ("armed", "altitude", "now"))  # no position yet
+    altitude_m = 40.0
+    assert not ready_to_scan("altitude", True, at(0.0), altitude_m)
+    assert ready_to_scan("armed", True, at(0.0), altitude_m)
+    assert not ready_to_scan("altitude", True, at(38.9), altitude_m)
+    assert ready_to_scan("altitude", True, at(39.1), altitude_m) and ready_to_scan("altitude", True, at(55.0), altitude_m)
+    assert not ready_to_scan("altitude", False, at(40.0), altitude_m)
+    assert not ready_to_scan("armed", False, at(40.0), altitude_m)
+    assert ready_to_scan("now", False, at(0.0), altitude_m)
+    assert not any(ready_to_scan(s, True, None, altitude_m) for s in ("armed", "altitude", "now"))  # no position yet
     with pytest.raises(ValueError, match="feed start must be one of armed, altitude, now"):
         LiveFeedConfig("tcp:127.0.0.1:1", start="airborne")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from onboard.config import Box
+from onboard.settings.sections import Box
 from onboard.core.obstacles import Obstacles
 from sim.truth.world import Mismatch, TruthWorld, blocked, simulate_truth
 

@@ -12,7 +12,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from onboard.config import Box, load_scenario, parse_scenario
+from onboard.config import load_scenario, parse_scenario
+from onboard.settings.sections import Box
 from onboard.core.obstacles import Obstacles
 from sim.evaluation import trials as ev
 from sim.evaluation import across_worlds as we

@@ -11,7 +11,7 @@ from onboard.core.dynamics import MotionModel
 from onboard.core.obstacles import Obstacles
 from onboard.core.planning import Area, Moves, RouteScoring
 from onboard.core.planning_inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion
-from onboard.settings import Lookahead
+from onboard.settings.sections import Lookahead
 
 GRID = CandidateGrid(step_m=5.0, n_radial=4, n_heading=15, altitude_m=40.0)
 MODEL = MotionModel.create(1.0, 0.2, 1300.0, [30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10])

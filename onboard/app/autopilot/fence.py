@@ -34,14 +34,15 @@ class Fence:
     alt_min_m: float  # PMON_ALT_MIN, ENU up
     alt_max_m: float
     obstacles: Obstacles  # inflated by the UAV margin
-    altitude_m: float | None = None  # h the planner flies at; None: not checked
+    altitude_m: float | None = None  # the mission altitude the planner flies at, ENU up; None: not checked
 
     @classmethod
-    def of(cls, setup, params, at_h: bool = True) -> "Fence":
-        """The fence of a core ``MonitorSetup`` and the app's parameters."""
+    def of(cls, setup, params, at_altitude: bool = True) -> "Fence":
+        """The fence of a core ``MonitorSetup`` and the app's parameters; ``at_altitude``: with the
+        mission altitude rule (plan time only)."""
         return cls(np.asarray(setup.area_min, float), np.asarray(setup.area_max, float),
                    params.settings.app.fence_min_m, params.settings.app.fence_max_m, setup.uav_obstacles,
-                   float(setup.grid.altitude_m) if at_h else None)
+                   float(setup.grid.altitude_m) if at_altitude else None)
 
 
 def violation(fence: Fence, p, centre=None, tol_m: float = 0.0) -> str | None:

@@ -31,7 +31,7 @@ ARM_RETRY_S = 2.0  # autopilot s between ARM commands while refused
 TAKEOFF_RETRY_S = 5.0
 TAKEOFF_TRIES = 5  # take-off commands without a climb before the sequence gives up
 CLIMB_STARTED_M = 1.0  # m above home that show the take-off was taken
-AT_ALTITUDE_M = 1.0  # within this of h counts as there
+AT_ALTITUDE_M = 1.0  # within this of the mission altitude counts as there
 
 PHASES = ("ready", "mode", "arm", "takeoff", "climb", "start")
 
@@ -56,7 +56,7 @@ class VehicleView:
 
 @dataclass(frozen=True)
 class Launch:
-    target_up_m: float  # h, ENU height to climb to
+    altitude_m: float  # the mission altitude (uav.altitude_m) to climb to: m above the mission origin, ENU up
     phase: str = "ready"
     next_t: float = -math.inf  # autopilot s of the next attempt in this phase
     tries: int = 0
@@ -93,8 +93,8 @@ def step(L: Launch, v: VehicleView, now: float) -> tuple[Launch | None, list[Act
     climbed = v.up_m is not None and v.home_up_m is not None and v.up_m - v.home_up_m > CLIMB_STARTED_M
     if L.phase == "takeoff" and (v.climbing or climbed):
         L = replace(L, phase="climb", next_t=-math.inf, tries=0)
-        out.append(Say(f"launch: climbing to {L.target_up_m:g} m"))
-    if L.phase == "climb" and v.up_m is not None and v.up_m >= L.target_up_m - AT_ALTITUDE_M:
+        out.append(Say(f"launch: climbing to {L.altitude_m:g} m"))
+    if L.phase == "climb" and v.up_m is not None and v.up_m >= L.altitude_m - AT_ALTITUDE_M:
         L = replace(L, phase="start")
     if now < L.next_t:
         return L, out
@@ -122,7 +122,7 @@ def step(L: Launch, v: VehicleView, now: float) -> tuple[Launch | None, list[Act
         if v.up_m is None or v.home_up_m is None:
             return L, out
         return replace(L, next_t=now + TAKEOFF_RETRY_S, tries=L.tries + 1), \
-            out + [("takeoff", L.target_up_m - v.home_up_m)]
+            out + [("takeoff", L.altitude_m - v.home_up_m)]
     if L.phase == "start":
         if not v.in_launch_mode:  # the autopilot's own take-off is not over (PX4: back in Hold)
             return L, out + [Say(f"launch: at altitude, waiting for the autopilot to end its take-off "

@@ -147,7 +147,7 @@ class SetpointStream:
             msg = message(self.link.mav, now, v.sysid, v.compid, ap.frame.ned_from_enu(pos, v.ned_origin))
         self.next_t = now + 1.0 / self.params.settings.app.setpoint_hz
         refused = outgoing_violation(msg, ap.frame, ap.origin.value,
-                                     Fence.of(self.setup(), self.params, at_h=False), centre)
+                                     Fence.of(self.setup(), self.params, at_altitude=False), centre)
         if refused is not None:
             self.counters.add("setpoints_refused")
             self.counters.add("setpoints_refused_at_send")

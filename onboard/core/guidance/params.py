@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class GuidanceParams:
-    """Problem P1's settings, each from the scenario (onboard/settings.py ``Guidance`` declares
+    """Problem P1's settings, each from the scenario (onboard/settings/sections.py ``Guidance`` declares
     their defaults, units and ranges; no defaults here that could disagree)."""
 
     horizon: int

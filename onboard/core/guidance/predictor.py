@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from enum import Enum
 from typing import Callable, Sequence
 
 import numpy as np
@@ -54,26 +55,46 @@ from onboard.core.guidance.search import FaceSearch, GuidanceRequest
 from onboard.core.obstacles import Obstacles
 
 # the guidance's interface, wherever its parts are held
-__all__ = ["GuidanceParams", "Plan", "plan_guidance", "GuidanceWorkspace", "LocalLaw", "FreeLaw", "free_law",
-           "winding", "in_class", "KN"]
+__all__ = ["GuidanceParams", "Plan", "plan_guidance", "Feedback", "GuidanceWorkspace", "LocalLaw", "FreeLaw",
+           "free_law", "winding", "in_class", "KN"]
+
+
+class Feedback(str, Enum):
+    """Which plans ``plan_guidance`` gives their law: ``Plan.law`` (u_0 + du_0/dx (x - start)) and
+    ``Plan.feedback`` (its gain du_0/dx).
+
+    NONE: no plan (the open-loop plan alone). ALWAYS: every plan (the particle steering's own
+    plans, the closed-loop gain of a target that steers by this guidance). CONSTRAINED: only a
+    plan with an active constraint row; the free law (``free_law``) describes the others (the
+    tracker's mean plans under ``plan_steering``).
+    """
+
+    NONE = "none"
+    ALWAYS = "always"
+    CONSTRAINED = "constrained"
+
+    @classmethod
+    def _missing_(cls, value):
+        # onboard/core/intent_tick.py (another change's file) still passes False for NONE
+        return cls.NONE if value is False else None
 
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
                   workspace: GuidanceWorkspace | None = None,
-                  timer: Callable[[], float] = time.perf_counter, with_feedback: bool | str = False,
+                  timer: Callable[[], float] = time.perf_counter, with_feedback: Feedback = Feedback.NONE,
                   sides: np.ndarray | None = None, strict_sides: bool = False,
                   nearby: Plan | Sequence[Plan] | None = None, explore: bool = True, ahead: int = 0) -> Plan:
     """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
 
     ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
     fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
-    ``with_feedback``: also compute ``Plan.feedback``, the closed-loop gain du_0/dx (for the
-    posterior Cramer-Rao bound of a target that steers by this guidance) and ``Plan.law`` (for
-    the tracker's ``plan_steering``); ``"constrained"``: only for a plan with an active row (the
-    free law describes the others: the tracker's mean plans); ``ahead``: with a law, the laws of
-    that many controls after the first too (``Plan.ahead``, ``Plan.shifted``: the side-aware
-    tracker's).
+    ``with_feedback`` (``Feedback``): which plans also get ``Plan.feedback``, the closed-loop gain
+    du_0/dx (for the posterior Cramer-Rao bound of a target that steers by this guidance), and
+    ``Plan.law`` (for the tracker's ``plan_steering``): none, every one, or only one with an active
+    row (the free law describes the others: the tracker's mean plans); ``ahead``: with a law, the
+    laws of that many controls after the first too (``Plan.ahead``, ``Plan.shifted``: the
+    side-aware tracker's).
     ``sides`` (K,): the best plan that rounds no obstacle k the other way than counterclockwise
     (+1) or clockwise (-1) (0: either); ``strict_sides``: that does round each of them that way
     (``in_class``; the tracker's ``plan_sides``).
@@ -83,6 +104,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     never given up).
     """
     t_start = timer()
+    with_feedback = Feedback(with_feedback)
     nearby = () if nearby is None else (nearby,) if isinstance(nearby, Plan) else tuple(nearby)
     deadline = deadline_of(timer, params.max_solve_time_s)
     request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides,
@@ -98,7 +120,7 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
 
 
-def _search(request: GuidanceRequest, lateral_margin_m: float, with_feedback: bool | str,
+def _search(request: GuidanceRequest, lateral_margin_m: float, with_feedback: Feedback,
             nearby: tuple[Plan, ...] = (), explore: bool = True, ahead: int = 0) -> Plan:
     """``plan_guidance``'s search (``FaceSearch``) with the obstacles inflated by
     ``lateral_margin_m`` sideways, as a plan."""
@@ -112,10 +134,10 @@ def _search(request: GuidanceRequest, lateral_margin_m: float, with_feedback: bo
     controls = search.controls()
     status = search.status()
     active = best.sol.active
-    if with_feedback == "constrained":
+    if with_feedback is Feedback.CONSTRAINED:
         wanted = bool(active.fixed.any() or active.obstacles.any())
     else:
-        wanted = bool(with_feedback)
+        wanted = with_feedback is Feedback.ALWAYS
     means = predict_mean(model, search.mean0, controls)
     law, later = search.law(controls, means, ahead) if wanted else (None, ())
     return Plan(status, best.cost, timer() - search.t_start, search.solves, controls, means, best.faces, active, law,

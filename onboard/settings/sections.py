@@ -1,162 +1,37 @@
-"""Every setting of a scenario, declared once: key, default, unit, range and one line of doc.
-
-The declaration is the dataclasses below: each field of a section carries its ``Setting`` in its
-metadata (Stone Soup's "each property declared once with its default and doc"). The declared
-defaults are what flies (``pmon run``, ``pmon demo``); ``--policy paper`` (onboard/policy.py) is
-the overlay that restores the paper's method. Everything else derives from it: the YAML reader
-and ``--set`` (onboard/config.py), the policies' overlays (checked as a file is), the PMON_*
-parameters and their checks (onboard/app/params.py) and the tables in docs/SETTINGS.md (``python -m
-onboard.settings --write`` regenerates them; a test fails when they drift). A setting declared
-``experimental=True`` is a research knob: listed apart, no PMON_* parameter (``Setting``). The
-core's parameter classes have no defaults of their own: they take every value from these objects
-(their ``from_config``).
+"""The scenario's settings, section by section: each field carries its ``Setting`` in its metadata
+(onboard/settings/declare.py), and ``SETTINGS`` / ``PARAMS`` index them by dotted key and by PMON_*
+parameter.
 
 The objects hold each setting as the file states it, in the file's unit (so a scenario written
 back and read again is the same object, bit for bit); what the code needs in SI units and
 radians is a property (``Sensor.sigma_rad``, ``Box.yaw_rad``).
 
-Pure Python (no YAML, no numpy): the ground station imports it for the parameters' ranges.
+Pure Python (no YAML, no numpy).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, field
 from typing import Any, Callable
 
+from onboard.settings.declare import (
+    Setting,
+    choice,
+    default_text,
+    flag,
+    integer,
+    location,
+    names,
+    number,
+    records,
+    section,
+    text,
+    value_text,
+    vector,
+    walk,
+)
+
 POS_M = 1e5  # |coordinate| of the ENU frame, m: a flat frame 100 km out is off by ~0.8 km (Earth's curvature)
-
-
-class ConfigError(ValueError):
-    """A configuration value is missing or invalid; the message starts with its key path."""
-
-
-@dataclass(frozen=True)
-class Setting:
-    """How one setting is read, checked and shown.
-
-    kind: ``number`` (a float), ``integer``, ``even`` (an even integer), ``flag`` (true/false),
-    ``choice`` (one of ``choices``), ``text`` (a name), ``names`` (a list of up to ``max_items``
-    names), ``location`` (where to read from: an
-    ``http://`` or ``file://`` URL or an absolute path, or one of the words in ``choices``),
-    ``vector`` (``size`` numbers, or 1 to ``max_items`` when ``size`` is None). ``lo``/``hi`` bound a number or each number of a
-    vector (``lo_open``/``hi_open``: the bound itself excluded). ``nullable``: ``null`` is a
-    value (its meaning in ``doc``). ``param``: the PMON_* parameter that sets it in flight.
-    ``paper``: the value is the paper's (Sec. V-A), not ours. ``experimental``: a research knob
-    an operator or integrator never needs (a filter's or planner's internals): its default is the
-    configuration that flies, it has no PMON_* parameter, docs/SETTINGS.md lists it apart and
-    ``pmon check-config`` names it when a file or ``--set`` changes it.
-    """
-
-    kind: str
-    doc: str
-    unit: str = ""
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    hi_open: bool = False
-    choices: tuple[str, ...] = ()
-    size: int | None = None
-    max_items: int | None = None
-    nullable: bool = False
-    param: str | None = None
-    paper: bool = False
-    experimental: bool = False
-
-    def range_text(self) -> str:
-        """The range as a reader writes it: ``[0.05, 30] deg``, ``(0, 5]``, ``one of a | b``."""
-        if self.kind == "choice":
-            return " or ".join(self.choices)
-        if self.kind == "flag":
-            return "true or false"
-        if self.kind == "text":
-            return f"1 to {TEXT_CHARS} characters"
-        if self.kind == "names":
-            return f"a list of up to {self.max_items} names"
-        if self.kind == "location":
-            return " or ".join((LOCATION_FORMS,) + self.choices)
-        if self.lo is None:
-            return ""
-        text = f"{'(' if self.lo_open else '['}{show_number(self.lo)}, {show_number(self.hi)}{')' if self.hi_open else ']'}"
-        if self.kind == "even":
-            text += ", even"
-        return f"{text} {self.unit}".strip()
-
-    def contains(self, v: float) -> bool:
-        lo_ok = v > self.lo if self.lo_open else v >= self.lo
-        hi_ok = v < self.hi if self.hi_open else v <= self.hi
-        return lo_ok and hi_ok
-
-
-TEXT_CHARS = 64  # a name: shown in tables, logs and messages
-LOCATION_CHARS = 512  # a location setting
-LOCATION_STARTS = ("http://", "file://", "/")  # what a location setting may start with
-LOCATION_FORMS = "http://HOST:PORT/PATH, file:///PATH or an absolute path"
-
-
-def show_number(x: float) -> str:
-    """1e6 rather than 1e+06."""
-    return f"{x:g}".replace("e+0", "e").replace("e+", "e").replace("e-0", "e-")
-
-
-def _setting(default: Any, kind: str, doc: str, **kw) -> Any:
-    """A dataclass field declaring a setting; ``default`` MISSING: the file must state it."""
-    meta = {"setting": Setting(kind, doc, **kw)}
-    if isinstance(default, (list, tuple)):
-        return field(default=tuple(default), metadata=meta)
-    return field(default=default, metadata=meta)
-
-
-def number(default, lo, hi, unit, doc, *, lo_open=False, hi_open=False, nullable=False, param=None,
-           paper=False, experimental=False) -> Any:
-    return _setting(default, "number", doc, unit=unit, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open,
-                    nullable=nullable, param=param, paper=paper, experimental=experimental)
-
-
-def integer(default, lo, hi, unit, doc, *, param=None, paper=False, even=False, experimental=False) -> Any:
-    return _setting(default, "even" if even else "integer", doc, unit=unit, lo=lo, hi=hi, param=param,
-                    paper=paper, experimental=experimental)
-
-
-def flag(default, doc, *, experimental=False) -> Any:
-    return _setting(default, "flag", doc, experimental=experimental)
-
-
-def choice(default, choices, doc, *, paper=False, experimental=False) -> Any:
-    return _setting(default, "choice", doc, choices=tuple(choices), paper=paper, experimental=experimental)
-
-
-def text(default, doc, *, nullable=False, experimental=False) -> Any:
-    return _setting(default, "text", doc, nullable=nullable, experimental=experimental)
-
-
-def names(default, max_items, doc, *, experimental=False) -> Any:
-    return _setting(default, "names", doc, max_items=max_items, experimental=experimental)
-
-
-def location(default, doc, *, words=(), nullable=False, experimental=False) -> Any:
-    """Where to read from; ``words``: plain words it may also be (``auto``)."""
-    return _setting(default, "location", doc, choices=tuple(words), nullable=nullable, experimental=experimental)
-
-
-def vector(default, size, lo, hi, unit, doc, *, max_items=None, lo_open=False, paper=False,
-           experimental=False) -> Any:
-    return _setting(default, "vector", doc, unit=unit, lo=lo, hi=hi, size=size, max_items=max_items,
-                    lo_open=lo_open, paper=paper, experimental=experimental)
-
-
-def section(cls, doc: str, required: bool = False) -> Any:
-    """A nested mapping of settings; left out of a file, its defaults (unless ``required``)."""
-    meta = {"section": cls, "doc": doc}
-    return field(metadata=meta) if required else field(default_factory=cls, metadata=meta)
-
-
-def records(cls, min_items: int, max_items: int, doc: str, required: bool = True) -> Any:
-    """A list of mappings of ``cls`` (targets, goals, obstacles, kraken.vfos)."""
-    meta = {"records": cls, "min_items": min_items, "max_items": max_items, "doc": doc}
-    return field(metadata=meta) if required else field(default=(), metadata=meta)
-
-
-# --------------------------------------------------------------------------- the declaration
 
 
 @dataclass(frozen=True)
@@ -527,24 +402,10 @@ DERIVED: dict[str, Callable[[Scenario], float]] = {
 }
 
 
-# --------------------------------------------------------------------------- walking the declaration
+# --------------------------------------------------------------------------- by key
 
 
-def walk(cls=Scenario, prefix: str = ""):
-    """Every setting under ``cls``: (dotted key, dataclass field, Setting); records as ``key[].field``."""
-    for f in fields(cls):
-        if not f.init or f.name in ("source", "overrides"):
-            continue
-        key = f"{prefix}{f.name}"
-        if "section" in f.metadata:
-            yield from walk(f.metadata["section"], key + ".")
-        elif "records" in f.metadata:
-            yield from walk(f.metadata["records"], key + "[].")
-        else:
-            yield key, f, f.metadata["setting"]
-
-
-SETTINGS: dict[str, Setting] = {key: s for key, _, s in walk()}
+SETTINGS: dict[str, Setting] = {key: s for key, _, s in walk(Scenario)}
 PARAMS: dict[str, str] = {s.param: key for key, s in SETTINGS.items() if s.param}  # PMON name -> key
 
 
@@ -558,28 +419,11 @@ def value_of(sc: Scenario, key: str) -> Any:
     return obj
 
 
-def default_text(f) -> str:
-    return "required" if f.default is MISSING else value_text(f.default)
-
-
-def value_text(v: Any) -> str:
-    """A setting's value as the table writes it: null, true, [1, 2], 0.05."""
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, tuple):
-        return "[" + ", ".join(show_number(x) for x in v) + "]"
-    if isinstance(v, float):
-        return show_number(v)
-    return str(v)
-
-
 def experimental_changes(sc: Scenario) -> list[tuple[str, str, str]]:
     """(key, value, default) of each experimental setting ``sc`` holds at other than its declared
     default (a field of a list's items: the items' values that differ), in declaration order."""
     out = []
-    for key, f, s in walk():
+    for key, f, s in walk(Scenario):
         if not s.experimental:
             continue
         head, sep, name = key.rpartition("[].")
@@ -588,55 +432,3 @@ def experimental_changes(sc: Scenario) -> list[tuple[str, str, str]]:
         if changed:
             out.append((key, ", ".join(value_text(v) for v in changed), default_text(f)))
     return out
-
-
-def markdown_table(experimental: bool = False) -> str:
-    """A table of docs/SETTINGS.md, from the declaration: one row per setting that is (or is not)
-    experimental; the experimental ones have no PMON_* parameter, so no column for it."""
-    rows = (["| key | default | range | meaning |", "|---|---|---|---|"] if experimental else
-            ["| key | default | range | in flight | meaning |", "|---|---|---|---|---|"])
-    for key, f, s in walk():
-        if s.experimental != experimental:
-            continue
-        default = default_text(f) + (" (paper)" if s.paper else "")
-        null = "null or " if s.nullable else ""
-        flight = "" if experimental else f" {s.param or ''} |"
-        rows.append(f"| `{key}` | {default} | {null}{s.range_text()} |{flight} {s.doc.replace('|', chr(92) + '|')} |")
-    return "\n".join(rows)
-
-
-BEGIN, END = "<!-- settings table: begin (python -m onboard.settings --write) -->", "<!-- settings table: end -->"
-EXPERIMENTAL_BEGIN = "<!-- experimental settings table: begin (python -m onboard.settings --write) -->"
-EXPERIMENTAL_END = "<!-- experimental settings table: end -->"
-
-
-def docs_with_table(doc: str) -> str:
-    """``doc`` with the text between BEGIN and END replaced by ``markdown_table()``, and between
-    EXPERIMENTAL_BEGIN and EXPERIMENTAL_END by ``markdown_table(experimental=True)``."""
-    for begin, end, experimental in ((BEGIN, END, False), (EXPERIMENTAL_BEGIN, EXPERIMENTAL_END, True)):
-        head, sep, rest = doc.partition(begin)
-        _, sep2, tail = rest.partition(end)
-        if not sep or not sep2:
-            raise ValueError(f"no {begin!r} ... {end!r} block")
-        doc = f"{head}{begin}\n{markdown_table(experimental)}\n{end}{tail}"
-    return doc
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-    from pathlib import Path
-
-    ap = argparse.ArgumentParser(prog="python -m onboard.settings",
-                                 description="print the settings tables, or write them into docs/SETTINGS.md")
-    ap.add_argument("--write", metavar="FILE", nargs="?", const="docs/SETTINGS.md")
-    args = ap.parse_args(argv)
-    if args.write is None:
-        print(f"{markdown_table()}\n\n{markdown_table(experimental=True)}")
-        return 0
-    path = Path(args.write)
-    path.write_text(docs_with_table(path.read_text(encoding="utf-8")), encoding="utf-8")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
