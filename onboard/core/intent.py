@@ -81,7 +81,7 @@ class Intent:
 
 @dataclass(frozen=True)
 class IntentParams:
-    """How the modes move and switch (onboard/settings.py ``tracking.intent_*`` declares the values)."""
+    """How the modes move and switch (onboard/settings/sections.py ``tracking.intent_*`` declares the values)."""
 
     switch_prob: float  # per tick: a target takes a mode drawn from its prior
     free_accel_sigma_mps2: float  # FREE: white acceleration, per axis

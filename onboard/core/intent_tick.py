@@ -24,7 +24,7 @@ import numpy as np
 from onboard.core import intent as im
 from onboard.core import tracking
 from onboard.core.dynamics import PLANAR
-from onboard.core.guidance.predictor import GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, plan_guidance
 from onboard.core.steering import AHEAD_STEPS, TargetTick
 
 MIN_MODE_SHARE = 1e-3  # a goal mode holding less of a target's weight gets no plan of its own this tick
@@ -191,7 +191,7 @@ def guidance(setup, posts: Sequence[tracking.ParticleSet], memory: Sequence[Inte
             steer_mem = mem.steering.get(k, ()) if sides else ()
             plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, intent.goals[k],
                                  previous=mem.plans.get(k), workspace=workspace, timer=timer,
-                                 with_feedback="constrained" if setup.plan_steering is not None else False,
+                                 with_feedback=Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE,
                                  nearby=tuple(m.plan.shifted() for m in steer_mem),
                                  ahead=AHEAD_STEPS if sides else 0)
             found[k] = (plan, share, mean, cov, sub)

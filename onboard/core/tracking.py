@@ -174,7 +174,7 @@ class Recovery:
 
     @classmethod
     def from_config(cls, tr) -> "Recovery | None":
-        """From the scenario's ``tracking.recovery_*`` (onboard/settings.py declares the defaults)."""
+        """From the scenario's ``tracking.recovery_*`` (onboard/settings/sections.py declares the defaults)."""
         if tr.recovery_prior <= 0.0 or tr.recovery_share <= 0.0:
             return None
         return cls(tr.recovery_prior, tr.recovery_share, tr.recovery_sigma_m)

@@ -191,7 +191,6 @@ def test_feedback_says_which_plans_get_their_law(paper, model):
         assert plans[Feedback.NONE].unconstrained is not constrained
         assert plans[Feedback.NONE].law is None and plans[Feedback.ALWAYS].law is not None
         assert (plans[Feedback.CONSTRAINED].law is not None) is constrained
-    assert Feedback(False) is Feedback.NONE  # intent_tick.py's call, until it names the choice
     with pytest.raises(ValueError, match="True is not a valid Feedback"):
         plan_guidance(model, params, wall, behind_wall, goal, with_feedback=True)
 

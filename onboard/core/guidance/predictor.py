@@ -73,11 +73,6 @@ class Feedback(str, Enum):
     ALWAYS = "always"
     CONSTRAINED = "constrained"
 
-    @classmethod
-    def _missing_(cls, value):
-        # onboard/core/intent_tick.py (another change's file) still passes False for NONE
-        return cls.NONE if value is False else None
-
 
 def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
                   mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
