@@ -9,7 +9,7 @@ $PMON_PX4_SITL) run by sim/firmware/px4.py, flying docs/SITL.md's procedure with
   own switch to Hold, setpoints streaming, OFFBOARD, start), 100 s of monitoring with every scan
   ticked and every setpoint held, a pilot's Hold and POSCTL (sticks centred: PX4 takes POSCTL
   only with manual control) each followed by ``resume``, then the app stopped: PX4 holds
-  (COM_OBL_RC_ACT 5, the value docs/SITL.md recommends);
+  (COM_OBL_RC_ACT 5, the value docs/SITL.md recommends); ``pmon locate`` reads PX4's own ULog of it;
 - flight B (``by_hand``): ``pmon gcs`` on PX4's ground-station link reads the vehicle and
   reaches the app's parameters through PX4's forwarding; ``arm --wait``, ``takeoff 40 --wait``;
   what PX4 does with OFFBOARD (a companion-like client: the ACK is not proof, the stream first,
@@ -357,6 +357,15 @@ def test_takeover_by_hold_and_by_posctl_stops_the_setpoints_within_a_tick_and_re
 def test_when_the_app_stops_px4_leaves_offboard_for_hold_within_its_loss_timeout(launched):
     modes = launched["modes_after_stop"]
     assert modes and modes[0][1] == HOLD and modes[0][0] - launched["stop_t"] <= 2.5, modes
+
+
+def test_pmon_locate_finds_both_emitters_from_this_flights_ulog(launched, tmp_path, capsys):
+    """``pmon locate`` on PX4's own ULog of this flight (tests/support/locate_check.py): its poses
+    are the positions PX4 reported, when it reported them (SIH writes no UTC: the recording's
+    boot time is given); a KrakenSDR recording drawn along them locates two emitters 250-600 m
+    away within 15 m, the ellipses consistent (NEES)."""
+    from tests.support.locate_check import locate_from_flight
+    locate_from_flight(launched["m"], "ulg", tmp_path, capsys, airborne_s=MONITOR_S)
 
 
 # --------------------------------------------------------------------------- flight B: by hand
