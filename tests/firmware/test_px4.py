@@ -253,13 +253,34 @@ def launched(tmp_path_factory):
         rec["account"] = m.tick_account()
         rec["figures"] = _flight_a_figures(m, rec)
         print("px4 flight A:", json.dumps(rec["figures"], default=str))
-        rec["stop_t"] = m.observer.t
+        rec["stop_asked_t"] = m.observer.t
         m.app.stop()
+        # PX4's loss timeout runs from the app's last setpoint (its own tlog), not from the stop's
+        # request: the app streams on while it stops (SIGINT, its threads joined), or stopped
+        # before, when a failsafe had already taken PX4 out of OFFBOARD (the pilot's sticks
+        # lapsed past COM_RC_LOSS_T: Hold, then RTL, which the list then shows). PX4's mode is
+        # watched for 4 s of its clock after the app is gone.
+        ended_t = m.observer.t or rec["stop_asked_t"]
+        rec["stop_t"] = _last_setpoint_t(m.out / "app.tlog", rec["stop_asked_t"])
         deadline = time.monotonic() + 20
-        while (m.observer.t or 0) < rec["stop_t"] + 4.0 and time.monotonic() < deadline:
+        while (m.observer.t or 0) < max(ended_t, rec["stop_t"]) + 4.0 and time.monotonic() < deadline:
             time.sleep(0.1)
         rec["modes_after_stop"] = _modes_between(m, rec["stop_t"], math.inf)[1:]
+        print("px4 flight A, the app stopped:", json.dumps({
+            "asked_t": rec["stop_asked_t"], "last_setpoint_t": rec["stop_t"], "gone_t": ended_t,
+            "modes_after": [(t, hex(mo)) for t, mo in rec["modes_after_stop"]]}))
     yield rec
+
+
+def _last_setpoint_t(tlog, default: float) -> float:
+    """PX4 s of the app's last SET_POSITION_TARGET_LOCAL_NED (its time_boot_ms: the app's clock
+    of PX4's), from the app's own tlog; ``default`` if it sent none."""
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    last = default
+    while (msg := conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")) is not None:
+        last = msg.time_boot_ms / 1000.0
+    conn.close()
+    return last
 
 
 @pytest.mark.timeout(900)
