@@ -7,9 +7,8 @@ tests/firmware/test_ardupilot.py (ArduCopter's DataFlash .bin) and of tests/firm
   autopilot times, within ``POSE_MATCH_M``; its UTC is there (ArduPilot's GPS week and ms) or
   not (PX4's SIH writes none: the recording is stamped from a boot time given, --unix-at-boot).
 * A simulated KrakenSDR recording is drawn along the flown poses, stamped with that UTC
-  (sim/stack/locate_recording.py), over ``RecordingConfig``'s two emitters, which flight A's track
-  (east 150-600 m, north 130-220 m of the recording's origin) passes ``EMITTER_RANGE_M`` away
-  from: both located within 15 m in three recordings (the command's own, with its CSV, and two
+  (sim/stack/locate_recording.py), over ``RecordingConfig``'s two emitters, from which every
+  airborne pose of the flight must be ``EMITTER_RANGE_M`` away: both located within 15 m in three recordings (the command's own, with its CSV, and two
   more), the ellipses consistent (the NEES' mean within its two-sided band).
 """
 from __future__ import annotations
