@@ -164,7 +164,7 @@ SHORT = rec.RecordingConfig(box_m=(220.0, 100.0, 640.0, 200.0))  # the three nor
 
 def main(argv=None) -> int:
     """``python -m sim.stack.lawnmower ardupilot|px4 DIR [--short] [--speed X]``: fly it (the
-    whole lawnmower, or ``SHORT``: its three northern legs, as the firmware tests do; ``--speed``:
+    whole lawnmower, or ``SHORT``: its three northern legs, 300-525 m from the emitters; ``--speed``:
     ArduPilot's speedup, default 5, or PX4's speed factor, default 4), print the log's path."""
     import argparse
 

@@ -160,7 +160,13 @@ class Sticks:
             self.link.send(self.link.mav.manual_control_encode(1, 0, 0, 500, 0, 0))
             self.gap_s = max(self.gap_s, now - last) if last is not None else 0.0
             last = now
-            while self.link.recv() is not None:  # what the autopilot sends back is not read
+            # what the autopilot sends back is not read, only drained, for half a period at most:
+            # while another thread of this process computes, each recv waits for the GIL, and an
+            # unbounded drain of PX4's 50 Hz streams can hold the next MANUAL_CONTROL past
+            # COM_RC_LOSS_T (PX4's manual control loss failsafe: Hold, then RTL). What is left
+            # stays in the UDP socket's buffer, which drops the rest when full.
+            end = now + 0.5 / JOYSTICK_HZ
+            while time.monotonic() < end and self.link.recv() is not None:
                 pass
 
     def close(self) -> None:

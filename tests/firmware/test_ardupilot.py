@@ -8,7 +8,8 @@ Two flights, each checked by several tests:
 A. stock parameters (WPNAV_SPEED 10 m/s): the operator sends ``pmon gcs launch`` right after the
    autopilot boots; the app waits out the pre-arm checks, arms, takes off and starts; >= 100 s
    of monitoring; parameters and status through ArduPilot's routing (SERIAL2); a pilot takes
-   over twice (LOITER, BRAKE) and the operator resumes.
+   over twice (LOITER, BRAKE) and the operator resumes; ``pmon locate`` reads the firmware's own
+   DataFlash log of it.
 B. recommended parameters (docs/SITL.md), the app on a link that can be cut: ``pmon gcs arm
    --wait``, ``takeoff 40 --wait``, ``start``; the link drops for 3 s and the app reconnects;
    the autopilot is stopped and restarted (a reboot); the operator launches again.
@@ -171,6 +172,15 @@ def test_pilot_takeover_stops_setpoints_within_a_tick_and_resume_flies_again(fli
     assert len(reactions) == 2 and max(reactions) <= TICK_S, reactions
     assert flight_a["end_state"] == "monitoring"
     # after each resume the autopilot holds the app's new setpoints again (in the account above)
+
+
+def test_pmon_locate_finds_both_emitters_from_this_flights_dataflash_log(flight_a, tmp_path, capsys):
+    """``pmon locate`` on ArduCopter's own DataFlash log of this flight (tests/support/locate_check.py):
+    its poses are the positions the firmware reported, when it reported them, with its GPS's UTC;
+    a KrakenSDR recording drawn along them locates two emitters 250-600 m away within 15 m, the
+    ellipses consistent (NEES)."""
+    from tests.support.locate_check import locate_from_flight
+    locate_from_flight(flight_a["m"], "bin", tmp_path, capsys, airborne_s=MONITOR_S)
 
 
 # --------------------------------------------------------------------------- flight B

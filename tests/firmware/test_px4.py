@@ -9,7 +9,7 @@ $PMON_PX4_SITL) run by sim/firmware/px4.py, flying docs/SITL.md's procedure with
   own switch to Hold, setpoints streaming, OFFBOARD, start), 100 s of monitoring with every scan
   ticked and every setpoint held, a pilot's Hold and POSCTL (sticks centred: PX4 takes POSCTL
   only with manual control) each followed by ``resume``, then the app stopped: PX4 holds
-  (COM_OBL_RC_ACT 5, the value docs/SITL.md recommends);
+  (COM_OBL_RC_ACT 5, the value docs/SITL.md recommends); ``pmon locate`` reads PX4's own ULog of it;
 - flight B (``by_hand``): ``pmon gcs`` on PX4's ground-station link reads the vehicle and
   reaches the app's parameters through PX4's forwarding; ``arm --wait``, ``takeoff 40 --wait``;
   what PX4 does with OFFBOARD (a companion-like client: the ACK is not proof, the stream first,
@@ -253,13 +253,34 @@ def launched(tmp_path_factory):
         rec["account"] = m.tick_account()
         rec["figures"] = _flight_a_figures(m, rec)
         print("px4 flight A:", json.dumps(rec["figures"], default=str))
-        rec["stop_t"] = m.observer.t
+        rec["stop_asked_t"] = m.observer.t
         m.app.stop()
+        # PX4's loss timeout runs from the app's last setpoint (its own tlog), not from the stop's
+        # request: the app streams on while it stops (SIGINT, its threads joined), or stopped
+        # before, when a failsafe had already taken PX4 out of OFFBOARD (the pilot's sticks
+        # lapsed past COM_RC_LOSS_T: Hold, then RTL, which the list then shows). PX4's mode is
+        # watched for 4 s of its clock after the app is gone.
+        ended_t = m.observer.t or rec["stop_asked_t"]
+        rec["stop_t"] = _last_setpoint_t(m.out / "app.tlog", rec["stop_asked_t"])
         deadline = time.monotonic() + 20
-        while (m.observer.t or 0) < rec["stop_t"] + 4.0 and time.monotonic() < deadline:
+        while (m.observer.t or 0) < max(ended_t, rec["stop_t"]) + 4.0 and time.monotonic() < deadline:
             time.sleep(0.1)
         rec["modes_after_stop"] = _modes_between(m, rec["stop_t"], math.inf)[1:]
+        print("px4 flight A, the app stopped:", json.dumps({
+            "asked_t": rec["stop_asked_t"], "last_setpoint_t": rec["stop_t"], "gone_t": ended_t,
+            "modes_after": [(t, hex(mo)) for t, mo in rec["modes_after_stop"]]}))
     yield rec
+
+
+def _last_setpoint_t(tlog, default: float) -> float:
+    """PX4 s of the app's last SET_POSITION_TARGET_LOCAL_NED (its time_boot_ms: the app's clock
+    of PX4's), from the app's own tlog; ``default`` if it sent none."""
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    last = default
+    while (msg := conn.recv_match(type="SET_POSITION_TARGET_LOCAL_NED")) is not None:
+        last = msg.time_boot_ms / 1000.0
+    conn.close()
+    return last
 
 
 @pytest.mark.timeout(900)
@@ -357,6 +378,15 @@ def test_takeover_by_hold_and_by_posctl_stops_the_setpoints_within_a_tick_and_re
 def test_when_the_app_stops_px4_leaves_offboard_for_hold_within_its_loss_timeout(launched):
     modes = launched["modes_after_stop"]
     assert modes and modes[0][1] == HOLD and modes[0][0] - launched["stop_t"] <= 2.5, modes
+
+
+def test_pmon_locate_finds_both_emitters_from_this_flights_ulog(launched, tmp_path, capsys):
+    """``pmon locate`` on PX4's own ULog of this flight (tests/support/locate_check.py): its poses
+    are the positions PX4 reported, when it reported them (SIH writes no UTC: the recording's
+    boot time is given); a KrakenSDR recording drawn along them locates two emitters 250-600 m
+    away within 15 m, the ellipses consistent (NEES)."""
+    from tests.support.locate_check import locate_from_flight
+    locate_from_flight(launched["m"], "ulg", tmp_path, capsys, airborne_s=MONITOR_S)
 
 
 # --------------------------------------------------------------------------- flight B: by hand

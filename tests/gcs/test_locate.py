@@ -2,7 +2,8 @@
 stationary emitters, poses in a tlog (sim/stack/locate_recording.py), located by the app's own filter;
 the outputs read back; the mounting offset and the time alignment shown to matter; malformed and
 misaligned recordings refused in one line naming the file and the line or time. The firmware's
-own logs (DataFlash, ULog): tests/firmware/test_locate_firmware.py."""
+own logs (DataFlash, ULog) of flight A of tests/firmware/test_ardupilot.py and test_px4.py:
+tests/support/locate_check.py."""
 from __future__ import annotations
 
 import csv
