@@ -76,7 +76,9 @@ def test_each_plan_starts_at_its_scan_with_the_last_plans_acceleration(ticks):
 def test_the_vehicle_is_at_the_planned_point_at_the_next_scan(ticks):
     d = np.array(follow_errors_m(ticks))
     assert len(d) >= MONITORING_TICKS - 10
-    # p95 is what tells the old behaviour (0.46 / 1.57 m) from this one; the median (0.07-0.12 m
-    # in four idle runs) reached 0.45 m in one run of the suite, as close to the old one's 0.46 as
-    # a median can get, so it is held only against a gross regression
-    assert np.median(d) <= 0.6 and np.percentile(d, 95) <= 1.0, (np.median(d), np.percentile(d, 95))
+    print(f"from the planned point at the next scan: median {np.median(d):.3f} m, p95 {np.percentile(d, 95):.3f} m")
+    # p95 is what tells the old behaviour (0.46 / 1.57 m) from this one; this one's spread between
+    # runs on one idle machine reaches the old median and about 1 m of p95 (docs/LOG.md 2026-12-03,
+    # "the follow test's spread"), so the median is held only against a gross regression, and p95
+    # between this one's worst and the old one's
+    assert np.median(d) <= 0.9 and np.percentile(d, 95) <= 1.3, (np.median(d), np.percentile(d, 95))
