@@ -233,8 +233,6 @@ WIDE_SIGNATURES = {
     # onboard/core: intent.py and intent_tick.py are another change's; the calls they make stay as they are
     "onboard/core/intent.py:predict_aimed": "the aimed prediction's particles, aims, model and steering gains; "
                                             "intent.py is grouped in its own change",
-    "onboard/core/guidance/predictor.py:plan_guidance": "called by keyword from intent_tick.py; it builds a "
-                                              "GuidanceRequest, and takes one when that caller changes",
 }
 
 
