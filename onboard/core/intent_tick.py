@@ -302,9 +302,9 @@ def predict(setup, steering, posts: Sequence[tracking.ParticleSet], per_target, 
         particles[sel] = im.predict_free(ps.particles[sel], setup.model, setup.intent, setup.ground_obstacles,
                                          setup.area_min, setup.area_max, rng)
         sel = modes == im.AIMED
+        ground = im.Ground(setup.ground_obstacles, setup.area_min, setup.area_max)
         particles[sel] = im.predict_aimed(ps.particles[sel], aims[sel], setup.model, setup.free_steering.gain,
-                                          setup.guidance.u_max_n, setup.intent, setup.ground_obstacles,
-                                          setup.area_min, setup.area_max, rng)
+                                          setup.guidance.u_max_n, setup.intent, ground, rng)
         beliefs.append(tracking.ParticleSet(particles, ps.log_weights, labels if lead is not None else None, modes,
                                             aims))
         out_mem.append(IntentMemory(plans, steer_mem, memory[j].unexplained))
