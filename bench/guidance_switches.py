@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from onboard.config import load_scenario
-from onboard.core.guidance.predictor import GuidanceWorkspace, plan_guidance, winding
+from onboard.core.guidance.predictor import GuidanceWorkspace, PlanAsk, Solver, plan_guidance, winding
 from onboard.core.guidance.search import FaceSearch, GuidanceRequest
 from sim.evaluation import trials as ev
 from sim.truth.world import TruthWorld
@@ -66,12 +66,12 @@ def main() -> None:
     print(f"trial {args.trial} T{args.target} at t = {args.t} s: x = {np.round(x[[0, 1, 3, 4]], 2).tolist()} "
           f"(px, py, vx, vy)")
     print(describe(f"last plan (t = {args.t - 1} s)", prev))
-    print(describe("this plan", plan_guidance(m, params, obs, x, goal, previous=prev, workspace=ws)))
+    print(describe("this plan", plan_guidance(m, params, obs, x, goal, previous=prev, solver=Solver(ws))))
     big = replace(params, max_qp_solves=1000)
     side = np.sign(winding(prev.faces))
-    print(describe(f"best with sides {side.tolist()}", plan_guidance(m, big, obs, x, goal, workspace=ws, sides=side,
-                                                                    strict_sides=True)))
-    print(describe("best, 1000 QPs", plan_guidance(m, big, obs, x, goal, workspace=ws)))
+    sided = plan_guidance(m, big, obs, x, goal, ask=PlanAsk(sides=side, strict_sides=True), solver=Solver(ws))
+    print(describe(f"best with sides {side.tolist()}", sided))
+    print(describe("best, 1000 QPs", plan_guidance(m, big, obs, x, goal, solver=Solver(ws))))
     T, k = params.horizon, args.obstacle
     for margin in (params.obstacle_margin_m, 0.0):
         search = FaceSearch(GuidanceRequest(m, replace(params, max_qp_solves=10**6), obs, x, goal, prev, ws), margin)

@@ -20,7 +20,7 @@ import numpy as np
 from sim.evaluation.miqp_reference import random_instance, solve_p1_exact
 from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, plan_guidance
+from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, Solver, plan_guidance
 
 
 def main() -> None:
@@ -37,11 +37,11 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     ws = GuidanceWorkspace()
     plan_guidance(model, params, *random_instance(np.random.default_rng(0), params.obstacle_margin_m, True),
-                  workspace=ws)  # one-off matrix set-up, as in flight before the first tick
+                  solver=Solver(ws))  # one-off matrix set-up, as in flight before the first tick
     ratios, ours_ms, exact_ms, infeasible, skipped = [], [], [], 0, 0
     for i in range(args.instances):
         obs, mean0, goal = random_instance(rng, params.obstacle_margin_m, blocked=True)
-        ours = plan_guidance(model, params, obs, mean0, goal, workspace=ws)
+        ours = plan_guidance(model, params, obs, mean0, goal, solver=Solver(ws))
         ref = solve_p1_exact(model, params, obs, mean0, goal, time_limit_s=args.time_limit)
         if not np.isfinite(ref["cost"]):
             skipped += 1

@@ -230,11 +230,6 @@ WIDE_SIGNATURES = {
     "bench/sitl_response.py:fly_limits": "one SITL flight's limits, cases and firmware, each a command-line option",
     "bench/consistency.py:consistency": "`pmon eval`'s trial options and where to write, keyword-called by "
                                         "bench/oracle_steering.py too",
-    # onboard/core: intent.py and intent_tick.py are another change's; the calls they make stay as they are
-    "onboard/core/intent.py:predict_aimed": "the aimed prediction's particles, aims, model and steering gains; "
-                                            "intent.py is grouped in its own change",
-    "onboard/core/guidance/predictor.py:plan_guidance": "called by keyword from intent_tick.py; it builds a "
-                                              "GuidanceRequest, and takes one when that caller changes",
 }
 
 

@@ -225,20 +225,29 @@ def draw_aims(n: int, area_min: np.ndarray, area_max: np.ndarray, rng: np.random
     return lo + (hi - lo) * rng.random((n, 2))
 
 
+@dataclass(frozen=True, eq=False)
+class Ground:
+    """Where a target may move: the ground-plane obstacles (``Obstacles.extruded``) and the
+    area's box, its corners ``minimum`` and ``maximum`` (3,) m."""
+
+    obstacles: Obstacles
+    minimum: np.ndarray
+    maximum: np.ndarray
+
+
 def predict_aimed(particles: np.ndarray, aims: np.ndarray, model: MotionModel, law_gain: np.ndarray,
-                  u_max_n: float, params: IntentParams, obstacles: Obstacles, area_min: np.ndarray,
-                  area_max: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+                  u_max_n: float, params: IntentParams, ground: Ground, rng: np.random.Generator) -> np.ndarray:
     """AIMED particles one tick on: eq. (1) with the control of P1's unconstrained optimum toward
     each particle's own destination (``law_gain``: ``FreeLaw.gain``, the optimum being linear in
-    the state relative to the goal), clipped to the input box, then the speed bound, the area and
-    the obstacles as ``predict_free``."""
+    the state relative to the goal), clipped to the input box (``u_max_n``), then the speed bound,
+    the area and the obstacles (``ground``) as ``predict_free``."""
     rel = particles.copy()
     rel[:, :2] -= aims
     u = rel @ law_gain.T
     u[:, :2] = np.clip(u[:, :2], -u_max_n, u_max_n)
     u[:, 2] = 0.0
     out = particles @ model.A.T + u @ model.B.T + rng.standard_normal(particles.shape) * model.Q_sqrt
-    return _bounded(particles, out, params, obstacles, area_min, area_max)
+    return _bounded(particles, out, params, ground.obstacles, ground.minimum, ground.maximum)
 
 
 def _bounded(before: np.ndarray, after: np.ndarray, params: IntentParams, obstacles: Obstacles,

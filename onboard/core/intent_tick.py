@@ -24,7 +24,7 @@ import numpy as np
 from onboard.core import intent as im
 from onboard.core import tracking
 from onboard.core.dynamics import PLANAR
-from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
 from onboard.core.steering import AHEAD_STEPS, TargetTick
 
 MIN_MODE_SHARE = 1e-3  # a goal mode holding less of a target's weight gets no plan of its own this tick
@@ -189,11 +189,10 @@ def guidance(setup, posts: Sequence[tracking.ParticleSet], memory: Sequence[Inte
             if share < MIN_MODE_SHARE:
                 continue
             steer_mem = mem.steering.get(k, ()) if sides else ()
+            ask = PlanAsk(Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE,
+                          ahead=AHEAD_STEPS if sides else 0, nearby=tuple(m.plan.shifted() for m in steer_mem))
             plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, intent.goals[k],
-                                 previous=mem.plans.get(k), workspace=workspace, timer=timer,
-                                 with_feedback=Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE,
-                                 nearby=tuple(m.plan.shifted() for m in steer_mem),
-                                 ahead=AHEAD_STEPS if sides else 0)
+                                 previous=mem.plans.get(k), ask=ask, solver=Solver(workspace, timer))
             found[k] = (plan, share, mean, cov, sub)
         per_target.append(found)
         if found:
@@ -303,9 +302,9 @@ def predict(setup, steering, posts: Sequence[tracking.ParticleSet], per_target, 
         particles[sel] = im.predict_free(ps.particles[sel], setup.model, setup.intent, setup.ground_obstacles,
                                          setup.area_min, setup.area_max, rng)
         sel = modes == im.AIMED
+        ground = im.Ground(setup.ground_obstacles, setup.area_min, setup.area_max)
         particles[sel] = im.predict_aimed(ps.particles[sel], aims[sel], setup.model, setup.free_steering.gain,
-                                          setup.guidance.u_max_n, setup.intent, setup.ground_obstacles,
-                                          setup.area_min, setup.area_max, rng)
+                                          setup.guidance.u_max_n, setup.intent, ground, rng)
         beliefs.append(tracking.ParticleSet(particles, ps.log_weights, labels if lead is not None else None, modes,
                                             aims))
         out_mem.append(IntentMemory(plans, steer_mem, memory[j].unexplained))

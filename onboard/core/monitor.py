@@ -24,7 +24,7 @@ import numpy as np
 
 from onboard.core import intent_tick
 from onboard.core import tracking
-from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup, PlanSteering
 from onboard.core.planners import Planner, PlanningInputs, make_planner
 from onboard.core.planning import PlanningResult
@@ -198,13 +198,14 @@ def _guidance(setup: MonitorSetup, state: MonitorState, means: np.ndarray, works
     plans of the last tick are the next warm starts: the mean of a cloud split between two sides
     of an obstacle often has no plan near its own last one."""
     sides = setup.plan_steering is not None and setup.plan_steering.sides
+    feedback = Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE
+    solver = Solver(workspace, timer)
     out = []
     for j in range(setup.n_targets):
         modes = state.steering[j] if sides and state.steering else ()
+        ask = PlanAsk(feedback, ahead=AHEAD_STEPS if sides else 0, nearby=tuple(m.plan.shifted() for m in modes))
         out.append(plan_guidance(setup.model, setup.guidance, setup.obstacles, means[j], setup.goals[j],
-                                 previous=state.plans[j], workspace=workspace, timer=timer,
-                                 with_feedback=Feedback.CONSTRAINED if setup.plan_steering is not None else Feedback.NONE,
-                                 nearby=tuple(m.plan.shifted() for m in modes), ahead=AHEAD_STEPS if sides else 0))
+                                 previous=state.plans[j], ask=ask, solver=solver))
     return tuple(out)
 
 
@@ -236,11 +237,11 @@ def replanner(setup: MonitorSetup, goal: np.ndarray, workspace: GuidanceWorkspac
     ahead = AHEAD_STEPS if setup.plan_steering is not None and setup.plan_steering.sides else 0
     if setup.plan_steering is not None:
         params = replace(params, max_qp_solves=min(setup.plan_steering.max_qp_solves, params.max_qp_solves))
+    solver = Solver(workspace, timer)
 
     def replan(x: np.ndarray, previous: Plan | None, sides: np.ndarray | None = None, strict: bool = False,
                nearby: Plan | None = None, explore: bool = True, budget: int | None = None) -> Plan:
         p = params if budget is None else replace(params, max_qp_solves=min(budget, params.max_qp_solves))
-        return plan_guidance(setup.model, p, setup.obstacles, x, goal, previous=previous, workspace=workspace,
-                             timer=timer, with_feedback=Feedback.ALWAYS, sides=sides, strict_sides=strict, nearby=nearby,
-                             explore=explore, ahead=ahead)
+        ask = PlanAsk(Feedback.ALWAYS, ahead, sides, strict_sides=strict, nearby=nearby, explore=explore)
+        return plan_guidance(setup.model, p, setup.obstacles, x, goal, previous=previous, ask=ask, solver=solver)
     return replan

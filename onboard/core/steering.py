@@ -57,7 +57,7 @@ REFERENCE_QPS = 3
 LAW_COST = 2
 AHEAD_STEPS = 2  # a side-aware plan keeps the laws of this many next controls (Plan.ahead): it can be shifted
 
-# P1 from a state, warm-started by a plan, with its law (with_feedback), held to sides (strict:
+# P1 from a state, warm-started by a plan, with its law (Feedback.ALWAYS), held to sides (strict:
 # rounding each obstacle of a side that way): the guidance as the strategies call it
 Replan = Callable[..., Plan]
 

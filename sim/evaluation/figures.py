@@ -20,7 +20,7 @@ from matplotlib.patches import Polygon  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
 from onboard.core.dynamics import MotionModel, predict_cov  # noqa: E402
-from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, plan_guidance  # noqa: E402
+from onboard.core.guidance.predictor import GuidanceParams, GuidanceWorkspace, Solver, plan_guidance  # noqa: E402
 from onboard.core.obstacles import Obstacles  # noqa: E402
 from groundstation.scene import GOAL_COLOUR, box_corners, covariance_ellipse, draw_scene  # noqa: E402
 from groundstation.scene import target_colour as _colour  # noqa: E402  (the one palette)
@@ -80,7 +80,7 @@ def planned_trajectories(sc):
     params = GuidanceParams.from_config(sc.guidance)
     obstacles = Obstacles.from_boxes(sc.obstacles)
     ws = GuidanceWorkspace()
-    plans = [plan_guidance(model, params, obstacles, t.mean, np.asarray(sc.goal_point(t)), workspace=ws)
+    plans = [plan_guidance(model, params, obstacles, t.mean, np.asarray(sc.goal_point(t)), solver=Solver(ws))
              for t in sc.targets]
     covs = predict_cov(model, sc.initial_cov, params.horizon)
     return plans, covs

@@ -27,7 +27,8 @@ from typing import Sequence
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.guidance.predictor import Feedback, GuidanceParams, GuidanceWorkspace, Plan, plan_guidance
+from onboard.core.guidance.predictor import (Feedback, GuidanceParams, GuidanceWorkspace, Plan, PlanAsk, Solver,
+                                             plan_guidance)
 from onboard.core.obstacles import Obstacles
 
 MISMATCH_KINDS = ("stop", "turn_back", "other_goal", "resume")
@@ -87,7 +88,7 @@ _FD_STEP = np.array([1.0, 1.0, 0.0, 0.1, 0.1, 0.0])
 def closed_loop_gain(model: MotionModel, guidance: GuidanceParams, obstacles: Obstacles, x: np.ndarray,
                      goal: np.ndarray, plan: Plan, workspace: GuidanceWorkspace | None = None) -> np.ndarray:
     """du_0/dx (3, 6) of the guidance policy at state x: the plan's own ``feedback`` when the
-    guidance provides one (``plan_guidance(..., with_feedback=Feedback.ALWAYS)``, the exact gain of
+    guidance provides one (``plan_guidance(..., ask=PlanAsk(Feedback.ALWAYS))``, the exact gain of
     the QP with its active set held), else central finite differences of plan_guidance in the planar
     states (warm-started from ``plan``, so the same face assignment is differentiated). A fallback plan
     has no feedback: zero gain. The closed-loop transition Jacobian is A + B du_0/dx."""
@@ -100,8 +101,8 @@ def closed_loop_gain(model: MotionModel, guidance: GuidanceParams, obstacles: Ob
     for i in (0, 1, 3, 4):
         e = np.zeros(6)
         e[i] = _FD_STEP[i]
-        up = plan_guidance(model, guidance, obstacles, x + e, goal, previous=plan, workspace=workspace)
-        dn = plan_guidance(model, guidance, obstacles, x - e, goal, previous=plan, workspace=workspace)
+        up = plan_guidance(model, guidance, obstacles, x + e, goal, previous=plan, solver=Solver(workspace))
+        dn = plan_guidance(model, guidance, obstacles, x - e, goal, previous=plan, solver=Solver(workspace))
         K[:, i] = (up.next_control - dn.next_control) / (2 * e[i])
     return K
 
@@ -213,9 +214,9 @@ class TruthWorld:
             if self.behaviours[j] != "guided":
                 new[j] = x if self.behaviours[j] == "stationary" else self._wander(x)
                 continue
-            plan = plan_guidance(self.model, self.guidance, self.obstacles, x, self._goals[j],
-                                 previous=self._plans[j], workspace=self._ws,
-                                 with_feedback=Feedback.ALWAYS if self.record_gains else Feedback.NONE)
+            plan = plan_guidance(self.model, self.guidance, self.obstacles, x, self._goals[j], previous=self._plans[j],
+                                 ask=PlanAsk(Feedback.ALWAYS if self.record_gains else Feedback.NONE),
+                                 solver=Solver(self._ws))
             self._plans[j] = plan
             if self.record_gains:
                 gains[j] = closed_loop_gain(self.model, self.guidance, self.obstacles, x, self._goals[j], plan,

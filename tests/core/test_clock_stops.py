@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from onboard.config import load_scenario
 from onboard.core.clock_stops import Deadline, SearchClock
-from onboard.core.guidance.predictor import plan_guidance
+from onboard.core.guidance.predictor import Solver, plan_guidance
 from onboard.core.monitor import MonitorSetup
 
 
@@ -43,10 +43,10 @@ def test_plans_stopped_by_the_clock_replay_to_the_same_bits_by_their_counts():
     for j in range(setup.n_targets):
         mean = setup.initial_means[j] + np.r_[rng.normal(0, 30, 2), 0, rng.normal(0, 2, 2), 0]
         live = SearchClock(_ticking(0.001))  # 20 clock readings per solve's time
-        a = plan_guidance(setup.model, params, setup.obstacles, mean, setup.goals[j], timer=live)
+        a = plan_guidance(setup.model, params, setup.obstacles, mean, setup.goals[j], solver=Solver(timer=live))
         stopped += len(live.stops)
         again = SearchClock(lambda: 0.0, replay=live.stops)  # a clock that never runs out
-        b = plan_guidance(setup.model, params, setup.obstacles, mean, setup.goals[j], timer=again)
+        b = plan_guidance(setup.model, params, setup.obstacles, mean, setup.goals[j], solver=Solver(timer=again))
         assert again.deadlines == live.deadlines
         assert (a.status, a.qp_solves) == (b.status, b.qp_solves)
         assert np.array_equal(a.controls, b.controls) and np.array_equal(a.means, b.means)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from onboard.core.guidance.predictor import Feedback, GuidanceParams, Plan, plan_guidance, winding
+from onboard.core.guidance.predictor import Feedback, GuidanceParams, Plan, PlanAsk, Solver, plan_guidance, winding
 from onboard.core.obstacles import Obstacles
 from sim.evaluation.miqp_reference import random_instance
 
@@ -106,9 +106,10 @@ def test_closed_loop_gain_matches_finite_differences(paper, model):
         goal = np.array(paper.goal_of(target).center_m)
         x, plan = np.array(target.mean, float), None
         for _ in range(20):
-            plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+            plan = plan_guidance(model, params, obs, x, goal, previous=plan, solver=Solver(ws))
             x = plan.means[0]
-        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS)
+        plan = plan_guidance(model, params, obs, x, goal, previous=plan, ask=PlanAsk(Feedback.ALWAYS),
+                             solver=Solver(ws))
         assert plan.feedback is not None and plan.feedback.shape == (3, 6)
         qp = ws.qp(T, len(obs), model, params)
         z = np.concatenate([[x[2]], predict_mean(model, x, np.zeros((T, 3)))[:, 2]])
@@ -187,12 +188,12 @@ def test_feedback_says_which_plans_get_their_law(paper, model):
     wall = Obstacles.from_boxes([Box("wall", (goal[0], goal[1] + 30.0, 10.0), (30.0, 6.0, 20.0), 0.0)])
     at_goal, behind_wall = np.r_[goal[:2], 0, 0, 0, 0], np.r_[goal[:2] + [0.0, 60.0], 0, 0, 0, 0]
     for x, obs, constrained in ((at_goal, Obstacles.empty(), False), (behind_wall, wall, True)):
-        plans = {f: plan_guidance(model, params, obs, x, goal, with_feedback=f) for f in Feedback}
+        plans = {f: plan_guidance(model, params, obs, x, goal, ask=PlanAsk(f)) for f in Feedback}
         assert plans[Feedback.NONE].unconstrained is not constrained
         assert plans[Feedback.NONE].law is None and plans[Feedback.ALWAYS].law is not None
         assert (plans[Feedback.CONSTRAINED].law is not None) is constrained
     with pytest.raises(ValueError, match="True is not a valid Feedback"):
-        plan_guidance(model, params, wall, behind_wall, goal, with_feedback=True)
+        plan_guidance(model, params, wall, behind_wall, goal, ask=PlanAsk(True))
 
 
 def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model, rng):
@@ -230,16 +231,18 @@ def test_plan_law_steers_a_nearby_start_as_the_guidance_does(paper, model):
     goal = np.array(paper.goal_of(target).center_m)
     x, plan = np.array(target.mean, float), None
     for _ in range(20):  # T1 heads south-east, rounding O1 and then O3
-        plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+        plan = plan_guidance(model, params, obs, x, goal, previous=plan, solver=Solver(ws))
         x = plan.means[0]
     assert plan.touches_obstacle and plan.law is None  # only asked for
-    steered = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS)
+    steered = plan_guidance(model, params, obs, x, goal, previous=plan, ask=PlanAsk(Feedback.ALWAYS),
+                            solver=Solver(ws))
     assert steered.law is not None
     np.testing.assert_allclose(steered.law.controls(x[None])[0], steered.next_control, atol=1e-6)
     agree = 0
     for dx in ([0.02, 0, 0, 0, 0, 0], [0, -0.02, 0, 0, 0, 0], [0, 0, 0, 0.002, 0, 0], [0, 0, 0, 0, -0.002, 0]):
         x1 = x + np.array(dx)
-        own = plan_guidance(model, params, obs, x1, goal, previous=plan, workspace=ws).next_control - steered.next_control
+        own = (plan_guidance(model, params, obs, x1, goal, previous=plan, solver=Solver(ws)).next_control
+               - steered.next_control)
         law = steered.law.controls(x1[None])[0] - steered.next_control
         assert np.linalg.norm(own) > 1e-3  # the guidance does react
         agree += np.linalg.norm(law - own) <= 0.05 * np.linalg.norm(own)
@@ -299,8 +302,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     ws = GuidanceWorkspace()
     goal = setup.goals[1]
     mean = np.array([280.0, 680.0, 0.0, 8.0, -10.0, 0.0])  # T2 before O1 and O4
-    plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, workspace=ws,
-                         with_feedback=Feedback.ALWAYS)
+    plan = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean, goal, ask=PlanAsk(Feedback.ALWAYS),
+                         solver=Solver(ws))
     cov = np.diag([900.0, 100.0, 1e-10, 4.0, 4.0, 1e-10])  # 30 m east-west, 10 m north-south
     def target(setup, mean, plan, previous):  # reference_laws reads no particles
         return TargetTick(None, mean, cov, goal, plan, previous, replanner(setup, goal, ws, lambda: 0.0))
@@ -317,8 +320,8 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     # next tick each reference is warm-started by its own plan from the same offset: it keeps
     # its way around the obstacles for fewer QP solves than when started from the mean's plan
     mean2 = plan.means[0]
-    plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan, workspace=ws,
-                          with_feedback=Feedback.ALWAYS)
+    plan2 = plan_guidance(setup.model, setup.guidance, setup.obstacles, mean2, goal, previous=plan,
+                          ask=PlanAsk(Feedback.ALWAYS), solver=Solver(ws))
     _, _, own = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), refs)
     _, _, cold = reference_laws(setup.plan_steering, target(setup, mean2, plan2, plan), ())
     pairs = [(a, b, c) for a, b, c in zip(refs, own, cold) if b is not None and c is not None]
@@ -405,8 +408,10 @@ def test_winding_is_the_side_a_plan_rounds_an_obstacle_and_sides_hold_it(paper, 
     x = np.array([-20.0, 300.0, 0.0, 0.0, -10.0, 0.0])  # a little west of the box's axis
     goal = setup.goals[0]
     free = plan_guidance(model, setup.guidance, setup.obstacles, x, goal)
-    west = plan_guidance(model, setup.guidance, setup.obstacles, x, goal, sides=np.array([1]), strict_sides=True)
-    east = plan_guidance(model, setup.guidance, setup.obstacles, x, goal, sides=np.array([-1]), strict_sides=True)
+    west = plan_guidance(model, setup.guidance, setup.obstacles, x, goal,
+                         ask=PlanAsk(sides=np.array([1]), strict_sides=True))
+    east = plan_guidance(model, setup.guidance, setup.obstacles, x, goal,
+                         ask=PlanAsk(sides=np.array([-1]), strict_sides=True))
     assert west.feasible and east.feasible
     assert winding(west.faces)[0] > 0 > winding(east.faces)[0]
     assert in_class(west.faces, np.array([1])) and not in_class(west.faces, np.array([-1]))
@@ -438,7 +443,8 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     cov = np.diag([400.0, 400.0, 1e-10, 1.0, 1.0, 1e-10])
     ps = tracking.initialise(mean, cov, 2000, rng)
     m, c = tracking.estimate(ps)
-    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, workspace=ws, with_feedback=Feedback.ALWAYS)
+    plan = plan_guidance(model, setup.guidance, setup.obstacles, m, goal, ask=PlanAsk(Feedback.ALWAYS),
+                         solver=Solver(ws))
     laws, modes = side_modes(setup, TargetTick(ps, m, c, goal, plan, None, replanner(setup, goal, ws, lambda: 0.0)),
                              (), rng)
     labels = laws.labels
@@ -463,8 +469,8 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     assert post.labels is not None and len(post.labels) == len(post)
     nxt = tracking.predict(post, setup.model, u[0], rng)
     m2, c2 = tracking.estimate(nxt)
-    plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan, workspace=ws,
-                          with_feedback=Feedback.ALWAYS)
+    plan2 = plan_guidance(model, setup.guidance, setup.obstacles, m2, goal, previous=plan,
+                          ask=PlanAsk(Feedback.ALWAYS), solver=Solver(ws))
     laws2, modes2 = side_modes(setup, TargetTick(nxt, m2, c2, goal, plan2, plan,
                                                  replanner(setup, goal, ws, lambda: 0.0)), modes, rng)
     assert len(modes2) == 2
@@ -492,18 +498,18 @@ def test_a_plan_shifted_by_a_tick_steers_as_the_plan_made_there(paper, model):
         goal = np.array(paper.goal_of(target).center_m)
         x, plan = np.array(target.mean, float), None
         for _ in range(12):  # every target is rounding an obstacle or cruising at its speed limit
-            plan = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws)
+            plan = plan_guidance(model, params, obs, x, goal, previous=plan, solver=Solver(ws))
             x = plan.means[0]
-        p = plan_guidance(model, params, obs, x, goal, previous=plan, workspace=ws, with_feedback=Feedback.ALWAYS,
-                          ahead=2)
+        p = plan_guidance(model, params, obs, x, goal, previous=plan, ask=PlanAsk(Feedback.ALWAYS, ahead=2),
+                          solver=Solver(ws))
         assert not p.unconstrained and len(p.ahead) == 2
         s = p.shifted()
         assert s.status == "shifted" and s.feasible and s.law is p.ahead[0] and s.ahead == p.ahead[1:]
         np.testing.assert_array_equal(s.law.u_ref, p.controls[1])
         np.testing.assert_array_equal(s.law.x_ref, p.means[0][[0, 1, 3, 4]])
         np.testing.assert_array_equal(s.faces[:-1], p.faces[1:])
-        fresh = plan_guidance(model, params, obs, p.means[0], goal, previous=p, workspace=ws,
-                              with_feedback=Feedback.ALWAYS)
+        fresh = plan_guidance(model, params, obs, p.means[0], goal, previous=p, ask=PlanAsk(Feedback.ALWAYS),
+                              solver=Solver(ws))
         start = np.zeros(6)
         start[[0, 1, 3, 4]] = fresh.law.x_ref
         u = s.law.controls(start[None])[0]
@@ -531,7 +537,7 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
 
     def counting(*a, **k):
         p = plan(*a, **k)
-        if k.get("with_feedback") is Feedback.ALWAYS:  # the steering's own plans (replanner)
+        if k["ask"].feedback is Feedback.ALWAYS:  # the steering's own plans (replanner)
             spent[-1] += p.qp_solves + (steering.LAW_COST if p.law is not None else 0)
         return p
     monkeypatch.setattr(monitor, "plan_guidance", counting)

@@ -75,7 +75,7 @@ def test_free_and_aimed_particles_stay_in_the_area_out_of_obstacles_and_under_th
     law = MonitorSetup.from_scenario(load_scenario("paper")).free_steering.gain
     aims = im.draw_aims(len(x), lo, hi, rng)
     for out in (im.predict_free(x, model, PARAMS, box, lo, hi, rng),
-                im.predict_aimed(x, aims, model, law, 6000.0, PARAMS, box, lo, hi, rng)):
+                im.predict_aimed(x, aims, model, law, 6000.0, PARAMS, im.Ground(box, lo, hi), rng)):
         assert (out[:, :2] >= 0).all() and (out[:, :2] <= 1000).all()
         assert not box.contains(out[:, :3]).any()
         assert (np.linalg.norm(out[:, 3:5], axis=1) <= 16.0 + 1e-9).all()
@@ -88,9 +88,9 @@ def test_an_aimed_particle_turns_toward_its_own_destination():
     x = np.zeros((2, 6))
     x[:, :2] = 500.0
     aims = np.array([[900.0, 500.0], [500.0, 100.0]])  # east, south
+    ground = im.Ground(Obstacles.empty(), np.zeros(3), np.full(3, 1000.0))
     for _ in range(10):
-        x = im.predict_aimed(x, aims, model, law, 6000.0, PARAMS, Obstacles.empty(), np.zeros(3),
-                             np.full(3, 1000.0), rng)
+        x = im.predict_aimed(x, aims, model, law, 6000.0, PARAMS, ground, rng)
     assert x[0, 3] > 5.0 and abs(x[0, 4]) < 1e-6  # heading east
     assert x[1, 4] < -5.0 and abs(x[1, 3]) < 1e-6  # heading south
 

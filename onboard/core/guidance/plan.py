@@ -32,9 +32,9 @@ class Plan:
     means: np.ndarray  # (T, 6) mu_(t+tau+1|t)
     faces: np.ndarray  # (T-1, K) lateral face per segment p_s -> p_(s+1), s = 1..T-1; -1: none
     active: "ActiveRows | None" = None  # the QP rows active at the solution: next tick's warm start
-    law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (plan_guidance's Feedback)
+    law: "LocalLaw | None" = None  # u_0 + du_0/dx (x - start) around the start (``PlanAsk.feedback``)
     margin_m: float | None = None  # m; None when not set (plans built by hand)
-    # the laws of the next controls at the states the plan predicts (``shifted``; plan_guidance(ahead=))
+    # the laws of the next controls at the states the plan predicts (``shifted``; ``PlanAsk.ahead``)
     ahead: tuple[LocalLaw, ...] = ()
 
     def shifted(self) -> "Plan":
@@ -50,7 +50,7 @@ class Plan:
 
     @property
     def feedback(self) -> np.ndarray | None:
-        """(3, 6) du_0/dx, N per state unit (when it has a law: plan_guidance's Feedback), else None."""
+        """(3, 6) du_0/dx, N per state unit (when it has a law: ``PlanAsk.feedback``), else None."""
         return None if self.law is None else self.law.gain
 
     @property

@@ -38,7 +38,7 @@ Deliberate differences from the paper's text (docs/GUIDANCE.md says why):
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Callable, Sequence
 
@@ -55,8 +55,8 @@ from onboard.core.guidance.search import FaceSearch, GuidanceRequest
 from onboard.core.obstacles import Obstacles
 
 # the guidance's interface, wherever its parts are held
-__all__ = ["GuidanceParams", "Plan", "plan_guidance", "Feedback", "GuidanceWorkspace", "LocalLaw", "FreeLaw",
-           "free_law", "winding", "in_class", "KN"]
+__all__ = ["GuidanceParams", "Plan", "plan_guidance", "PlanAsk", "Solver", "Feedback", "GuidanceWorkspace",
+           "LocalLaw", "FreeLaw", "free_law", "winding", "in_class", "KN"]
 
 
 class Feedback(str, Enum):
@@ -74,17 +74,11 @@ class Feedback(str, Enum):
     CONSTRAINED = "constrained"
 
 
-def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles,
-                  mean0: np.ndarray, goal: np.ndarray, previous: Plan | None = None,
-                  workspace: GuidanceWorkspace | None = None,
-                  timer: Callable[[], float] = time.perf_counter, with_feedback: Feedback = Feedback.NONE,
-                  sides: np.ndarray | None = None, strict_sides: bool = False,
-                  nearby: Plan | Sequence[Plan] | None = None, explore: bool = True, ahead: int = 0) -> Plan:
-    """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
+@dataclass(frozen=True, eq=False)
+class PlanAsk:
+    """What a P1 solve is asked for beyond the cheapest plan from its start (``plan_guidance``).
 
-    ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
-    fallback when no feasible plan is found. ``workspace`` caches the QP matrices.
-    ``with_feedback`` (``Feedback``): which plans also get ``Plan.feedback``, the closed-loop gain
+    ``feedback`` (``Feedback``): which plans also get ``Plan.feedback``, the closed-loop gain
     du_0/dx (for the posterior Cramer-Rao bound of a target that steers by this guidance), and
     ``Plan.law`` (for the tracker's ``plan_steering``): none, every one, or only one with an active
     row (the free law describes the others: the tracker's mean plans); ``ahead``: with a law, the
@@ -98,20 +92,52 @@ def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacl
     turn; ``explore=False``: no search beyond the warm starts (no plan if they fail; the margin is
     never given up).
     """
+
+    feedback: Feedback = Feedback.NONE
+    ahead: int = 0
+    sides: np.ndarray | None = None
+    strict_sides: bool = False
+    nearby: Plan | Sequence[Plan] | None = ()
+    explore: bool = True
+
+    def __post_init__(self):
+        nearby = self.nearby
+        object.__setattr__(self, "feedback", Feedback(self.feedback))
+        object.__setattr__(self, "nearby", () if nearby is None else (nearby,) if isinstance(nearby, Plan)
+                           else tuple(nearby))
+
+
+@dataclass(frozen=True, eq=False)
+class Solver:
+    """What a P1 solve runs with: the QP cache (``GuidanceWorkspace``; None: a fresh one each
+    solve) and the clock that the time limit (``max_solve_time_s``) and ``Plan.solve_time_s`` read."""
+
+    workspace: GuidanceWorkspace | None = None
+    timer: Callable[[], float] = time.perf_counter
+
+
+def plan_guidance(model: MotionModel, params: GuidanceParams, obstacles: Obstacles, mean0: np.ndarray,
+                  goal: np.ndarray, previous: Plan | None = None, ask: PlanAsk = PlanAsk(),
+                  solver: Solver = Solver()) -> Plan:
+    """Solve P1 for one target from state mean0 (6,) toward goal centroid (3,).
+
+    ``previous`` (this target's plan of the last tick) warm-starts the face assignment and is the
+    fallback when no feasible plan is found. ``ask`` (``PlanAsk``): the law, the sides and the warm
+    starts asked for beyond the plan; ``solver`` (``Solver``): the QP cache and the clock.
+    """
+    timer = solver.timer
     t_start = timer()
-    with_feedback = Feedback(with_feedback)
-    nearby = () if nearby is None else (nearby,) if isinstance(nearby, Plan) else tuple(nearby)
     deadline = deadline_of(timer, params.max_solve_time_s)
-    request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, workspace, timer, sides, strict_sides,
-                              deadline)
-    plan = _search(request, params.obstacle_margin_m, with_feedback, nearby, explore, ahead)
-    if (plan.feasible or not explore or not len(obstacles) or params.obstacle_margin_m <= 0.0
+    request = GuidanceRequest(model, params, obstacles, mean0, goal, previous, solver.workspace, timer, ask.sides,
+                              ask.strict_sides, deadline)
+    plan = _search(request, params.obstacle_margin_m, ask.feedback, ask.nearby, ask.explore, ask.ahead)
+    if (plan.feasible or not ask.explore or not len(obstacles) or params.obstacle_margin_m <= 0.0
             or (deadline is not None and deadline.passed(plan.qp_solves))):
         return plan
     # noise has carried the target so close to an obstacle, or so fast toward it, that no control
     # keeps the margin: it keeps clear of the obstacle itself (the margin stays vertical, which
     # keeps ground targets level with the obstacles' bases)
-    retry = _search(replace(request, solves_before=plan.qp_solves), 0.0, with_feedback, nearby, True, ahead)
+    retry = _search(replace(request, solves_before=plan.qp_solves), 0.0, ask.feedback, ask.nearby, True, ask.ahead)
     return replace(retry, solve_time_s=timer() - t_start, qp_solves=plan.qp_solves + retry.qp_solves)
 
 
