@@ -113,8 +113,8 @@ def cmd_check(args) -> dict:
         c0 = time.process_time()
         full = cs.search(pb, (cs.track(pb, flown)[None], ["flight"]), only=None, keep=3)
         c1 = time.process_time()
-        cem = [cs.cross_entropy(pb, np.random.default_rng([args.seed, t, s]), block=3, population=256,
-                                iterations=80) for s in range(2)]
+        cem_options = cs.CrossEntropyOptions(block=3, population=256, iterations=80)
+        cem = [cs.cross_entropy(pb, np.random.default_rng([args.seed, t, s]), cem_options) for s in range(2)]
         c2 = time.process_time()
         cem_acc = np.stack([c.acc[0] for c in cem])
         polished = cs.evaluate(pb, cs.sqp(pb, cem_acc, block=1, maxiter=200)[0])

@@ -23,6 +23,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -32,17 +33,26 @@ from sim.evaluation import trials as ev
 from sim.evaluation.metrics import error_split
 
 
+@dataclass(frozen=True)
+class EvalFiles:
+    """Where ``pmon eval``'s files for the same trials go (``out``), and the command they say
+    made them."""
+
+    out: str
+    command: str = ""
+
+
 def consistency(scenario: str, methods: list[str], trials: int, seed: int = 2024,
                 overrides: dict | None = None, workers: int | None = None, trial_ids: list[int] | None = None,
-                out: str | None = None, command: str = "") -> dict:
+                files: EvalFiles | None = None) -> dict:
     n = trials if trial_ids is None else max(trial_ids) + 1
     cfg = ev.make_config(load_scenario(scenario, overrides), n, seed, methods=methods)
     t0 = time.perf_counter()
     # the trials of ``pmon eval``, each as a run of all of them computes it
     results = ev.run_trials(cfg, workers=workers, progress=False, trials=trial_ids)
-    if out is not None:
+    if files is not None:
         summary = ev.summarise(cfg, results, wall_s=time.perf_counter() - t0)
-        ev.write_outputs(summary, results, out, command, figures=False)
+        ev.write_outputs(summary, results, files.out, files.command, figures=False)
     return figures(cfg, results)
 
 
@@ -112,9 +122,9 @@ def main() -> int:
         ap.error(f"--trial-ids: not a comma-separated list of trial numbers: {args.trial_ids!r}")
     if ids is not None and (not ids or ids[0] < 0):
         ap.error("--trial-ids: trial numbers are >= 0")
+    files = None if args.out is None else EvalFiles(args.out, "python -m bench.consistency " + " ".join(sys.argv[1:]))
     res = consistency(args.scenario, args.methods.split(","), args.trials, overrides=overrides,
-                      workers=args.workers, trial_ids=ids, out=args.out,
-                      command="python -m bench.consistency " + " ".join(sys.argv[1:]))
+                      workers=args.workers, trial_ids=ids, files=files)
     report(res)
     return 0
 

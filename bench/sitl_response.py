@@ -63,7 +63,9 @@ import gzip
 import json
 import sys
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -99,10 +101,24 @@ def _number(text: str) -> bool:
         return False
 
 
-def fly_limits(label: str, binary: Path, speedup: float, cases: list[str], latency: float,
-               route_speed: float | None = None, extra: dict | None = None,
-               log=print, autopilot: str = "ardupilot") -> tuple[dict, dict, list[Trace]]:
-    px4 = autopilot == "px4"
+@dataclass(frozen=True)
+class BenchRun:
+    """What each set of limits is flown with, from the command line: the firmware, its speedup,
+    the cases, the route setpoints' latency (s) and cruise speed (m/s; None: from the case's
+    share), the parameters set over each set of limits, and which autopilot."""
+
+    binary: Path
+    speedup: float
+    cases: tuple[str, ...]
+    latency_s: float = 0.0
+    route_speed: float | None = None
+    extra: Mapping[str, float] = field(default_factory=dict)
+    autopilot: str = "ardupilot"
+
+
+def fly_limits(label: str, run: BenchRun, log=print) -> tuple[dict, dict, list[Trace]]:
+    binary, speedup, cases, latency = run.binary, run.speedup, run.cases, run.latency_s
+    route_speed, extra, px4 = run.route_speed, run.extra, run.autopilot == "px4"
     params_in = {**LIMITS[label], **(extra or {})}
     # PX4's ULog of a full run is ~200 MB: its working directory goes with the bench
     workdir = tempfile.TemporaryDirectory(prefix="pmon-px4-bench-") if px4 else None
@@ -110,7 +126,7 @@ def fly_limits(label: str, binary: Path, speedup: float, cases: list[str], laten
         ArduPilotSitl(binary, HOME, speedup=speedup, params=params_in)
     sitl.start()
     try:
-        f = SitlFlight(sitl.talk_url("api") if px4 else sitl.url(0), speedup, autopilot)
+        f = SitlFlight(sitl.talk_url("api") if px4 else sitl.url(0), speedup, run.autopilot)
         try:
             f.take_off_px4() if px4 else f.take_off()
             params = f.read_params(PX4_READ_PARAMS if px4 else READ_PARAMS)
@@ -226,11 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     if why is not None:
         print(f"python -m bench.sitl_response: {why}", file=sys.stderr)
         return 2
+    run = BenchRun(binary, args.speedup, tuple(cases), args.latency_s, args.route_speed, extra, args.autopilot)
     out, saved = {}, {}
     for lab in labels:
         try:
-            params, figures, traces = fly_limits(lab, binary, args.speedup, cases, args.latency_s,
-                                                 args.route_speed, extra, autopilot=args.autopilot)
+            params, figures, traces = fly_limits(lab, run)
         except (SitlError, px4_sitl.SitlError, FlightError) as exc:
             print(f"python -m bench.sitl_response: {lab}: {exc}", file=sys.stderr)
             return 1

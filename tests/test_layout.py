@@ -215,21 +215,18 @@ WIDE_SIGNATURES = {
                                                    "in its order",
     "sim/mock/control_math.py:_shape_z": "AC_PosControl's shape_pos_vel_accel for z: its arguments, in its order "
                                     "(the position as an error, the speed limits up and down)",
-    # not yet grouped (issue 43): each its own change
+    # options each with its default, keyword-called by many: an options class would only wrap the
+    # same keywords at every call, and the validated result is already one (EvalConfig; the mock)
     "sim/mock/autopilot.py:MockAutopilot.__init__": "the mock's options, each SITL's with its default (the class "
                                                "docstring), keyword-called by sim/stack/rig.py and two dozen tests",
     "sim/evaluation/config.py:make_config": "`pmon eval`'s options, keyword-called by some thirty callers",
+    # not yet grouped (issue 43): each its own change
     "sim/stack/gcs_fake_vehicle.py:target_values": "PMON_TGT's fields with the tests' defaults, each varied by keyword",
     "sim/truth/world.py:TruthWorld.__init__": "the truth world's parts, put together by TruthWorld.from_scenario",
-    "sim/evaluation/ceiling_search.py:cross_entropy": "the cross-entropy method's tuning, each with its default",
-    "sim/evaluation/route_score.py:particle_route_scores": "the beliefs, the routes and the motion and sensor models",
     "sim/mock/guided.py:fly_timeline": "a timeline of setpoints flown under the firmware's rate, timeout and limits",
     "onboard/app/kraken/source.py:KrakenSource.__init__": "the KrakenSDR section, the autopilot's clock, poses and UTC "
                                                    "map, and the callbacks into the app; built by KrakenInput, "
                                                    "bench/kraken.py and the tests' hand-fed source",
-    "bench/sitl_response.py:fly_limits": "one SITL flight's limits, cases and firmware, each a command-line option",
-    "bench/consistency.py:consistency": "`pmon eval`'s trial options and where to write, keyword-called by "
-                                        "bench/oracle_steering.py too",
 }
 
 

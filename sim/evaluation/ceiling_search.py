@@ -141,27 +141,45 @@ def block_accelerations(z: np.ndarray, K: int, block: int) -> np.ndarray:
     return np.repeat(z, block, axis=1)[:, :K - 1]
 
 
-def cross_entropy(pb: CeilingProblem, rng: np.random.Generator, block: int = 5, population: int = 128,
-                  elite: int = 12, iterations: int = 40, mean: np.ndarray | None = None, sigma: float = 1.0,
-                  smoothing: float = 0.7, violation_cost: float = 10.0) -> Solutions:
+@dataclass(frozen=True)
+class CrossEntropyOptions:
+    """The cross-entropy method's tuning (``cross_entropy``): accelerations held for ``block``
+    ticks; ``population`` samples an iteration, the best ``elite`` of them kept; ``sigma``: the
+    initial spread (a_max); ``smoothing``: the weight of the new elite's mean and spread;
+    ``violation_cost``: per metre of depth outside the area or inside an obstacle."""
+
+    block: int = 5
+    population: int = 128
+    elite: int = 12
+    iterations: int = 40
+    sigma: float = 1.0
+    smoothing: float = 0.7
+    violation_cost: float = 10.0
+
+
+def cross_entropy(pb: CeilingProblem, rng: np.random.Generator,
+                  options: CrossEntropyOptions = CrossEntropyOptions(),
+                  mean: np.ndarray | None = None) -> Solutions:
     """An independent, gradient-free search: the cross-entropy method on accelerations held for
     ``block`` ticks (Gaussian over the blocks, the elite's mean and spread each iteration,
     smoothed), flown through ``fly`` (so always within the limits); leaving the area or
     entering an obstacle costs violation_cost per metre of depth summed over the sampled points.
-    mean: (nb, 2) initial mean in units of a_max (default 0, the vehicle at rest); sigma: initial
-    spread (a_max). Returns the best checked path seen (and the final mean's)."""
+    mean: (nb, 2) initial mean in units of a_max (default 0, the vehicle at rest). Returns the
+    best checked path seen (and the final mean's)."""
+    o = options
+    block, population, elite, smoothing = o.block, o.population, o.elite, o.smoothing
     kin = kinematics(pb.K, pb.dt)
     nb = -(-(pb.K - 1) // block)
     mu = np.zeros((nb, 2)) if mean is None else np.asarray(mean, float).copy()
-    sd = np.full((nb, 2), float(sigma))
+    sd = np.full((nb, 2), float(o.sigma))
     best_val, best_acc = np.inf, None
-    for _ in range(iterations):
+    for _ in range(o.iterations):
         z = mu + sd * rng.normal(size=(population, nb, 2))
         z[0] = mu
         acc = block_accelerations(z * pb.accel_max, pb.K, block)
         paths, flown = fly(pb, acc)
         val = window_bound(pb, bound_m2(pb, paths))
-        cost = val + violation_cost * _violation(pb, pb.start + kin.Ls @ flown)
+        cost = val + o.violation_cost * _violation(pb, pb.start + kin.Ls @ flown)
         order = np.argsort(cost)
         ok = check_path(pb, paths[order[:4]], flown[order[:4]])
         for i, good in zip(order[:4], ok):
@@ -172,7 +190,7 @@ def cross_entropy(pb: CeilingProblem, rng: np.random.Generator, block: int = 5, 
         sd = smoothing * el.std(axis=0) + (1 - smoothing) * sd
     if best_acc is None:
         best_acc = block_accelerations(mu[None] * pb.accel_max, pb.K, block)[0]
-    return evaluate(pb, best_acc[None], iterations)
+    return evaluate(pb, best_acc[None], o.iterations)
 
 
 def block_matrix(K: int, block: int) -> np.ndarray:

@@ -3,6 +3,8 @@ routes (bench/route_score.py; the method is in its docstring), and as a forward 
 adjoint gradient in the route's positions (bench/route_variants.py --refine)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import logsumexp
 
@@ -14,15 +16,27 @@ from onboard.core.tracking import systematic_indices
 from sim.evaluation.closed_loop import closed_loop
 
 
+@dataclass(frozen=True)
+class RolloutModel:
+    """What a particle rollout moves and weighs its particles by: the planar motion model
+    (``A``, ``Q``: 4 x 4) and the bearing's noise (``sigma_rad``) with the information
+    reduction factor of detection and clutter (``reduction``)."""
+
+    A: np.ndarray
+    Q: np.ndarray
+    sigma_rad: float
+    reduction: float
+
+
 def particle_route_scores(particles: np.ndarray, log_weights: np.ndarray, plans: np.ndarray,
-                          routes: np.ndarray, A: np.ndarray, Q: np.ndarray, sigma_rad: float,
-                          reduction: float, rng: np.random.Generator) -> np.ndarray:
+                          routes: np.ndarray, model: RolloutModel, rng: np.random.Generator) -> np.ndarray:
     """Sum over the horizon of the weighted position variance of each target's particle cloud,
     per route and target: (C, M).
 
     particles (M, N, 4) planar, log_weights (M, N): the predicted beliefs at t+1; plans (M, H, 4):
     mu_(t+1..t+H); routes (C, H, 2): the sensor's positions at t+1..t+H.
     """
+    A, Q, sigma_rad, reduction = model.A, model.Q, model.sigma_rad, model.reduction
     M, N, _ = particles.shape
     C, H, _ = routes.shape
     x = np.broadcast_to(particles, (C, M, N, 4)).copy()
@@ -67,9 +81,10 @@ def compare_routes(setup: MonitorSetup, particles: np.ndarray, log_w: np.ndarray
     summed over targets from ``rollouts`` independent rollouts (rollouts, C), on a snapshot."""
     A, _, Q = planar_model(setup.model)
     q = information_reduction_factor(setup.sensor.p_detect, setup.sensor.clutter_rate, setup.sensor.sigma_rad)
+    model = RolloutModel(A, Q, setup.sensor.sigma_rad, q)
     ok = np.flatnonzero(planning.admissible)
-    runs = [particle_route_scores(particles, log_w, plans, planning.paths[ok, :, :2], A, Q, setup.sensor.sigma_rad,
-                                  q, rng).sum(axis=1) for _ in range(rollouts)]
+    runs = [particle_route_scores(particles, log_w, plans, planning.paths[ok, :, :2], model, rng).sum(axis=1)
+            for _ in range(rollouts)]
     return planning.scores[ok], np.array(runs)
 
 

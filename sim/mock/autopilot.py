@@ -23,10 +23,11 @@ clients (pymavlink, MAVProxy, MAVSDK) can tell:
 
 The parts: sim/mock/copter.py (modes, boot, the flight state machine), sim/mock/copter_params.py
 (the parameters), sim/mock/links.py (endpoints and links), sim/mock/routing.py (reading links,
-routing, dispatch, fault injection), sim/mock/commands.py (commands and position targets),
-sim/mock/messages.py (streams, their requests and the messages built), sim/mock/stores.py
-(parameter protocol, missions, FTP); this module the mock's lifecycle, clock and loop around
-them, and the program.
+routing, dispatch on message type, fault injection), and the parts that answer messages, each
+given the shared ``MockContext`` (sim/mock/context.py: their contract): sim/mock/commands.py
+(commands and position targets), sim/mock/messages.py (streams, their requests and the messages
+built), sim/mock/stores.py (parameter protocol, missions, FTP); this module the mock's
+lifecycle, clock and loop around them, and the program.
 
 Geodetic <-> local conversions use pymap3d; the local frame is NED (MAVLink's), and
 `AutopilotState.pos_enu` gives the ENU mission frame of the core.
@@ -54,9 +55,10 @@ import numpy as np
 
 from onboard.app.mavlink2 import mavlink
 from sim.mock.commands import Commands
-from sim.mock.routing import Routing
+from sim.mock.context import MockContext
+from sim.mock.routing import Router
 from sim.mock.stores import Stores
-from sim.mock.messages import DATA_STREAMS, SR_GROUPS, ALWAYS_INTERVALS_S, Telemetry
+from sim.mock.messages import Telemetry
 from sim.mock.copter import BootTimeline, Copter
 from sim.mock.copter_params import Params
 from sim.mock.copter import Mode  # noqa: F401  (the mock's API: MockAutopilot, BootTimeline, Mode)
@@ -88,7 +90,7 @@ class AutopilotState:
 
 # --------------------------------------------------------------------------- the mock
 
-class MockAutopilot(Routing, Telemetry, Commands, Stores):
+class MockAutopilot:
     """A mock ArduCopter on MAVLink 2, run by a background thread.
 
     Args:
@@ -150,21 +152,21 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
             _check_loopback(ep.host)
         self.params = Params(overrides=params)
         self.copter = Copter(home, self.params, np.random.default_rng(seed), pos_noise, boot)
-        self._origin_sent = False
         self.crashed: str | None = None  # why the mock went silent like the crashed firmware
-        self._unix_time0 = unix_time0
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._links: list[_Link] = []
         self._listeners: list[_TcpListener] = []
         self._bound: list[Endpoint] = []
-        self._routes: set[tuple[int, int, _Link]] = set()
         self._counters: dict[str, int] = {}
         self._wall0 = 0.0
-        self._encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
-        self._replies: list = []  # messages to send after the COMMAND_ACK being built
-        self._msg_builders = self._message_builders()
+        self.ctx = MockContext(sysid, compid, self.copter, self.params,
+                               mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid),
+                               self._links, self._counters, self._crash)
+        self.telemetry = Telemetry(self.ctx, unix_time0)
+        self.parts = (self.telemetry, Commands(self.ctx, self.telemetry), Stores(self.ctx, self.telemetry))
+        self.router = Router(self.ctx, self.parts)
 
     # ----- lifecycle
     def start(self) -> "MockAutopilot":
@@ -178,8 +180,8 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
             self._close_all()
             raise
         self._wall0 = time.monotonic()
-        if self._unix_time0 is None:
-            self._unix_time0 = time.time()
+        if self.telemetry.unix_time0 is None:
+            self.telemetry.unix_time0 = time.time()
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="mock-autopilot", daemon=True)
         self._thread.start()
@@ -254,7 +256,26 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
     def routes(self) -> set[tuple[int, int, str]]:
         """Learned routes as (sysid, compid, link name)."""
         with self._lock:
-            return {(s, c, link.name) for s, c, link in self._routes}
+            return {(s, c, link.name) for s, c, link in self.router.routes}
+
+    def watch(self, mtype: str, see: Callable[[object], None]) -> None:
+        """Call ``see(msg)`` (on the mock's thread) before the mock handles each message of
+        type ``mtype`` addressed to it, e.g. to record the setpoints a client sends."""
+        with self._lock:
+            self.router.watch(mtype, see)
+
+    # ----- fault injection (tests)
+    def cut_link(self, compid: int, seconds: float) -> int:
+        """The link(s) a component is reached on go dead both ways for ``seconds`` of
+        autopilot time (a radio out of range): nothing is read or written, the TCP connection
+        stays up. Returns the number of links cut."""
+        with self._lock:
+            return self.router.cut(compid, seconds)
+
+    def drop_link(self, compid: int) -> int:
+        """Close the link(s) of a component (a TCP client must reconnect)."""
+        with self._lock:
+            return self.router.drop(compid)
 
     def wait_until(self, predicate: Callable[[AutopilotState], bool], timeout: float) -> bool:
         """Poll state() until predicate holds or `timeout` wall seconds pass."""
@@ -267,19 +288,7 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
 
     # ----- plumbing
     def _count(self, key: str, n: int = 1) -> None:
-        self._counters[key] = self._counters.get(key, 0) + n
-
-    def _default_intervals(self, port: int) -> dict[str, float]:
-        """Stream intervals (sim s) of a new link on endpoint ``port``: a HEARTBEAT a second,
-        and the groups its SRn_ parameters turn on (ArduPilot's stream rates per serial port)."""
-        out = dict(ALWAYS_INTERVALS_S)
-        for group, stream in SR_GROUPS.items():
-            name = f"SR{port}_{group}"
-            hz = self.params[name] if name in self.params else 0.0
-            for msg in DATA_STREAMS[stream]:
-                if hz > 0:
-                    out[msg] = 1.0 / hz
-        return out
+        self.ctx.count(key, n)
 
     def _open_endpoints(self) -> None:
         for index, ep in enumerate(self._endpoints):
@@ -288,7 +297,7 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
                 self._listeners.append(lst)
                 self._bound.append(Endpoint("tcpin", ep.host, lst.local[1]))
             else:
-                link = self._secure(_UdpLink(ep, self.sysid, self.compid, self._default_intervals(index)))
+                link = self._secure(_UdpLink(ep, self.sysid, self.compid, self.telemetry.default_intervals(index)))
                 link.port_index = index
                 self._links.append(link)
                 port = link.local[1] if ep.kind == "udpin" else ep.port
@@ -299,9 +308,9 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
             link.close()
         for lst in self._listeners:
             lst.close()
-        self._links = []
+        self._links.clear()  # the list the parts share (MockContext.links)
         self._listeners = []
-        self._routes.clear()
+        self.router.routes.clear()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -329,14 +338,8 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
             now_t = self.copter.t
             for link in self._links:
                 link.muted = now_t < link.muted_until
-            if not self._origin_sent and self.copter.origin_set:
-                self._origin_sent = True  # ArduPilot tells every link when its EKF origin is set
-                self.copter.text(mavlink.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
-                for lk in self._links:
-                    lk.send(self._gps_global_origin(lk))
-                    lk.send(self._home_position(lk))
-            self._flush_events()
-            self._send_streams()
+            for part in self.parts:
+                part.periodic(now_t)
             for link in self._links:
                 link.flush()
         next_step_wall = self._wall0 + (self.copter.t + self.dt) / self.speedup
@@ -351,11 +354,11 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
                 if isinstance(obj, _TcpListener):
                     self._accept(obj)
                 else:
-                    self._read_link(obj)
+                    self.router.read(obj)
             dead = [link for link in self._links if link.closed]
             for link in dead:
                 self._links.remove(link)
-                self._routes = {r for r in self._routes if r[2] is not link}
+                self.router.forget(link)
                 self._count("links_closed")
 
     def _accept(self, lst: _TcpListener) -> None:
@@ -365,7 +368,7 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
         sock, addr = got
         name = f"tcpin:{lst.local[0]}:{lst.local[1]}<-{addr[0]}:{addr[1]}"
         link = self._secure(_TcpLink(sock, name, self.sysid, self.compid,
-                                     self._default_intervals(lst.index)))
+                                     self.telemetry.default_intervals(lst.index)))
         link.port_index = lst.index
         self._links.append(link)
         self._count("links_opened")
@@ -388,40 +391,6 @@ class MockAutopilot(Routing, Telemetry, Commands, Stores):
             lk.flush()
             lk.close()
         self._stop.set()
-
-    # ----- local handling
-    def _ack(self, link: _Link, msg, command: int, result: int) -> None:
-        link.send(self._enc().command_ack_encode(
-            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
-        self._count(f"ack_{mavlink.enums['MAV_RESULT'][result].name[11:].lower()}")
-
-    def _enc(self) -> mavlink.MAVLink:
-        """The message constructor (links do the packing and sequence numbers)."""
-        return self._encoder
-
-    def _broadcast(self, msg) -> None:
-        for link in self._links:
-            link.send(msg)
-
-    def _flush_events(self) -> None:
-        for severity, text in self.copter.events:
-            self._broadcast(self._enc().statustext_encode(severity, text.encode()[:50]))
-        self.copter.events.clear()
-
-    def _on_heartbeat(self, link: _Link, msg) -> None:
-        pass  # routes are learned in _on_message; GCS failsafe is not modelled
-
-    def _on_set_mode(self, link: _Link, msg) -> None:
-        result = self._set_mode_common(msg.base_mode, msg.custom_mode)
-        self._ack(link, msg, mavlink.MAV_CMD_DO_SET_MODE, result)
-
-    def _set_mode_common(self, base_mode: int, custom_mode: int) -> int:
-        if int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            ok = self.copter.set_mode(int(custom_mode))
-            return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED
-        return mavlink.MAV_RESULT_DENIED
-
-
 
 
 # --------------------------------------------------------------------------- CLI

@@ -1,26 +1,22 @@
-"""The mock autopilot's commands (COMMAND_LONG / COMMAND_INT, with ArduCopter's results) and
-position targets (SET_POSITION_TARGET_*, with its type_mask rules). A mixin of ``MockAutopilot``."""
+"""The mock autopilot's commands (COMMAND_LONG / COMMAND_INT and SET_MODE, with ArduCopter's
+results) and position targets (SET_POSITION_TARGET_*, with its type_mask rules). A part of
+``MockAutopilot`` (sim/mock/context.py)."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Mapping, Optional
 
 
 from onboard.app.mavlink2 import mavlink
 from sim.mock import multicopter
 from sim.mock.multicopter import Vec3
 
+from sim.mock.context import Handler, MockContext, Part
 from sim.mock.copter import MAGIC_FORCE_ARM, MAGIC_FORCE_DISARM, GuidedTarget, Mode
 from sim.mock.links import _Link
-
-# type_mask bits (POSITION_TARGET_TYPEMASK_*)
-_POS_IGNORE = 0b111
-_VEL_IGNORE = 0b111 << 3
-_ACC_IGNORE = 0b111 << 6
-_FORCE_SET = 1 << 9
-_YAW_IGNORE = 1 << 10
-_YAW_RATE_IGNORE = 1 << 11
+from sim.mock.messages import (_ACC_IGNORE, _FORCE_SET, _POS_IGNORE, _VEL_IGNORE, _YAW_IGNORE,
+                               _YAW_RATE_IGNORE, Telemetry)
 
 # COMMAND_LONGs ArduCopter 4.4 handles as COMMAND_INT (param5/6 as degE7 int32)
 LONG_AS_INT = frozenset({mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_HOME,
@@ -52,31 +48,58 @@ class _Command:
     compid: int
 
 
-class Commands:
-    """Methods of ``MockAutopilot`` (its state is set up in ``MockAutopilot.__init__``)."""
+class Commands(Part):
+    """``telemetry``: the messages a command asks for and the stream rates it sets."""
+
+    def __init__(self, ctx: MockContext, telemetry: Telemetry):
+        super().__init__(ctx)
+        self.telemetry = telemetry
+        self._replies: list = []  # messages to send after the COMMAND_ACK being built
+
+    def handlers(self) -> Mapping[str, Handler]:
+        return {"COMMAND_LONG": self._on_command_long,
+                "COMMAND_INT": self._on_command_int,
+                "SET_MODE": self._on_set_mode,
+                "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target_local_ned,
+                "SET_POSITION_TARGET_GLOBAL_INT": self._on_set_position_target_global_int}
 
     # ----- commands
+    def _ack(self, link: _Link, msg, command: int, result: int) -> None:
+        link.send(self.ctx.enc.command_ack_encode(
+            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self.ctx.count(f"ack_{mavlink.enums['MAV_RESULT'][result].name[11:].lower()}")
+
+    def _on_set_mode(self, link: _Link, msg) -> None:
+        result = self._set_mode_common(msg.base_mode, msg.custom_mode)
+        self._ack(link, msg, mavlink.MAV_CMD_DO_SET_MODE, result)
+
+    def _set_mode_common(self, base_mode: int, custom_mode: int) -> int:
+        if int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            ok = self.ctx.copter.set_mode(int(custom_mode))
+            return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_FAILED
+        return mavlink.MAV_RESULT_DENIED
+
     def _on_command_long(self, link: _Link, msg) -> None:
-        self._count("commands")
+        self.ctx.count("commands")
         cmd = _Command(msg.command, (msg.param1, msg.param2, msg.param3, msg.param4),
                        msg.param5, msg.param6, msg.param7, None,
                        msg.get_srcSystem(), msg.get_srcComponent())
         self._run_command(link, msg, cmd)
 
     def _on_command_int(self, link: _Link, msg) -> None:
-        self._count("commands")
+        self.ctx.count("commands")
         cmd = _Command(msg.command, (msg.param1, msg.param2, msg.param3, msg.param4),
                        msg.x, msg.y, msg.z, msg.frame,
                        msg.get_srcSystem(), msg.get_srcComponent())
         self._run_command(link, msg, cmd)
 
     def _run_command(self, link: _Link, msg, cmd: _Command) -> None:
-        if cmd.frame is None and cmd.command in LONG_AS_INT and self.copter.armed and not (
+        if cmd.frame is None and cmd.command in LONG_AS_INT and self.ctx.copter.armed and not (
                 math.isfinite(cmd.x) and math.isfinite(cmd.y)):
             # ArduCopter 4.4, armed, converts these COMMAND_LONGs to COMMAND_INT, param5/6 * 1e7
             # to int32: NaN aborts the firmware before it answers (measured on its SITL; when
             # disarmed it answers FAILED and lives)
-            self._crash(f"floating point exception: {mavlink.enums['MAV_CMD'][cmd.command].name} "
+            self.ctx.crash(f"floating point exception: {mavlink.enums['MAV_CMD'][cmd.command].name} "
                         f"with latitude/longitude {cmd.x}, {cmd.y} from {cmd.sysid}/{cmd.compid}")
             return
         # Like ArduPilot, the ACK goes out first and requested messages after it.
@@ -84,7 +107,7 @@ class Commands:
         try:
             result = self._command(link, cmd)
         except (ValueError, OverflowError):  # e.g. NaN where an integer is expected
-            self._count("command_errors")
+            self.ctx.count("command_errors")
             self._replies = []
             result = mavlink.MAV_RESULT_FAILED
         self._ack(link, msg, cmd.command, result)
@@ -103,7 +126,7 @@ class Commands:
     def _flight_command(self, link: _Link, cmd: _Command) -> int | None:
         """Arming, take-off, modes, reposition, termination, reboot; None: not one of these."""
         m = mavlink
-        c = self.copter
+        c = self.ctx.copter
         p1, p2, _, _ = cmd.params
         ok = lambda b: m.MAV_RESULT_ACCEPTED if b else m.MAV_RESULT_FAILED  # noqa: E731
         if cmd.command == m.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -154,23 +177,23 @@ class Commands:
         if cmd.command == m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             if p1 != 1.0:
                 return m.MAV_RESULT_FAILED
-            self._replies.append(self._autopilot_version(link))
+            self._replies.append(self.telemetry.autopilot_version(link))
             return m.MAV_RESULT_ACCEPTED
         if cmd.command == m.MAV_CMD_GET_HOME_POSITION:
-            self._replies.append(self._home_position(link))
-            self._replies.append(self._gps_global_origin(link))
+            self._replies.append(self.telemetry.home_position(link))
+            self._replies.append(self.telemetry.gps_global_origin(link))
             return m.MAV_RESULT_ACCEPTED
         if cmd.command == m.MAV_CMD_DO_SET_HOME:
             return self._do_set_home(cmd)
         if cmd.command == m.MAV_CMD_DO_SEND_BANNER:
-            self._banner(link)
+            self.telemetry.banner(link)
             return m.MAV_RESULT_ACCEPTED
         return None
 
     def _setting_command(self, link: _Link, cmd: _Command) -> int | None:
         """Yaw and speed; None: not one of these."""
         m = mavlink
-        c = self.copter
+        c = self.ctx.copter
         p1, p2, _, p4 = cmd.params
         if cmd.command == m.MAV_CMD_CONDITION_YAW:
             if 0.0 <= p1 <= 360.0 and p4 in (0.0, 1.0):
@@ -194,15 +217,15 @@ class Commands:
         if frame in _ABSOLUTE_FRAMES:
             alt_amsl = alt
         elif frame in _RELATIVE_FRAMES or frame in _TERRAIN_FRAMES:
-            alt_amsl = self.copter.home[2] + alt  # flat terrain at home altitude
+            alt_amsl = self.ctx.copter.home[2] + alt  # flat terrain at home altitude
         else:
             return None
-        return self.copter.ned_from_geodetic(lat_e7 * 1e-7, lon_e7 * 1e-7, alt_amsl)
+        return self.ctx.copter.ned_from_geodetic(lat_e7 * 1e-7, lon_e7 * 1e-7, alt_amsl)
 
     def _do_reposition(self, cmd: _Command) -> int:
         """GCS_MAVLINK_Copter::handle_command_int_do_reposition."""
         m = mavlink
-        c = self.copter
+        c = self.ctx.copter
         change_mode = int(cmd.params[1]) & m.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
         if c.mode != Mode.GUIDED and not change_mode:
             return m.MAV_RESULT_DENIED
@@ -224,7 +247,7 @@ class Commands:
         m = mavlink
         p1 = cmd.params[0]
         if p1 == 1.0 or (cmd.x == 0 and cmd.y == 0):
-            self.copter.set_home(None)
+            self.ctx.copter.set_home(None)
             return m.MAV_RESULT_ACCEPTED
         if p1 != 0.0:
             return m.MAV_RESULT_FAILED
@@ -235,18 +258,18 @@ class Commands:
             if cmd.frame in _ABSOLUTE_FRAMES:
                 alt = cmd.z
             elif cmd.frame in _RELATIVE_FRAMES:
-                alt = self.copter.home[2] + cmd.z
+                alt = self.ctx.copter.home[2] + cmd.z
             else:
                 return m.MAV_RESULT_DENIED
         if not _check_latlng(lat * 1e7, lon * 1e7):
             return m.MAV_RESULT_FAILED
-        self.copter.set_home((lat, lon, alt))
+        self.ctx.copter.set_home((lat, lon, alt))
         return m.MAV_RESULT_ACCEPTED
 
     def _msg_name(self, msgid: int) -> Optional[str]:
         cls = mavlink.mavlink_map.get(msgid)
         name = cls.msgname if cls is not None else None
-        return name if name in self._msg_builders else None
+        return name if name in self.telemetry.builders else None
 
     def _request_message(self, link: _Link, msgid: int) -> int:
         name = self._msg_name(msgid)
@@ -254,7 +277,7 @@ class Commands:
             if msgid == mavlink.MAVLINK_MSG_ID_PARAM_VALUE:
                 return mavlink.MAV_RESULT_ACCEPTED  # ArduPilot: "send the next param"; no-op
             return mavlink.MAV_RESULT_FAILED
-        msg = self._msg_builders[name](link)
+        msg = self.telemetry.builders[name](link)
         if msg is not None:
             self._replies.append(msg)
         return mavlink.MAV_RESULT_ACCEPTED
@@ -264,32 +287,33 @@ class Commands:
         if interval_us == 0:  # back to the default rate
             if name is None:
                 return mavlink.MAV_RESULT_FAILED
-            self._set_interval(link, name, self._default_intervals(link.port_index).get(name, 0.0))
+            tm = self.telemetry
+            tm.set_interval(link, name, tm.default_intervals(link.port_index).get(name, 0.0))
             return mavlink.MAV_RESULT_ACCEPTED
         if name is None:
-            self.copter.text(mavlink.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})")
+            self.ctx.copter.text(mavlink.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})")
             return mavlink.MAV_RESULT_DENIED
         if interval_us < 0:
-            self._set_interval(link, name, 0.0)
+            self.telemetry.set_interval(link, name, 0.0)
         else:
-            self._set_interval(link, name, max(interval_us, 1000.0) * 1e-6)
+            self.telemetry.set_interval(link, name, max(interval_us, 1000.0) * 1e-6)
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _get_message_interval(self, link: _Link, msgid: int) -> int:
         name = self._msg_name(msgid)
         if name is None:
-            self._replies.append(self._enc().message_interval_encode(msgid, 0))
+            self._replies.append(self.ctx.enc.message_interval_encode(msgid, 0))
             return mavlink.MAV_RESULT_FAILED
         iv = link.intervals.get(name, 0.0)
         interval_us = int(iv * 1e6) if iv > 0 else -1
-        self._replies.append(self._enc().message_interval_encode(msgid, interval_us))
+        self._replies.append(self.ctx.enc.message_interval_encode(msgid, interval_us))
         return mavlink.MAV_RESULT_ACCEPTED
 
     # ----- position targets (GCS_MAVLINK_Copter::handle_message_set_position_target_*)
     def _on_set_position_target_local_ned(self, link: _Link, msg) -> None:
-        c = self.copter
+        c = self.ctx.copter
         if c.mode != Mode.GUIDED:
-            self._count("setpoint_ignored")
+            self.ctx.count("setpoint_ignored")
             return
         mask = msg.type_mask
         if msg.coordinate_frame not in _LOCAL_FRAMES:
@@ -318,9 +342,9 @@ class Commands:
         self._apply_setpoint(mask, pos, vel, acc, yaw, yaw_rate)
 
     def _on_set_position_target_global_int(self, link: _Link, msg) -> None:
-        c = self.copter
+        c = self.ctx.copter
         if c.mode != Mode.GUIDED:
-            self._count("setpoint_ignored")
+            self.ctx.count("setpoint_ignored")
             return
         mask = msg.type_mask
         pos = vel = acc = None
@@ -365,12 +389,12 @@ class Commands:
             target = GuidedTarget("pos", pos=pos)
         else:
             return self._reject_setpoint()  # e.g. pos+accel, or nothing at all
-        self.copter.set_guided(replace(target, yaw=yaw, yaw_rate=yaw_rate))
-        self._count("setpoint_accepted")
+        self.ctx.copter.set_guided(replace(target, yaw=yaw, yaw_rate=yaw_rate))
+        self.ctx.count("setpoint_accepted")
 
     def _reject_setpoint(self) -> None:
-        self.copter.guided_hold()
-        self._count("setpoint_rejected")
+        self.ctx.copter.guided_hold()
+        self.ctx.count("setpoint_rejected")
 
 
 def _check_latlng(lat_e7: float, lon_e7: float) -> bool:

@@ -179,12 +179,7 @@ class Rig:
                              boot=BootTimeline() if cfg.ready_s is None else BootTimeline.scaled(cfg.ready_s))
 
     def _spy(self, on_setpoint) -> None:
-        handle = self.ap._on_set_position_target_local_ned
-
-        def spy(link, msg):
-            on_setpoint(self.ap.copter.t, msg)
-            handle(link, msg)
-        self.ap._on_set_position_target_local_ned = spy
+        self.ap.watch("SET_POSITION_TARGET_LOCAL_NED", lambda msg: on_setpoint(self.ap.copter.t, msg))
 
     def start_autopilot(self):
         self.ap.start()

@@ -50,16 +50,14 @@ def flight():
     port = app.link.conn.port.getsockname()[1]
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=3.0, seed=5, params=DEMO_VEHICLE_PARAMS,
                        endpoints=[f"udpout:127.0.0.1:{port}"], max_lag_s=0.1, boot=BootTimeline.scaled(3.0))
-    orig = ap._on_set_position_target_local_ned
 
-    def spy(link, msg):  # where the setpoint lands: home = mission origin, NED = (north, east, -up)
+    def spy(msg):  # where the setpoint lands: home = mission origin, NED = (north, east, -up)
         p = np.array([msg.y, msg.x, -msg.z])
         out["rx"].append((ap.copter.t, p))
         band = (app.params["PMON_ALT_MIN"], app.params["PMON_ALT_MAX"])
         if np.any(p < lo) or np.any(p > hi) or not band[0] <= p[2] <= band[1] or inflated.contains(p[None]).any():
             out["outside"].append(p.round(1).tolist())
-        orig(link, msg)
-    ap._on_set_position_target_local_ned = spy
+    ap.watch("SET_POSITION_TARGET_LOCAL_NED", spy)
     ap.start()
     df = ScriptedDf(ap, app.sensor_port, np.array([t.mean for t in sc.targets])).start()
     url = f"udpout:127.0.0.1:{port}"

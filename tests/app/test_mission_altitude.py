@@ -43,12 +43,8 @@ def flight():
     ap = MockAutopilot(home=(o.lat_deg, o.lon_deg, o.alt_m), speedup=SPEEDUP, seed=5,
                        endpoints=["tcpin:127.0.0.1:0"] * 2, params=DEMO_VEHICLE_PARAMS, max_lag_s=0.1,
                        boot=BootTimeline.scaled(3.0))
-    orig = ap._on_set_position_target_local_ned
-
-    def spy(link, msg):  # home = the mission origin: NED z = -up
-        out["rx"].append((ap.copter.t, -msg.z))
-        orig(link, msg)
-    ap._on_set_position_target_local_ned = spy
+    # home = the mission origin: NED z = -up
+    ap.watch("SET_POSITION_TARGET_LOCAL_NED", lambda msg: out["rx"].append((ap.copter.t, -msg.z)))
     ap.start()
     vehicle_threads(ap._thread)  # scheduled as a flight is (sim/firmware/priority.py)
     app = df = gcs = None

@@ -227,6 +227,18 @@ def test_rejected_type_mask_or_frame_makes_it_hold(ap, gcs):
     assert ap.counters()["setpoint_ignored"] == 1
 
 
+@pytest.mark.timeout(20)
+def test_watch_sees_a_message_before_its_handler(ap, gcs):
+    seen = []  # (x, setpoints ignored when seen): the handler has not run yet
+    ap.watch("SET_POSITION_TARGET_LOCAL_NED",
+             lambda msg: seen.append((msg.x, ap.counters().get("setpoint_ignored", 0))))
+    gcs.local_target(POS_ONLY, 7.0, 0.0, -10.0)  # not GUIDED: counted and ignored
+    assert ap.wait_until(lambda s: ap.counters().get("setpoint_ignored", 0) == 1, 3.0)
+    assert seen == [(7.0, 0)]
+    with pytest.raises(KeyError):
+        ap.watch("NO_SUCH_MESSAGE", print)
+
+
 @pytest.mark.timeout(30)
 def test_command_ack_results_match_arducopter(ap, gcs):
     m = mavlink
