@@ -33,6 +33,7 @@ from onboard.app.context import AppContext
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
 from onboard.app.gcs.dispatch import ack
 from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 
 log = logging.getLogger("pmon.app")
 MODE_WAIT_S = 3.0  # autopilot s the vehicle has to reach the mission mode after it is first asked for
@@ -53,7 +54,7 @@ class ModeEntry:
     asked_t: float = -math.inf
 
 
-class StateMachine:
+class StateMachine(Part):
     """``autopilot``: the autopilot side; ``publisher``: says and heartbeats; ``stream``: the
     setpoint stream; ``limits``: the plan limits (their warning is said again at start);
     ``scans``: the scan buffer (start needs fresh DF data); ``ctx``: the app's link, clock,
@@ -301,6 +302,10 @@ class StateMachine:
             self.say(f"NED origin moved {off_m:.0f} m: refused", mavlink.MAV_SEVERITY_CRITICAL, once="origin_moved")
 
     # ----- periodic jobs (io thread, under the lock)
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic mode", lambda local, now: self.periodic_mode(now), clocked=True),
+                Job("periodic launch", lambda local, now: self.periodic_launch(now), clocked=True))
+
     def periodic_mode(self, now: float) -> None:
         """Ask for the mission mode while entering it (until HEARTBEAT shows it or the deadline),
         and for the release mode while it is not shown."""

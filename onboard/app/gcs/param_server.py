@@ -8,9 +8,10 @@ from typing import Callable
 
 from onboard.app.mavlink_connection import Link, mavlink, param_name
 from onboard.app.params import ParamTable
+from onboard.app.part import Handler, Part
 
 
-class ParamServer:
+class ParamServer(Part):
     """``on_change(name)``: called after an accepted set."""
 
     def __init__(self, link: Link, params: ParamTable, say, on_change: Callable[[str], None]):
@@ -18,6 +19,10 @@ class ParamServer:
         self.params = params
         self.say = say
         self.on_change = on_change
+
+    def handlers(self) -> dict[str, Handler]:
+        return {"PARAM_REQUEST_LIST": self.on_request_list, "PARAM_REQUEST_READ": self.on_request_read,
+                "PARAM_SET": self.on_set}
 
     def send_value(self, name: str, index: int | None = None) -> None:
         p = self.params

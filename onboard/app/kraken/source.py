@@ -38,6 +38,7 @@ from onboard.app.autopilot.clock import HostTime
 from onboard.app.df.datagram import MAX_AGE_S, MAX_FUTURE_S, Datagram, DatagramError, ScanBuffer
 from onboard.app.kraken.fetch import DocumentPoller, status_url_for
 from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 from onboard.core import doa
 from onboard.settings import ConfigError
 
@@ -331,7 +332,7 @@ class KrakenSource:
         return doa.clutter_rate(counts, self.p_detect(), min(lo, self.cfg.clutter_max), self.cfg.clutter_max)
 
 
-class KrakenInput:
+class KrakenInput(Part):
     """The app's KrakenSDR input, one of its parts (onboard/app/app.py): the poller thread and the
     source. ``drain`` and ``periodic`` run on the io thread under the app lock. ``scenario``: its
     ``kraken`` section and targets; ``autopilot``: the autopilot side (its poses and UTC);
@@ -369,6 +370,9 @@ class KrakenInput:
                 self.source.offer(kind, doc)
             finally:
                 self.handled += 1
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic KrakenSDR", lambda local, now: self.periodic(now)),)
 
     def periodic(self, now: float | None) -> None:
         self.source.tick(now)
