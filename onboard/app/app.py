@@ -155,9 +155,8 @@ class OnboardApp:
                                  self.tick_log, tick)
         self.schedule = TickSchedule(ctx, self.scans, self.worker)
         self.df_scans = DfScans(self.df, self.scans, self.clock, self.counters, say)
-        self.kraken = KrakenInput(scenario, self.clock, self.autopilot, self.scans, self.params, say) \
-            if cfg.kraken else None
-        self.param_server = ParamServer(self.link, self.params, say, lambda name: self.limits.check())
+        self.kraken = KrakenInput(ctx, scenario, self.autopilot, self.scans) if cfg.kraken else None
+        self.param_server = ParamServer(ctx, lambda name: self.limits.check())
         commands = Commands(self.link, self.publisher.publish_stat, self.machine.on_command)
         # in the order their periodic jobs run (a job's place is its timing: the schedule hands
         # out the tick before the stream re-sends the setpoint)

@@ -35,6 +35,7 @@ import numpy as np
 
 from onboard.app.kraken import line as kl
 from onboard.app.autopilot.clock import HostTime
+from onboard.app.context import AppContext
 from onboard.app.df.datagram import MAX_AGE_S, MAX_FUTURE_S, Datagram, DatagramError, ScanBuffer
 from onboard.app.kraken.fetch import DocumentPoller, status_url_for
 from onboard.app.mavlink_connection import mavlink
@@ -336,15 +337,16 @@ class KrakenInput(Part):
     """The app's KrakenSDR input, one of its parts (onboard/app/app.py): the poller thread and the
     source. ``drain`` and ``periodic`` run on the io thread under the app lock. ``scenario``: its
     ``kraken`` section and targets; ``autopilot``: the autopilot side (its poses and UTC);
-    ``scans``: the scan buffer the tick schedule takes from; ``params``: PMON_PD and
-    PMON_CLUTTER (the adaptive clutter's); ``say``: STATUSTEXT."""
+    ``scans``: the scan buffer the tick schedule takes from; ``ctx``: the app's clock, its
+    parameters (PMON_PD and PMON_CLUTTER, the adaptive clutter's) and voice."""
 
-    def __init__(self, scenario, clock, autopilot, scans: ScanBuffer, params, say):
+    def __init__(self, ctx: AppContext, scenario, autopilot, scans: ScanBuffer):
+        clock, params = ctx.clock, ctx.params
         cfg = scenario.kraken
         if not cfg.vfos:
             raise ConfigError("kraken.vfos: none: which VFO frequency is which target? (docs/KRAKENSDR.md)")
         self.url = cfg.url
-        self.say = say
+        self.say = ctx.say
         try:
             self.poller = DocumentPoller(cfg.url, status_url_for(cfg.url, cfg.status_url), cfg.poll_s,
                                          prepare={"doa": kl.parse_document})
