@@ -18,7 +18,11 @@ that own their state (each in its module):
   tick log         tick/log.py                    tick records, run log, listeners
   watchdog         tick/watchdog.py               a stuck loop or tick, reported
 
-This module wires them and runs the threads (all daemon; ``stop()`` joins them):
+Each part gets the app's shared context (context.py: config, link, clocks, parameters, counters,
+voice, lock) and keeps one contract (part.py): the MAVLink types it handles (``handlers()``; the
+router dispatches on message type) and its periodic jobs (``jobs()``, each ``run(local_s,
+now_s)``). This module builds them, holds them in ``parts`` in the order their jobs run, and
+runs the threads (all daemon; ``stop()`` joins them):
   io      MAVLink in, DF datagrams in (parsed), and every periodic job on the autopilot clock:
           heartbeat, setpoint re-send, tick scheduling, launch sequence, link watchdog,
           PMON_STAT. Each message, datagram and job is its own contained handler
@@ -62,12 +66,13 @@ from onboard.app.contract import ADVICE_FIELDS, KRAKEN_STAT_FIELDS, STAT_FIELDS,
 from onboard.app.counters import Counters
 from onboard.app.df.udp_input import DfInput
 from onboard.app.df.scans import DfScans
-from onboard.app.gcs.dispatch import Router
+from onboard.app.gcs.dispatch import Commands, Router
 from onboard.app.kraken.source import KrakenInput
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.tick.core_side import MonitorCore
 from onboard.app.gcs.param_server import ParamServer
 from onboard.app.params import SPECS, ParamTable
+from onboard.app.part import Job, Part
 from onboard.app.autopilot.plan_limits import PlanLimits
 from onboard.app.autopilot.pose import Frame
 from onboard.app.tick.overrun import stage_code
@@ -129,7 +134,6 @@ class OnboardApp:
             raise
         self.errors = Contained(log, on_first=self._say_error)  # io-thread handler errors by kind
         self._io_beat = self.mono()
-        self._sched_beat = self.mono()  # the tick schedule job last ran to its end (local s)
         self.realtime: dict[str, Outcome] = {}  # per real-time thread: its SCHED_FIFO, or why not
         self.notifier = Notifier.from_env()  # systemd's notify socket (a service), else None
         self._ready_sent = False
@@ -145,19 +149,22 @@ class OnboardApp:
         self.autopilot = AutopilotSide(ctx, Frame(o.lat_deg, o.lon_deg, o.alt_m), vehicle, self, self.events_meta)
         self.limits = PlanLimits(scenario, self.params, vehicle, say)
         self.core = MonitorCore(scenario, self.params, self.limits, np.random.default_rng(cfg.seed))
-        self.stream = SetpointStream(self.link, self.autopilot, self.params, lambda: self.core.setup,
-                                     self.counters, say, self.mono)
+        self.stream = SetpointStream(ctx, self.autopilot, lambda: self.core.setup, lambda: self.machine.may_stream())
         self.machine = StateMachine(ctx, self.autopilot, self.publisher, self.stream, self.limits, self.scans)
         self.worker = TickWorker(ctx, self.core, self.autopilot, self.machine, self.stream, self.publisher,
                                  self.tick_log, tick)
-        self.schedule = TickSchedule(self.scans, self.params, self.clock, self.mono, self.worker,
-                                     self.counters, say)
+        self.schedule = TickSchedule(ctx, self.scans, self.worker)
         self.df_scans = DfScans(self.df, self.scans, self.clock, self.counters, say)
-        self.kraken = KrakenInput(scenario, self.clock, self.autopilot, self.scans, self.params, say) \
-            if cfg.kraken else None
-        self.param_server = ParamServer(self.link, self.params, say, lambda name: self.limits.check())
-        self.router = Router(self.link, self.autopilot, self.machine, self.param_server,
-                             self.publisher.publish_stat, cfg.gcs_sysids, self.counters, say)
+        self.kraken = KrakenInput(ctx, scenario, self.autopilot, self.scans) if cfg.kraken else None
+        self.param_server = ParamServer(ctx, lambda name: self.limits.check())
+        commands = Commands(self.link, self.publisher.publish_stat, self.machine.on_command)
+        # in the order their periodic jobs run (a job's place is its timing: the schedule hands
+        # out the tick before the stream re-sends the setpoint)
+        self.parts: list[Part] = [self.publisher, self.autopilot, commands, self.param_server, self.df_scans,
+                                  *([self.kraken] if self.kraken is not None else []), self.machine,
+                                  self.schedule, self.stream]
+        self.jobs: tuple[Job, ...] = tuple(job for part in self.parts for job in part.jobs())
+        self.router = Router(ctx, self.autopilot, self.parts)
         self.watchdog = Watchdog(cfg.watchdog_s, self.publisher.alarm, lambda: getattr(self.clock, "rate", 1.0),
                                  lambda: self.params.settings.app.scan_wait_s)
 
@@ -355,30 +362,14 @@ class OnboardApp:
             self.publisher.say(f"error in {kind}"[:44], mavlink.MAV_SEVERITY_ERROR)
 
     def _periodic(self) -> None:
-        """Every job on its own: one that raises is counted and the others still run (the
-        tick schedule and the setpoint stream above all). io thread, under the lock."""
+        """The parts' jobs in order, each on its own: one that raises is counted and the others
+        still run (the tick schedule and the setpoint stream above all); a clocked job waits for
+        the autopilot's clock. io thread, under the lock."""
         local = self.mono()
         now = self.clock.now()
-        self._handle("periodic heartbeat", self.publisher.beat, local)
-        self._handle("periodic telemetry", self.autopilot.periodic_requests, local)
-        self._handle("periodic signing", self.autopilot.periodic_signing, local)
-        self._handle("periodic link", self.autopilot.periodic_link, local)
-        self._handle("periodic clock", self.autopilot.periodic_clock, now)
-        self._handle("periodic DF input", self.df_scans.report)
-        if self.kraken is not None:
-            self._handle("periodic KrakenSDR", self.kraken.periodic, now)
-        if now is None:
-            self._sched_beat = self.mono()  # nothing to schedule before the first clock sample
-            return
-        self._handle("periodic mode", self.machine.periodic_mode, now)
-        self._handle("periodic launch", self.machine.periodic_launch, now)
-        if self._handle("tick schedule", self.schedule.run, now):
-            self._sched_beat = self.mono()
-        self._handle("setpoint stream", self._stream_setpoint, now)
-
-    def _stream_setpoint(self, now: float) -> None:
-        if self.machine.may_stream():
-            self.stream.stream(now)
+        for job in self.jobs:
+            if now is not None or not job.clocked:
+                self._handle(job.where, job.run, local, now)
 
     # ------------------------------------------------------------------ the service manager
     def _service_beat(self) -> None:
@@ -400,7 +391,7 @@ class OnboardApp:
     # ------------------------------------------------------------------ watchdog thread
     def _watchdog_loop(self) -> None:
         while not self._stop.wait(0.1):
-            self.watchdog.check(Health(self.mono(), self.clock.now(), self._io_beat, self._sched_beat,
+            self.watchdog.check(Health(self.mono(), self.clock.now(), self._io_beat, self.schedule.ran_local,
                                        self.schedule.submitted_t, self.schedule.last_tick_t, self.worker.running))
 
 

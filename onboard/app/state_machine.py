@@ -29,10 +29,12 @@ import math
 from dataclasses import dataclass
 
 from onboard.app.autopilot import launch
+from onboard.app.autopilot.profiles import AutopilotProfile
 from onboard.app.context import AppContext
 from onboard.app.contract import MAV_CMD_PMON, REASON_TEXT, Action, Reason, State
 from onboard.app.gcs.dispatch import ack
 from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 
 log = logging.getLogger("pmon.app")
 MODE_WAIT_S = 3.0  # autopilot s the vehicle has to reach the mission mode after it is first asked for
@@ -53,7 +55,7 @@ class ModeEntry:
     asked_t: float = -math.inf
 
 
-class StateMachine:
+class StateMachine(Part):
     """``autopilot``: the autopilot side; ``publisher``: says and heartbeats; ``stream``: the
     setpoint stream; ``limits``: the plan limits (their warning is said again at start);
     ``scans``: the scan buffer (start needs fresh DF data); ``ctx``: the app's link, clock,
@@ -76,6 +78,12 @@ class StateMachine:
         self.release_until = -math.inf  # autopilot s: asking for the release mode until then
         self.release_asked_t = -math.inf
         self.launch: launch.Launch | None = None
+
+    @property
+    def profile(self) -> AutopilotProfile:
+        """The served autopilot's profile (onboard/app/autopilot/profiles.py): its modes and what
+        they need. Read each time: the first HEARTBEAT picks it."""
+        return self.autopilot.vehicle.profile
 
     # ----- what the state allows
     def commanding(self) -> bool:
@@ -100,10 +108,10 @@ class StateMachine:
         """The setpoints stop: where the mission mode needs them to hold the vehicle, hand it to
         the profile's release mode (PX4: Hold) instead of letting the autopilot's failsafe act."""
         v = self.autopilot.vehicle
-        if v.profile.release_mode is not None and v.in_mission_mode() and not self.autopilot.link_lost:
+        if self.profile.release_mode is not None and v.in_mission_mode() and not self.autopilot.link_lost:
             now = self.clock.now() or 0.0
             self.release_until, self.release_asked_t = now + RELEASE_S, now
-            self.autopilot.set_mode(v.profile.release_mode)
+            self.autopilot.set_mode(self.profile.release_mode)
 
     # ----- commands (MAV_CMD_PMON, param1 = action)
     def on_command(self, msg) -> None:
@@ -150,14 +158,14 @@ class StateMachine:
         self.release_until = -math.inf
         if self.limits.warning:  # said again where an operator starting the mission hears it
             self.say(self.limits.warning, mavlink.MAV_SEVERITY_WARNING)
-        mode = v.profile.mission_mode
+        mode = self.profile.mission_mode
         if v.in_mission_mode():
             self.entry = None
             self.say("monitoring started")
             return
         # take the vehicle into the mission mode; not an override until it is there (or refuses)
         now = self.clock.now() or 0.0
-        lead = v.profile.mode_lead_s
+        lead = self.profile.mode_lead_s
         self.entry = ModeEntry(now + lead, now + lead + MODE_WAIT_S, v.custom_mode)
         if lead > 0.0 and not self._hold_here(now):
             return
@@ -177,7 +185,7 @@ class StateMachine:
         else:
             refused = "no position"
         self.set_state(State.PAUSED)
-        self.say(f"cannot hold here to enter {self.autopilot.vehicle.profile.mission_mode} ({refused}): paused",
+        self.say(f"cannot hold here to enter {self.profile.mission_mode} ({refused}): paused",
                  mavlink.MAV_SEVERITY_WARNING)
         return False
 
@@ -243,7 +251,7 @@ class StateMachine:
             return mavlink.MAV_RESULT_DENIED, Reason.ALREADY_FLYING
         # accepted from the autopilot's boot on: the sequence waits for its position and pre-arm
         # checks itself (onboard/app/autopilot/launch.py), so the operator never has to try again
-        p = v.profile
+        p = self.profile
         self.launch = launch.Launch(altitude_m=self.params.settings.uav.altitude_m, launch_mode=p.launch_mode)
         then = "" if p.mission_mode == p.launch_mode else f", {p.mission_mode}"
         self.say(f"launch: {p.launch_mode}, arm, take off{then}")
@@ -258,14 +266,14 @@ class StateMachine:
         if self.entry is not None:
             if v.in_mission_mode():
                 self.entry = None
-                self.say(f"{v.profile.mission_mode}: monitoring")
+                self.say(f"{self.profile.mission_mode}: monitoring")
                 return
             # the mode it started from, or the autopilot's own launch modes (PX4 ending its
             # take-off in Hold), are not a pilot's
-            if v.armed and (v.custom_mode == self.entry.from_mode or v.profile.in_launch_mode(v.custom_mode, own=True)):
+            if v.armed and (v.custom_mode == self.entry.from_mode or self.profile.in_launch_mode(v.custom_mode, own=True)):
                 return
         if not v.in_mission_mode() or not v.armed:
-            why = "disarmed" if not v.armed else f"mode {v.profile.mode_name(v.custom_mode)}"
+            why = "disarmed" if not v.armed else f"mode {self.profile.mode_name(v.custom_mode)}"
             self.set_state(State.PILOT_OVERRIDE)
             self.say(f"pilot override ({why}): setpoints stopped", mavlink.MAV_SEVERITY_WARNING)
 
@@ -301,6 +309,10 @@ class StateMachine:
             self.say(f"NED origin moved {off_m:.0f} m: refused", mavlink.MAV_SEVERITY_CRITICAL, once="origin_moved")
 
     # ----- periodic jobs (io thread, under the lock)
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic mode", lambda local, now: self.periodic_mode(now), clocked=True),
+                Job("periodic launch", lambda local, now: self.periodic_launch(now), clocked=True))
+
     def periodic_mode(self, now: float) -> None:
         """Ask for the mission mode while entering it (until HEARTBEAT shows it or the deadline),
         and for the release mode while it is not shown."""
@@ -310,15 +322,15 @@ class StateMachine:
                 answer = mavlink.enums["MAV_RESULT"].get(v.mode_ack)
                 said = answer.name.removeprefix("MAV_RESULT_") if answer is not None else "nothing"
                 self.set_state(State.PAUSED)
-                self.say(f"{v.profile.mission_mode} not entered in {now - e.ask_t:.0f} s (the autopilot answered "
-                         f"{said}, it is in {v.profile.mode_name(v.custom_mode)}): paused", mavlink.MAV_SEVERITY_WARNING)
+                self.say(f"{self.profile.mission_mode} not entered in {now - e.ask_t:.0f} s (the autopilot answered "
+                         f"{said}, it is in {self.profile.mode_name(v.custom_mode)}): paused", mavlink.MAV_SEVERITY_WARNING)
             elif now >= e.ask_t and now - e.asked_t >= MODE_RETRY_S:
                 e.asked_t = now
                 self.autopilot.set_mission_mode()
         elif now < self.release_until and v.in_mission_mode() and self.state != State.MONITORING \
                 and not self.autopilot.link_lost and now - self.release_asked_t >= MODE_RETRY_S:
             self.release_asked_t = now
-            self.autopilot.set_mode(v.profile.release_mode)
+            self.autopilot.set_mode(self.profile.release_mode)
 
     def periodic_launch(self, now: float) -> None:
         if self.auto_launch and self.state == State.IDLE and self.launch is None \
@@ -335,9 +347,9 @@ class StateMachine:
             else REASON_TEXT[reason]  # NOT_FLYING: the take-off is not reported done yet
         return launch.VehicleView(
             position=pose is not None and v.ned_origin is not None and v.lat_lon_deg is not None,
-            in_launch_mode=v.profile.in_launch_mode(v.custom_mode),
-            in_own_mode=v.profile.in_launch_mode(v.custom_mode, own=True),
-            mode_name=v.profile.mode_name(v.custom_mode), armed=v.armed,
+            in_launch_mode=self.profile.in_launch_mode(v.custom_mode),
+            in_own_mode=self.profile.in_launch_mode(v.custom_mode, own=True),
+            mode_name=self.profile.mode_name(v.custom_mode), armed=v.armed,
             up_m=None if pose is None else float(pose.pos[2]),
             home_up_m=ap.home_up_m(), climbing=v.landed_state in (mavlink.MAV_LANDED_STATE_TAKEOFF,
                                                                 mavlink.MAV_LANDED_STATE_IN_AIR),
@@ -353,7 +365,7 @@ class StateMachine:
             if isinstance(a, launch.Say):
                 self.say(a.text, SEVERITY[a.level], once=None if a.once is None else f"launch:{a.once}")
             elif a[0] == "mode":
-                self.autopilot.set_mode(self.autopilot.vehicle.profile.launch_mode)
+                self.autopilot.set_mode(self.profile.launch_mode)
             elif a[0] == "arm":
                 self.autopilot.arm()
             elif a[0] == "takeoff":

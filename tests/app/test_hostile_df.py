@@ -174,7 +174,7 @@ def test_an_error_in_any_handler_is_counted_and_the_schedule_runs_regardless(cap
             raise OverflowError("injected")
         return real_offer(data, now)
     monkeypatch.setattr(app.scans, "offer", offer)
-    monkeypatch.setitem(app.router.for_app, "PARAM_REQUEST_READ", lambda msg: 1 / 0)
+    monkeypatch.setitem(app.router.handlers, "PARAM_REQUEST_READ", [lambda msg: 1 / 0])
     df, hostile = _sender(), _sender()
     url = f"udpout:127.0.0.1:{app.link.conn.port.getsockname()[1]}"
     autopilot = mavutil.mavlink_connection(url, source_system=1, source_component=1, dialect="ardupilotmega")

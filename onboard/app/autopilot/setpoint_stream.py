@@ -23,13 +23,14 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
-from onboard.app.counters import Counters
 from onboard.app.autopilot.fence import Fence, outgoing_violation, violation
-from onboard.app.mavlink_connection import Link, mavlink
-from onboard.app.params import ParamTable
+from onboard.app.context import AppContext
+from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 from onboard.core.setpoint import plan_setpoint
 
 POSITION_ONLY = 3576  # type_mask: velocity, acceleration, yaw, yaw rate ignored
@@ -81,18 +82,21 @@ def message(mav, now: float, sysid: int, compid: int, ned_pos, ned_vel=None, ned
         mask, *(float(x) for x in ned_pos), *(float(x) for x in vel), *(float(x) for x in acc), 0.0, 0.0)
 
 
-class SetpointStream:
+class SetpointStream(Part):
     """``autopilot``: the autopilot side (its vehicle, frame and fixed origin); ``setup()``: the
-    core setup now (its area and obstacles make the fence)."""
+    core setup now (its area and obstacles make the fence); ``may_stream()``: whether the
+    setpoint may be re-sent now (the state machine's); ``ctx``: the app's link, parameters,
+    counters, voice and local clock."""
 
-    def __init__(self, link: Link, autopilot, params: ParamTable, setup, counters: Counters, say, mono):
-        self.link = link
+    def __init__(self, ctx: AppContext, autopilot, setup: Callable[[], object], may_stream: Callable[[], bool]):
+        self.link = ctx.link
         self.autopilot = autopilot
-        self.params = params
+        self.params = ctx.params
         self.setup = setup
-        self.counters = counters
-        self.say = say
-        self.mono = mono
+        self.may_stream = may_stream
+        self.counters = ctx.counters
+        self.say = ctx.say
+        self.mono = ctx.mono
         self.setpoint: np.ndarray | None = None  # ENU, m, checked safe: the planned next point
         self.segment: PlannedSegment | None = None  # vehicle motion: the plan to it
         self.next_t = -np.inf  # autopilot s of the next re-send
@@ -122,6 +126,13 @@ class SetpointStream:
             self.setpoint, self.segment = previous
             return sent, "refused as sent"
         return sent, None
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("setpoint stream", self.periodic, clocked=True),)
+
+    def periodic(self, local: float, now: float) -> None:
+        if self.may_stream():
+            self.stream(now)
 
     def stream(self, now: float) -> None:
         """The periodic re-send (the caller decides whether the app commands now)."""

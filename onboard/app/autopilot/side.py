@@ -14,6 +14,7 @@ from onboard.app.autopilot.profiles import profile_for
 from onboard.app.autopilot.clock import UtcMap
 from onboard.app.context import AppContext
 from onboard.app.mavlink_connection import mavlink, param_name
+from onboard.app.part import Handler, Job, Part
 from onboard.app.autopilot.pose import (
     FixedOrigin,
     Frame,
@@ -49,7 +50,7 @@ class AutopilotEvents(Protocol):
     def on_limits(self) -> None: ...  # a speed / acceleration / jerk limit was read
 
 
-class AutopilotSide:
+class AutopilotSide(Part):
     """``ctx``: the app's shared parts (its link, clocks, counters, voice; the config's
     ``target_system`` and ``link_timeout_s``); ``frame``: the mission's ENU frame; ``events``:
     who hears what the autopilot did."""
@@ -127,6 +128,20 @@ class AutopilotSide:
         return None if pose is None or rel is None else float(pose.pos[2] - rel)
 
     # ----- MAVLink in (the router, onboard/app/gcs/dispatch.py, calls these by message type)
+    def handlers(self) -> dict[str, Handler]:
+        return {
+            "HEARTBEAT": self.on_heartbeat,  # from anyone: the autopilot is picked here
+            "GLOBAL_POSITION_INT": self.on_global_position_int,
+            "SYSTEM_TIME": self.on_system_time,
+            "SYS_STATUS": self.on_sys_status,
+            "STATUSTEXT": self.on_statustext,
+            "EXTENDED_SYS_STATE": self.on_extended_sys_state,
+            "GPS_GLOBAL_ORIGIN": self.on_gps_global_origin,
+            "COMMAND_ACK": self.on_command_ack,
+            "PARAM_VALUE": self.on_param_value,
+            "UNKNOWN_410": self.on_event,  # PX4's EVENT, not in pymavlink 2.4.50's dialects
+        }
+
     def on_heartbeat(self, msg) -> None:
         if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in (
                 mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER):
@@ -323,6 +338,12 @@ class AutopilotSide:
         self.say("autopilot rebooted: DF scan times start over", mavlink.MAV_SEVERITY_WARNING)
 
     # ----- periodic jobs (io thread, under the lock)
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic telemetry", lambda local, now: self.periodic_requests(local)),
+                Job("periodic signing", lambda local, now: self.periodic_signing(local)),
+                Job("periodic link", lambda local, now: self.periodic_link(local)),
+                Job("periodic clock", lambda local, now: self.periodic_clock(now)))
+
     def periodic_signing(self, local: float) -> None:
         """What signing keeps out, said once each: no autopilot yet while unsigned packets are
         refused (one that cannot sign is heard only with --autopilot-unsigned), and a sender

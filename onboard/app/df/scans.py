@@ -8,9 +8,10 @@ from onboard.app.df import datagram as dg
 from onboard.app.counters import Counters
 from onboard.app.df.udp_input import DfInput
 from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 
 
-class DfScans:
+class DfScans(Part):
     def __init__(self, df: DfInput, scans: dg.ScanBuffer, clock, counters: Counters, say):
         self.df = df
         self.scans = scans
@@ -32,6 +33,9 @@ class DfScans:
             return
         if self.df.lock(addr):
             self.say(f"DF source {addr[0]}:{addr[1]}; others ignored")
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic DF input", lambda local, now: self.report()),)
 
     def report(self) -> None:
         """The periodic job: say once per foreign DF sender, and once per episode of rate

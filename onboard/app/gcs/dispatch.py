@@ -1,28 +1,32 @@
-"""MAVLink in: one table from message type to handler (MAVProxy's module contract: dispatch on
-``msg.get_type()``), and who may be obeyed.
+"""MAVLink in: each message dispatched by ``msg.get_type()`` to the parts that handle its type
+(their ``handlers()``, onboard/app/part.py: MAVProxy's module contract), and who may be obeyed.
 
-- HEARTBEAT from anyone goes to the autopilot side (it picks its autopilot and ignores the rest).
+- HEARTBEAT from anyone goes to its handlers (the autopilot side picks its autopilot and
+  ignores the rest).
 - Messages from the autopilot (its system and component) feed the autopilot side; every one
   stamped with ``time_boot_ms`` is a clock sample first.
-- Messages for the app (target system 0 or the vehicle's, component 0 or 191): parameter reads
-  are answered to anyone; commands and parameter writes (``WRITES``) must be addressed to 191
-  and come from a configured ground station (``gcs_sysids``), else they are ignored, counted
-  and said once per stranger (no ACK: nothing to tell a stranger).
+- Messages for the app (``FOR_APP``: target system 0 or the vehicle's, component 0 or 191):
+  parameter reads are answered to anyone; commands and parameter writes (``WRITES``) must be
+  addressed to 191 and come from a configured ground station (``gcs_sysids``), else they are
+  ignored, counted and said once per stranger (no ACK: nothing to tell a stranger).
 - Anything else is not the app's business and is dropped unread.
 
-Handlers run contained by the io loop (an exception costs its own message only). io thread,
-under the app lock.
+Handlers run contained by the io loop, per message (an exception costs its own message only).
+io thread, under the app lock.
 """
 from __future__ import annotations
 
 from typing import Callable
 
+from onboard.app.context import AppContext
 from onboard.app.contract import Reason
-from onboard.app.counters import Counters
 from onboard.app.mavlink_connection import COMP_ID, Link, mavlink
+from onboard.app.part import Handler, Part
 
-Handler = Callable[[object], None]
+ANY_SOURCE = frozenset({"HEARTBEAT"})  # handled from anyone
+FOR_APP = frozenset({"COMMAND_LONG", "COMMAND_INT", "PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"})
 WRITES = frozenset({"COMMAND_LONG", "COMMAND_INT", "PARAM_SET"})  # addressed to 191, from a GCS only
+# every other type is handled from the autopilot only
 
 
 def ack(link: Link, msg, result: int, reason: Reason = Reason.NONE) -> None:
@@ -31,49 +35,55 @@ def ack(link: Link, msg, result: int, reason: Reason = Reason.NONE) -> None:
         msg.command, result, 0, int(reason), msg.get_srcSystem(), msg.get_srcComponent()))
 
 
-class Router:
-    """``autopilot``: the autopilot side; ``machine``: the state machine (MAV_CMD_PMON);
-    ``params``: the parameter server; ``publish_stat``: PMON_STAT at once (asked for with
-    MAV_CMD_REQUEST_MESSAGE)."""
+class Commands(Part):
+    """The app's commands: PMON_STAT at once when asked for with MAV_CMD_REQUEST_MESSAGE
+    (``publish_stat``), every other COMMAND_LONG to ``on_command`` (the state machine:
+    MAV_CMD_PMON), COMMAND_INT refused."""
 
-    def __init__(self, link: Link, autopilot, machine, params, publish_stat: Callable[[], None],
-                 gcs_sysids: tuple[int, ...], counters: Counters, say):
+    def __init__(self, link: Link, publish_stat: Callable[[], None], on_command: Handler):
         self.link = link
+        self.publish_stat = publish_stat
+        self.on_command = on_command
+
+    def handlers(self) -> dict[str, Handler]:
+        return {"COMMAND_LONG": self.on_command_long, "COMMAND_INT": self.on_command_int}
+
+    def on_command_long(self, msg) -> None:
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == \
+                mavlink.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY:
+            ack(self.link, msg, mavlink.MAV_RESULT_ACCEPTED)  # PMON_STAT at once
+            self.publish_stat()
+            return
+        self.on_command(msg)
+
+    def on_command_int(self, msg) -> None:
+        ack(self.link, msg, mavlink.MAV_RESULT_UNSUPPORTED, Reason.UNKNOWN_ACTION)
+
+
+class Router:
+    """``autopilot``: the autopilot side (who the autopilot is, its clock samples); ``parts``:
+    the app's parts, whose ``handlers()`` make ``handlers`` (type -> the parts' handlers, in the
+    parts' order); ``ctx``: the counters, the voice and the config's ``gcs_sysids``."""
+
+    def __init__(self, ctx: AppContext, autopilot, parts: list[Part]):
         self.vehicle = autopilot.vehicle
         self.observe_time = autopilot.observe_time
-        self.publish_stat = publish_stat
-        self.gcs_sysids = gcs_sysids
-        self.counters = counters
-        self.say = say
-        self.any_source: dict[str, Handler] = {"HEARTBEAT": autopilot.on_heartbeat}
-        self.from_autopilot: dict[str, Handler] = {
-            "GLOBAL_POSITION_INT": autopilot.on_global_position_int,
-            "SYSTEM_TIME": autopilot.on_system_time,
-            "SYS_STATUS": autopilot.on_sys_status,
-            "STATUSTEXT": autopilot.on_statustext,
-            "EXTENDED_SYS_STATE": autopilot.on_extended_sys_state,
-            "GPS_GLOBAL_ORIGIN": autopilot.on_gps_global_origin,
-            "COMMAND_ACK": autopilot.on_command_ack,
-            "PARAM_VALUE": autopilot.on_param_value,
-            "UNKNOWN_410": autopilot.on_event,  # PX4's EVENT, not in pymavlink 2.4.50's dialects
-        }
-        self.for_app: dict[str, Handler] = {
-            "COMMAND_LONG": self._on_command_long,
-            "COMMAND_INT": self._on_command_int,
-            "PARAM_REQUEST_LIST": params.on_request_list,
-            "PARAM_REQUEST_READ": params.on_request_read,
-            "PARAM_SET": params.on_set,
-        }
-        self.on_command = machine.on_command
+        self.gcs_sysids = ctx.cfg.gcs_sysids
+        self.counters = ctx.counters
+        self.say = ctx.say
+        self.handlers: dict[str, list[Handler]] = {}
+        for part in parts:
+            for mtype, handler in part.handlers().items():
+                self.handlers.setdefault(mtype, []).append(handler)
 
     def handle(self, msg) -> None:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
             self.counters.add("mavlink_bad_data")
             return
-        handler = self.any_source.get(mtype)
-        if handler is not None:
-            handler(msg)
+        handlers = self.handlers.get(mtype)
+        if handlers and mtype in ANY_SOURCE:
+            self._run(handlers, msg)
             return
         v = self.vehicle
         if v.sysid is None:
@@ -81,12 +91,15 @@ class Router:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if (src_sys, src_comp) == (v.sysid, v.compid):
             self.observe_time(msg)
-            handler = self.from_autopilot.get(mtype)
-            if handler is not None:
-                handler(msg)
+            if handlers and mtype not in FOR_APP:
+                self._run(handlers, msg)
             return
-        handler = self.for_app.get(mtype)
-        if handler is not None and self._for_app(msg, mtype, src_sys):
+        if handlers and mtype in FOR_APP and self._for_app(msg, mtype, src_sys):
+            self._run(handlers, msg)
+
+    @staticmethod
+    def _run(handlers: list[Handler], msg) -> None:
+        for handler in handlers:
             handler(msg)
 
     def _for_app(self, msg, mtype: str, src_sys: int) -> bool:
@@ -105,14 +118,3 @@ class Router:
                      mavlink.MAV_SEVERITY_WARNING, once=f"sysid{src_sys}")
             return False
         return True
-
-    def _on_command_long(self, msg) -> None:
-        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == \
-                mavlink.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY:
-            ack(self.link, msg, mavlink.MAV_RESULT_ACCEPTED)  # PMON_STAT at once
-            self.publish_stat()
-            return
-        self.on_command(msg)
-
-    def _on_command_int(self, msg) -> None:
-        ack(self.link, msg, mavlink.MAV_RESULT_UNSUPPORTED, Reason.UNKNOWN_ACTION)

@@ -6,18 +6,24 @@ from __future__ import annotations
 
 from typing import Callable
 
-from onboard.app.mavlink_connection import Link, mavlink, param_name
-from onboard.app.params import ParamTable
+from onboard.app.context import AppContext
+from onboard.app.mavlink_connection import mavlink, param_name
+from onboard.app.part import Handler, Part
 
 
-class ParamServer:
-    """``on_change(name)``: called after an accepted set."""
+class ParamServer(Part):
+    """``on_change(name)``: called after an accepted set; ``ctx``: the app's link, parameters
+    and voice."""
 
-    def __init__(self, link: Link, params: ParamTable, say, on_change: Callable[[str], None]):
-        self.link = link
-        self.params = params
-        self.say = say
+    def __init__(self, ctx: AppContext, on_change: Callable[[str], None]):
+        self.link = ctx.link
+        self.params = ctx.params
+        self.say = ctx.say
         self.on_change = on_change
+
+    def handlers(self) -> dict[str, Handler]:
+        return {"PARAM_REQUEST_LIST": self.on_request_list, "PARAM_REQUEST_READ": self.on_request_read,
+                "PARAM_SET": self.on_set}
 
     def send_value(self, name: str, index: int | None = None) -> None:
         p = self.params

@@ -14,13 +14,14 @@ import numpy as np
 from onboard.app.contract import STAT_FIELDS, STATUS, TGT_FIELDS, State
 from onboard.app.mavlink_connection import Link, mavlink
 from onboard.app.gcs.statustext import send_statustext
+from onboard.app.part import Job, Part
 from onboard.app.autopilot.vehicle import Vehicle
 
 log = logging.getLogger("pmon.app")
 DEBUG_ARRAY_LEN = 58  # DEBUG_FLOAT_ARRAY.data
 
 
-class Publisher:
+class Publisher(Part):
     """``state()``: the app state now; ``status()``: PMON_STAT's values by STAT_FIELDS name."""
 
     def __init__(self, link: Link, clock, vehicle: Vehicle, state: Callable[[], State],
@@ -72,6 +73,9 @@ class Publisher:
         self.link.send(self.link.mav.heartbeat_encode(
             mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, int(state), STATUS[state]))
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic heartbeat", lambda local, now: self.beat(local)),)
 
     def beat(self, local: float) -> None:
         """The periodic job: HEARTBEAT and PMON_STAT at 1 Hz once the autopilot is known."""

@@ -35,9 +35,11 @@ import numpy as np
 
 from onboard.app.kraken import line as kl
 from onboard.app.autopilot.clock import HostTime
+from onboard.app.context import AppContext
 from onboard.app.df.datagram import MAX_AGE_S, MAX_FUTURE_S, Datagram, DatagramError, ScanBuffer
 from onboard.app.kraken.fetch import DocumentPoller, status_url_for
 from onboard.app.mavlink_connection import mavlink
+from onboard.app.part import Job, Part
 from onboard.core import doa
 from onboard.settings import ConfigError
 
@@ -331,19 +333,20 @@ class KrakenSource:
         return doa.clutter_rate(counts, self.p_detect(), min(lo, self.cfg.clutter_max), self.cfg.clutter_max)
 
 
-class KrakenInput:
+class KrakenInput(Part):
     """The app's KrakenSDR input, one of its parts (onboard/app/app.py): the poller thread and the
     source. ``drain`` and ``periodic`` run on the io thread under the app lock. ``scenario``: its
     ``kraken`` section and targets; ``autopilot``: the autopilot side (its poses and UTC);
-    ``scans``: the scan buffer the tick schedule takes from; ``params``: PMON_PD and
-    PMON_CLUTTER (the adaptive clutter's); ``say``: STATUSTEXT."""
+    ``scans``: the scan buffer the tick schedule takes from; ``ctx``: the app's clock, its
+    parameters (PMON_PD and PMON_CLUTTER, the adaptive clutter's) and voice."""
 
-    def __init__(self, scenario, clock, autopilot, scans: ScanBuffer, params, say):
+    def __init__(self, ctx: AppContext, scenario, autopilot, scans: ScanBuffer):
+        clock, params = ctx.clock, ctx.params
         cfg = scenario.kraken
         if not cfg.vfos:
             raise ConfigError("kraken.vfos: none: which VFO frequency is which target? (docs/KRAKENSDR.md)")
         self.url = cfg.url
-        self.say = say
+        self.say = ctx.say
         try:
             self.poller = DocumentPoller(cfg.url, status_url_for(cfg.url, cfg.status_url), cfg.poll_s,
                                          prepare={"doa": kl.parse_document})
@@ -369,6 +372,9 @@ class KrakenInput:
                 self.source.offer(kind, doc)
             finally:
                 self.handled += 1
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("periodic KrakenSDR", lambda local, now: self.periodic(now)),)
 
     def periodic(self, now: float | None) -> None:
         self.source.tick(now)

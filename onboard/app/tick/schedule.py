@@ -12,10 +12,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from onboard.app.counters import Counters
+from onboard.app.context import AppContext
 from onboard.app.df.datagram import ScanBuffer
 from onboard.app.mavlink_connection import mavlink
-from onboard.app.params import ParamTable
+from onboard.app.part import Job, Part
 
 COAST_AFTER_S = 2.0  # autopilot s past a scan's wait without any DF datagram -> coast tick
 PLAN_RESERVE_S = 0.25  # autopilot s of a tick's budget kept for tracking, planning and sending
@@ -34,20 +34,32 @@ class TickJob:
     arrived_t: float | None = None  # autopilot time its newest datagram arrived
 
 
-class TickSchedule:
-    """``worker``: has ``busy`` and ``submit(job)``."""
+class TickSchedule(Part):
+    """``worker``: has ``busy`` and ``submit(job)``; ``ctx``: the app's parameters, clocks,
+    counters and voice."""
 
-    def __init__(self, scans: ScanBuffer, params: ParamTable, clock, mono, worker, counters: Counters, say):
+    def __init__(self, ctx: AppContext, scans: ScanBuffer, worker):
         self.scans = scans
-        self.params = params
-        self.clock = clock
-        self.mono = mono
+        self.params = ctx.params
+        self.clock = ctx.clock
+        self.mono = ctx.mono
         self.worker = worker
-        self.counters = counters
-        self.say = say
+        self.counters = ctx.counters
+        self.say = ctx.say
+        self.ran_local = self.mono()  # local s the job last ran to its end (the watchdog reads it)
         self.last_tick_t: float | None = None  # scan time of the newest tick handed over
         self.submitted_t: float | None = None  # autopilot time the newest tick was handed over
         self._silent = False  # DF silence episode (coasting) in progress
+
+    def jobs(self) -> tuple[Job, ...]:
+        return (Job("tick schedule", self.periodic),)
+
+    def periodic(self, local: float, now: float | None) -> None:
+        """``run`` once the autopilot's clock has a sample (before it there is nothing to
+        schedule, and the job counts as run)."""
+        if now is not None:
+            self.run(now)
+        self.ran_local = self.mono()
 
     def run(self, now: float) -> None:
         """The periodic job: hand the worker the next tick, if one is due and it is free."""
