@@ -1,5 +1,5 @@
 """What the mock autopilot's parts share, and the contract each part keeps (MAVProxy's module
-contract, as the app's: onboard/app/context.py and onboard/app/gcs/dispatch.py).
+contract, as the app's: onboard/app/part.py, onboard/app/context.py and onboard/app/gcs/dispatch.py).
 
 The mock (sim/mock/autopilot.py) builds one ``MockContext`` and hands it to each part instead of
 letting the parts share its attributes. A part answers the message types of its ``handlers()``
