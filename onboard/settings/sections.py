@@ -219,6 +219,9 @@ class Tracking:
                                           "modes (motion no goal predicts)", experimental=True)
     intent_recovery_sigma_m: float = number(150.0, 0, 5000, "m", "with intent and recovery_prior: the "
                                             "recovery's width raised by this times that weight", experimental=True)
+    intent_start_speed_mps: float = number(0.0, 0, 20, "m/s", "with intent: a particle switching out of the "
+                                           "stationary mode starts with a velocity N(0, this^2) per axis "
+                                           "(0: at rest)", experimental=True)
 
 
 @dataclass(frozen=True)

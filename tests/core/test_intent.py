@@ -196,3 +196,33 @@ def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
     (rmse, nees), (rmse_off, nees_off) = score(sc), score(off)
     assert rmse < 0.8 * rmse_off, (rmse, rmse_off)
     assert nees < min(2.0, nees_off), (nees, nees_off)
+
+
+def _standing_posterior(n: int = 4000):
+    from onboard.core.tracking import ParticleSet
+    p = np.zeros((n, 6))
+    p[:, :2] = 500.0
+    return ParticleSet(p, np.full(n, -np.log(n)), None, np.full(n, im.STATIONARY), np.full((n, 2), 500.0))
+
+
+@pytest.mark.parametrize("speed", [0.0, 3.0])
+def test_a_standing_particle_that_moves_off_starts_at_the_declared_speed_spread(speed):
+    """A target that stood and moves off does so at some speed: the particles switching out of
+    STATIONARY take a velocity N(0, speed^2) per axis; those that stay stand; 0 keeps them at rest."""
+    from types import SimpleNamespace
+
+    from onboard.core.intent_tick import mix
+    setup = SimpleNamespace(resample_fraction=0.0, regularise_bandwidth=0.0, area_min=np.zeros(3),
+                            area_max=np.full(3, 1000.0),
+                            intent=replace(PARAMS, switch_prob=0.5, start_speed_mps=speed))
+    out = mix(setup, _intent(2), _standing_posterior(), np.random.default_rng(3))
+    moving = out.modes != im.STATIONARY
+    assert moving.sum() > 1000  # the switch took half the weight out of standing
+    assert np.all(out.particles[~moving, 3:] == 0.0)
+    v = out.particles[moving, 3:5]
+    if speed == 0.0:
+        assert np.all(v == 0.0)
+    else:
+        assert np.std(v, axis=0) == pytest.approx([speed, speed], rel=0.1)
+        assert np.abs(np.mean(v, axis=0)).max() < 0.3
+    assert np.all(out.particles[:, 5] == 0.0)
