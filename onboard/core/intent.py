@@ -89,6 +89,7 @@ class IntentParams:
     stationary_sigma_m: float  # STATIONARY: position jitter per tick, per axis
     recovery_prior_raise: float = 0.0  # the recovery's prior raised by this x the unpredicted weight
     recovery_sigma_raise_m: float = 0.0  # and its width (m) by this x that weight
+    start_speed_mps: float = 0.0  # a particle leaving STATIONARY: velocity N(0, this^2) per axis
 
 
 def unpredicted_weight(ps) -> float:

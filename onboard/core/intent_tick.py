@@ -139,6 +139,10 @@ def mix(setup, intent: im.Intent, post: tracking.ParticleSet, rng: np.random.Gen
                             rng)
     particles = post.particles[mixed.source]
     aims = post.aims[mixed.source]
+    s = setup.intent.start_speed_mps
+    if s > 0.0:  # a standing target that moves off does so at some speed, not from the standing particles' zero
+        off = mixed.switched & (post.modes[mixed.source] == im.STATIONARY) & (mixed.modes != im.STATIONARY)
+        particles[off, 3:5] = s * rng.standard_normal((int(off.sum()), 2))
     # a particle switching into AIMED takes a new destination, and an aimed one changes its mind at
     # AIM_REDRAW a tick: a target that turns back is then covered by particles already heading there
     fresh = (mixed.modes == im.AIMED) & (mixed.switched | (rng.random(len(mixed.modes)) < im.AIM_REDRAW))

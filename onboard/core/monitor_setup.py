@@ -152,4 +152,5 @@ def target_intents(sc) -> tuple[intent_mod.Intent, ...]:
 def intent_params(sc) -> intent_mod.IntentParams:
     tr = sc.tracking
     return intent_mod.IntentParams(tr.intent_switch_prob, tr.intent_free_accel_mps2, sc.guidance.speed_max_mps,
-                                   intent_mod.STATIONARY_SIGMA_M, tr.intent_recovery_prior, tr.intent_recovery_sigma_m)
+                                   intent_mod.STATIONARY_SIGMA_M, tr.intent_recovery_prior, tr.intent_recovery_sigma_m,
+                                   tr.intent_start_speed_mps)

@@ -205,7 +205,7 @@ class Tracking:
                         "free; their probabilities estimated from the bearings, and a target whose bearings "
                         "no mode explains re-seeded along them (docs/TRACKING.md 'Intent'; false, the "
                         "paper's: each target heads for its goal)", experimental=True)
-    intent_stationary_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal "
+    intent_stationary_prior: float = number(0.3, 0, 1, "", "with intent: prior that a target with a goal "
                                             "stands still", experimental=True)
     intent_free_prior: float = number(0.1, 0, 1, "", "with intent: prior that a target with a goal moves "
                                       "freely instead (heads somewhere not named, wanders)", experimental=True)
@@ -219,6 +219,9 @@ class Tracking:
                                           "modes (motion no goal predicts)", experimental=True)
     intent_recovery_sigma_m: float = number(150.0, 0, 5000, "m", "with intent and recovery_prior: the "
                                             "recovery's width raised by this times that weight", experimental=True)
+    intent_start_speed_mps: float = number(3.0, 0, 20, "m/s", "with intent: a particle switching out of the "
+                                           "stationary mode starts with a velocity N(0, this^2) per axis "
+                                           "(0: at rest)", experimental=True)
 
 
 @dataclass(frozen=True)
