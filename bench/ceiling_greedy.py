@@ -18,7 +18,7 @@ import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.information import information_reduction_factor, kalman_pseudo_update
-from onboard.core.planners import PLANNERS, Area, Planner, PlanningInputs
+from onboard.core.planners import Area, Planner, PlanningInputs, register_planner
 from onboard.core.planning import PlanningResult
 from onboard.core.tracking import logsumexp
 from sim.evaluation import trials as ev
@@ -69,7 +69,7 @@ def _myopic(setup) -> Planner:
 
 
 def register() -> None:
-    PLANNERS[NAME] = _myopic
+    register_planner(NAME, _myopic)
     ev.register_method(ev.Method(NAME, "single UAV, one-step greedy among 33 points within 9 m, covariance-norm "
                                  "reward (bench/ceiling_greedy.py), Lambda = 1", planner=NAME, clutter_rate=1.0,
                                  scenario_overrides=PAPER))

@@ -19,7 +19,7 @@ posterior estimates given the scans up to k.
 
 Methods are registered by name in ``METHODS`` (name -> ``Method``; both in sim/evaluation/methods.py); a method is a sensing mode
 and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: the paper's
-greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
+greedy rule, the lookahead; sim/evaluation/baselines.py: the baselines hover, orbit, random). A new method registers
 itself with ``register_method``.
 
 The configuration (``make_config``) is in sim/evaluation/config.py, the metrics (``summarise``) in

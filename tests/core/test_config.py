@@ -76,7 +76,7 @@ def test_the_builtin_scenario_is_the_example_file_not_a_copy():
     (lambda d: d.setdefault("tracking", {}).update(plan_side_temperature=0), "tracking.plan_side_temperature"),
     (lambda d: d["planning"].update(planner="lookahead", lookahead_steps=60),
      "planning.lookahead_steps: must be <= guidance.horizon (50)"),
-    (lambda d: d["planning"].update(planner="spiral"), "planning.planner: must be one of greedy, lookahead, hover, orbit, random"),
+    (lambda d: d["planning"].update(planner="spiral"), "planning.planner: must be one of greedy, lookahead"),
     (lambda d: d.update(app={"fence_max_m": 30}), "uav.altitude_m: must be within the geofence band"),
 ])
 def test_invalid_field_is_named(raw, edit, message):

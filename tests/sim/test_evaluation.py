@@ -40,7 +40,7 @@ def test_fixed_sensors_localise_a_target_to_the_triangulation_bound(paper):
     trials = ev.run_trials(cfg, workers=1, progress=False)
     mse, bound = [], []
     for tr in trials:
-        # the evaluation's own bound (onboard.core.information.pcrb along the truth, closed loop)
+        # the evaluation's own bound (sim.evaluation.metrics.pcrb along the truth, closed loop)
         mse.append(tr.traces["fixed3"].error_m[5:, 0] ** 2)
         bound.append(tr.traces["fixed3"].bound_m2[5:, 0])
     ratio = np.sqrt(np.mean(mse) / np.mean(bound))
