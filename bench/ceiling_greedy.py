@@ -18,7 +18,8 @@ import numpy as np
 
 from onboard.config import load_scenario
 from onboard.core.information import information_reduction_factor, kalman_pseudo_update
-from onboard.core.planners import Area, Planner, PlanningInputs, register_planner
+from onboard.core.planner_choice import register_planner
+from onboard.core.planners import Area, Planner, PlanningInputs
 from onboard.core.planning import PlanningResult
 from onboard.core.tracking import logsumexp
 from sim.evaluation import trials as ev

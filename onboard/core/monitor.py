@@ -12,7 +12,7 @@ A tick t runs the paper's filter and planner in their order, from the beliefs he
      where it is exact, reference plans when configured), noise Q;
   5. plan the next UAV position s_(t+1) from ``plan_from`` (a ``planning_inputs.UavState``) with the
      configured planner (``planners``: the paper's greedy rule by pseudo-updating those
-     predictions, the lookahead, or a baseline).
+     predictions, or the lookahead; ``planner_choice`` builds the one the setup names).
 """
 from __future__ import annotations
 
@@ -25,19 +25,21 @@ import numpy as np
 from onboard.core import intent_tick
 from onboard.core import tracking
 from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
-from onboard.core.monitor_setup import MonitorSetup, PlanSteering
-from onboard.core.planners import Planner, PlanningInputs, make_planner
+from onboard.core.monitor_setup import MonitorSetup
+from onboard.core.planner_choice import make_planner
+from onboard.core.planners import Planner, PlanningInputs
 from onboard.core.planning import PlanningResult
 from onboard.core.planning_inputs import UavState
 from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
                                    SideMode, SideSteering, TargetTick)
+from onboard.core.steering_setup import PlanSteering
 
 __all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "UavState",
            "initial_state", "tick", "replanner", "uav_planner", "particle_steering"]
 
 
 def uav_planner(setup: MonitorSetup) -> Planner:
-    """The UAV planner ``setup.planner`` names (onboard/core/planners.py), built once per setup."""
+    """The UAV planner ``setup.planner`` names (onboard/core/planner_choice.py), built once per setup."""
     if "planner" not in setup.parts:
         setup.parts["planner"] = make_planner(setup)
     return setup.parts["planner"]

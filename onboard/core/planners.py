@@ -1,32 +1,32 @@
 """UAV planners: where the UAV scans next, one abstract class for the role (Stone Soup's style).
 
-A ``Planner`` is chosen once from the configuration (``make_planner``: ``MonitorSetup.planner``
-names it) and asked each tick, after the prediction, for the next UAV position. What flies:
+A ``Planner`` is chosen once from the configuration (onboard/core/planner_choice.py:
+``MonitorSetup.planner`` names it) and asked each tick, after the prediction, for the next UAV
+position. What flies:
 
 - ``greedy``: the paper's rule, eq. (12) over S_(t+1) (``planning.choose_next_position``);
 - ``lookahead``: the non-myopic route planner (``planning.choose_lookahead``, docs/PLANNING.md).
 
-Other planners are siblings registered by name (``register_planner``): the evaluation's baselines
-hover, orbit and random (sim/evaluation/baselines.py), a bench's own; ``planning.planner`` (what
-the app flies) accepts only the two above.
+Other planners are siblings registered by name (``planner_choice.register_planner``): the
+evaluation's baselines hover, orbit and random (sim/evaluation/baselines.py), a bench's own;
+``planning.planner`` (what the app flies) accepts only the two above.
 """
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from onboard.core.information import information_reduction_factor
 from onboard.core.planning import Area, Moves, PlanningResult, RouteScoring, choose_lookahead, choose_next_position
 from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion, UavState
 
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel
     from onboard.core.guidance.predictor import Plan
-    from onboard.core.monitor_setup import MonitorSetup
     from onboard.core.tracking import ParticleSet
+
 
 @dataclass(frozen=True, eq=False)
 class PlanningInputs:
@@ -102,38 +102,3 @@ class LookaheadPlanner(Planner):
         return choose_lookahead(inputs.particles, inputs.log_weights, paths, inputs.uav,
                                 Moves(self.grid, self.area, self.motion),
                                 RouteScoring(self.model, self.sigma_rad, self.reduction, self.params), inputs.weights)
-
-
-def area_of(setup: MonitorSetup) -> Area:
-    """Where the setup's UAV may go: its area and its inflated obstacles."""
-    return Area(setup.area_min, setup.area_max, setup.uav_obstacles)
-
-
-def _greedy(setup: MonitorSetup) -> Planner:
-    return GreedyPlanner(setup.grid, area_of(setup), setup.sensor.sigma_rad, setup.objective, setup.motion,
-                         setup.model.dt_s)
-
-
-def _lookahead(setup: MonitorSetup) -> Planner:
-    s = setup.sensor
-    return LookaheadPlanner(setup.lookahead_steps, setup.grid, area_of(setup), setup.motion, setup.model,
-                            s.sigma_rad, information_reduction_factor(s.p_detect, s.clutter_rate, s.sigma_rad),
-                            setup.lookahead)
-
-
-PLANNERS: dict[str, Callable[[MonitorSetup], Planner]] = {
-    "greedy": _greedy,
-    "lookahead": _lookahead,
-}
-
-
-def register_planner(name: str, build: Callable[[MonitorSetup], Planner]) -> None:
-    """Add (or replace) a planner by name; a setup whose ``planner`` names it then flies it."""
-    PLANNERS[name] = build
-
-
-def make_planner(setup: MonitorSetup) -> Planner:
-    """The planner ``setup.planner`` names, built from the setup."""
-    if setup.planner not in PLANNERS:
-        raise ValueError(f"unknown planner {setup.planner!r} (one of {', '.join(PLANNERS)})")
-    return PLANNERS[setup.planner](setup)

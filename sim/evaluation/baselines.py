@@ -2,7 +2,7 @@
 that nothing flies: ``hover`` (stays at its start), ``orbit`` (a circle around the targets'
 initial centroid), ``random`` (a uniformly random admissible candidate of S_(t+1)).
 
-``register_baselines`` puts them in the planner registry (``onboard.core.planners.register_planner``)
+``register_baselines`` puts them in the planner registry (``onboard.core.planner_choice.register_planner``)
 under those names; sim/evaluation/methods.py does so before it declares the methods that name them.
 """
 from __future__ import annotations
@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from onboard.core.planners import Planner, PlanningInputs, area_of, register_planner
+from onboard.core.planner_choice import area_of, register_planner
+from onboard.core.planners import Planner, PlanningInputs
 from onboard.core.planning import Area, PlanningResult, candidate_positions
 from onboard.core.planning_inputs import CandidateGrid
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from onboard.config import override
-from onboard.core.planners import PLANNERS
+from onboard.core.planner_choice import PLANNERS
 from onboard.policy import POLICIES
 from onboard.settings.sections import SETTINGS
 from sim.evaluation.baselines import register_baselines
@@ -36,7 +36,7 @@ class Method:
     path is the clairvoyant ceiling's, ``sim.evaluation.ceiling_search.ceiling_path``, from the trial's
     truth, gains and start at the method's vehicle limits; only its PCRB and path are defined). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
-    from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, and the baselines
+    from the UAV position (``onboard.core.planner_choice.PLANNERS``: greedy, lookahead, and the baselines
     hover, orbit, random of sim/evaluation/baselines.py); None: the scenario's ``planning.planner``.
     settings: scenario settings that make this method what it is (``onboard.config.override``,
     over the run's own ``--set``, as sensing, clutter_rate, planner and motion are).

@@ -177,7 +177,8 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
 
     from onboard.config import ConfigError
     from onboard.core.monitor import MonitorSetup, particle_steering, uav_planner
-    from onboard.core.planners import GreedyPlanner, LookaheadPlanner, make_planner
+    from onboard.core.planner_choice import make_planner
+    from onboard.core.planners import GreedyPlanner, LookaheadPlanner
     from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
 
     setup = MonitorSetup.from_scenario(paper)

@@ -342,7 +342,8 @@ def test_a_method_naming_an_unknown_planner_motion_or_autopilot_is_refused(kw, s
 def test_a_planner_a_bench_registers_is_the_one_its_method_flies(quick):
     """bench/ceiling_greedy.py's way: a Planner put in PLANNERS (not a setting the app accepts)
     and a method naming it; the evaluation flies that planner, not the scenario's."""
-    from onboard.core.planners import PLANNERS, Planner
+    from onboard.core.planner_choice import PLANNERS
+    from onboard.core.planners import Planner
     from onboard.core.planning import PlanningResult
 
     class East(Planner):
