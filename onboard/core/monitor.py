@@ -22,17 +22,17 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.core import intent_tick
-from onboard.core import tracking
+from onboard.core.tracking import intent_tick
+from onboard.core.tracking import filter as tracking
 from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
 from onboard.core.monitor_setup import MonitorSetup
 from onboard.core.planner_choice import make_planner
-from onboard.core.planners import Planner, PlanningInputs
-from onboard.core.planning import PlanningResult
-from onboard.core.planning_inputs import UavState
-from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
-                                   SideMode, SideSteering, TargetTick)
-from onboard.core.steering_setup import PlanSteering
+from onboard.core.planning.planners import Planner, PlanningInputs
+from onboard.core.planning.next_position import PlanningResult
+from onboard.core.planning.inputs import UavState
+from onboard.core.tracking.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
+                                            SideMode, SideSteering, TargetTick)
+from onboard.core.tracking.steering_setup import PlanSteering
 
 __all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "UavState",
            "initial_state", "tick", "replanner", "uav_planner", "particle_steering"]
@@ -46,7 +46,7 @@ def uav_planner(setup: MonitorSetup) -> Planner:
 
 
 def particle_steering(setup: MonitorSetup) -> ParticleSteering:
-    """The particle steering ``setup.plan_steering`` chooses (onboard/core/steering.py): free,
+    """The particle steering ``setup.plan_steering`` chooses (onboard/core/tracking/steering.py): free,
     by reference plans, or side-aware; built once per setup."""
     if "steering" not in setup.parts:
         ps = setup.plan_steering
@@ -63,7 +63,7 @@ class MonitorState:
     # per target, what the particle steering kept from last tick (``Steered.memory``: the
     # reference plans, or the side modes; () for the free steering)
     steering: tuple[Any, ...] = ()
-    # per target, what its motion modes kept (``tracking.intent``: onboard/core/intent_tick.py); ()
+    # per target, what its motion modes kept (``tracking.intent``: onboard/core/tracking/intent_tick.py); ()
     # without modes, or when the app rebuilt the state (the modes start again)
     intent: tuple[intent_tick.IntentMemory, ...] = ()
 
@@ -146,7 +146,7 @@ def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from: UavState | None, r
 
 
 def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_from, workspace, timer, planner_rng):
-    """``tick`` for beliefs whose particles carry motion modes (onboard/core/intent_tick.py)."""
+    """``tick`` for beliefs whose particles carry motion modes (onboard/core/tracking/intent_tick.py)."""
     M = setup.n_targets
     memory = state.intent if len(state.intent) == M else tuple(intent_tick.IntentMemory() for _ in range(M))
     sides = setup.plan_steering is not None and setup.plan_steering.sides

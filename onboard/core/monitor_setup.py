@@ -1,19 +1,19 @@
 """What is static about a mission (``MonitorSetup``), built once from a scenario: what the tick
 (onboard/core/monitor.py), the choice of planner (onboard/core/planner_choice.py) and the particle
-steering (onboard/core/steering.py, through ``SteeringSetup``) read."""
+steering (onboard/core/tracking/steering.py, through ``SteeringSetup``) read."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.core import intent as intent_mod
-from onboard.core import tracking
+from onboard.core.tracking import intent as intent_mod
+from onboard.core.tracking import filter as tracking
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance.predictor import FreeLaw, GuidanceParams, free_law
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
-from onboard.core.steering_setup import PlanSteering
+from onboard.core.planning.inputs import CandidateGrid, LookaheadParams, UavMotion
+from onboard.core.tracking.steering_setup import PlanSteering
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,7 +40,7 @@ class MonitorSetup:
     free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
     recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
-    # per target, its candidate goals and mode prior (onboard/core/intent.py), and how modes move;
+    # per target, its candidate goals and mode prior (onboard/core/tracking/intent.py), and how modes move;
     # None: the paper's filter, every particle heading for ``goals``
     intents: tuple[intent_mod.Intent, ...] | None
     intent: intent_mod.IntentParams | None

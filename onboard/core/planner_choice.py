@@ -1,13 +1,13 @@
 """The UAV planner a mission flies, by name (``MonitorSetup.planner``): the flight planners of
-onboard/core/planners.py, built from the setup, and any other a caller registers
+onboard/core/planning/planners.py, built from the setup, and any other a caller registers
 (``register_planner``: the evaluation's baselines, a bench's own)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Callable
 
-from onboard.core.information import information_reduction_factor
-from onboard.core.planners import GreedyPlanner, LookaheadPlanner, Planner
-from onboard.core.planning import Area
+from onboard.core.planning.information import information_reduction_factor
+from onboard.core.planning.planners import GreedyPlanner, LookaheadPlanner, Planner
+from onboard.core.planning.next_position import Area
 
 if TYPE_CHECKING:
     from onboard.core.monitor_setup import MonitorSetup

@@ -1,4 +1,4 @@
-"""The evaluation's baseline planners, planners like the flight ones (``onboard.core.planners.Planner``)
+"""The evaluation's baseline planners, planners like the flight ones (``onboard.core.planning.planners.Planner``)
 that nothing flies: ``hover`` (stays at its start), ``orbit`` (a circle around the targets'
 initial centroid), ``random`` (a uniformly random admissible candidate of S_(t+1)).
 
@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from onboard.core.planner_choice import area_of, register_planner
-from onboard.core.planners import Planner, PlanningInputs
-from onboard.core.planning import Area, PlanningResult, candidate_positions
-from onboard.core.planning_inputs import CandidateGrid
+from onboard.core.planning.planners import Planner, PlanningInputs
+from onboard.core.planning.next_position import Area, PlanningResult, candidate_positions
+from onboard.core.planning.inputs import CandidateGrid
 
 if TYPE_CHECKING:
     from onboard.core.monitor_setup import MonitorSetup

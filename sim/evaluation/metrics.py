@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from onboard.core.information import PLANAR, bearing_information, planar_model
+from onboard.core.planning.information import PLANAR, bearing_information, planar_model
 
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"

@@ -5,9 +5,9 @@ import math
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import (bearing_gradient, bearing_update_components, information_reduction_factor,
-                                      kalman_pseudo_update, planar_model, predict_planar_components)
-from onboard.core.planning import pseudo_posterior_traces
+from onboard.core.planning.information import (bearing_gradient, bearing_update_components, information_reduction_factor,
+                                               kalman_pseudo_update, planar_model, predict_planar_components)
+from onboard.core.planning.next_position import pseudo_posterior_traces
 
 SIGMA = math.radians(1.0)
 

@@ -6,7 +6,7 @@ import pytest
 
 from onboard.config import override
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import _admissible_paths, admissible, candidate_positions, choose_next_position
+from onboard.core.planning.next_position import _admissible_paths, admissible, candidate_positions, choose_next_position
 from tests.support.planning_cases import GRID, MODEL, SCORING, VEHICLE, moves, still_targets as _still_targets
 
 
@@ -75,8 +75,8 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 
 # --------------------------------------------------------------------------- beyond the paper
 
-from onboard.core.planning import choose_lookahead, motion_sequences  # noqa: E402
-from onboard.core.planning_inputs import JUMP, UavState  # noqa: E402
+from onboard.core.planning.next_position import choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning.inputs import JUMP, UavState  # noqa: E402
 
 
 def test_vehicle_reachable_set_respects_speed_and_acceleration():
@@ -178,8 +178,8 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
     from onboard.config import ConfigError
     from onboard.core.monitor import MonitorSetup, particle_steering, uav_planner
     from onboard.core.planner_choice import make_planner
-    from onboard.core.planners import GreedyPlanner, LookaheadPlanner
-    from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
+    from onboard.core.planning.planners import GreedyPlanner, LookaheadPlanner
+    from onboard.core.tracking.steering import FreeSteering, ReferenceSteering, SideSteering
 
     setup = MonitorSetup.from_scenario(paper)
     assert isinstance(uav_planner(setup), GreedyPlanner) and uav_planner(setup) is uav_planner(setup)
@@ -215,8 +215,8 @@ def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
     gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
     only; elsewhere it must point where central differences do (four targets 130-460 m out)."""
     from sim.evaluation.route_score import score
-    from onboard.core.information import PLANAR, planar_model
-    from onboard.core.planning import _route_traces
+    from onboard.core.planning.information import PLANAR, planar_model
+    from onboard.core.planning.next_position import _route_traces
 
     H, M, N = 30, 4, 500
     targets = rng.uniform(100, 900, size=(M, 2)) + np.arange(H)[:, None, None] * np.array([3.0, -2.0])

@@ -6,7 +6,7 @@ import numpy as np
 
 from onboard.core.guidance.predictor import GuidanceWorkspace
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick, uav_planner
-from onboard.core.planning_inputs import UavState
+from onboard.core.planning.inputs import UavState
 from sim.evaluation.baselines import HoverPlanner, OrbitPlanner, RandomPlanner, register_baselines
 
 register_baselines()  # (sim.evaluation.methods does so too; this test needs no method)

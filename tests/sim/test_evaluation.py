@@ -213,7 +213,7 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     behind its plan."""
     from onboard.config import load_scenario
     from onboard.core.monitor import particle_steering
-    from onboard.core.steering import SideSteering
+    from onboard.core.tracking.steering import SideSteering
     from onboard.policy import POLICIES
 
     user = {"guidance.horizon": 20, "planning.lookahead_steps": 20, "tracking.particles": 300}
@@ -343,8 +343,8 @@ def test_a_planner_a_bench_registers_is_the_one_its_method_flies(quick):
     """bench/ceiling_greedy.py's way: a Planner put in PLANNERS (not a setting the app accepts)
     and a method naming it; the evaluation flies that planner, not the scenario's."""
     from onboard.core.planner_choice import PLANNERS
-    from onboard.core.planners import Planner
-    from onboard.core.planning import PlanningResult
+    from onboard.core.planning.planners import Planner
+    from onboard.core.planning.next_position import PlanningResult
 
     class East(Planner):
         def plan(self, inputs, rng):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import planar_model
+from onboard.core.planning.information import planar_model
 from sim.evaluation.metrics import pcrb
 
 

@@ -1,4 +1,4 @@
-"""What the particle steering (onboard/core/steering.py) reads of a mission: the reference plans'
+"""What the particle steering (onboard/core/tracking/steering.py) reads of a mission: the reference plans'
 settings (``PlanSteering``, from ``tracking.plan_*``) and the part of the setup it takes
 (``SteeringSetup``: ``MonitorSetup`` is one), so the steering needs no setup of its own kind."""
 from __future__ import annotations

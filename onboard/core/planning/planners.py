@@ -19,13 +19,14 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from onboard.core.planning import Area, Moves, PlanningResult, RouteScoring, choose_lookahead, choose_next_position
-from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion, UavState
+from onboard.core.planning.next_position import (Area, Moves, PlanningResult, RouteScoring, choose_lookahead,
+                                                 choose_next_position)
+from onboard.core.planning.inputs import CandidateGrid, LookaheadParams, UavMotion, UavState
 
 if TYPE_CHECKING:
     from onboard.core.dynamics import MotionModel
     from onboard.core.guidance.predictor import Plan
-    from onboard.core.tracking import ParticleSet
+    from onboard.core.tracking.filter import ParticleSet
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,8 +23,8 @@ import numpy as np
 
 from onboard.core.dynamics import PLANAR
 from onboard.core.guidance.predictor import LocalLaw, Plan, in_class, winding
-from onboard.core.steering_setup import PlanSteering, SteeringSetup
-from onboard.core.tracking import ParticleSet
+from onboard.core.tracking.steering_setup import PlanSteering, SteeringSetup
+from onboard.core.tracking.filter import ParticleSet
 
 
 @dataclass(frozen=True, eq=False)
