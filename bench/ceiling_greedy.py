@@ -6,7 +6,7 @@ Frobenius norm of the targets' position covariances after one ideal bearing from
 ``information.kalman_pseudo_update``, with the bound's q), from the predicted particle clouds:
 a one-step covariance-norm reward, no acceleration limit (a jump of at most 9 m per tick). The
 issue describes the rule, not its code; this is our reading of it. It is a planner like the
-product's (``onboard.core.planners.Planner``), registered here for the bench only (not a setting
+product's (``onboard.core.planning.planners.Planner``), registered here for the bench only (not a setting
 the app accepts); its bearings run through our own filter (the evaluation's ``run_method``: same
 truth, same start).
 """
@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.config import load_scenario
-from onboard.core.information import information_reduction_factor, kalman_pseudo_update
-from onboard.core.planners import PLANNERS, Area, Planner, PlanningInputs
-from onboard.core.planning import PlanningResult
-from onboard.core.tracking import logsumexp
+from onboard.core.planning.information import information_reduction_factor, kalman_pseudo_update
+from onboard.core.planner_choice import register_planner
+from onboard.core.planning.planners import Area, Planner, PlanningInputs
+from onboard.core.planning.next_position import PlanningResult
+from onboard.core.tracking.filter import logsumexp
 from sim.evaluation import trials as ev
 from sim.evaluation.methods import PAPER
 
@@ -69,7 +70,7 @@ def _myopic(setup) -> Planner:
 
 
 def register() -> None:
-    PLANNERS[NAME] = _myopic
+    register_planner(NAME, _myopic)
     ev.register_method(ev.Method(NAME, "single UAV, one-step greedy among 33 points within 9 m, covariance-norm "
                                  "reward (bench/ceiling_greedy.py), Lambda = 1", planner=NAME, clutter_rate=1.0,
                                  scenario_overrides=PAPER))

@@ -308,8 +308,8 @@ def _features(trials, data, runs, greedy, setup) -> dict:
 def _route_pursuit_speed(vmax: float = 9.0, accel: float = 2.5) -> list[float]:
     """The speed the flight planner's route pursuit (``routes.fly_routes``) settles at on a straight
     2 km route at v_max 9 m/s, from rest and from 9 m/s: the mean over ticks 20-49 and 5-9."""
-    from onboard.core.planning_inputs import CandidateGrid, UavMotion, UavState
-    from onboard.core.routes import fly_routes, sample_routes
+    from onboard.core.planning.inputs import CandidateGrid, UavMotion, UavState
+    from onboard.core.planning.routes import fly_routes, sample_routes
 
     motion, grid = UavMotion("vehicle", vmax, accel, 0.0), CandidateGrid(5.0, 4, 15, 40.0)
     route = sample_routes([np.array([[0.0, 0.0], [2000.0, 0.0]])], 40.0, vmax * 52, 2.0)[:1]  # turning left

@@ -4,8 +4,8 @@
 
 Runs ``pmon eval``'s trials (seed 2024, method flight@stock, truth ``KIND`` of sim/truth/kinds.py,
 ``KIND+told`` for a told filter) in this process, one after the other, with module constants of
-onboard/core changed first (``MIN_MODE_SHARE=0.02`` for onboard/core/intent.py,
-``intent_tick.PLAN_MODES=1`` for another module), and prints one line: the RMSE, ANEES, the
+onboard/core/tracking changed first (``MIN_MODE_SHARE=0.02`` for onboard/core/tracking/intent.py,
+``intent_tick.PLAN_MODES=1`` for another module of that folder), and prints one line: the RMSE, ANEES, the
 share of target-ticks more than 100 m off, the targets lost at the end, the true mode's
 probability at 40 s and the per-trial RMSEs. In-process: BLAS keeps its threads and the kernels
 are not pinned, so the figures are this machine's and may differ in the last digits from
@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("kind")
     ap.add_argument("trials", type=int)
-    ap.add_argument("constants", nargs="?", default="", help="NAME=VALUE,... of onboard/core modules")
+    ap.add_argument("constants", nargs="?", default="", help="NAME=VALUE,... of onboard/core/tracking modules")
     add_set_option(ap, "tracking.intent_switch_prob=0.01")
     args = ap.parse_args(argv)
     from onboard.config import load_scenario
@@ -34,9 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     for kv in filter(None, args.constants.split(",")):
         key, _, value = kv.partition("=")
         mod, _, name = key.rpartition(".")
-        module = importlib.import_module("onboard.core." + (mod or "intent"))
+        module = importlib.import_module("onboard.core.tracking." + (mod or "intent"))
         if not hasattr(module, name):
-            ap.error(f"no constant {name} in onboard.core.{mod or 'intent'}")
+            ap.error(f"no constant {name} in onboard.core.tracking.{mod or 'intent'}")
         setattr(module, name, type(getattr(module, name))(float(value)))
     sc = load_scenario("paper", set_overrides(ap, args))
     told = args.kind.endswith("+told")

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from onboard.core import planners as _planners
+from onboard.core.planning import planners as _planners
 from sim.evaluation import trials as _ev
 
 _NOW: dict = {"truth": None, "tick": 0}  # the trial's truth (K, M, 6) and the tick being run

@@ -17,7 +17,7 @@ import sys
 
 import numpy as np
 
-from onboard.core import steering as _steering
+from onboard.core.tracking import steering as _steering
 from sim.evaluation import trials as _ev
 from sim.truth import world as _truth
 

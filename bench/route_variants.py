@@ -34,13 +34,13 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.optimize import minimize
 
-from onboard.core import planners as _planners
-from onboard.core import planning as _planning
-from onboard.core.information import bearing_update_components, predict_planar_components
-from onboard.core.information import PLANAR, planar_model
-from onboard.core.planning import Moves, _first_step
-from onboard.core.routes import blocking_2d
-from onboard.core.tracking import logsumexp
+from onboard.core.planning import planners as _planners
+from onboard.core.planning import next_position as _planning
+from onboard.core.planning.information import bearing_update_components, predict_planar_components
+from onboard.core.planning.information import PLANAR, planar_model
+from onboard.core.planning.next_position import Moves, _first_step
+from onboard.core.planning.routes import blocking_2d
+from onboard.core.tracking.filter import logsumexp
 from sim.evaluation.ceiling import clearance, kinematics
 from sim.evaluation.route_score import score
 

@@ -126,7 +126,7 @@ def finish(found: Located, setup, sc) -> None:
 def _stationary(setup, res) -> list[float | None]:
     if res.mode_probabilities is None or setup.intents is None:
         return [None] * setup.n_targets
-    # a target's modes: its goals', then stationary, free, aimed (onboard/core/intent.py)
+    # a target's modes: its goals', then stationary, free, aimed (onboard/core/tracking/intent.py)
     return [float(p[len(it.names)]) for p, it in zip(res.mode_probabilities, setup.intents)]
 
 

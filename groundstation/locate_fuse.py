@@ -21,8 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from onboard.core import tracking
-
+from onboard.core.tracking import filter as tracking
 GRID_CELLS = 81  # cells a side of each level's grid
 RESOLVE_CELLS = 3.0  # done when the posterior's sd along each axis of the grid spans this many cells
 MAX_LEVELS = 12

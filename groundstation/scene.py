@@ -49,7 +49,7 @@ def area_outline(area) -> np.ndarray:
 
 def blocks_uav(box, altitude_m: float, margin_m: float) -> bool:
     """True when the UAV flying at ``altitude_m`` cannot overfly the obstacle: the planner's
-    rule (onboard.core.planning: the obstacle inflated by the UAV's margin spans h)."""
+    rule (onboard.core.planning.next_position: the obstacle inflated by the UAV's margin spans h)."""
     lo = box.center_m[2] - box.size_m[2] / 2 - margin_m
     hi = box.center_m[2] + box.size_m[2] / 2 + margin_m
     return lo < altitude_m < hi

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from onboard.core.planning_inputs import UavMotion
+from onboard.core.planning.inputs import UavMotion
 
 POLICIES: dict[str, dict[str, Any]] = {
     "flight": {},

@@ -71,7 +71,7 @@ STATUS = {  # HEARTBEAT.system_status per app state
 TGT_FIELDS = ("x_east_m", "y_north_m", "z_up_m", "vx_mps", "vy_mps", "vz_mps", "sigma_x_m",
               "sigma_y_m", "since_scan_s", "cov_xy_m2", "sigma_vx_mps", "sigma_vy_mps",
               "degenerate", "tick_time_s", "mode", "mode_p", "goal_index")
-# PMON_TGT "mode": what the target most likely does (onboard/core/intent.py), "mode_p" its
+# PMON_TGT "mode": what the target most likely does (onboard/core/tracking/intent.py), "mode_p" its
 # probability, "goal_index" its goal region's index in the scenario's goals (-1: none)
 TGT_MODES = ("unknown", "goal", "stationary", "free", "elsewhere")  # by code; 0: the filter has no modes
 STAT_FIELDS = ("state", "tick_rate_hz", "last_tick_time_s", "tick_ms", "next_e_m", "next_n_m",

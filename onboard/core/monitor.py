@@ -12,7 +12,7 @@ A tick t runs the paper's filter and planner in their order, from the beliefs he
      where it is exact, reference plans when configured), noise Q;
   5. plan the next UAV position s_(t+1) from ``plan_from`` (a ``planning_inputs.UavState``) with the
      configured planner (``planners``: the paper's greedy rule by pseudo-updating those
-     predictions, the lookahead, or a baseline).
+     predictions, or the lookahead; ``planner_choice`` builds the one the setup names).
 """
 from __future__ import annotations
 
@@ -22,29 +22,31 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from onboard.core import intent_tick
-from onboard.core import tracking
+from onboard.core.tracking import intent_tick
+from onboard.core.tracking import filter as tracking
 from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
-from onboard.core.monitor_setup import MonitorSetup, PlanSteering
-from onboard.core.planners import Planner, PlanningInputs, make_planner
-from onboard.core.planning import PlanningResult
-from onboard.core.planning_inputs import UavState
-from onboard.core.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
-                                   SideMode, SideSteering, TargetTick)
+from onboard.core.monitor_setup import MonitorSetup
+from onboard.core.planner_choice import make_planner
+from onboard.core.planning.planners import Planner, PlanningInputs
+from onboard.core.planning.next_position import PlanningResult
+from onboard.core.planning.inputs import UavState
+from onboard.core.tracking.steering import (AHEAD_STEPS, FreeSteering, ParticleSteering, ReferenceSteering, Replan,
+                                            SideMode, SideSteering, TargetTick)
+from onboard.core.tracking.steering_setup import PlanSteering
 
 __all__ = ["PlanSteering", "MonitorSetup", "MonitorState", "Scan", "TickResult", "SideMode", "UavState",
            "initial_state", "tick", "replanner", "uav_planner", "particle_steering"]
 
 
 def uav_planner(setup: MonitorSetup) -> Planner:
-    """The UAV planner ``setup.planner`` names (onboard/core/planners.py), built once per setup."""
+    """The UAV planner ``setup.planner`` names (onboard/core/planner_choice.py), built once per setup."""
     if "planner" not in setup.parts:
         setup.parts["planner"] = make_planner(setup)
     return setup.parts["planner"]
 
 
 def particle_steering(setup: MonitorSetup) -> ParticleSteering:
-    """The particle steering ``setup.plan_steering`` chooses (onboard/core/steering.py): free,
+    """The particle steering ``setup.plan_steering`` chooses (onboard/core/tracking/steering.py): free,
     by reference plans, or side-aware; built once per setup."""
     if "steering" not in setup.parts:
         ps = setup.plan_steering
@@ -61,7 +63,7 @@ class MonitorState:
     # per target, what the particle steering kept from last tick (``Steered.memory``: the
     # reference plans, or the side modes; () for the free steering)
     steering: tuple[Any, ...] = ()
-    # per target, what its motion modes kept (``tracking.intent``: onboard/core/intent_tick.py); ()
+    # per target, what its motion modes kept (``tracking.intent``: onboard/core/tracking/intent_tick.py); ()
     # without modes, or when the app rebuilt the state (the modes start again)
     intent: tuple[intent_tick.IntentMemory, ...] = ()
 
@@ -144,7 +146,7 @@ def _plan_uav(setup: MonitorSetup, beliefs, plans, plan_from: UavState | None, r
 
 
 def _tick_with_modes(setup: MonitorSetup, state: MonitorState, scans, rng, plan_from, workspace, timer, planner_rng):
-    """``tick`` for beliefs whose particles carry motion modes (onboard/core/intent_tick.py)."""
+    """``tick`` for beliefs whose particles carry motion modes (onboard/core/tracking/intent_tick.py)."""
     M = setup.n_targets
     memory = state.intent if len(state.intent) == M else tuple(intent_tick.IntentMemory() for _ in range(M))
     sides = setup.plan_steering is not None and setup.plan_steering.sides

@@ -1,49 +1,19 @@
-"""What is static about a mission (``MonitorSetup``), built once from a scenario, and the
-particle steering's settings (``PlanSteering``): what the tick (onboard/core/monitor.py), the
-planners (onboard/core/planners.py) and the particle steering (onboard/core/steering.py) read."""
+"""What is static about a mission (``MonitorSetup``), built once from a scenario: what the tick
+(onboard/core/monitor.py), the choice of planner (onboard/core/planner_choice.py) and the particle
+steering (onboard/core/tracking/steering.py, through ``SteeringSetup``) read."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.core import intent as intent_mod
-from onboard.core import tracking
+from onboard.core.tracking import intent as intent_mod
+from onboard.core.tracking import filter as tracking
 from onboard.core.dynamics import MotionModel
 from onboard.core.guidance.predictor import FreeLaw, GuidanceParams, free_law
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
-
-
-@dataclass(frozen=True)
-class PlanSteering:
-    """How the particles of a target whose plan is constrained are steered (docs/TRACKING.md):
-    by the affine law (``LocalLaw``) of the nearest reference plan, the posterior mean's or one
-    of ``references`` more (an even number: pairs out to ``spread_sigma`` standard deviations
-    either side along the cloud's major axis), if it lies within ``trust_sigma`` standard
-    deviations (Mahalanobis, position) of one. A share ``1 - steered_share``, and every particle
-    farther out, keeps the mean plan's control (robustness where the target's plan differs from
-    all of them). Used while the mean's plan has an active row (rounding an obstacle, or at an
-    input or speed limit): elsewhere the free law is exact."""
-
-    references: int
-    spread_sigma: float
-    steered_share: float
-    trust_sigma: float
-    max_qp_solves: int  # per reference plan (capped by the guidance's budget, which the mean's has)
-    # each particle carries the side of each obstacle its target takes, and each side present has
-    # its own mean's plan and spread pairs (``_side_modes``); a side costing P1 d more (relative)
-    # than its parent's gets a share 1 / (1 + exp(d / side_temperature)) of its particles at birth
-    sides: bool
-    side_temperature: float
-
-    @classmethod
-    def from_config(cls, tr) -> "PlanSteering | None":
-        """From the scenario's ``tracking.plan_*`` (onboard/settings/sections.py declares the defaults)."""
-        if not tr.plan_steering:
-            return None
-        return cls(tr.plan_references, tr.plan_spread_sigma, tr.plan_steered_share, tr.plan_trust_sigma,
-                   tr.plan_max_qp_solves, tr.plan_sides, tr.plan_side_temperature)
+from onboard.core.planning.inputs import CandidateGrid, LookaheadParams, UavMotion
+from onboard.core.tracking.steering_setup import PlanSteering
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +40,7 @@ class MonitorSetup:
     free_steering: FreeLaw | None  # particles whose own plan is the free optimum steer by it
     plan_steering: PlanSteering | None  # the others, while the plan is constrained, by reference plans
     recovery: tracking.Recovery | None  # a lost target found again along the bearings (tracking.recover)
-    # per target, its candidate goals and mode prior (onboard/core/intent.py), and how modes move;
+    # per target, its candidate goals and mode prior (onboard/core/tracking/intent.py), and how modes move;
     # None: the paper's filter, every particle heading for ``goals``
     intents: tuple[intent_mod.Intent, ...] | None
     intent: intent_mod.IntentParams | None

@@ -15,7 +15,7 @@ on ArduCopter SITL: 0.5-0.7 m from the planned point at the next tick, against 1
 position only (bench/sitl_response.py, sim/mock/guided.py).
 
 With a continuous acceleration (the vehicle motion's ``jerk_max_mps3`` > 0,
-onboard/core/planning.py) the plan's acceleration is ``a_k`` at the tick, where the previous
+onboard/core/planning/next_position.py) the plan's acceleration is ``a_k`` at the tick, where the previous
 tick's plan left it, and changes linearly to a_(k+1) = 2 (v_(k+1) - v_k) / T - a_k over the tick
 (the same v_(k+1)), so that
 

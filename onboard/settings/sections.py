@@ -246,9 +246,9 @@ class Planning:
 
     objective: str = choice("trace", ("trace", "position_trace"), "what the greedy rule minimises: tr(Sigma) "
                             "of all six states, or of the position only", paper=True, experimental=True)
-    planner: str = choice("lookahead", ("greedy", "lookahead", "hover", "orbit", "random"),
-                          "routes scored over lookahead_steps, or greedy, the paper's one-step rule; hover, "
-                          "orbit, random: the evaluation's baselines (onboard/core/planners.py)")
+    planner: str = choice("lookahead", ("greedy", "lookahead"),
+                          "routes scored over lookahead_steps, or greedy, the paper's one-step rule (the "
+                          "evaluation's baselines hover, orbit, random are its methods: sim/evaluation/baselines.py)")
     lookahead_steps: int = integer(50, 1, 200, "ticks", "ticks the lookahead planner scores "
                                    "(<= guidance.horizon)", experimental=True)
     motion: str = choice("vehicle", ("jump", "vehicle"), "vehicle: within speed and acceleration limits; "

@@ -14,7 +14,7 @@ sqrt of the trial mean first, ``aggregate_bound``.) The path is a clairvoyant lo
 any planner with that vehicle and this sensor can reach, up to how well the search finds the
 global minimum (``sim.evaluation.ceiling_search``: many starts, and an independent sampling search).
 
-The vehicle (the flight planner's model, ``onboard.core.routes.fly_routes``): a double integrator
+The vehicle (the flight planner's model, ``onboard.core.planning.routes.fly_routes``): a double integrator
 with a constant acceleration through each tick, |a| <= a_max and |v| <= v_max at every tick (so
 between ticks too), starting at rest at the start; it flies at the UAV's altitude, so it keeps
 out of the obstacles it cannot overfly, inflated by the UAV's margin (``routes.blocking_2d``),
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.core.information import PLANAR, information_reduction_factor, planar_model
+from onboard.core.planning.information import PLANAR, information_reduction_factor, planar_model
 from onboard.core.obstacles import polygons_crossed
-from onboard.core.routes import blocking_2d
+from onboard.core.planning.routes import blocking_2d
 
 SUBSTEPS = 4  # points per tick where the penalties hold the curved path out of obstacles
 CHECK_SUBSTEPS = 20  # points per tick of the final check (chords of <= 0.5 m at 9 m/s)

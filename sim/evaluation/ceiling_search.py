@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from onboard.core.obstacles import polygons_crossed
-from onboard.core.routes import route_polylines
+from onboard.core.planning.routes import route_polylines
 from sim.evaluation.ceiling import (CeilingProblem, clearance, kinematics, bound_m2, check_path, fly, objective_gradient,
                          penalty_gradient, window_bound)
 

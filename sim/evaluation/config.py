@@ -11,8 +11,8 @@ import numpy as np
 
 from onboard.config import ConfigError, override
 from onboard.core.monitor import MonitorSetup
-from onboard.core.planners import ORBIT_RADIUS_M, orbit_centre
 from onboard.policy import vehicle_motion
+from sim.evaluation.baselines import ORBIT_RADIUS_M, orbit_centre
 from sim.evaluation.methods import AUTOPILOTS, DEFAULT_METHODS, METHODS, Method, method_scenario
 from sim.mock.multicopter import VehicleLimits, limits_from_params
 from sim.truth.sensors import DirectionFinder
@@ -38,7 +38,7 @@ class EvalConfig:
 
     @property
     def orbit_radius_m(self) -> float:
-        """The orbit baseline's radius (``onboard.core.planners.OrbitPlanner``), m."""
+        """The orbit baseline's radius (``sim.evaluation.baselines.OrbitPlanner``), m."""
         return ORBIT_RADIUS_M
 
     @property
@@ -129,6 +129,6 @@ def _setup_for(cfg: EvalConfig, method: Method) -> tuple[MonitorSetup, Direction
     df = None if method.sensing != "uav" else DirectionFinder.from_config(sc.sensor)
     setup = MonitorSetup.from_scenario(sc)
     if method.planner is not None and method.planner != setup.planner:
-        # a planner a bench registered in PLANNERS (not one the flight app may be configured with)
+        # a baseline or a bench's planner, registered in PLANNERS (not one the flight app may be configured with)
         setup = replace(setup, planner=method.planner)
     return setup, df, limits

@@ -8,10 +8,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from onboard.config import override
-from onboard.core.planners import PLANNERS
+from onboard.core.planner_choice import PLANNERS
 from onboard.policy import POLICIES
 from onboard.settings.sections import SETTINGS
+from sim.evaluation.baselines import register_baselines
 from sim.mock.multicopter import DEMO_VEHICLE_PARAMS, PX4_DEFAULTS
+
+register_baselines()  # the methods below name them
 
 # the ArduCopter parameters a vehicle method's copter flies with (sim.mock.multicopter.limits_from_params):
 # ``NAME@LABEL`` in --methods picks one (default stock: 10 m/s, 2.5 m/s^2; demo: sim.mock.multicopter.DEMO_VEHICLE_PARAMS;
@@ -33,8 +36,8 @@ class Method:
     path is the clairvoyant ceiling's, ``sim.evaluation.ceiling_search.ceiling_path``, from the trial's
     truth, gains and start at the method's vehicle limits; only its PCRB and path are defined). clutter_rate: Lambda for both the simulated DF and the
     filter's likelihood (None: the scenario's). planner: the UAV planner the monitor's tick runs
-    from the UAV position (``onboard.core.planners.PLANNERS``: greedy, lookahead, hover, orbit,
-    random); None: the scenario's ``planning.planner``.
+    from the UAV position (``onboard.core.planner_choice.PLANNERS``: greedy, lookahead, and the baselines
+    hover, orbit, random of sim/evaluation/baselines.py); None: the scenario's ``planning.planner``.
     settings: scenario settings that make this method what it is (``onboard.config.override``,
     over the run's own ``--set``, as sensing, clutter_rate, planner and motion are).
     motion: the UAV's motion model for this method, ``jump`` or ``vehicle``, with the scenario's
@@ -148,7 +151,7 @@ def method_scenario(sc, method: Method):
     elif method.clutter_rate is not None:
         own["sensor.clutter_rate"] = method.clutter_rate
     if method.planner is not None and method.planner in SETTINGS["planning.planner"].choices:
-        own["planning.planner"] = method.planner  # (a bench's own planner is set on the setup: _setup_for)
+        own["planning.planner"] = method.planner  # (a baseline or a bench's planner is set on the setup: _setup_for)
     if method.motion is not None:
         own["planning.motion"] = method.motion
     return override(sc, own)

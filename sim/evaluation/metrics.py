@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from onboard.core.information import PLANAR, bearing_information, pcrb, planar_model
+from onboard.core.planning.information import PLANAR, bearing_information, planar_model
 
 REFERENCE = "greedy_l1"  # paired differences are taken against this method
 FIXED = "fixed3"
@@ -39,12 +39,31 @@ def t_interval(x: np.ndarray, level: float = 0.95) -> tuple[float, float, float]
     return m, m - half, m + half
 
 
+def pcrb(J0: np.ndarray, F: np.ndarray, Q: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """Posterior Cramer-Rao bound recursion for x_k = F_k x_(k-1) + w, w ~ N(0, Q), with
+    measurement information info_k (Tichavsky et al. 1998, additive Gaussian noise form):
+
+        J_k = (F_k J_(k-1)^-1 F_k^T + Q)^-1 + info_k
+
+    J0 (4, 4): the prior information at step 0 (Sigma_0^-1); F (K, 4, 4) the (closed-loop)
+    transition Jacobians at steps 1..K; info (K+1, 4, 4) the expected measurement information
+    at steps 0..K. Returns the bounds J_k^-1 for k = 0..K: (K+1, 4, 4).
+    """
+    J = J0 + info[0]
+    out = [np.linalg.inv(J)]
+    for k in range(len(F)):
+        P = F[k] @ out[-1] @ F[k].T + Q
+        J = np.linalg.inv(P) + info[k + 1]
+        out.append(np.linalg.inv(J))
+    return np.array(out)
+
+
 def pcrb_position(model, initial_cov: np.ndarray, truth: np.ndarray, gains: np.ndarray, sensors: np.ndarray,
                   sigma_rad: float, reduction: float = 1.0) -> np.ndarray:
     """Posterior Cramer-Rao bound of each target's horizontal position along a trial: (K, M),
     the trace of the (x, y) block of the bound, m^2.
 
-    ``onboard.core.information.pcrb`` on the planar state [px, py, vx, vy] with, per step, the
+    ``pcrb`` on the planar state [px, py, vx, vy] with, per step, the
     closed-loop transition Jacobian F_k = A + B du/dx of the target's guidance at its true state
     (``gains`` (K-1, M, 3, 6) from ``sim.truth.world``: the targets steer by feedback toward a known
     goal, so treating the control as a known input would give a bound above what a filter that

@@ -10,9 +10,9 @@ from scipy.special import logsumexp
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import PLANAR
-from onboard.core.information import information_reduction_factor, planar_model
+from onboard.core.planning.information import information_reduction_factor, planar_model
 from onboard.core.monitor import MonitorSetup
-from onboard.core.tracking import systematic_indices
+from onboard.core.tracking.filter import systematic_indices
 from sim.evaluation.closed_loop import closed_loop
 
 

@@ -18,8 +18,8 @@ UAV there. So the UAV moves at most N_r Delta_r per tick and the estimates at ti
 posterior estimates given the scans up to k.
 
 Methods are registered by name in ``METHODS`` (name -> ``Method``; both in sim/evaluation/methods.py); a method is a sensing mode
-and, for a UAV, the planner the monitor's tick runs (``onboard.core.planners``: the paper's
-greedy rule, the lookahead, and the baselines hover, orbit, random). A new method registers
+and, for a UAV, the planner the monitor's tick runs (``onboard.core.planning.planners``: the paper's
+greedy rule, the lookahead; sim/evaluation/baselines.py: the baselines hover, orbit, random). A new method registers
 itself with ``register_method``.
 
 The configuration (``make_config``) is in sim/evaluation/config.py, the metrics (``summarise``) in
@@ -36,7 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from onboard.core.guidance.predictor import GuidanceWorkspace
-from onboard.core.information import information_reduction_factor
+from onboard.core.planning.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
 from sim.evaluation.config import DEFAULT_WINDOW_S, EvalConfig, _setup_for, make_config, method_named
 from sim.evaluation.summary import summarise

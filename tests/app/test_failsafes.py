@@ -35,7 +35,7 @@ from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
 from onboard.policy import with_policy
-from onboard.core.tracking import ParticleSet
+from onboard.core.tracking.filter import ParticleSet
 from sim.mock.multicopter import DEMO_VEHICLE_PARAMS
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]

@@ -76,7 +76,7 @@ def test_the_builtin_scenario_is_the_example_file_not_a_copy():
     (lambda d: d.setdefault("tracking", {}).update(plan_side_temperature=0), "tracking.plan_side_temperature"),
     (lambda d: d["planning"].update(planner="lookahead", lookahead_steps=60),
      "planning.lookahead_steps: must be <= guidance.horizon (50)"),
-    (lambda d: d["planning"].update(planner="spiral"), "planning.planner: must be one of greedy, lookahead, hover, orbit, random"),
+    (lambda d: d["planning"].update(planner="spiral"), "planning.planner: must be one of greedy, lookahead"),
     (lambda d: d.update(app={"fence_max_m": 30}), "uav.altitude_m: must be within the geofence band"),
 ])
 def test_invalid_field_is_named(raw, edit, message):
@@ -143,7 +143,7 @@ def test_aliases_are_not_walked_exponentially(tmp_path):
 def test_lookahead_settings_reach_the_planner(raw):
     """planning.lookahead in a scenario sets the planner's knobs; left out, the declared defaults."""
     from onboard.core.monitor import MonitorSetup
-    from onboard.core.planning_inputs import LookaheadParams
+    from onboard.core.planning.inputs import LookaheadParams
     data = copy.deepcopy(raw)
     data["planning"].pop("lookahead", None)
     defaults = LookaheadParams.from_config(sections.Lookahead())
@@ -350,8 +350,8 @@ def test_the_cores_parameter_classes_have_no_defaults_of_their_own():
     of them could disagree with the declaration (control_mix was 0.1 there, 0.0 here)."""
     from onboard.core.guidance.predictor import GuidanceParams
     from onboard.core.monitor import MonitorSetup, PlanSteering
-    from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion
-    from onboard.core.tracking import SensorModel
+    from onboard.core.planning.inputs import CandidateGrid, LookaheadParams, UavMotion
+    from onboard.core.tracking.filter import SensorModel
     for cls in (GuidanceParams, SensorModel, CandidateGrid, UavMotion, LookaheadParams, PlanSteering, MonitorSetup):
         # a field the constructor does not take (MonitorSetup.parts: the parts built from the
         # settings) is no setting, so it cannot disagree with one

@@ -202,7 +202,7 @@ def test_free_particles_steer_by_the_free_law_the_rest_by_the_plan(paper, model,
     from dataclasses import replace as dc_replace
     from onboard.core.guidance.qp import ActiveRows
     from onboard.core.monitor import MonitorSetup
-    from onboard.core.steering import particle_controls
+    from onboard.core.tracking.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.5))
     setup = MonitorSetup.from_scenario(sc)
     goal = setup.goals[0]
@@ -257,7 +257,7 @@ def test_rounding_particles_steer_by_the_nearest_reference_law(paper, model, rng
     from onboard.core.guidance.predictor import LocalLaw
     from onboard.core.guidance.qp import ActiveRows
     from onboard.core.monitor import MonitorSetup
-    from onboard.core.steering import particle_controls
+    from onboard.core.tracking.steering import particle_controls
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, control_mix=0.0, plan_steering=True,
                                                plan_steered_share=0.7))
     setup = MonitorSetup.from_scenario(sc)
@@ -295,7 +295,7 @@ def test_reference_plans_spread_along_the_cloud_major_axis(paper, model):
     from dataclasses import replace as dc_replace
     from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, replanner
-    from onboard.core.steering import TargetTick, reference_laws
+    from onboard.core.tracking.steering import TargetTick, reference_laws
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_references=2,
                                                plan_spread_sigma=1.5))
     setup = MonitorSetup.from_scenario(sc)
@@ -432,10 +432,10 @@ def test_side_modes_split_the_cloud_at_a_knife_edge_and_keep_each_particle_side(
     keeps its side (the true target keeps the side its plan took), each mode re-planned from its
     own particles and steering them by its own law."""
     from dataclasses import replace as dc_replace
-    from onboard.core import tracking
+    from onboard.core.tracking import filter as tracking
     from onboard.core.guidance.predictor import GuidanceWorkspace, winding
     from onboard.core.monitor import replanner
-    from onboard.core.steering import TargetTick, particle_controls, side_modes
+    from onboard.core.tracking.steering import TargetTick, particle_controls, side_modes
     setup = _one_box(paper, plan_steering=True, plan_sides=True, control_mix=0.0)
     ws = GuidanceWorkspace()
     goal = setup.goals[0]
@@ -527,7 +527,7 @@ def test_the_side_aware_tick_is_deterministic_and_within_its_budget(paper, monke
     import time
     from dataclasses import replace as dc_replace
     from onboard.core import monitor
-    from onboard.core import steering
+    from onboard.core.tracking import steering
     from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, initial_state, particle_steering, tick
     sc = dc_replace(paper, tracking=dc_replace(paper.tracking, plan_steering=True, plan_sides=True))

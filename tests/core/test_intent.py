@@ -1,5 +1,5 @@
-"""The motion modes of onboard/core/intent.py and the filter that carries them
-(onboard/core/intent_tick.py): each piece against what it promises, and the filter against
+"""The motion modes of onboard/core/tracking/intent.py and the filter that carries them
+(onboard/core/tracking/intent_tick.py): each piece against what it promises, and the filter against
 targets that do not do what the scenario says (a standing emitter, a target heading somewhere
 nobody named), where the paper's filter, told only the scenario's goal, is lost."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from onboard.config import load_scenario, override
-from onboard.core import intent as im
+from onboard.core.tracking import intent as im
 from onboard.core.dynamics import MotionModel
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.monitor_setup import target_intents
@@ -96,7 +96,7 @@ def test_an_aimed_particle_turns_toward_its_own_destination():
 
 
 def test_the_recovery_is_raised_only_by_the_weight_no_goal_predicts():
-    from onboard.core.tracking import ParticleSet, Recovery
+    from onboard.core.tracking.filter import ParticleSet, Recovery
 
     rec = Recovery(0.01, 0.02, 50.0)
     raised = replace(PARAMS, recovery_prior_raise=0.05, recovery_sigma_raise_m=150.0)

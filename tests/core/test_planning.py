@@ -6,7 +6,7 @@ import pytest
 
 from onboard.config import override
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import _admissible_paths, admissible, candidate_positions, choose_next_position
+from onboard.core.planning.next_position import _admissible_paths, admissible, candidate_positions, choose_next_position
 from tests.support.planning_cases import GRID, MODEL, SCORING, VEHICLE, moves, still_targets as _still_targets
 
 
@@ -75,8 +75,8 @@ def test_chooses_the_move_that_turns_the_line_of_sight(rng):
 
 # --------------------------------------------------------------------------- beyond the paper
 
-from onboard.core.planning import choose_lookahead, motion_sequences  # noqa: E402
-from onboard.core.planning_inputs import JUMP, UavState  # noqa: E402
+from onboard.core.planning.next_position import choose_lookahead, motion_sequences  # noqa: E402
+from onboard.core.planning.inputs import JUMP, UavState  # noqa: E402
 
 
 def test_vehicle_reachable_set_respects_speed_and_acceleration():
@@ -170,23 +170,25 @@ def test_lookahead_route_score_ranks_routes_as_a_particle_rollout_does(motion, s
 
 
 def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
-    """``MonitorSetup.planner`` names the planner (the baselines too), built once per setup;
-    ``tracking.plan_steering`` / ``plan_sides`` choose the particle steering; a name no planner
-    has is refused with the names that exist."""
+    """``MonitorSetup.planner`` names the planner, built once per setup; ``tracking.plan_steering``
+    / ``plan_sides`` choose the particle steering; a name no planner has is refused with the names
+    that exist, and the app's setting accepts only what flies (not the evaluation's baselines)."""
     from dataclasses import replace as dc_replace
 
+    from onboard.config import ConfigError
     from onboard.core.monitor import MonitorSetup, particle_steering, uav_planner
-    from onboard.core.planners import (GreedyPlanner, HoverPlanner, LookaheadPlanner, OrbitPlanner, RandomPlanner,
-                                       make_planner)
-    from onboard.core.steering import FreeSteering, ReferenceSteering, SideSteering
+    from onboard.core.planner_choice import make_planner
+    from onboard.core.planning.planners import GreedyPlanner, LookaheadPlanner
+    from onboard.core.tracking.steering import FreeSteering, ReferenceSteering, SideSteering
 
     setup = MonitorSetup.from_scenario(paper)
     assert isinstance(uav_planner(setup), GreedyPlanner) and uav_planner(setup) is uav_planner(setup)
-    for name, kind in (("lookahead", LookaheadPlanner), ("hover", HoverPlanner), ("orbit", OrbitPlanner),
-                       ("random", RandomPlanner)):
-        assert isinstance(uav_planner(MonitorSetup.from_scenario(override(paper, {"planning.planner": name}))), kind)
-    with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead, hover, orbit, random"):
+    lookahead = MonitorSetup.from_scenario(override(paper, {"planning.planner": "lookahead"}))
+    assert isinstance(uav_planner(lookahead), LookaheadPlanner)
+    with pytest.raises(ValueError, match="unknown planner 'spiral'.*greedy, lookahead"):
         make_planner(dc_replace(setup, planner="spiral"))
+    with pytest.raises(ConfigError, match="planning.planner: must be one of greedy, lookahead, got 'hover'"):
+        override(paper, {"planning.planner": "hover"})
     assert isinstance(particle_steering(setup), FreeSteering)
 
     def steering(**tr):
@@ -207,44 +209,14 @@ def test_the_planner_and_the_steering_are_chosen_once_from_the_setup(paper):
     assert isinstance(particle_steering(MonitorSetup.from_scenario(with_policy(sides, "paper"))), SideSteering)
 
 
-def test_a_planners_draws_never_shift_the_filters(paper):
-    """The random baseline draws from ``planner_rng``: with the same scans, the filter's beliefs
-    after each tick are those of the hover baseline from the same streams, and its moves are
-    admissible candidates of S_(t+1); drawing from the filter's own stream instead changes them."""
-    from onboard.core.guidance.predictor import GuidanceWorkspace
-    from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
-
-    def run(planner, separate):
-        setup = MonitorSetup.from_scenario(override(paper, {"planning.planner": planner}))
-        rng, prng = np.random.default_rng(5), np.random.default_rng(6)
-        state, ws = initial_state(setup, rng), GuidanceWorkspace()
-        uav, out = np.array([300.0, 300.0, setup.grid.altitude_m]), []
-        for _ in range(3):
-            bearings = tuple(np.array([0.5 + 0.1 * j]) for j in range(setup.n_targets))
-            state, res = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav), workspace=ws,
-                              planner_rng=prng if separate else None)
-            out.append((np.stack([b.particles for b in state.beliefs]), res.planning))  # scans stay put
-        return out
-
-    hover, rand, shared = run("hover", True), run("random", True), run("random", False)
-    moved = 0
-    for (b_h, p_h), (b_r, p_r) in zip(hover, rand):
-        np.testing.assert_array_equal(b_h, b_r)
-        assert p_h.index == 0 and np.array_equal(p_h.position, p_h.candidates[0])
-        assert p_r.admissible[p_r.index] and len(p_r.candidates) == 4 * 15 + 1
-        moved += p_r.index != 0
-    assert moved >= 2
-    assert not np.array_equal(shared[-1][0], rand[-1][0])
-
-
 def test_the_refinement_experiments_score_and_gradient_are_the_planners(rng):
     """bench/route_variants.py --refine (docs/LOG.md, not adopted) optimises the planner's own
     route score: its forward pass must equal ``_route_traces`` on the same route. Its adjoint
     gradient holds the bearing's regulariser tr P fixed, so it is exact at the horizon's last tick
     only; elsewhere it must point where central differences do (four targets 130-460 m out)."""
     from sim.evaluation.route_score import score
-    from onboard.core.information import PLANAR, planar_model
-    from onboard.core.planning import _route_traces
+    from onboard.core.planning.information import PLANAR, planar_model
+    from onboard.core.planning.next_position import _route_traces
 
     H, M, N = 30, 4, 500
     targets = rng.uniform(100, 900, size=(M, 2)) + np.arange(H)[:, None, None] * np.array([3.0, -2.0])

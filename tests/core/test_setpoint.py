@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from onboard.core.planning import choose_lookahead, choose_next_position
-from onboard.core.planning_inputs import UavState
+from onboard.core.planning.next_position import choose_lookahead, choose_next_position
+from onboard.core.planning.inputs import UavState
 from onboard.core.setpoint import plan_setpoint
 from sim.mock.guided import enu, fly_plan
 from sim.mock.multicopter import VehicleState, advance_input

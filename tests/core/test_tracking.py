@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm, poisson
 
-from onboard.core import tracking
+from onboard.core.tracking import filter as tracking
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
 

@@ -10,7 +10,7 @@ from scipy.stats import chi2
 
 from groundstation.locate_fuse import fuse, log_posterior
 from onboard.core.bearings import bearing
-from onboard.core.tracking import SensorModel
+from onboard.core.tracking.filter import SensorModel
 
 TRUTH = np.array([300.0, 500.0])
 SIGMA = np.radians(1.0)
@@ -81,7 +81,7 @@ def test_without_bearings_the_prior_is_the_answer():
 def test_log_posterior_is_the_prior_plus_each_scans_likelihood_at_its_own_clutter_rate():
     from dataclasses import replace
 
-    from onboard.core.tracking import log_likelihood
+    from onboard.core.tracking.filter import log_likelihood
 
     pts = np.array([[300.0, 500.0], [310.0, 480.0], [250.0, 520.0]])
     scans = [(np.zeros(2), np.array([0.5]), None), (np.array([100.0, 0.0]), np.array([0.3, -1.0]), 4.0)]

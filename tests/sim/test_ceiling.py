@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from onboard.config import load_scenario
-from onboard.core.information import information_reduction_factor
+from onboard.core.planning.information import information_reduction_factor
 from onboard.core.monitor import MonitorSetup
 from sim.evaluation import ceiling as ce
 from sim.evaluation import ceiling_search as cs

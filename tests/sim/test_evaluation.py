@@ -40,7 +40,7 @@ def test_fixed_sensors_localise_a_target_to_the_triangulation_bound(paper):
     trials = ev.run_trials(cfg, workers=1, progress=False)
     mse, bound = [], []
     for tr in trials:
-        # the evaluation's own bound (onboard.core.information.pcrb along the truth, closed loop)
+        # the evaluation's own bound (sim.evaluation.metrics.pcrb along the truth, closed loop)
         mse.append(tr.traces["fixed3"].error_m[5:, 0] ** 2)
         bound.append(tr.traces["fixed3"].bound_m2[5:, 0])
     ratio = np.sqrt(np.mean(mse) / np.mean(bound))
@@ -213,7 +213,7 @@ def test_the_flight_default_is_a_method_flown_with_the_autopilots_limits():
     behind its plan."""
     from onboard.config import load_scenario
     from onboard.core.monitor import particle_steering
-    from onboard.core.steering import SideSteering
+    from onboard.core.tracking.steering import SideSteering
     from onboard.policy import POLICIES
 
     user = {"guidance.horizon": 20, "planning.lookahead_steps": 20, "tracking.particles": 300}
@@ -342,8 +342,9 @@ def test_a_method_naming_an_unknown_planner_motion_or_autopilot_is_refused(kw, s
 def test_a_planner_a_bench_registers_is_the_one_its_method_flies(quick):
     """bench/ceiling_greedy.py's way: a Planner put in PLANNERS (not a setting the app accepts)
     and a method naming it; the evaluation flies that planner, not the scenario's."""
-    from onboard.core.planners import PLANNERS, Planner
-    from onboard.core.planning import PlanningResult
+    from onboard.core.planner_choice import PLANNERS
+    from onboard.core.planning.planners import Planner
+    from onboard.core.planning.next_position import PlanningResult
 
     class East(Planner):
         def plan(self, inputs, rng):

@@ -9,8 +9,8 @@ import numpy as np
 
 from onboard.core.dynamics import MotionModel
 from onboard.core.obstacles import Obstacles
-from onboard.core.planning import Area, Moves, RouteScoring
-from onboard.core.planning_inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion
+from onboard.core.planning.next_position import Area, Moves, RouteScoring
+from onboard.core.planning.inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion
 from onboard.settings.sections import Lookahead
 
 GRID = CandidateGrid(step_m=5.0, n_radial=4, n_heading=15, altitude_m=40.0)

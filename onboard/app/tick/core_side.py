@@ -11,11 +11,11 @@ import numpy as np
 
 from onboard.app.params import ParamTable
 from onboard.app.autopilot.plan_limits import PlanLimits
-from onboard.core import tracking
+from onboard.core.tracking import filter as tracking
 from onboard.core.guidance.predictor import GuidanceWorkspace
 from onboard.core.monitor import MonitorSetup, initial_state
-from onboard.core.planning_inputs import CandidateGrid
-from onboard.core.tracking import ParticleSet
+from onboard.core.planning.inputs import CandidateGrid
+from onboard.core.tracking.filter import ParticleSet
 
 
 class MonitorCore:

@@ -35,7 +35,7 @@ from onboard.app.replay_record import ReplayRecorder
 from onboard.app.autopilot.setpoint_stream import PlannedSegment
 from onboard.app.tick.log import TickLog, record, target_values
 from onboard.app.tick.schedule import PLAN_RESERVE_S, TickJob
-from onboard.core import intent_tick
+from onboard.core.tracking import intent_tick
 from onboard.core import monitor
 from onboard.core.clock_stops import SearchClock
 from onboard.core.monitor import MonitorSetup, Scan, UavState

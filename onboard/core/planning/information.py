@@ -1,5 +1,6 @@
-"""Fisher information of bearings: the Gaussian (EKF) pseudo-update, the information reduction
-factor of detection and clutter, and the posterior Cramer-Rao bound (Tichavsky et al., 1998).
+"""Fisher information of bearings: the Gaussian (EKF) pseudo-update and the information reduction
+factor of detection and clutter (the evaluation's posterior Cramer-Rao bound builds on them:
+sim/evaluation/metrics.py).
 
 Everything here works on the planar part of the state, x = [px, py, vx, vy] (m, m/s): u_z = 0 and
 the vertical process noise is 1e-10 in the paper, so the vertical states carry no information
@@ -110,22 +111,3 @@ def predict_planar_components(Pc: np.ndarray, model: MotionModel) -> np.ndarray:
     for k, q in enumerate(np.diag(model.Q)[PLANAR]):
         Y[k, k] += q
     return Y
-
-
-def pcrb(J0: np.ndarray, F: np.ndarray, Q: np.ndarray, info: np.ndarray) -> np.ndarray:
-    """Posterior Cramer-Rao bound recursion for x_k = F_k x_(k-1) + w, w ~ N(0, Q), with
-    measurement information info_k (Tichavsky et al. 1998, additive Gaussian noise form):
-
-        J_k = (F_k J_(k-1)^-1 F_k^T + Q)^-1 + info_k
-
-    J0 (4, 4): the prior information at step 0 (Sigma_0^-1); F (K, 4, 4) the (closed-loop)
-    transition Jacobians at steps 1..K; info (K+1, 4, 4) the expected measurement information
-    at steps 0..K. Returns the bounds J_k^-1 for k = 0..K: (K+1, 4, 4).
-    """
-    J = J0 + info[0]
-    out = [np.linalg.inv(J)]
-    for k in range(len(F)):
-        P = F[k] @ out[-1] @ F[k].T + Q
-        J = np.linalg.inv(P) + info[k + 1]
-        out.append(np.linalg.inv(J))
-    return np.array(out)

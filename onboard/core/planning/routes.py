@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from onboard.core.obstacles import Obstacles, polygons_crossed
-from onboard.core.planning_inputs import CandidateGrid, LookaheadParams, UavMotion, UavState, planar_norms
+from onboard.core.planning.inputs import CandidateGrid, LookaheadParams, UavMotion, UavState, planar_norms
 
 
 def blocking_2d(uav_obstacles: Obstacles, altitude_m: float) -> tuple[np.ndarray, np.ndarray]:

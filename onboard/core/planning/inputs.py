@@ -1,5 +1,5 @@
-"""What the planners are given, shared by the planners (onboard/core/planning.py) and the
-lookahead's route geometry (onboard/core/routes.py): the candidate grid S_(t+1) (eq. (3) of the
+"""What the planners are given, shared by the planners (onboard/core/planning/next_position.py) and the
+lookahead's route geometry (onboard/core/planning/routes.py): the candidate grid S_(t+1) (eq. (3) of the
 paper), where the UAV plans from (``UavState``), how it moves between ticks (``UavMotion``; the
 paper's ``JUMP``) and the route planner's knobs (``LookaheadParams``).
 """

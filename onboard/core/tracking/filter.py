@@ -11,7 +11,7 @@ import numpy as np
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import PLANAR, MotionModel
-from onboard.core.intent import explained
+from onboard.core.tracking.intent import explained
 
 LOG_2PI = np.log(2.0 * np.pi)
 
@@ -43,7 +43,7 @@ class ParticleSet:
     # (N,) int, or None: which side of an obstacle each particle's target takes (the monitor's
     # plan_sides; -1 none); carried through prediction, update and resampling
     labels: np.ndarray | None = None
-    # (N,) int, or None: each particle's motion mode (onboard/core/intent.py: a goal's index,
+    # (N,) int, or None: each particle's motion mode (onboard/core/tracking/intent.py: a goal's index,
     # STATIONARY or FREE); carried like the labels
     modes: np.ndarray | None = None
     # (N, 2) ENU m, or None: where each particle of the intent's AIMED mode is heading (its own

@@ -1,5 +1,5 @@
 """The tick's steps 1-4 (onboard/core/monitor.py) for beliefs whose particles carry motion modes
-(``tracking.intent``; onboard/core/intent.py holds the modes' maths).
+(``tracking.intent``; onboard/core/tracking/intent.py holds the modes' maths).
 
 1. update, as the paper's filter, after an innovation check: a target whose last scans the belief
    did not explain (``intent.SURPRISE_COUNT`` of ``SURPRISE_WINDOW``) gets a wide share of its
@@ -21,11 +21,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from onboard.core import intent as im
-from onboard.core import tracking
+from onboard.core.tracking import intent as im
+from onboard.core.tracking import filter as tracking
 from onboard.core.dynamics import PLANAR
 from onboard.core.guidance.predictor import Feedback, GuidanceWorkspace, Plan, PlanAsk, Solver, plan_guidance
-from onboard.core.steering import AHEAD_STEPS, TargetTick
+from onboard.core.tracking.steering import AHEAD_STEPS, TargetTick
 
 MIN_MODE_SHARE = 1e-3  # a goal mode holding less of a target's weight gets no plan of its own this tick
 

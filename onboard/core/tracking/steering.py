@@ -17,16 +17,14 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from onboard.core.dynamics import PLANAR
 from onboard.core.guidance.predictor import LocalLaw, Plan, in_class, winding
-from onboard.core.tracking import ParticleSet
-
-if TYPE_CHECKING:
-    from onboard.core.monitor_setup import MonitorSetup, PlanSteering
+from onboard.core.tracking.steering_setup import PlanSteering, SteeringSetup
+from onboard.core.tracking.filter import ParticleSet
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,7 +85,7 @@ class ParticleSteering(ABC):
     """How a target's particles are moved in the prediction; ``memory`` is what the strategy
     kept for this target at the last tick (() at the start)."""
 
-    def __init__(self, setup: MonitorSetup):
+    def __init__(self, setup: SteeringSetup):
         self.setup = setup
 
     @abstractmethod
@@ -153,7 +151,7 @@ class SideSteering(ParticleSteering):
 # --------------------------------------------------------------------------- the controls
 
 
-def particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: MonitorSetup,
+def particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup: SteeringSetup,
                       rng: np.random.Generator, laws: Sequence[LocalLaw] = (),
                       metric: np.ndarray | None = None, sides: SideLaws | None = None) -> np.ndarray:
     """(n, 3) controls for the prediction: the plan's u_(t|t) for every particle (eq. (9a)),
@@ -193,7 +191,7 @@ def particle_controls(plan: Plan, particles: np.ndarray, goal: np.ndarray, setup
     return out
 
 
-def _steer_by_laws(out: np.ndarray, free: np.ndarray, particles: np.ndarray, setup: MonitorSetup,
+def _steer_by_laws(out: np.ndarray, free: np.ndarray, particles: np.ndarray, setup: SteeringSetup,
                    rng: np.random.Generator, laws: Sequence[LocalLaw], metric: np.ndarray,
                    sides: SideLaws | None) -> None:
     """``particle_controls``' reference steering, in place on ``out``."""
@@ -314,7 +312,7 @@ class Budget:
             self.left -= plan.qp_solves + (LAW_COST if plan.law is not None else 0)
 
 
-def side_modes(setup: MonitorSetup, target: TargetTick, previous: Sequence[SideMode],
+def side_modes(setup: SteeringSetup, target: TargetTick, previous: Sequence[SideMode],
                rng: np.random.Generator) -> tuple[SideLaws, tuple[SideMode, ...]]:
     """Side modes of a target whose mean's plan is constrained (``PlanSteering.sides``); ``previous``:
     its modes of the last tick.

@@ -1,11 +1,11 @@
 """Next UAV position: candidate set S_(t+1) (eq. (3) of the paper), pseudo-posteriors from ideal
 bearings (eq. (11)) and the argmin of summed traces (eq. (12)); beyond the paper, the UAV's motion
-between ticks and the non-myopic route planner (its route geometry: onboard/core/routes.py).
+between ticks and the non-myopic route planner (its route geometry: onboard/core/planning/routes.py).
 
 What a planner is asked travels as frozen requests: ``UavState`` (where the UAV plans from),
 ``Moves`` (how and where it may move) and, for the lookahead, ``RouteScoring``; the pieces the
 route geometry shares (the grid, ``UavState``, ``UavMotion``, ``LookaheadParams``) are in
-onboard/core/planning_inputs.py.
+onboard/core/planning/inputs.py.
 """
 from __future__ import annotations
 
@@ -15,11 +15,12 @@ import numpy as np
 
 from onboard.core.bearings import bearing, wrap
 from onboard.core.dynamics import MotionModel
-from onboard.core.information import PLANAR, bearing_update_components, predict_planar_components
+from onboard.core.planning.information import PLANAR, bearing_update_components, predict_planar_components
 from onboard.core.obstacles import Obstacles, polygons_crossed
-from onboard.core.planning_inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion, UavState
-from onboard.core.routes import blocking_2d, fly_routes, inside_2d, route_polylines, route_waypoints, sample_routes
-from onboard.core.tracking import logsumexp
+from onboard.core.planning.inputs import JUMP, CandidateGrid, LookaheadParams, UavMotion, UavState
+from onboard.core.planning.routes import (blocking_2d, fly_routes, inside_2d, route_polylines, route_waypoints,
+                                          sample_routes)
+from onboard.core.tracking.filter import logsumexp
 
 OBJECTIVES = ("trace", "position_trace")
 
