@@ -151,8 +151,8 @@ def test_check_config_says_what_the_filter_assumes_of_each_target(tmp_path, caps
     rc, out, err = main_rc(capsys, "check-config", str(f))
     assert rc == 0, err
     lines = out.splitlines()[1:]
-    assert "T1 (its goal G): prior G 0.80; stationary 0.10" in lines[0] and "paper's filter: heads for G" in lines[0]
-    assert "T2 (no goal, candidates G, W, E): prior G 0.27, W 0.27, E 0.27; stationary 0.10" in lines[1]
+    assert "T1 (its goal G): prior G 0.60; stationary 0.30" in lines[0] and "paper's filter: heads for G" in lines[0]
+    assert "T2 (no goal, candidates G, W, E): prior G 0.20, W 0.20, E 0.20; stationary 0.30" in lines[1]
     assert "T3 (no goal, stationary): prior stationary 0.80, free 0.10, elsewhere 0.10" in lines[2]
     assert "T4 (no goal): prior stationary 0.50, free 0.25, elsewhere 0.25" in lines[3]
     assert "stays at its start (its goal unknown)" in lines[3]

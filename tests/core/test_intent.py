@@ -5,12 +5,15 @@ nobody named), where the paper's filter, told only the scenario's goal, is lost.
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from onboard.config import load_scenario, override
 from onboard.core.tracking import intent as im
+from onboard.core.tracking.filter import ParticleSet
+from onboard.core.tracking.intent_tick import mix
 from onboard.core.dynamics import MotionModel
 from onboard.core.monitor import MonitorSetup, Scan, initial_state, tick
 from onboard.core.monitor_setup import target_intents
@@ -96,7 +99,7 @@ def test_an_aimed_particle_turns_toward_its_own_destination():
 
 
 def test_the_recovery_is_raised_only_by_the_weight_no_goal_predicts():
-    from onboard.core.tracking.filter import ParticleSet, Recovery
+    from onboard.core.tracking.filter import Recovery
 
     rec = Recovery(0.01, 0.02, 50.0)
     raised = replace(PARAMS, recovery_prior_raise=0.05, recovery_sigma_raise_m=150.0)
@@ -206,7 +209,6 @@ def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
 
 
 def _standing_posterior(n: int = 4000):
-    from onboard.core.tracking import ParticleSet
     p = np.zeros((n, 6))
     p[:, :2] = 500.0
     return ParticleSet(p, np.full(n, -np.log(n)), None, np.full(n, im.STATIONARY), np.full((n, 2), 500.0))
@@ -216,9 +218,6 @@ def _standing_posterior(n: int = 4000):
 def test_a_standing_particle_that_moves_off_starts_at_the_declared_speed_spread(speed):
     """A target that stood and moves off does so at some speed: the particles switching out of
     STATIONARY take a velocity N(0, speed^2) per axis; those that stay stand; 0 keeps them at rest."""
-    from types import SimpleNamespace
-
-    from onboard.core.intent_tick import mix
     setup = SimpleNamespace(resample_fraction=0.0, regularise_bandwidth=0.0, area_min=np.zeros(3),
                             area_max=np.full(3, 1000.0),
                             intent=replace(PARAMS, switch_prob=0.5, start_speed_mps=speed))
