@@ -50,6 +50,7 @@ COMPUTE_MODULES = frozenset({
 # lanes.COMPUTE_TIMEOUT_S)
 COMPUTE_MODULES_FLIGHTS = frozenset({
     "tests/sim/test_worlds.py::test_a_world_is_its_family_seed_and_index_in_any_process",
+    "tests/sim/test_worlds.py::test_the_planner_bench_refuses_a_bad_scenario_in_one_line_and_times_several_in_one_run",
     "tests/sim/test_evaluation.py::test_docs_results_trial_0_reproduces_here",  # pmon eval, 240 s
     "tests/sim/test_evaluation.py::test_pmon_eval_writes_csv_table_figures_and_a_json_line",  # the same
     "tests/sim/test_evaluation.py::test_dask_cluster_gives_the_same_trials",  # a TCP cluster

@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from sim.evaluation import trials as ev
 from sim.evaluation import across_worlds as we
 from sim.truth import worlds as W
 
+ROOT = Path(__file__).resolve().parents[2]
 N = 8  # worlds per family in the fast checks
 H = 40.0  # uav.altitude_m's default, what the generator measures heights against
 
@@ -246,3 +248,43 @@ def test_pmon_worlds_writes_files_check_config_accepts(tmp_path, capsys):
         path = tmp_path / f"crowd-s3-{i:03d}.yaml"
         assert pmon(["check-config", str(path)]) == 0
         assert load_scenario(path) == W.draw_world("crowd", 3, i)
+
+
+def test_the_scaling_scenario_is_the_papers_world_and_more_under_the_worlds_rules():
+    """config/scale_8x10.yaml (issue 47's 8 targets x 10 obstacles): the validator takes it, its first
+    four targets and obstacles, its goals, area and UAV start are the paper's, and the generated
+    worlds' rules hold (gaps, clearances, every target reaching its goal)."""
+    sc, paper = load_scenario(ROOT / "config" / "scale_8x10.yaml"), load_scenario("paper")
+    assert (len(sc.targets), len(sc.obstacles)) == (8, 10)
+    assert sc.targets[:4] == paper.targets and sc.obstacles[:4] == paper.obstacles and sc.goals == paper.goals
+    assert sc.area == paper.area and sc.uav.start_m == paper.uav.start_m
+    assert sorted(v.target for v in sc.kraken.vfos) == sorted(t.name for t in sc.targets)
+    assert W.unreachable(sc) is None
+    rects = [W.Rect(o.center_m[0], o.center_m[1], o.size_m[0], o.size_m[1], o.yaw_deg) for o in sc.obstacles]
+    goals = [W.Rect(g.center_m[0], g.center_m[1], W.GOAL_M, W.GOAL_M) for g in sc.goals]
+    for i, r in enumerate(rects):
+        assert r.edge_gap() >= W.EDGE_M and all(r.gap(o) >= W.GAP_M for o in rects[:i] + goals), i
+        assert all(r.distance(*t.position_m[:2]) >= W.CLEAR_M for t in sc.targets), i
+    for t in sc.targets:
+        g = sc.goal_named(t.candidates[0]).center_m
+        assert math.hypot(t.position_m[0] - g[0], t.position_m[1] - g[1]) >= W.FROM_GOAL_M, t.name
+    assert sum(o.size_m[2] > sc.uav.altitude_m for o in sc.obstacles[4:]) == 3  # as the file says
+
+
+def test_the_planner_bench_refuses_a_bad_scenario_in_one_line_and_times_several_in_one_run(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\n", encoding="utf-8")
+    for item, says in ((str(bad), f"{bad}: origin: missing"), (str(tmp_path / "none.yaml"), "none.yaml: cannot read"),
+                       ("paper,config/paper.yaml", "two scenarios named 'paper'")):
+        done = subprocess.run([sys.executable, "-m", "bench.planner", "--scenarios", item], cwd=ROOT,
+                              capture_output=True, text=True, timeout=60)
+        last = done.stderr.strip().splitlines()[-1]
+        assert done.returncode == 2 and done.stdout == "" and last.startswith("planner.py: error: --scenarios: "), done
+        assert says in last, last
+    done = subprocess.run([sys.executable, "-m", "bench.planner", "--scenarios", "paper,config/scale_8x10.yaml",
+                           "--cases", "greedy/jump", "--ticks", "3", "--clock", "cpu"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert list(out) == ["paper", "scale_8x10"] and all(list(v) == ["greedy/jump"] for v in out.values()), out
+    assert "scale_8x10 (config/scale_8x10.yaml): 8 targets, 10 obstacles" in done.stdout
