@@ -179,7 +179,7 @@ def mix_resample(log_weights: np.ndarray, modes: np.ndarray, intent: Intent, p_s
     f[:K, :K] = goal_share
     np.fill_diagonal(f, 1.0)
     keep = (1.0 - p_switch) + p_switch * ((1.0 - f) @ intent.prior)  # (C,) the share of c that stays c
-    pred = keep * p + p_switch * intent.prior * (1.0 if goal_share == 1.0 else p @ f)
+    pred = keep * p + p_switch * intent.prior * (1.0 if goal_share == 1.0 or K < 2 else p @ f)  # one goal: as 1
     live = pred > 0.0
     floor = min(min_share * n, 0.5 * n / max(1, live.sum()))
     target = np.where(live, floor + (n - floor * live.sum()) * pred / pred.sum(), 0.0)
