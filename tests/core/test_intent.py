@@ -209,6 +209,7 @@ def test_a_target_heading_somewhere_nobody_named_is_tracked_honestly():
     assert np.mean(np.array([f[1][0] for f in paper])[20:]) > 20.0
 
 
+@pytest.mark.slow  # eight 70-tick closed loops (four streams, the raise on and off): minutes (tests/README.md)
 def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
     """The flight default's filter (recovery on) on the target heading east that the scenario says
     heads south: the recovery raised by the free and elsewhere weight finds it nearer and states a
