@@ -123,4 +123,4 @@ def intent_params(sc) -> intent_mod.IntentParams:
     tr = sc.tracking
     return intent_mod.IntentParams(tr.intent_switch_prob, tr.intent_free_accel_mps2, sc.guidance.speed_max_mps,
                                    intent_mod.STATIONARY_SIGMA_M, tr.intent_recovery_prior, tr.intent_recovery_sigma_m,
-                                   tr.intent_start_speed_mps)
+                                   tr.intent_start_speed_mps, tr.intent_goal_switch_share)

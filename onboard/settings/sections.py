@@ -222,6 +222,10 @@ class Tracking:
     intent_start_speed_mps: float = number(3.0, 0, 20, "m/s", "with intent: a particle switching out of the "
                                            "stationary mode starts with a velocity N(0, this^2) per axis "
                                            "(0: at rest)", experimental=True)
+    intent_goal_switch_share: float = number(0.1, 0, 1, "", "with intent: a particle heading for one "
+                                             "candidate goal whose mode is redrawn takes another candidate "
+                                             "goal at this share of its prior, else keeps its goal (a target "
+                                             "rarely changes destination)", experimental=True)
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,33 @@ def test_mixing_keeps_the_predicted_mode_probabilities_and_every_mode_populated(
     assert mixed.switched[mixed.modes != 0].all()
 
 
+@pytest.mark.parametrize("share", [1.0, 0.1, 0.0])
+def test_a_goal_is_changed_for_another_at_the_declared_share_of_the_switches(share):
+    """A target heading for one candidate goal redraws its mode at s a tick, but takes another
+    candidate goal at ``share`` of that goal's prior, keeping its own otherwise; the switches into
+    stationary, free and aimed are as before, and the set still samples every mode densely."""
+    rng = np.random.default_rng(4)
+    intent = _intent(3)
+    n, s = 3000, 0.02
+    half = n // 2  # the posterior: goal 0 at 0.75, stationary at 0.25
+    modes = np.r_[np.zeros(half, int), np.full(n - half, im.STATIONARY)]
+    logw = np.log(np.r_[np.full(half, 0.75 / half), np.full(n - half, 0.25 / (n - half))])
+    mixed = im.mix_resample(logw, modes, intent, s, n, 0.05, rng, share)
+    p = im.probabilities(mixed.log_weights, mixed.modes, 3)
+    q = intent.prior
+    expected = np.array([
+        0.75 * ((1 - s) + s * q[0] + s * (1 - share) * (q[1] + q[2])) + 0.25 * s * q[0],
+        0.75 * s * q[1] * share + 0.25 * s * q[1],
+        0.75 * s * q[2] * share + 0.25 * s * q[2],
+        0.25 * ((1 - s) + s * q[3]) + 0.75 * s * q[3],
+        s * q[4],
+        s * q[5]])
+    np.testing.assert_allclose(p, expected, atol=1e-12)
+    assert np.isclose(p.sum(), 1.0)
+    # goals 1 and 2 still sampled densely, ready should the bearings favour them
+    assert np.bincount(im.columns(mixed.modes, 3), minlength=6).min() >= 0.05 * n - 1
+
+
 def test_free_and_aimed_particles_stay_in_the_area_out_of_obstacles_and_under_the_speed_bound():
     rng = np.random.default_rng(5)
     model = MotionModel.create(1.0, 0.2, 1300.0, (30.0, 30.0, 1e-10, 3.0, 3.0, 1e-10))
@@ -182,6 +209,7 @@ def test_a_target_heading_somewhere_nobody_named_is_tracked_honestly():
     assert np.mean(np.array([f[1][0] for f in paper])[20:]) > 20.0
 
 
+@pytest.mark.slow  # eight 70-tick closed loops (four streams, the raise on and off): minutes (tests/README.md)
 def test_the_flight_filter_searches_wider_where_no_goal_predicts_the_motion():
     """The flight default's filter (recovery on) on the target heading east that the scenario says
     heads south: the recovery raised by the free and elsewhere weight finds it nearer and states a

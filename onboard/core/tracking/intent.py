@@ -90,6 +90,7 @@ class IntentParams:
     recovery_prior_raise: float = 0.0  # the recovery's prior raised by this x the unpredicted weight
     recovery_sigma_raise_m: float = 0.0  # and its width (m) by this x that weight
     start_speed_mps: float = 0.0  # a particle leaving STATIONARY: velocity N(0, this^2) per axis
+    goal_switch_share: float = 1.0  # a goal particle's switch to another candidate goal at this share of the prior
 
 
 def unpredicted_weight(ps) -> float:
@@ -148,18 +149,25 @@ class Mixed:
 
 
 def mix_resample(log_weights: np.ndarray, modes: np.ndarray, intent: Intent, p_switch: float, n: int,
-                 min_share: float, rng: np.random.Generator) -> Mixed:
+                 min_share: float, rng: np.random.Generator, goal_share: float = 1.0) -> Mixed:
     """The modes' interaction and the resampling of one tick, at the mode level (the particle
     filter form of the IMM's mixing: Blom and Bar-Shalom, IEEE TAC 33(8), 1988; Boers and
     Driessen, IEE Proc. Radar Sonar Navig. 150(5), 2003):
 
-    1. the predicted mode probabilities p'_c = (1 - s) p_c + s prior_c (p_c: the posterior's);
+    1. the predicted mode probabilities p'_c = sum_i T_ic p_i (p_i: the posterior's), with the
+       Markov chain T_ic = (1 - s) [i = c] + s prior_c f_ic + [i = c] s sum_j prior_j (1 - f_ij):
+       a target redraws its mode from the prior at s a tick, except that a switch from one
+       candidate goal to another is taken at ``goal_share`` (f_ij, 1 elsewhere) and otherwise
+       keeps its goal (a target heading somewhere rarely changes its mind for another exit; it
+       stops, wanders or heads off more often);
     2. each mode with p'_c > 0 gets a count of particles: at least ``min_share`` n (so a mode the
        bearings do not favour yet is ready, densely sampled, when they do; at most half the set
        in all), the rest in proportion to p'_c;
-    3. mode c's particles are drawn, in the share (1 - s) p_c / p'_c, from its own posterior
-       particles by weight, and in the share s prior_c / p'_c from the whole posterior (particles
-       switching into c); each weighs p'_c / count_c, so the mode probabilities stay p'.
+    3. mode c's particles are drawn, in the share T_cc p_c / p'_c (its keeping share, less a
+       redraw of c itself), from its own posterior particles by weight, and in the rest from the
+       whole posterior (particles switching into c: where the target is, whatever its mode was;
+       drawn by f too, a goal's switch-ins would come from the standing and free particles alone);
+       each weighs p'_c / count_c, so the mode probabilities stay p'.
     """
     K = intent.n_goals
     C = K + 3
@@ -167,7 +175,11 @@ def mix_resample(log_weights: np.ndarray, modes: np.ndarray, intent: Intent, p_s
     w /= w.sum()
     cols = columns(modes, K)
     p = np.bincount(cols, weights=w, minlength=C)
-    pred = (1.0 - p_switch) * p + p_switch * intent.prior
+    f = np.ones((C, C))
+    f[:K, :K] = goal_share
+    np.fill_diagonal(f, 1.0)
+    keep = (1.0 - p_switch) + p_switch * ((1.0 - f) @ intent.prior)  # (C,) the share of c that stays c
+    pred = keep * p + p_switch * intent.prior * (1.0 if goal_share == 1.0 or K < 2 else p @ f)  # one goal: as 1
     live = pred > 0.0
     floor = min(min_share * n, 0.5 * n / max(1, live.sum()))
     target = np.where(live, floor + (n - floor * live.sum()) * pred / pred.sum(), 0.0)
@@ -179,7 +191,7 @@ def mix_resample(log_weights: np.ndarray, modes: np.ndarray, intent: Intent, p_s
     for c in np.flatnonzero(counts):
         m = counts[c]
         own_w = np.where(cols == c, w, 0.0)
-        own_share = (1.0 - p_switch) * p[c] / pred[c]
+        own_share = keep[c] * p[c] / pred[c]
         n_own = int(round(m * own_share)) if own_w.sum() > 0 else 0
         idx = np.empty(0, dtype=int)
         if n_own:

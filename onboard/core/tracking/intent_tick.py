@@ -136,7 +136,7 @@ def mix(setup, intent: im.Intent, post: tracking.ParticleSet, rng: np.random.Gen
     n = len(post)
     degenerate = tracking.effective_sample_size(post) < setup.resample_fraction * n
     mixed = im.mix_resample(post.log_weights, post.modes, intent, setup.intent.switch_prob, n, im.MIN_MODE_SHARE,
-                            rng)
+                            rng, setup.intent.goal_switch_share)
     particles = post.particles[mixed.source]
     aims = post.aims[mixed.source]
     s = setup.intent.start_speed_mps
