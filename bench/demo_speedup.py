@@ -1,7 +1,8 @@
 """`pmon demo`'s speed-up choice (sim/stack/demo.py ``measure_tick_s``, ``choose_speedup``) idle and
 beside N busy processes at normal priority: the tick's CPU time (what the demo measures) and its
 wall time (what it measured before), each a median of ``--repeat`` measurements, and the
-speed-up each would choose.
+speed-up each would choose. In this process's BLAS threads; the demo measures in one
+(``measure_tick_apart``): ``OPENBLAS_NUM_THREADS=1 python -m bench.demo_speedup`` for its figure.
 
     python -m bench.demo_speedup [--busy 2] [--repeat 5]
 

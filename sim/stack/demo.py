@@ -70,49 +70,82 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 
-def measure_tick_s(sc, n: int = 8, warmup: int = 2, clock=time.thread_time) -> float:
-    """Median CPU time of a core tick on this machine (``clock``, ``time.thread_time``: the tick runs
-    on this thread), so the choice follows the machine more than what else happens to run at start: beside
-    two busy processes the wall time of the same tick grew 2.4-2.6x, its CPU time 1.2-1.5x
-    (docs/DEPLOY.md, "The demo under load"). The first ``warmup`` ticks are excluded: their
-    guidance still searches every target's faces from scratch, several times a steady tick."""
+def measure_tick_s(sc, n: int = 10, warmup: int = 2, clock=time.thread_time, seed: int = 0) -> float:
+    """Median CPU time of a core tick on this machine, on the bearings a flight of ``sc`` sees at
+    its start: the scenario's targets stepped by the truth simulator (sim/truth), scanned by its DF
+    model from the UAV, which moves to each tick's planned next position (the evaluation's closed
+    loop, sim/evaluation/trials.py). Those first ticks are the mission's dearest (the demo's
+    ticks fall to about half their cost by mid-mission): the ones a speed-up must leave room for.
+    Random bearings, measured before, agree with no motion mode and re-seed every target each
+    tick, a cost that moved with what the draws triggered. ``clock`` (``time.thread_time``: the
+    tick runs on this thread) so the choice follows the machine more than what else runs at start
+    (with one BLAS thread: ``measure_tick_apart``). The first ``warmup`` ticks are excluded: their
+    guidance still searches every target's faces from scratch."""
     from onboard.core.guidance.predictor import GuidanceWorkspace
     from onboard.core.monitor import MonitorSetup, Scan, UavState, initial_state, tick
+    from sim.truth.sensors import DirectionFinder, df_scan
+    from sim.truth.world import simulate_truth
 
     setup = MonitorSetup.from_scenario(sc)
-    rng = np.random.default_rng(0)
-    state = initial_state(setup, rng)
-    ws = GuidanceWorkspace()
-    uav = np.array([*sc.uav.start_m[:2], sc.uav.altitude_m])
+    truth_rng, sensor_rng, filter_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    truth = simulate_truth(sc, warmup + n, truth_rng)
+    df = DirectionFinder.from_config(sc.sensor)
+    state, ws = initial_state(setup, filter_rng), GuidanceWorkspace()
+    uav, vel = np.array([*sc.uav.start_m[:2], sc.uav.altitude_m]), np.zeros(2)
     times = []
-    for _ in range(n):
-        bearings = tuple(rng.uniform(-np.pi, np.pi, 2) for _ in range(setup.n_targets))
+    for k in range(warmup + n):
+        scans = [Scan(uav.copy(), df_scan(truth[k], uav, df, sensor_rng))]
         t0 = clock()
-        state, _ = tick(setup, state, [Scan(uav, bearings)], rng, plan_from=UavState(uav), workspace=ws)
+        state, res = tick(setup, state, scans, filter_rng, plan_from=UavState(uav, vel), workspace=ws)
         times.append(clock() - t0)
+        p = res.planning
+        if p is not None and p.index is not None:  # fly to the plan's next point, at its velocity there
+            uav = np.asarray(p.position, float).copy()
+            vel = np.zeros(2) if p.velocities is None else np.asarray(p.velocities[p.index], float)[:2].copy()
     return float(np.median(times[warmup:]))
+
+
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def measure_tick_apart(scenario: str, policy: str, timeout_s: float = 120.0) -> float:
+    """``measure_tick_s`` of ``scenario`` under ``policy``, in a child process with one BLAS thread.
+    With a BLAS thread per core a busy process beside it made the same tick's CPU time scatter
+    1.1-2.3x (the main thread spins waiting for a BLAS thread the busy process holds off its core);
+    with one it stayed as idle (docs/DEPLOY.md, "The demo under load"). Idle, both took the same."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from onboard.config import load_scenario; from onboard.policy import with_policy; "
+            "from sim.stack.demo import measure_tick_s; "
+            "print(repr(measure_tick_s(with_policy(load_scenario(sys.argv[1]), sys.argv[2]))))")
+    p = subprocess.run([sys.executable, "-c", code, scenario, policy], capture_output=True, text=True,
+                       timeout=timeout_s, env={**os.environ, **dict.fromkeys(BLAS_THREADS, "1")})
+    if p.returncode != 0:
+        raise RuntimeError(f"measuring the core tick failed: {p.stderr.strip()[-500:]}")
+    return float(p.stdout.split()[-1])
 
 
 def choose_speedup(tick_s: float) -> float:
     """A tick must end before the next scan is due (1 autopilot s: 1 / speedup wall s), else
-    that scan is skipped. ``tick_s`` (``measure_tick_s``, random bearings) overstates the demo's
-    monitoring tick (idle 2-core VM: 83-88 ms measured, 57-69 ms the demo's monitoring median);
-    speedup = 0.2 s / tick puts that tick at a fifth of an autopilot second, leaving 5x for the
-    worst ticks and for the feed and the mock sharing the cores: 2x on that VM idle (a 100 s
-    mission in under 60 s wall), 1x under load. (0.25 s / tick gave 2.5x and 46 s walls, with 2
-    of 100 scans skipped in one of five runs.) Between 1x and 8x, in steps of 0.5."""
+    that scan is skipped. ``tick_s`` (``measure_tick_s``: the mission's first, dearest ticks, CPU
+    time) times the speedup stays at most 0.2 autopilot s, leaving 5x for the worst ticks (the
+    first, the guidance's search from scratch, 5-9x the measure), for the feed and the mock
+    sharing the cores and for a loaded machine: on an idle 2-core Xeon VM 59 ms gave 3x, 45 s
+    walls with 0 of 100 scans skipped, and the same beside two busy processes, 47-48 s walls
+    (docs/DEPLOY.md, "The demo under load"). Between 1x and 8x, in steps of 0.5."""
     return float(min(8.0, max(1.0, math.floor(0.2 / max(tick_s, 1e-3) * 2) / 2)))
 
 
-def _speedup(args, sc, console) -> float | None:
-    """The autopilot's speedup: measured ('auto') or given; None (said why) when out of range."""
-    from onboard.policy import with_policy
-
+def _speedup(args, console) -> tuple[float, float | None] | None:
+    """The autopilot's speedup, measured ('auto') or given, and the tick measured (s; None when
+    given); None (said why) when out of range."""
     if args.speedup == "auto":
-        tick_s = measure_tick_s(with_policy(sc, args.policy))  # the tick the app will run
+        tick_s = measure_tick_apart(args.scenario, args.policy)  # the tick the app will run
         speedup = choose_speedup(tick_s)
         console.print(f"core tick measured {tick_s * 1e3:.0f} ms of CPU -> speedup {speedup:g}x")
-        return speedup
+        return speedup, tick_s
     try:
         speedup = float(args.speedup)
     except ValueError:
@@ -120,7 +153,7 @@ def _speedup(args, sc, console) -> float | None:
     if not 0.1 <= speedup <= 50:
         console.print(f"pmon demo: --speedup must be 'auto' or a number in [0.1, 50], got {args.speedup!r}")
         return None
-    return speedup
+    return speedup, None
 
 
 def _refusal(args, duration: int, sc) -> str | None:
@@ -160,8 +193,9 @@ def run(args) -> int:
         return fail("pmon demo", why)  # one line on stderr (the console wraps at its width)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    if (speedup := _speedup(args, sc, console)) is None:
+    if (chosen := _speedup(args, console)) is None:
         return 2
+    speedup, tick_s = chosen
     mock = args.autopilot == "mock"
     # the demo's vehicle; the mock boots in DEMO_READY_S, ArduPilot's SITL as it does; PX4 with
     # the offboard-loss action docs/SITL.md recommends
@@ -193,7 +227,8 @@ def run(args) -> int:
     report = score(out / "run.jsonl", out / "truth.jsonl", sc)
     _print_report(console, report, sc, args.policy)
     png = plot(out / "run.jsonl", out / "truth.jsonl", sc, out / "flight.png")
-    (out / "report.json").write_text(json.dumps({**report, "speedup": speedup,
+    measured_ms = None if tick_s is None else round(tick_s * 1e3, 1)
+    (out / "report.json").write_text(json.dumps({**report, "speedup": speedup, "tick_measured_ms": measured_ms,
                                                  "wall_s": round(time.monotonic() - wall0, 1)}, indent=1))
     console.print(f"flight plot: {png} (map tools: {png.with_suffix('.geojson')})   run log: {out / 'run.jsonl'}   "
                   f"tlog: {out / 'app.tlog'}")
