@@ -11,7 +11,7 @@ from sim.mock.autopilot import MockAutopilot  # noqa: F401  (sets MAVLINK20 befo
 from onboard.config import load_scenario
 from onboard.core.dynamics import MotionModel
 from onboard.policy import with_policy
-from tests.support import lanes
+from tests.support import lanes, stand_ins
 
 # the pmon gcs programs the tests start keep normal priority (as before the program lowered itself):
 # at idle priority beside a loaded machine's work their start can take longer than a test waits.
@@ -97,7 +97,10 @@ def pytest_itemcollected(item):  # as each test is collected: before -m reads th
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """Each lane keeps its own tests (after -m and -k have chosen)."""
+    """A mock flight whose firmware version runs in this session is skipped (tests/support/stand_ins.py);
+    each lane keeps its own tests (after -m and -k have chosen)."""
+    for item, reason in stand_ins.stand_ins_covered(items):
+        item.add_marker(pytest.mark.skip(reason=reason))
     lane = config.stash.get(_LANE, None)
     if lane is None:
         return

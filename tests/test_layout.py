@@ -414,3 +414,58 @@ def test_the_lanes_exit_code_is_the_worse_lanes_and_a_lane_without_tests_fails_n
     assert merged_exit(0, 0) == 0 and merged_exit(0, 1) == 1 and merged_exit(1, 0) == 1
     assert merged_exit(5, 0) == 0 and merged_exit(0, 5) == 0 and merged_exit(5, 5) == 5
     assert merged_exit(2, 1) == 2 and merged_exit(5, 1) == 1
+
+
+def _mock_of_names() -> list[tuple[str, str]]:
+    """(the module marking it, the nodeid) of every ``@pytest.mark.mock_of(...)`` decorating a test under tests/."""
+    found = []
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        fns = [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.FunctionDef)]
+        for node in (d for fn in fns for d in fn.decorator_list):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr == "mock_of"):
+                found += [(str(path.relative_to(ROOT)), ast.literal_eval(a)) for a in node.args]
+    return found
+
+
+def test_every_mock_of_names_a_firmware_test_that_exists():
+    """A stand-in names tests of tests/firmware/ that exist (a misspelt one would keep the mock's
+    version running beside the real one, silently)."""
+    names = _mock_of_names()
+    assert len(names) >= 5, names
+    bad = []
+    for where, nodeid in names:
+        module, _, name = nodeid.partition("::")
+        path = ROOT / module
+        if not module.startswith("tests/firmware/") or not path.is_file():
+            bad.append(f"{where}: {nodeid}: not a module of tests/firmware/")
+        elif name not in {n.name for n in ast.parse(path.read_text()).body if isinstance(n, ast.FunctionDef)}:
+            bad.append(f"{where}: {nodeid}: no such test")
+    assert not bad, "\n".join(bad)
+
+
+def test_a_stand_in_is_skipped_only_where_every_firmware_test_it_names_runs():
+    import pytest
+
+    from tests.support.stand_ins import stand_ins_covered
+
+    class Item:
+        def __init__(self, nodeid, *marks):
+            self.nodeid, self.marks = nodeid, [m.mark for m in marks]
+
+        def iter_markers(self, name):
+            return (m for m in self.marks if m.name == name)
+
+    fw_a, fw_b = "tests/firmware/test_x.py::test_a", "tests/firmware/test_x.py::test_b"
+    mock = Item("tests/app/test_y.py::test_m", pytest.mark.mock_of(fw_a, fw_b))
+    plain = Item("tests/app/test_y.py::test_plain")
+    a, b = Item(fw_a), Item(fw_b)
+    no_sitl = Item(fw_b, pytest.mark.skipif(True, reason="no SITL"))
+    assert [i for i, _ in stand_ins_covered([mock, plain, a, b])] == [mock]
+    assert fw_a in stand_ins_covered([mock, a, b])[0][1]
+    assert stand_ins_covered([mock, plain, a]) == []  # one of them deselected (-m, -k, a path)
+    assert stand_ins_covered([mock, a, no_sitl]) == []  # its firmware missing: skipped
+    assert stand_ins_covered([mock, a, Item(fw_b, pytest.mark.skipif("sys.platform", reason="?"))]) == []
+    assert stand_ins_covered([mock, a, Item(fw_b, pytest.mark.skip(reason="off"))]) == []
+    assert [i for i, _ in stand_ins_covered([mock, a, Item(fw_b, pytest.mark.skipif(False, reason="-"))])] == [mock]
+    assert stand_ins_covered([Item("t::m", pytest.mark.mock_of()), a]) == []  # names nothing: runs

@@ -4,7 +4,8 @@ scan it answers, where the vehicle was then, with the acceleration the last plan
 the vehicle is at the planned point when the next scan comes. Before, the plan started at the
 tick's snapshot (a telemetry sample later, the app's latency) and its acceleration stepped at
 every tick: on ArduCopter SITL 0.4-0.7 m median and 1.5-2.0 m p95 from the planned point
-(docs/SITL.md), on the mock 0.46 / 1.57 m. The same on the firmware: tests/firmware/test_ardupilot.py."""
+(docs/SITL.md), on the mock 0.46 / 1.57 m. The same on the firmware: tests/firmware/test_ardupilot.py (flight A),
+which stands in for both tests here where it runs in the same session (``mock_of``, tests/README.md)."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,12 +15,12 @@ from sim.mock.autopilot import BootTimeline, MockAutopilot
 from sim.firmware.priority import app_config_priority, vehicle_threads
 
 from tests.support.app_helpers import ScriptedDf, wait_for
+from tests.support.plan_checks import assert_plans_start_at_their_scans_and_join
 
 from onboard.app.app_config import AppConfig
 from onboard.app.app import OnboardApp
 from onboard.app.contract import State
 from onboard.config import load_scenario
-from onboard.core.setpoint import plan_setpoint
 from onboard.policy import POLICIES
 from sim.stack.procedure import follow_errors_m
 
@@ -53,26 +54,12 @@ def ticks():
         ap.stop()
 
 
+@pytest.mark.mock_of("tests/firmware/test_ardupilot.py::test_each_plan_starts_at_its_scan_with_the_last_plans_acceleration")
 def test_each_plan_starts_at_its_scan_with_the_last_plans_acceleration(ticks):
-    sent = [r for r in ticks if r["sent"] and r["segment"]]
-    assert len(sent) >= MONITORING_TICKS - 5
-    for r in sent:
-        seg = r["segment"]
-        assert seg["t0"] == r["t"]  # the scan's time, not the tick's (later) snapshot
-        np.testing.assert_allclose(seg["p0"][:2], r["uav_enu"][:2], atol=1e-3)  # where the DF was then
-        assert seg["a0"] is not None
-    joined = 0
-    for a, b in zip(sent, sent[1:]):
-        if abs(b["t"] - a["t"] - 1.0) < 1e-6:
-            s = a["segment"]
-            end = plan_setpoint(s["p0"][:2], s["v0"], s["v1"], s["tick_s"], s["tick_s"], s["a0"])[2]
-            np.testing.assert_allclose(b["segment"]["a0"], end, atol=1e-9)  # no step for the shaper
-            joined += 1
-    assert joined >= MONITORING_TICKS - 10
-    # the plans do turn: the acceleration is there to be continuous
-    assert max(np.linalg.norm(r["segment"]["a0"]) for r in sent) > 1.0
+    assert_plans_start_at_their_scans_and_join(ticks, MONITORING_TICKS - 5, MONITORING_TICKS - 10)
 
 
+@pytest.mark.mock_of("tests/firmware/test_ardupilot.py::test_the_copter_flies_the_plan_instead_of_braking_to_each_point")
 def test_the_vehicle_is_at_the_planned_point_at_the_next_scan(ticks):
     d = np.array(follow_errors_m(ticks))
     assert len(d) >= MONITORING_TICKS - 10

@@ -2,7 +2,8 @@
 autopilot (issue 29, item 6): the setpoints carry h (they used to carry the vehicle's own
 altitude at the tick, so a new h never flew and a vehicle a pilot had flown lower stayed low);
 a change of h flies; after a takeover and resume the vehicle goes back to h.
-The same on ArduCopter's own firmware: tests/firmware/test_ardupilot_altitude.py."""
+The same on ArduCopter's own firmware: tests/firmware/test_ardupilot_altitude.py, which stands in for
+this module where it runs in the same session (``mock_of``, tests/README.md)."""
 from __future__ import annotations
 
 import numpy as np
@@ -82,6 +83,7 @@ def flight():
         ap.stop()
 
 
+@pytest.mark.mock_of("tests/firmware/test_ardupilot_altitude.py::test_a_new_h_flies_within_30_s")
 def test_a_new_h_flies(flight):
     assert abs(flight["h0"] - 40.0) < AT_H_M
     assert flight["set_60"] is not None and flight["set_60"].param_value == 60.0
@@ -93,6 +95,8 @@ def test_a_new_h_flies(flight):
     assert len(alts) > 10 and np.abs(alts - 60.0).max() < 0.01, np.unique(alts.round(2))
 
 
+@pytest.mark.mock_of("tests/firmware/test_ardupilot_altitude.py::"
+                     "test_after_a_takeover_and_resume_the_copter_is_back_at_h_within_30_s")
 def test_after_a_takeover_and_resume_the_vehicle_returns_to_h(flight):
     assert flight["resume"] is not None and flight["resume"].result == mavlink.MAV_RESULT_ACCEPTED
     print(f"within {AT_H_M} m of h = 45 m {flight['to_45_s']} autopilot s after the resume")

@@ -40,9 +40,11 @@ def _fly(out, seed: int):
     return run
 
 
-@pytest.fixture(scope="module", params=[7, 8])
-def flight(request, tmp_path_factory):
-    return _fly(tmp_path_factory.mktemp(f"replay{request.param}"), request.param)
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    # one mock flight: a second seed's cost 24 s of the suite's critical lane; the firmware flights'
+    # replays (tests/firmware/test_px4.py, test_ardupilot_hub.py) are two more flights, two more seeds
+    return _fly(tmp_path_factory.mktemp("replay"), 7)
 
 
 def _ticks(path):

@@ -27,6 +27,8 @@ from sim.firmware.ardupilot import skip_reason
 from sim.stack.procedure import RECOMMENDED_PARAMS, Mission, MissionConfig, fly_launch_procedure
 from sim.stack.tick_account import TickAccount
 
+from tests.support.plan_checks import assert_plans_start_at_their_scans_and_join
+
 pytestmark = [pytest.mark.ardupilot, pytest.mark.sitl,
               pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")]
 
@@ -126,6 +128,12 @@ def test_the_copter_flies_the_plan_instead_of_braking_to_each_point(flight_a):
     assert len(d) >= MONITOR_S * 0.9
     assert np.median(d) <= FOLLOW_MEDIAN_M and np.percentile(d, 95) <= FOLLOW_P95_M, \
         (np.median(d), np.percentile(d, 95))
+
+
+def test_each_plan_starts_at_its_scan_with_the_last_plans_acceleration(flight_a):
+    """What the copter follows (issue 29): each plan from its scan, with the last plan's acceleration
+    (the mock's version: tests/app/test_follow_plan.py)."""
+    assert_plans_start_at_their_scans_and_join(flight_a["m"].run_log(), MONITOR_S - 5, MONITOR_S - 10)
 
 
 def test_the_copter_stays_in_the_area_and_out_of_the_obstacles(flight_a):

@@ -1,7 +1,7 @@
 """``pmon demo --df kraken`` on ArduPilot's own ArduCopter SITL (issue 32): the simulated KrakenSDR
 stamps its frames with the firmware's UTC (SYSTEM_TIME) and draws them at its heading
 (GLOBAL_POSITION_INT.hdg); the app maps them back through the same messages. The mock's version:
-tests/sim/test_kraken_sitl.py.
+tests/sim/test_kraken_sitl.py (skipped where this runs in the same session: ``mock_of``).
 
 Every run's app.log ends with "KrakenSDR unreachable: ... Connection reset by peer" and status.json
 refused: the feed closes its server once its last frame was read, before the app is stopped (not
@@ -42,3 +42,6 @@ def test_pmon_demo_df_kraken_on_ardupilots_own_sitl(tmp_path):
     used = re.search(r"pmon run: KrakenSDR: \d+ lines, (\d+) frames \((\d+) missed\), (\d+) scans, (\d+) rejected \{\}",
                      app_log)
     assert used and (int(used.group(1)), int(used.group(2)), int(used.group(3))) == (20, 0, 80), app_log[-1500:]
+    # KrakenSDR's status.json is there from its start (the app may find it gone once the feed ended)
+    assert "HTTP 404" not in app_log, app_log[-1500:]
+    assert (out / "kraken" / "DOA_value.html").exists()

@@ -103,6 +103,7 @@ def test_the_stack_with_a_simulated_krakensdr_ticks_every_scan(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(120)
+@pytest.mark.mock_of("tests/firmware/test_kraken_ardupilot.py::test_pmon_demo_df_kraken_on_ardupilots_own_sitl")
 def test_pmon_demo_df_kraken_flies_on_the_simulated_krakensdr(tmp_path):
     import subprocess
     import sys
